@@ -1,0 +1,194 @@
+"""Gray-code structured light: patterns from OpenCV, a vectorised decoder in torch.
+
+The decoder follows the semantics of OpenCV's ``cv2.structured_light.GrayCodePattern``
+(``decode`` / ``getProjPixel``), evaluated for every camera pixel at once:
+
+- shadow mask: a pixel is usable only where ``|white - black| > black_threshold``;
+- for each pattern/inverse pair, the bit is ``pattern > inverse``; a pair whose difference
+  ``|pattern - inverse| < white_threshold`` makes the pixel unreliable (invalid);
+- column bits come first, most significant bit first, then row bits; the Gray code is turned into
+  a binary number; decoded coordinates outside the projector image are invalid.
+
+Thresholds are in 8-bit units whatever the file depth (OpenCV's defaults: white 5, black 40).
+Coordinates follow :mod:`torchproj.core.conventions` (a decoded value is the integer centre of the
+LCD cell that lit the pixel).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..core.checks import check, check_shape
+
+__all__ = ["GrayDecoding", "graycode_patterns", "graycode_bits", "decode_gray", "refine_subpixel"]
+
+_EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
+
+
+def graycode_bits(width: int, height: int) -> tuple[int, int]:
+    """Number of column and row bits OpenCV uses for a projector of this size."""
+    return math.ceil(math.log2(width)), math.ceil(math.log2(height))
+
+
+def graycode_patterns(width: int, height: int) -> torch.Tensor:
+    """The Gray-code sequence of a projector, then white and black.
+
+    Returns:
+        :math:`(2 (n_x + n_y) + 2, 1, H, W)` float patterns in {0, 1}: pattern/inverse pairs
+        (columns first, most significant bit first), then all-white, then all-black. This is the
+        order of a capture folder (``graycode_00.png`` ...).
+    """
+    gen = cv2.structured_light.GrayCodePattern.create(width, height)
+    ok, patterns = gen.generate()
+    check(bool(ok), f"OpenCV could not generate Gray code for {width}x{height}")
+    stack = np.stack(list(patterns) + [np.full((height, width), 255, np.uint8), np.zeros((height, width), np.uint8)])
+    return torch.from_numpy(stack).float().div_(255.0)[:, None]
+
+
+@dataclass
+class GrayDecoding:
+    """Result of :func:`decode_gray`.
+
+    Attributes:
+        prj_xy: :math:`(H, W, 2)` float32 projector ``(x, y)`` per camera pixel, NaN where invalid.
+        valid: :math:`(H, W)` bool, decoded and reliable.
+        lit: :math:`(H, W)` bool, the shadow mask (``|white - black| > black_threshold``).
+        contrast: :math:`(H, W)` white minus black, in [0, 1] units (a decoding confidence and the
+            radiometric weight of this projector at each pixel).
+    """
+
+    prj_xy: torch.Tensor
+    valid: torch.Tensor
+    lit: torch.Tensor
+    contrast: torch.Tensor
+
+    @property
+    def valid_fraction(self) -> float:
+        return float(self.valid.float().mean())
+
+
+def _grey(images: torch.Tensor) -> torch.Tensor:
+    """(N, C, H, W) or (N, H, W) -> (N, H, W); colour averaged (OpenCV decodes grey images)."""
+    if images.dim() == 4:
+        return images[:, 0] if images.shape[1] == 1 else images.mean(1)
+    return images
+
+
+def _gray_to_binary(bits: torch.Tensor) -> torch.Tensor:
+    """(n, H, W) Gray-code bits, MSB first -> (H, W) int64 values."""
+    binary = torch.zeros(bits.shape[1:], dtype=torch.bool, device=bits.device)
+    value = torch.zeros(bits.shape[1:], dtype=torch.int32, device=bits.device)
+    for g in bits:  # b_i = b_{i-1} xor g_i; value accumulates MSB first
+        binary = binary ^ g
+        value = value * 2 + binary
+    return value.to(torch.int64)
+
+
+def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, projector_size: tuple[int, int],
+                white_threshold: float = 5, black_threshold: float = 40) -> GrayDecoding:
+    """Decode a Gray-code capture into per-pixel projector coordinates.
+
+    Args:
+        patterns: :math:`(N, H, W)` or :math:`(N, C, H, W)` captures of the pattern/inverse pairs,
+            in [0, 1], in :func:`graycode_patterns` order (N = 2 (n_x + n_y)).
+        white: :math:`(H, W)` or :math:`(C, H, W)` capture of the all-white image.
+        black: same, all-black.
+        projector_size: ``(width, height)`` of the projector.
+        white_threshold: minimum ``|pattern - inverse|`` (8-bit units) for a reliable bit.
+        black_threshold: minimum ``|white - black|`` (8-bit units) for a lit pixel.
+
+    Returns:
+        a :class:`GrayDecoding`.
+    """
+    width, height = projector_size
+    nx, ny = graycode_bits(width, height)
+    imgs = _grey(patterns) * 255.0
+    white8 = _grey(white[None] if white.dim() <= 3 else white)[0] * 255.0
+    black8 = _grey(black[None] if black.dim() <= 3 else black)[0] * 255.0
+    sizes = check_shape(imgs, "patterns", ["N", "H", "W"])
+    check(sizes["N"] == 2 * (nx + ny),
+          f"patterns must hold {2 * (nx + ny)} images for a {width}x{height} projector "
+          f"({nx} column + {ny} row bits, each a pattern/inverse pair), got {sizes['N']}")
+    check_shape(white8, "white", [sizes["H"], sizes["W"]])
+    check_shape(black8, "black", [sizes["H"], sizes["W"]])
+
+    pos, neg = imgs[0::2], imgs[1::2]
+    bits = pos > neg
+    reliable = ((pos - neg).abs() >= white_threshold - _EPS).all(0)
+    x = _gray_to_binary(bits[:nx])
+    y = _gray_to_binary(bits[nx:])
+    contrast = white8 - black8
+    lit = contrast.abs() > black_threshold + _EPS
+    valid = lit & reliable & (x < width) & (y < height)
+    prj_xy = torch.stack([x, y], -1).to(torch.float32)
+    prj_xy[~valid] = float("nan")
+    return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast / 255.0)
+
+
+def _offset_kernels(window: int, dtype, device) -> torch.Tensor:
+    r = window // 2
+    d = torch.arange(-r, r + 1, dtype=dtype, device=device)
+    dy, dx = torch.meshgrid(d, d, indexing="ij")
+    one = torch.ones_like(dx)
+    return torch.stack([one, dx, dy, dx * dx, dx * dy, dy * dy])[:, None]  # (6, 1, w, w)
+
+
+def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
+                    min_fill: float = 0.7, max_shift: float = 0.75) -> torch.Tensor:
+    """Sub-pixel projector coordinates by a local affine fit over neighbouring camera pixels.
+
+    Gray code quantises each coordinate to whole LCD cells, a staircase across the camera image.
+    On a smooth surface, the projector coordinate is locally an affine function of the camera
+    coordinate; a least-squares plane through the decoded values in a ``window x window``
+    neighbourhood, evaluated at the centre, recovers the position between the steps. Where the
+    fit is not trustworthy (too few valid neighbours, or it lands more than ``max_shift`` from the
+    decoded cell centre, as at depth edges) the integer value is kept.
+
+    Args:
+        prj_xy: :math:`(H, W, 2)` decoded coordinates (NaN where invalid).
+        valid: :math:`(H, W)` bool.
+        window: odd neighbourhood size in camera pixels.
+        min_fill: minimum fraction of valid pixels in the window.
+        max_shift: largest accepted move away from the decoded value, in projector pixels.
+
+    Returns:
+        :math:`(H, W, 2)` refined coordinates, NaN where invalid.
+    """
+    check(window % 2 == 1 and window >= 3, f"window must be an odd number >= 3, got {window}")
+    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    # Sums in float32 (fast convolutions; round-off ~1e-4 px for 1024-pixel projectors), the
+    # 3x3 solve in float64.
+    dtype = torch.float32
+    kernels = _offset_kernels(window, dtype, prj_xy.device)
+    m = valid.to(dtype)[None, None]
+    vals = torch.nan_to_num(prj_xy.to(dtype)).permute(2, 0, 1)[:, None] * m  # (2, 1, H, W)
+    pad = window // 2
+    # conv2d correlates, so kernel entry d weighs the neighbour at offset d (neighbour - centre).
+    mom = F.conv2d(m, kernels, padding=pad)[0].double()  # (6, H, W): n, sx, sy, sxx, sxy, syy
+    rhs = F.conv2d(vals, kernels[:3], padding=pad).double()  # (2, 3, H, W): su, sux, suy
+    n, sx, sy, sxx, sxy, syy = mom
+    enough = valid & (n >= min_fill * window * window)
+    out = prj_xy.clone()
+    if not bool(enough.any()):
+        return out
+    # Normal equations [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] c = [su, sux, suy]; only the
+    # fitted value at the centre, c0, is needed: Cramer's rule on the symmetric 3x3 system.
+    n, sx, sy, sxx, sxy, syy = (v[enough] for v in mom)
+    su, sux, suy = (rhs[:, k][:, enough] for k in range(3))  # each (2, M)
+    cof_xx = sxx * syy - sxy * sxy
+    cof_xy = sx * syy - sxy * sy
+    cof_xz = sx * sxy - sxx * sy
+    det = n * cof_xx - sx * cof_xy + sy * cof_xz
+    c0 = (su * cof_xx - sx * (sux * syy - sxy * suy) + sy * (sux * sxy - sxx * suy)) / det
+    fitted = c0.T.to(prj_xy.dtype)  # (M, 2)
+    decoded = prj_xy[enough]
+    keep = (fitted - decoded).abs().max(-1).values <= max_shift
+    refined = torch.where(keep[:, None], fitted, decoded)
+    out[enough] = refined
+    return out

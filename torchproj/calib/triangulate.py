@@ -1,0 +1,109 @@
+"""Camera-projector triangulation from an OpenCV stereo calibration.
+
+The calibration file is OpenCV FileStorage as written by the usual procam-calibration scripts:
+``cam_int``, ``cam_dist``, ``proj_int``, ``proj_dist``, ``rotation`` (also read under the
+misspelling ``roration``) and ``translation``, with ``x_proj = R x_cam + T`` as returned by
+``cv2.stereoCalibrate``. Points come out in the camera frame, in the calibration's units
+(usually millimetres).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from kornia.geometry.calibration import undistort_points
+from kornia.geometry.epipolar import triangulate_points
+
+from ..core.checks import check_shape
+from ..core.errors import CaptureError
+
+__all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "write_ply"]
+
+
+@dataclass
+class ProCamCalibration:
+    """Intrinsics, distortion and the camera-to-projector pose of one camera and one projector."""
+
+    cam_K: torch.Tensor  # 3x3
+    cam_dist: torch.Tensor  # (k,)
+    prj_K: torch.Tensor  # 3x3
+    prj_dist: torch.Tensor  # (k,)
+    prj_from_cam: torch.Tensor  # 3x4 [R | T]
+
+
+def read_opencv_calibration(path: str | os.PathLike) -> ProCamCalibration:
+    """Read a camera-projector calibration written by OpenCV's FileStorage (XML or YAML)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{path}: calibration file not found")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CaptureError(f"{path}: not an OpenCV FileStorage file")
+
+    def mat(*names):
+        for name in names:
+            node = fs.getNode(name)
+            if not node.empty():
+                return torch.as_tensor(node.mat(), dtype=torch.float64)
+        raise CaptureError(f"{path}: missing '{names[0]}' (expected cam_int, cam_dist, proj_int, proj_dist, "
+                           "rotation, translation as written by cv2.stereoCalibrate scripts)")
+
+    rotation = mat("rotation", "roration", "R")
+    translation = mat("translation", "T").reshape(3, 1)
+    calib = ProCamCalibration(
+        cam_K=mat("cam_int"), cam_dist=mat("cam_dist").reshape(-1), prj_K=mat("proj_int"),
+        prj_dist=mat("proj_dist").reshape(-1), prj_from_cam=torch.cat([rotation, translation], 1))
+    fs.release()
+    return calib
+
+
+def _normalised(points: torch.Tensor, K: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """Undistorted normalised image coordinates (z = 1 plane) of pixel points :math:`(N, 2)`."""
+    eye = torch.eye(3, dtype=points.dtype)[None]
+    return undistort_points(points[None], K[None].to(points.dtype), dist[None].to(points.dtype),
+                            new_K=eye, num_iters=20)[0]
+
+
+def triangulate(cam_xy: torch.Tensor, prj_xy: torch.Tensor, calib: ProCamCalibration) -> torch.Tensor:
+    """Triangulate camera-projector correspondences (linear DLT, kornia).
+
+    Args:
+        cam_xy: :math:`(N, 2)` camera pixel coordinates (conventions module).
+        prj_xy: :math:`(N, 2)` projector pixel coordinates of the same points.
+        calib: the stereo calibration.
+
+    Returns:
+        :math:`(N, 3)` points in the camera frame, in the calibration's units.
+    """
+    check_shape(cam_xy, "cam_xy", ["N", 2])
+    check_shape(prj_xy, "prj_xy", ["N", 2])
+    cam_n = _normalised(cam_xy.double(), calib.cam_K, calib.cam_dist)
+    prj_n = _normalised(prj_xy.double(), calib.prj_K, calib.prj_dist)
+    P1 = torch.cat([torch.eye(3, dtype=torch.float64), torch.zeros(3, 1, dtype=torch.float64)], 1)
+    P2 = calib.prj_from_cam
+    return triangulate_points(P1[None], P2[None], cam_n[None], prj_n[None])[0]
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Write an ASCII-header binary PLY point cloud (``points`` (N, 3); ``colors`` (N, 3) uint8)."""
+    points = np.asarray(points, dtype=np.float32)
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}",
+              "property float x", "property float y", "property float z"]
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colors is not None:
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+        fields += [("r", "u1"), ("g", "u1"), ("b", "u1")]
+    header.append("end_header")
+    data = np.empty(len(points), dtype=fields)
+    data["x"], data["y"], data["z"] = points.T
+    if colors is not None:
+        colors = np.asarray(colors, dtype=np.uint8)
+        data["r"], data["g"], data["b"] = colors.T
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode())
+        f.write(data.tobytes())

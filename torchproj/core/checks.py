@@ -1,0 +1,79 @@
+"""The one place for input checks.
+
+Every check raises :class:`torchproj.core.errors.InputError` (a ``ValueError``) whose message names
+the argument and says how to fix it.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from .errors import InputError
+
+__all__ = ["check_shape", "check_finite", "check_image", "check"]
+
+
+def check(condition: bool, message: str) -> None:
+    """Raise :class:`InputError` with ``message`` unless ``condition`` holds."""
+    if not condition:
+        raise InputError(message)
+
+
+def check_shape(tensor: torch.Tensor, name: str, dims: Sequence[str | int]) -> dict[str, int]:
+    """Check a tensor's shape against a pattern and return the sizes bound to named dimensions.
+
+    Args:
+        tensor: the tensor to check.
+        name: the argument's name, used in the error message.
+        dims: one entry per dimension: an int (that exact size) or a letter (any size, but the same
+            letter must have the same size everywhere it appears). ``"*"`` as the first entry allows
+            any number of leading dimensions.
+
+    Returns:
+        a dict from dimension letters to sizes.
+
+    Example:
+        >>> check_shape(torch.zeros(5, 7, 2), "prj_xy", ["H", "W", 2])
+        {'H': 5, 'W': 7}
+    """
+    if not isinstance(tensor, torch.Tensor):
+        raise InputError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
+    dims = list(dims)
+    shape = list(tensor.shape)
+    if dims and dims[0] == "*":
+        dims = dims[1:]
+        shape = shape[len(shape) - len(dims):] if len(shape) >= len(dims) else None
+    pattern = "(" + ", ".join(str(d) for d in dims) + ")"
+    if shape is None or len(shape) != len(dims):
+        raise InputError(f"{name} must have shape {pattern}, got {tuple(tensor.shape)}")
+    bound: dict[str, int] = {}
+    for d, s in zip(dims, shape):
+        if isinstance(d, int):
+            if s != d:
+                raise InputError(f"{name} must have shape {pattern}, got {tuple(tensor.shape)}")
+        else:
+            if bound.setdefault(d, s) != s:
+                raise InputError(
+                    f"{name} must have shape {pattern} with equal sizes for '{d}', got {tuple(tensor.shape)}"
+                )
+    return bound
+
+
+def check_finite(tensor: torch.Tensor, name: str) -> None:
+    """Reject NaN or infinite values (a silent NaN would poison every later step)."""
+    if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+        bad = int((~torch.isfinite(tensor)).sum())
+        raise InputError(f"{name} holds {bad} non-finite values (NaN or inf); replace or mask them first")
+
+
+def check_image(image: torch.Tensor, name: str) -> dict[str, int]:
+    """Check a library image: float ``(C, H, W)`` with C in {1, 3}, finite, values in [0, 1]."""
+    sizes = check_shape(image, name, ["C", "H", "W"])
+    check(sizes["C"] in (1, 3), f"{name} must have 1 or 3 channels, got {sizes['C']}")
+    check(image.is_floating_point(), f"{name} must be a float tensor in [0, 1], got {image.dtype}")
+    check_finite(image, name)
+    lo, hi = float(image.min()), float(image.max())
+    check(lo >= 0.0 and hi <= 1.0, f"{name} must lie in [0, 1], got values in [{lo:.3g}, {hi:.3g}]")
+    return sizes

@@ -1,0 +1,61 @@
+"""Coordinate and image conventions used everywhere in torchproj.
+
+This module is the one place where conventions are stated; every other docstring refers here.
+
+**Units.** Metres and radians in scene descriptions and the simulator. Real calibration files keep
+their own units (OpenCV calibrations are usually in millimetres); functions that read them say so.
+
+**Frames.** A pose is named ``dst_from_src``: a 4x4 matrix mapping homogeneous points of frame
+``src`` into frame ``dst`` (``world_from_cam`` maps camera-frame points into the world). Camera and
+projector frames follow OpenCV: x right, y down, z forward along the optical axis.
+
+**Pixels.** Image coordinates ``(x, y)``: x is the column, y the row, origin at the top-left of
+the image, and *pixel centres at integer coordinates*, as in OpenCV and kornia. Pixel ``(i, j)``
+(row i, column j) therefore covers ``[j - 0.5, j + 0.5) x [i - 0.5, i + 0.5)``. A projector pixel
+index decoded from Gray code is the integer centre of the LCD cell that lit the camera pixel, so
+a continuous projector coordinate ``u`` decodes to ``floor(u + 0.5)``.
+
+**Sizes.** Resolutions are written ``(width, height)`` on the command line and in YAML
+(``1024x768``), but tensors are ``(..., H, W)``. Maps from camera pixels to projector coordinates
+are ``(H, W, 2)`` with the last axis ``(x, y)``; invalid entries are NaN.
+
+**Images.** Inside the library images are float tensors ``(C, H, W)`` with values in ``[0, 1]``
+(C = 1 or 3). 8-bit or 16-bit integers appear only at file edges (reading captures, writing
+patterns).
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["pixel_grid", "round_to_pixel"]
+
+
+def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """Return the pixel-centre coordinates of an image.
+
+    Args:
+        height: image height H.
+        width: image width W.
+
+    Returns:
+        :math:`(H, W, 2)` tensor of ``(x, y)`` pixel centres (integers, see the module docstring).
+    """
+    ys, xs = torch.meshgrid(
+        torch.arange(height, device=device, dtype=dtype),
+        torch.arange(width, device=device, dtype=dtype),
+        indexing="ij",
+    )
+    return torch.stack([xs, ys], dim=-1)
+
+
+def round_to_pixel(coords: torch.Tensor) -> torch.Tensor:
+    """Index of the pixel cell containing continuous coordinates (``floor(u + 0.5)``).
+
+    Args:
+        coords: any shape, continuous pixel coordinates.
+
+    Returns:
+        int64 tensor of the same shape.
+    """
+    return torch.floor(coords + 0.5).to(torch.int64)

@@ -1,0 +1,70 @@
+"""Image files at the edges of the library: integers on disk, float ``(C, H, W)`` in [0, 1] inside.
+
+See :mod:`torchproj.core.conventions` for the image convention.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .errors import CaptureError
+
+__all__ = ["read_image", "write_image", "to_uint"]
+
+
+def read_image(path: str | os.PathLike) -> torch.Tensor:
+    """Read an 8- or 16-bit PNG/TIFF/JPEG as a float image.
+
+    Args:
+        path: the file.
+
+    Returns:
+        :math:`(C, H, W)` float32 tensor in [0, 1], C = 1 (grey) or 3 (RGB order).
+
+    Raises:
+        CaptureError: naming the file when it is missing, unreadable or of an unsupported depth.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{path}: file not found")
+    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if data is None:
+        raise CaptureError(f"{path}: cannot be read as an image (corrupt or truncated?); capture it again")
+    if data.dtype == np.uint8:
+        scale = 255.0
+    elif data.dtype == np.uint16:
+        scale = 65535.0
+    else:
+        raise CaptureError(f"{path}: unsupported pixel type {data.dtype}; save 8- or 16-bit images")
+    if data.ndim == 3:
+        if data.shape[2] == 4:
+            data = data[:, :, :3]
+        data = data[:, :, ::-1]  # OpenCV stores BGR
+        tensor = torch.from_numpy(np.ascontiguousarray(data)).permute(2, 0, 1)
+    else:
+        tensor = torch.from_numpy(data)[None]
+    return tensor.float() / scale
+
+
+def to_uint(image: torch.Tensor, bits: int = 8) -> np.ndarray:
+    """Quantise a float image in [0, 1] to an ``(H, W)`` or ``(H, W, 3)`` integer array (RGB)."""
+    peak = (1 << bits) - 1
+    dtype = np.uint8 if bits == 8 else np.uint16
+    arr = torch.round(image.detach().clamp(0, 1) * peak).to(torch.int32).cpu().numpy().astype(dtype)
+    return arr[0] if arr.shape[0] == 1 else np.ascontiguousarray(arr.transpose(1, 2, 0))
+
+
+def write_image(path: str | os.PathLike, image: torch.Tensor, bits: int = 8) -> None:
+    """Write a float ``(C, H, W)`` image in [0, 1] as an 8- or 16-bit file (format from the suffix)."""
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits}")
+    arr = to_uint(image, bits)
+    if arr.ndim == 3:
+        arr = arr[:, :, ::-1]
+    if not cv2.imwrite(str(path), arr):
+        raise OSError(f"{path}: could not be written")

@@ -1,0 +1,29 @@
+"""Rig and scene descriptions: YAML configs loaded into validated dataclasses."""
+
+from .config import (
+    BUILTIN_SCENES,
+    Camera,
+    Projector,
+    Scene,
+    State,
+    Surface,
+    builtin_config,
+    load_scene,
+    parse_scene,
+)
+from .pose import look_at, rotation_from_euler_deg, rotation_from_rotvec
+
+__all__ = [
+    "BUILTIN_SCENES",
+    "Camera",
+    "Projector",
+    "Scene",
+    "State",
+    "Surface",
+    "builtin_config",
+    "load_scene",
+    "look_at",
+    "parse_scene",
+    "rotation_from_euler_deg",
+    "rotation_from_rotvec",
+]

@@ -1,0 +1,359 @@
+"""Scene and rig descriptions: YAML files loaded into validated dataclasses.
+
+Every check runs at load time, before any work, and a failure raises
+:class:`~torchproj.core.errors.ConfigError` naming the field (``projectors[1].focal``) and the fix.
+Units and frames: :mod:`torchproj.core.conventions` and :mod:`torchproj.scene.pose`.
+
+A scene holds J projectors, one camera, named surfaces and K *states*. A state lists the surfaces
+present at one moment (the same box near, then far, is two surfaces in two states).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..core.errors import ConfigError
+from .fields import Fields
+from .pose import parse_pose
+
+__all__ = [
+    "Projector",
+    "Camera",
+    "Surface",
+    "State",
+    "Scene",
+    "load_scene",
+    "parse_scene",
+    "builtin_config",
+    "BUILTIN_SCENES",
+]
+
+SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+BUILTIN_SCENES = ("paper_two_planes", "three_planes", "box_cylinders", "head_two_positions", "two_screens")
+
+
+@dataclass
+class Projector:
+    """A pinhole projector with an LCD pixel grid.
+
+    Emitted light of a pixel with pattern value x in [0, 1] (per colour channel):
+    ``power * (a * x**b + black_level) * vignette(u)``, where
+    ``vignette(u) = 1 - vignetting * (r / r_corner)**2`` and r is the distance of pixel u from the
+    principal point. ``power`` is the irradiance in W/m^2 on a surface facing the projector at 1 m.
+    """
+
+    name: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    world_from_prj: np.ndarray
+    response_a: float = 1.0
+    response_b: tuple[float, ...] = (2.2,)
+    black_level: float = 0.01
+    vignetting: float = 0.0
+    power: float = 1.0
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.world_from_prj[:3, 3]
+
+
+@dataclass
+class Camera:
+    """A pinhole camera with optional distortion (OpenCV's k1, k2, p1, p2, k3).
+
+    Pixel value before noise: ``exposure * radiance`` (linear; ``gamma`` != 1 bends it as
+    ``v**(1/gamma)``). Noise: shot noise with ``full_well`` electrons at value 1 and Gaussian read
+    noise of standard deviation ``read_noise`` (in [0, 1] units), then quantisation to ``bit_depth``.
+    Each pixel integrates ``supersampling**2`` rays over its footprint.
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    world_from_cam: np.ndarray
+    distortion: tuple[float, ...] = ()
+    channels: int = 1
+    exposure: float = 1.0
+    gamma: float = 1.0
+    full_well: float = 0.0
+    read_noise: float = 0.0
+    bit_depth: int = 8
+    supersampling: int = 2
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+
+@dataclass
+class Surface:
+    """A matte (Lambertian) surface. Local frames (before ``world_from_local``):
+
+    - ``rectangle``: the plane z = 0, ``size`` = (width along x, height along y); ``plane`` is
+      the same without bounds.
+    - ``box``: axis-aligned, centred, ``size`` = (x, y, z) edge lengths.
+    - ``cylinder``: axis along y, centred, ``radius``, ``height``, closed by caps.
+    - ``sphere``: centred, ``radii`` = (rx, ry, rz) (equal for a sphere, else an ellipsoid).
+    - ``mesh``: a triangle mesh file (anything trimesh reads) scaled by ``scale``.
+
+    ``transmittance`` (screens only): the fraction of light a semi-transparent screen passes on.
+    """
+
+    name: str
+    type: str
+    world_from_local: np.ndarray
+    albedo: tuple[float, ...] = (0.8,)
+    transmittance: float = 0.0
+    size: tuple[float, ...] = ()
+    radius: float = 0.0
+    height: float = 0.0
+    radii: tuple[float, ...] = ()
+    mesh_file: Path | None = None
+    scale: float = 1.0
+
+
+@dataclass
+class State:
+    """One arrangement of the scene: which surfaces are present."""
+
+    name: str
+    surfaces: list[str]
+
+
+@dataclass
+class Scene:
+    name: str
+    projectors: list[Projector]
+    camera: Camera
+    surfaces: dict[str, Surface]
+    states: list[State]
+    ambient: float = 0.0
+    seed: int = 0
+    source: Path | None = field(default=None, compare=False)
+
+    def state(self, name: str) -> State:
+        for s in self.states:
+            if s.name == name:
+                return s
+        raise ConfigError("states", f"no state named {name!r}", f"known: {[s.name for s in self.states]}")
+
+    @property
+    def channels(self) -> int:
+        return self.camera.channels
+
+
+def _resolution(f: Fields, key: str = "resolution") -> tuple[int, int]:
+    value = f.raw(key)
+    if isinstance(value, str) and "x" in value:
+        value = value.split("x")
+        try:
+            value = [int(v) for v in value]
+        except ValueError:
+            pass
+    if (not isinstance(value, list) or len(value) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
+        raise ConfigError(f.where(key), f"must be [width, height] in whole pixels, got {f.data[key]!r}")
+    return value[0], value[1]
+
+
+def _intrinsics(f: Fields, width: int, height: int) -> tuple[float, float, float, float]:
+    """Focal length (one or two numbers, pixels) and principal point (or lens shift)."""
+    focal = f.raw("focal")
+    if isinstance(focal, list):
+        fx, fy = f.vector("focal", 2, lo=0, strict_lo=True)
+    else:
+        fx = fy = f.number("focal", lo=0, strict_lo=True)
+    if f.has("principal_point") and f.has("lens_shift"):
+        raise ConfigError(f.where("lens_shift"), "conflicts with 'principal_point'", "give one of them")
+    centre = ((width - 1) / 2, (height - 1) / 2)
+    if f.has("principal_point"):
+        cx, cy = f.vector("principal_point", 2)
+    else:
+        # Lens shift as projector makers quote it: a fraction of the image size.
+        sx, sy = f.vector("lens_shift", 2, (0.0, 0.0))
+        cx, cy = centre[0] + sx * width, centre[1] + sy * height
+    return fx, fy, cx, cy
+
+
+def _parse_projector(f: Fields, index: int) -> Projector:
+    name = f.text("name", f"projector{index}")
+    width, height = _resolution(f)
+    fx, fy, cx, cy = _intrinsics(f, width, height)
+    pose = parse_pose(f.sub("pose"))
+    response = f.sub("response", {})
+    a = response.number("a", 1.0, lo=0, strict_lo=True)
+    b = response.scalar_or_rgb("b", 2.2, lo=0.2, hi=5.0)
+    response.done()
+    proj = Projector(
+        name=name, width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, world_from_prj=pose,
+        response_a=a, response_b=b,
+        black_level=f.number("black_level", 0.01, lo=0, hi=1),
+        vignetting=f.number("vignetting", 0.0, lo=0, hi=0.99),
+        power=f.number("power", 1.0, lo=0, strict_lo=True),
+    )
+    f.done()
+    return proj
+
+
+def _parse_camera(f: Fields) -> Camera:
+    width, height = _resolution(f)
+    fx, fy, cx, cy = _intrinsics(f, width, height)
+    distortion = ()
+    if f.has("distortion"):
+        raw = f.raw("distortion")
+        n = len(raw) if isinstance(raw, list) else 0
+        if n not in (4, 5):
+            raise ConfigError(f.where("distortion"), f"must be 4 or 5 numbers (k1, k2, p1, p2[, k3]), got {raw!r}")
+        distortion = f.vector("distortion", n)
+    noise = f.sub("noise", {})
+    cam = Camera(
+        width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, world_from_cam=parse_pose(f.sub("pose")),
+        distortion=distortion,
+        channels=f.integer("channels", 1, choices=(1, 3)),
+        exposure=f.number("exposure", 1.0, lo=0, strict_lo=True),
+        gamma=f.number("gamma", 1.0, lo=0.2, hi=5.0),
+        full_well=noise.number("full_well", 0.0, lo=0),
+        read_noise=noise.number("read", 0.0, lo=0, hi=0.5),
+        bit_depth=f.integer("bit_depth", 8, choices=(8, 16)),
+        supersampling=f.integer("supersampling", 2, lo=1),
+    )
+    noise.done()
+    f.done()
+    return cam
+
+
+def _parse_surface(f: Fields, name: str, base_dir: Path) -> Surface:
+    kind = f.text("type", choices=SURFACE_TYPES)
+    surf = Surface(name=name, type=kind, world_from_local=parse_pose(f.sub("pose")),
+                   albedo=f.scalar_or_rgb("albedo", 0.8, lo=0, hi=1),
+                   transmittance=f.number("transmittance", 0.0, lo=0, hi=0.99))
+    if surf.transmittance > 0 and kind not in ("rectangle", "plane"):
+        raise ConfigError(f.where("transmittance"), f"is only supported on screens, not on a {kind}",
+                          "make the semi-transparent surface a rectangle")
+    if kind == "rectangle":
+        surf.size = f.vector("size", 2, lo=0, strict_lo=True)
+    elif kind == "box":
+        surf.size = f.vector("size", 3, lo=0, strict_lo=True)
+    elif kind == "cylinder":
+        surf.radius = f.number("radius", lo=0, strict_lo=True)
+        surf.height = f.number("height", lo=0, strict_lo=True)
+    elif kind == "sphere":
+        radius = f.raw("radius")
+        if isinstance(radius, list):
+            surf.radii = f.vector("radius", 3, lo=0, strict_lo=True)
+        else:
+            surf.radii = (f.number("radius", lo=0, strict_lo=True),) * 3
+    elif kind == "mesh":
+        path = Path(f.text("file"))
+        if not path.is_absolute():
+            path = base_dir / path
+        if not path.is_file():
+            raise ConfigError(f.where("file"), f"mesh file {str(path)!r} not found",
+                              "paths are relative to the config file's folder")
+        surf.mesh_file = path
+        surf.scale = f.number("scale", 1.0, lo=0, strict_lo=True)
+    f.done()
+    return surf
+
+
+def _check_in_front(scene: Scene) -> None:
+    """Every surface must lie in front of the camera, or it can never be calibrated or seen."""
+    cam_from_world = np.linalg.inv(scene.camera.world_from_cam)
+    for surf in scene.surfaces.values():
+        if surf.type == "plane":
+            continue
+        z = (cam_from_world @ surf.world_from_local[:, 3])[2]
+        if z <= 0:
+            raise ConfigError(f"surfaces.{surf.name}.pose.position",
+                              f"lies behind the camera (z = {z:.3g} m in the camera frame)",
+                              "move the surface in front of the camera or turn the camera towards it")
+
+
+def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene") -> Scene:
+    """Validate a scene mapping (as loaded from YAML) into a :class:`Scene`."""
+    base_dir = Path(base_dir)
+    top = Fields(data, "")
+    projectors_raw = top.raw("projectors")
+    if not isinstance(projectors_raw, list) or not projectors_raw:
+        raise ConfigError("projectors", "must be a non-empty list of projectors")
+    projectors = [_parse_projector(Fields(p, f"projectors[{i}]"), i) for i, p in enumerate(projectors_raw)]
+    names = [p.name for p in projectors]
+    if len(set(names)) != len(names):
+        raise ConfigError("projectors", f"names must be unique, got {names}")
+    camera = _parse_camera(top.sub("camera"))
+    surfaces_f = top.sub("surfaces")
+    surfaces = {}
+    for key in surfaces_f.data:
+        surfaces[str(key)] = _parse_surface(surfaces_f.sub(key), str(key), base_dir)
+    if not surfaces:
+        raise ConfigError("surfaces", "is empty", "describe at least one surface")
+    states_raw = top.raw("states")
+    if not isinstance(states_raw, list) or not states_raw:
+        raise ConfigError("states", "must be a non-empty list of {name, surfaces}")
+    states = []
+    for i, s in enumerate(states_raw):
+        sf = Fields(s, f"states[{i}]")
+        members = sf.raw("surfaces")
+        if not isinstance(members, list) or not members:
+            raise ConfigError(sf.where("surfaces"), "must be a non-empty list of surface names")
+        for m in members:
+            if m not in surfaces:
+                raise ConfigError(sf.where("surfaces"), f"names unknown surface {m!r}",
+                                  f"known: {sorted(surfaces)}")
+        states.append(State(name=sf.text("name", f"state{i}"), surfaces=list(members)))
+        sf.done()
+    state_names = [s.name for s in states]
+    if len(set(state_names)) != len(state_names):
+        raise ConfigError("states", f"names must be unique, got {state_names}")
+    scene = Scene(
+        name=top.text("name", name), projectors=projectors, camera=camera, surfaces=surfaces, states=states,
+        ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0),
+    )
+    top.done()
+    _check_in_front(scene)
+    return scene
+
+
+def builtin_config(name: str = "paper_two_planes") -> Path:
+    """Path of a config shipped in ``configs/`` (by file stem)."""
+    path = CONFIG_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError("scene", f"no built-in scene named {name!r}", f"choose from {list(BUILTIN_SCENES)}")
+    return path
+
+
+def load_scene(path: str | os.PathLike | None = None) -> Scene:
+    """Load a scene YAML file (or a built-in scene by name; None gives the paper's two-plane rig)."""
+    if path is None:
+        path = builtin_config()
+    path = Path(path)
+    if not path.exists() and path.suffix == "" and (CONFIG_DIR / f"{path}.yaml").is_file():
+        path = CONFIG_DIR / f"{path}.yaml"
+    if not path.is_file():
+        raise ConfigError("config", f"file {str(path)!r} not found",
+                          f"give a YAML path or a built-in name: {list(BUILTIN_SCENES)}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(str(path), f"is not valid YAML: {exc}") from None
+    scene = parse_scene(data, base_dir=path.parent, name=path.stem)
+    scene.source = path
+    return scene

@@ -1,0 +1,324 @@
+"""The virtual projector-camera rig: the physics every torchproj number is measured against.
+
+Physics (DESIGN.md, "Physics contract"): a camera sample ray hits surface point X (through any
+semi-transparent screens in front, each passing ``transmittance`` of the light on). Projector j lights
+X with irradiance ``E_j = L_j(u_j) * max(0, n.l_j) / d_j^2`` where u_j is X projected into projector j,
+``L_j`` the light of the LCD cell containing u_j, d_j the distance to the projector centre, and zero
+where X is shadowed from j. The radiance towards the camera is ``albedo / pi * (sum_j E_j + ambient)``;
+the camera model (:mod:`torchproj.sim.camera`) turns it into pixel values.
+
+Geometry is cast once per state. Because the LCD cells are squares of constant light, a camera pixel's
+radiance is a fixed linear combination of emitted cell values, so each state is held as one sparse
+matrix per projector ("light transport", camera pixels x projector cells) and capturing any pattern
+is a sparse product. This matrix is the simulator's private ground truth: the solvers never see it
+(they work from what calibration recovers), except in an explicitly named oracle mode.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from kornia.geometry.calibration import undistort_points
+from kornia.geometry.camera import project_points, unproject_points
+
+from ..core.checks import check, check_shape
+from ..core.conventions import pixel_grid, round_to_pixel
+from ..scene.config import Projector, Scene
+from .camera import apply_camera
+from .primitives import make_caster
+
+__all__ = ["VirtualRig", "StateGeometry"]
+
+_CHUNK = 1 << 20  # rays per chunk: bounds memory whatever the camera resolution
+
+
+@dataclass
+class StateGeometry:
+    """What ray casting found for one scene state.
+
+    Attributes:
+        transport: per projector, a list of CSR matrices :math:`(H W, H_j W_j)` (one per albedo
+            channel, or a single one for grey albedos) mapping emitted cell light to camera radiance.
+        ambient: :math:`(C_a, H, W)` radiance from ambient light.
+        prj_xy: :math:`(J, H, W, 2)` continuous projector coordinates (conventions module) of the
+            surface point seen at each camera pixel centre, NaN where projector j does not light it
+            (outside its image, facing away, or shadowed).
+        points: :math:`(H, W, 3)` world point seen at each pixel centre, NaN where no surface.
+        normals: :math:`(H, W, 3)` unit normals there, turned towards the camera.
+        surface_id: :math:`(H, W)` index into the state's surface list, -1 where no surface.
+    """
+
+    state: str
+    transport: list[list[torch.Tensor]]
+    ambient: torch.Tensor
+    prj_xy: torch.Tensor
+    points: torch.Tensor
+    normals: torch.Tensor
+    surface_id: torch.Tensor
+
+
+@dataclass
+class _Layer:
+    sid: torch.Tensor  # (M,) surface index within the state
+    x: torch.Tensor  # (M, 3) world points
+    n: torch.Tensor  # (M, 3) unit normals towards the camera
+    weight: torch.Tensor  # (M,) light fraction passed on by screens in front
+    ray: torch.Tensor  # (M,) index of the ray within its chunk
+
+
+def _vignette(p: Projector, device) -> torch.Tensor:
+    """Relative light of each LCD cell, :math:`(H_j W_j,)`: ``1 - v (r / r_corner)^2``."""
+    grid = pixel_grid(p.height, p.width, device=device)
+    centre = torch.tensor([p.cx, p.cy], device=device)
+    r2 = ((grid - centre) ** 2).sum(-1)
+    corners = torch.tensor([[0, 0], [p.width - 1, 0], [0, p.height - 1], [p.width - 1, p.height - 1]],
+                           device=device, dtype=torch.float32)
+    r2max = ((corners - centre) ** 2).sum(-1).max()
+    return (1 - p.vignetting * r2 / r2max).reshape(-1)
+
+
+class VirtualRig:
+    """A simulated rig for a :class:`~torchproj.scene.Scene`.
+
+    Example:
+        >>> rig = VirtualRig(load_scene())                       # doctest: +SKIP
+        >>> white = torch.ones(1, 1, 768, 1024)
+        >>> img = rig.capture("near", {"upper": white})          # (1, C, 1200, 1600)
+    """
+
+    def __init__(self, scene: Scene, device="cpu"):
+        self.scene = scene
+        self.device = torch.device(device)
+        self.generator = torch.Generator(device=self.device).manual_seed(scene.seed)
+        self._geometry: dict[str, StateGeometry] = {}
+        self._vignette = [_vignette(p, self.device) for p in scene.projectors]
+        self._rays = None
+
+    # ---------------------------------------------------------------------------------- rays
+    def camera_rays(self, supersampling: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """World origins :math:`(N, 3)` and unit directions :math:`(H W s^2, 3)`, pixel-major.
+
+        The s x s samples of a pixel sit at the centres of an s x s grid over its footprint.
+        """
+        cam = self.scene.camera
+        s = supersampling
+        offsets = (torch.arange(s, device=self.device, dtype=torch.float32) + 0.5) / s - 0.5
+        oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
+        sub = torch.stack([ox, oy], -1).reshape(1, 1, s * s, 2)
+        pix = (pixel_grid(cam.height, cam.width, device=self.device)[:, :, None, :] + sub).reshape(-1, 2)
+        K = torch.as_tensor(cam.K, dtype=torch.float32, device=self.device)
+        if cam.distortion:
+            # A distorted lens bends the ray of pixel p: find the ideal pinhole pixel it came from.
+            dist = torch.tensor(cam.distortion, dtype=torch.float32, device=self.device)
+            pix = torch.cat([undistort_points(c[None], K[None], dist[None], num_iters=10)[0]
+                             for c in pix.split(_CHUNK)])
+        dirs_cam = unproject_points(pix, torch.ones_like(pix[:, :1]), K, normalize=True)
+        pose = torch.as_tensor(cam.world_from_cam, dtype=torch.float32, device=self.device)
+        dirs = dirs_cam @ pose[:3, :3].T
+        origins = pose[:3, 3].expand_as(dirs)
+        return origins, dirs
+
+    # ------------------------------------------------------------------------------- casting
+    def geometry(self, state: str) -> StateGeometry:
+        """Cast the state's geometry (once; later calls return the cached result)."""
+        if state not in self._geometry:
+            self._geometry[state] = self._cast(state)
+        return self._geometry[state]
+
+    def _cast(self, state_name: str) -> StateGeometry:
+        scene, cam = self.scene, self.scene.camera
+        state = scene.state(state_name)
+        surfaces = [scene.surfaces[n] for n in state.surfaces]
+        casters = [make_caster(s, self.device) for s in surfaces]
+        grey = cam.channels == 1 or all(len(s.albedo) == 1 for s in surfaces)
+        n_alb = 1 if grey else 3
+        albedo = torch.tensor(
+            [[sum(s.albedo) / len(s.albedo)] if grey else list(s.albedo) * (3 // len(s.albedo)) for s in surfaces],
+            dtype=torch.float32, device=self.device)  # (S, n_alb)
+        transmit = torch.tensor([s.transmittance for s in surfaces], dtype=torch.float32, device=self.device)
+        max_layers = 1 + int((transmit > 0).sum())
+        n_pix = cam.width * cam.height
+        ss = cam.supersampling**2
+
+        rows = [[] for _ in scene.projectors]
+        cols = [[] for _ in scene.projectors]
+        vals = [[] for _ in scene.projectors]
+        ambient = torch.zeros(n_alb, n_pix, device=self.device)
+        origins, dirs = self.camera_rays(cam.supersampling)
+        for start in range(0, origins.shape[0], _CHUNK):
+            o, d = origins[start:start + _CHUNK], dirs[start:start + _CHUNK]
+            pixel = (torch.arange(start, start + o.shape[0], device=self.device) // ss)
+            for layer in self._layers(casters, transmit, o, d, max_layers):
+                w = layer.weight[:, None] * albedo[layer.sid] / math.pi / ss  # (M, n_alb)
+                layer_pixel = pixel[layer.ray]
+                ambient.index_add_(1, layer_pixel, (w * scene.ambient).T)
+                for j, proj in enumerate(scene.projectors):
+                    u, g = self._illumination(j, proj, casters, transmit, layer.x, layer.n)
+                    cell = round_to_pixel(u)
+                    inside = ((cell[:, 0] >= 0) & (cell[:, 0] < proj.width) & (cell[:, 1] >= 0)
+                              & (cell[:, 1] < proj.height) & (g > 0))
+                    rows[j].append(layer_pixel[inside])
+                    cols[j].append(cell[inside, 1] * proj.width + cell[inside, 0])
+                    vals[j].append(g[inside, None] * w[inside])
+        transport = []
+        for j, proj in enumerate(scene.projectors):
+            r, c, v = torch.cat(rows[j]), torch.cat(cols[j]), torch.cat(vals[j])
+            idx = torch.stack([r, c])
+            mats = []
+            for ch in range(n_alb):
+                coo = torch.sparse_coo_tensor(idx, v[:, ch], (n_pix, proj.width * proj.height))
+                mats.append(coo.coalesce().to_sparse_csr())
+            transport.append(mats)
+
+        truth = self._centre_truth(casters, transmit)
+        return StateGeometry(state=state_name, transport=transport,
+                             ambient=ambient.reshape(n_alb, cam.height, cam.width), **truth)
+
+    def _layers(self, casters, transmit, o, d, max_layers):
+        """Hits along camera rays, front to back, until an opaque surface.
+
+        Yields a :class:`_Layer` for the rays that hit: surface index, point, normal turned towards
+        the camera, weight (the fraction of light the screens in front pass on) and ray index.
+        """
+        hits = [c.hit(o, d) for c in casters]
+        t_all = torch.stack([h[0] for h in hits], 1)  # (N, S)
+        n_all = torch.stack([h[1] for h in hits], 1)  # (N, S, 3)
+        order = torch.argsort(t_all, dim=1)
+        weight = torch.ones(o.shape[0], device=o.device)
+        for layer in range(min(max_layers, len(casters))):
+            sid = order[:, layer]
+            t = t_all.gather(1, sid[:, None])[:, 0]
+            ok = torch.isfinite(t) & (weight > 0)
+            if not bool(ok.any()):
+                break
+            ray = torch.nonzero(ok)[:, 0]
+            x = o[ray] + t[ray, None] * d[ray]
+            n = n_all[ray, sid[ray]]
+            n = torch.where(((n * d[ray]).sum(-1) > 0)[:, None], -n, n)
+            yield _Layer(sid[ray], x, n, weight[ray], ray)
+            weight = weight * transmit[sid]
+
+    def _illumination(self, j, proj, casters, transmit, x, n):
+        """Continuous projector coordinates :math:`(M, 2)` of points x and the geometric factor
+        ``cos / d^2 * visibility`` :math:`(M,)` of projector j's light there (0 where unlit)."""
+        pose = torch.as_tensor(proj.world_from_prj, dtype=torch.float32, device=self.device)
+        centre = pose[:3, 3]
+        to_prj = centre - x
+        dist = to_prj.norm(dim=-1)
+        l_dir = to_prj / dist[:, None]
+        cos = (n * l_dir).sum(-1).clamp_min(0)
+        x_prj = (x - centre) @ pose[:3, :3]
+        in_front = x_prj[:, 2] > 1e-6
+        K = torch.as_tensor(proj.K, dtype=torch.float32, device=self.device)
+        u = project_points(torch.where(in_front[:, None], x_prj, torch.ones_like(x_prj)), K)
+        visibility = torch.ones_like(dist)
+        for c, tr in zip(casters, transmit.tolist()):
+            t, _ = c.hit(x, l_dir)
+            blocked = t < dist - 1e-5
+            visibility = torch.where(blocked, visibility * tr, visibility)
+        g = cos / dist**2 * visibility * in_front
+        return u, g
+
+    def _centre_truth(self, casters, transmit) -> dict:
+        """Ground truth at pixel centres: first surface hit, its normal, each projector's coordinate."""
+        cam = self.scene.camera
+        h, w = cam.height, cam.width
+        points = torch.full((h * w, 3), float("nan"), device=self.device)
+        normals = torch.full((h * w, 3), float("nan"), device=self.device)
+        sid_map = torch.full((h * w,), -1, dtype=torch.int64, device=self.device)
+        prj_xy = torch.full((len(self.scene.projectors), h * w, 2), float("nan"), device=self.device)
+        origins, dirs = self.camera_rays(1)
+        for start in range(0, origins.shape[0], _CHUNK):
+            o, d = origins[start:start + _CHUNK], dirs[start:start + _CHUNK]
+            layer = next(iter(self._layers(casters, transmit, o, d, 1)), None)
+            if layer is None:
+                continue
+            idx = start + layer.ray
+            points[idx], normals[idx], sid_map[idx] = layer.x, layer.n, layer.sid
+            for j, proj in enumerate(self.scene.projectors):
+                u, g = self._illumination(j, proj, casters, transmit, layer.x, layer.n)
+                inside = ((u[:, 0] >= -0.5) & (u[:, 0] < proj.width - 0.5) & (u[:, 1] >= -0.5)
+                          & (u[:, 1] < proj.height - 0.5) & (g > 0))
+                prj_xy[j, idx[inside]] = u[inside]
+        return dict(prj_xy=prj_xy.reshape(-1, h, w, 2), points=points.reshape(h, w, 3),
+                    normals=normals.reshape(h, w, 3), surface_id=sid_map.reshape(h, w))
+
+    # ------------------------------------------------------------------------------ capture
+    def emitted(self, j: int, patterns: torch.Tensor) -> torch.Tensor:
+        """Light of each LCD cell of projector j for pattern values in [0, 1].
+
+        Args:
+            patterns: :math:`(N, C, H_j, W_j)` pattern values.
+
+        Returns:
+            :math:`(N, C, H_j W_j)` emitted light (W/m^2 at 1 m): ``power (a x^b + black) vignette``.
+        """
+        p = self.scene.projectors[j]
+        b = torch.tensor(p.response_b, dtype=patterns.dtype, device=patterns.device)
+        if patterns.shape[1] == 3 and b.numel() == 1:
+            b = b.expand(3)
+        elif patterns.shape[1] == 1 and b.numel() == 3:
+            patterns = patterns.expand(-1, 3, -1, -1)
+        light = p.power * (p.response_a * patterns.clamp(0, 1) ** b.view(1, -1, 1, 1) + p.black_level)
+        return light.flatten(2) * self._vignette[j]
+
+    def radiance(self, state: str, patterns: dict[str | int, torch.Tensor]) -> torch.Tensor:
+        """Noise-free linear radiance seen by the camera.
+
+        Args:
+            state: the scene state's name.
+            patterns: projector name (or index) -> :math:`(N, C_p, H_j, W_j)` values in [0, 1]
+                (C_p = 1 or 3). Projectors not named show black (they stay on, emitting their black
+                level), as on a real rig during calibration.
+
+        Returns:
+            :math:`(N, C, H, W)` radiance, C the camera's channel count.
+        """
+        scene, cam = self.scene, self.scene.camera
+        geo = self.geometry(state)
+        index = {p.name: j for j, p in enumerate(scene.projectors)}
+        by_index = {}
+        for key, pat in patterns.items():
+            check(key in index or (isinstance(key, int) and 0 <= key < len(scene.projectors)),
+                  f"patterns names unknown projector {key!r}; known: {list(index)}")
+            j = index.get(key, key)
+            proj = scene.projectors[j]
+            check_shape(pat, f"patterns[{key!r}]", ["N", "C", proj.height, proj.width])
+            check(pat.shape[1] in (1, 3), f"patterns[{key!r}] must have 1 or 3 channels, got {pat.shape[1]}")
+            by_index[j] = pat.to(self.device, torch.float32)
+        sizes = {p.shape[0] for p in by_index.values()}
+        check(len(sizes) <= 1, f"every projector must show the same number of images, got {sorted(sizes)}")
+        n = sizes.pop() if sizes else 1
+        out_c = cam.channels
+        total = geo.ambient.reshape(-1, cam.height * cam.width).expand(n, out_c, -1).clone()
+        for j, proj in enumerate(scene.projectors):
+            pat = by_index.get(j, torch.zeros(1, 1, proj.height, proj.width, device=self.device))
+            light = self.emitted(j, pat)  # (n or 1, Cp, M)
+            if out_c == 1 and light.shape[1] == 3:
+                light = light.mean(1, keepdim=True)  # a grey sensor integrates the three primaries
+            mats = geo.transport[j]
+            # One sparse matrix-vector product per image and channel: torch's CSR times a
+            # many-column dense matrix is several times slower than this loop on the CPU.
+            for i in range(n):
+                for ch in range(out_c):
+                    vec = light[min(i, light.shape[0] - 1), min(ch, light.shape[1] - 1)]
+                    total[i, ch] += mats[min(ch, len(mats) - 1)] @ vec
+        return total.reshape(n, out_c, cam.height, cam.width)
+
+    def capture(self, state: str, patterns: dict[str | int, torch.Tensor], seed: int | None = None,
+                noise: bool = True) -> torch.Tensor:
+        """Capture what the camera sees while the projectors show ``patterns``.
+
+        Args:
+            state: the scene state's name.
+            patterns: as in :meth:`radiance`.
+            seed: seed for this capture's noise (default: the rig's generator, seeded by the scene).
+            noise: False gives the noise-free (still quantised) image.
+
+        Returns:
+            :math:`(N, C, H, W)` float images in [0, 1], quantised to the camera's bit depth.
+        """
+        gen = self.generator if seed is None else torch.Generator(device=self.device).manual_seed(seed)
+        return apply_camera(self.radiance(state, patterns), self.scene.camera, gen if noise else None)
