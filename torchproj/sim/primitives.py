@@ -153,7 +153,7 @@ class _Mesh(Caster):
         mesh.apply_transform(surface.world_from_local)
         self.mesh = mesh
         self.intersector = RayMeshIntersector(mesh)
-        self.face_normals = torch.as_tensor(np.asarray(mesh.face_normals), dtype=dtype)
+        self.face_normals = torch.tensor(np.array(mesh.face_normals), dtype=dtype)
 
     def hit(self, origins, directions, t_min=1e-5):
         device, dtype = origins.device, origins.dtype

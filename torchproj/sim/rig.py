@@ -17,6 +17,7 @@ is a sparse product. This matrix is the simulator's private ground truth: the so
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -94,31 +95,35 @@ class VirtualRig:
         self.generator = torch.Generator(device=self.device).manual_seed(scene.seed)
         self._geometry: dict[str, StateGeometry] = {}
         self._vignette = [_vignette(p, self.device) for p in scene.projectors]
-        self._rays = None
 
     # ---------------------------------------------------------------------------------- rays
-    def camera_rays(self, supersampling: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """World origins :math:`(N, 3)` and unit directions :math:`(H W s^2, 3)`, pixel-major.
+    def camera_rays(self, supersampling: int, start: int = 0, stop: int | None = None):
+        """World origins and unit directions of camera sample rays ``start:stop``.
 
-        The s x s samples of a pixel sit at the centres of an s x s grid over its footprint.
+        Rays are numbered pixel-major: ray ``i`` is sample ``i % s^2`` of pixel ``i // s^2`` (row-major
+        pixels), and the s x s samples of a pixel sit at the centres of an s x s grid over its
+        footprint.
+
+        Returns:
+            origins :math:`(N, 3)` and directions :math:`(N, 3)`, N = stop - start.
         """
         cam = self.scene.camera
         s = supersampling
+        stop = cam.width * cam.height * s * s if stop is None else stop
+        idx = torch.arange(start, stop, device=self.device)
+        pixel, sample = idx // (s * s), idx % (s * s)
         offsets = (torch.arange(s, device=self.device, dtype=torch.float32) + 0.5) / s - 0.5
-        oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
-        sub = torch.stack([ox, oy], -1).reshape(1, 1, s * s, 2)
-        pix = (pixel_grid(cam.height, cam.width, device=self.device)[:, :, None, :] + sub).reshape(-1, 2)
+        pix = torch.stack([(pixel % cam.width).float() + offsets[sample % s],
+                           (pixel // cam.width).float() + offsets[sample // s]], -1)
         K = torch.as_tensor(cam.K, dtype=torch.float32, device=self.device)
         if cam.distortion:
             # A distorted lens bends the ray of pixel p: find the ideal pinhole pixel it came from.
             dist = torch.tensor(cam.distortion, dtype=torch.float32, device=self.device)
-            pix = torch.cat([undistort_points(c[None], K[None], dist[None], num_iters=10)[0]
-                             for c in pix.split(_CHUNK)])
+            pix = undistort_points(pix[None], K[None], dist[None], num_iters=10)[0]
         dirs_cam = unproject_points(pix, torch.ones_like(pix[:, :1]), K, normalize=True)
         pose = torch.as_tensor(cam.world_from_cam, dtype=torch.float32, device=self.device)
         dirs = dirs_cam @ pose[:3, :3].T
-        origins = pose[:3, 3].expand_as(dirs)
-        return origins, dirs
+        return pose[:3, 3].expand_as(dirs), dirs
 
     # ------------------------------------------------------------------------------- casting
     def geometry(self, state: str) -> StateGeometry:
@@ -141,36 +146,51 @@ class VirtualRig:
         max_layers = 1 + int((transmit > 0).sum())
         n_pix = cam.width * cam.height
         ss = cam.supersampling**2
+        chunk = max(1, _CHUNK // ss) * ss  # whole pixels per chunk
 
-        rows = [[] for _ in scene.projectors]
-        cols = [[] for _ in scene.projectors]
+        keys = [[] for _ in scene.projectors]
         vals = [[] for _ in scene.projectors]
         ambient = torch.zeros(n_alb, n_pix, device=self.device)
-        origins, dirs = self.camera_rays(cam.supersampling)
-        for start in range(0, origins.shape[0], _CHUNK):
-            o, d = origins[start:start + _CHUNK], dirs[start:start + _CHUNK]
-            pixel = (torch.arange(start, start + o.shape[0], device=self.device) // ss)
+        for start in range(0, n_pix * ss, chunk):
+            stop = min(start + chunk, n_pix * ss)
+            o, d = self.camera_rays(cam.supersampling, start, stop)
+            pixel = torch.arange(start, stop, device=self.device) // ss
+            entries = [([], []) for _ in scene.projectors]
             for layer in self._layers(casters, transmit, o, d, max_layers):
                 w = layer.weight[:, None] * albedo[layer.sid] / math.pi / ss  # (M, n_alb)
                 layer_pixel = pixel[layer.ray]
                 ambient.index_add_(1, layer_pixel, (w * scene.ambient).T)
                 for j, proj in enumerate(scene.projectors):
-                    u, g = self._illumination(j, proj, casters, transmit, layer.x, layer.n)
+                    u, g = self._illumination(proj, casters, transmit, layer)
                     cell = round_to_pixel(u)
                     inside = ((cell[:, 0] >= 0) & (cell[:, 0] < proj.width) & (cell[:, 1] >= 0)
                               & (cell[:, 1] < proj.height) & (g > 0))
-                    rows[j].append(layer_pixel[inside])
-                    cols[j].append(cell[inside, 1] * proj.width + cell[inside, 0])
-                    vals[j].append(g[inside, None] * w[inside])
+                    n_cells = proj.width * proj.height
+                    entries[j][0].append(layer_pixel[inside] * n_cells + cell[inside, 1] * proj.width
+                                         + cell[inside, 0])
+                    entries[j][1].append(g[inside, None] * w[inside])
+            # Merge the samples of a pixel that land in the same LCD cell. Unique keys come out
+            # sorted, and chunks cover increasing pixel ranges, so rows stay in CSR order.
+            for j in range(len(scene.projectors)):
+                if not entries[j][0]:
+                    continue
+                key, inverse = torch.unique(torch.cat(entries[j][0]), return_inverse=True)
+                val = torch.zeros(key.shape[0], n_alb, device=self.device)
+                keys[j].append(key)
+                vals[j].append(val.index_add_(0, inverse, torch.cat(entries[j][1])))
         transport = []
         for j, proj in enumerate(scene.projectors):
-            r, c, v = torch.cat(rows[j]), torch.cat(cols[j]), torch.cat(vals[j])
-            idx = torch.stack([r, c])
-            mats = []
-            for ch in range(n_alb):
-                coo = torch.sparse_coo_tensor(idx, v[:, ch], (n_pix, proj.width * proj.height))
-                mats.append(coo.coalesce().to_sparse_csr())
-            transport.append(mats)
+            n_cells = proj.width * proj.height
+            key = torch.cat(keys[j]) if keys[j] else torch.zeros(0, dtype=torch.int64, device=self.device)
+            val = torch.cat(vals[j]) if vals[j] else torch.zeros(0, n_alb, device=self.device)
+            rows, cols = key // n_cells, key % n_cells
+            crow = torch.zeros(n_pix + 1, dtype=torch.int64, device=self.device)
+            crow[1:] = torch.cumsum(torch.bincount(rows, minlength=n_pix), 0)
+            with warnings.catch_warnings():
+                # torch flags CSR as beta on construction; the products used here are stable.
+                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+                transport.append([torch.sparse_csr_tensor(crow, cols, val[:, ch].contiguous(), (n_pix, n_cells),
+                                                          check_invariants=False) for ch in range(n_alb)])
 
         truth = self._centre_truth(casters, transmit)
         return StateGeometry(state=state_name, transport=transport,
@@ -200,9 +220,14 @@ class VirtualRig:
             yield _Layer(sid[ray], x, n, weight[ray], ray)
             weight = weight * transmit[sid]
 
-    def _illumination(self, j, proj, casters, transmit, x, n):
-        """Continuous projector coordinates :math:`(M, 2)` of points x and the geometric factor
-        ``cos / d^2 * visibility`` :math:`(M,)` of projector j's light there (0 where unlit)."""
+    def _illumination(self, proj: Projector, casters, transmit, layer: "_Layer"):
+        """Where a projector's light falls on a layer's points and how strongly.
+
+        Returns:
+            continuous projector coordinates :math:`(M, 2)` and the geometric factor
+            ``max(0, n.l) / d^2 * visibility`` :math:`(M,)` (0 where unlit).
+        """
+        x, n = layer.x, layer.n
         pose = torch.as_tensor(proj.world_from_prj, dtype=torch.float32, device=self.device)
         centre = pose[:3, 3]
         to_prj = centre - x
@@ -213,12 +238,19 @@ class VirtualRig:
         in_front = x_prj[:, 2] > 1e-6
         K = torch.as_tensor(proj.K, dtype=torch.float32, device=self.device)
         u = project_points(torch.where(in_front[:, None], x_prj, torch.ones_like(x_prj)), K)
-        visibility = torch.ones_like(dist)
-        for c, tr in zip(casters, transmit.tolist()):
-            t, _ = c.hit(x, l_dir)
-            blocked = t < dist - 1e-5
-            visibility = torch.where(blocked, visibility * tr, visibility)
-        g = cos / dist**2 * visibility * in_front
+        g = cos / dist**2 * in_front
+        for index, (c, tr) in enumerate(zip(casters, transmit.tolist())):
+            # Shadow rays. A point on a convex primitive that faces the projector cannot be shadowed
+            # by that same primitive, so only other surfaces (and meshes, which may be concave) count.
+            test = g > 0
+            if c.surface.type != "mesh":
+                test &= layer.sid != index
+            if not bool(test.any()):
+                continue
+            ray = torch.nonzero(test)[:, 0]
+            t, _ = c.hit(x[ray], l_dir[ray])
+            blocked = ray[t < dist[ray] - 1e-5]
+            g[blocked] = g[blocked] * tr
         return u, g
 
     def _centre_truth(self, casters, transmit) -> dict:
@@ -229,16 +261,15 @@ class VirtualRig:
         normals = torch.full((h * w, 3), float("nan"), device=self.device)
         sid_map = torch.full((h * w,), -1, dtype=torch.int64, device=self.device)
         prj_xy = torch.full((len(self.scene.projectors), h * w, 2), float("nan"), device=self.device)
-        origins, dirs = self.camera_rays(1)
-        for start in range(0, origins.shape[0], _CHUNK):
-            o, d = origins[start:start + _CHUNK], dirs[start:start + _CHUNK]
+        for start in range(0, h * w, _CHUNK):
+            o, d = self.camera_rays(1, start, min(start + _CHUNK, h * w))
             layer = next(iter(self._layers(casters, transmit, o, d, 1)), None)
             if layer is None:
                 continue
             idx = start + layer.ray
             points[idx], normals[idx], sid_map[idx] = layer.x, layer.n, layer.sid
             for j, proj in enumerate(self.scene.projectors):
-                u, g = self._illumination(j, proj, casters, transmit, layer.x, layer.n)
+                u, g = self._illumination(proj, casters, transmit, layer)
                 inside = ((u[:, 0] >= -0.5) & (u[:, 0] < proj.width - 0.5) & (u[:, 1] >= -0.5)
                           & (u[:, 1] < proj.height - 0.5) & (g > 0))
                 prj_xy[j, idx[inside]] = u[inside]

@@ -1,0 +1,60 @@
+"""What bad capture folders get: an error naming the file and what to do."""
+
+import pytest
+import torch
+
+from torchproj.calib import GraycodeCapture, graycode_patterns, read_graycode_folder, write_graycode_folder
+from torchproj.core import CaptureError, write_image
+
+
+@pytest.fixture
+def folder(tmp_path):
+    pats = graycode_patterns(64, 48)
+    cap = GraycodeCapture(patterns=pats[:-2] * 0.8 + 0.1, white=pats[-2] * 0.9, black=pats[-1] + 0.05)
+    write_graycode_folder(tmp_path / "cap", cap)
+    return tmp_path / "cap"
+
+
+def test_reads_a_complete_folder(folder):
+    cap = read_graycode_folder(folder, (64, 48))
+    assert cap.patterns.shape == (24, 1, 48, 64) and cap.ramp is None
+
+
+def test_missing_image(folder):
+    (folder / "graycode_07.png").unlink()
+    with pytest.raises(CaptureError, match=r"expected 26 images .* missing 1: graycode_07.png"):
+        read_graycode_folder(folder, (64, 48))
+
+
+def test_wrong_projector_size(folder):
+    with pytest.raises(CaptureError, match="expected 32 images for a 200x100 projector"):
+        read_graycode_folder(folder, (200, 100))
+
+
+def test_extra_image(folder):
+    write_image(folder / "graycode_26.png", torch.zeros(1, 48, 64))
+    with pytest.raises(CaptureError, match="graycode_26.png: one image more"):
+        read_graycode_folder(folder, (64, 48))
+
+
+def test_inconsistent_sizes(folder):
+    write_image(folder / "graycode_03.png", torch.zeros(1, 40, 64))
+    with pytest.raises(CaptureError, match="graycode_03.png: size .* differs from graycode_00.png"):
+        read_graycode_folder(folder, (64, 48))
+
+
+def test_projector_off(folder):
+    write_image(folder / "graycode_24.png", torch.full((1, 48, 64), 2 / 255))
+    with pytest.raises(CaptureError, match="graycode_24.png: the white capture is dark everywhere"):
+        read_graycode_folder(folder, (64, 48))
+
+
+def test_corrupt_file(folder):
+    (folder / "graycode_10.png").write_bytes(b"not a png")
+    with pytest.raises(CaptureError, match="graycode_10.png: cannot be read"):
+        read_graycode_folder(folder, (64, 48))
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(CaptureError, match="capture folder not found"):
+        read_graycode_folder(tmp_path / "nope", (64, 48))

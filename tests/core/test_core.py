@@ -1,0 +1,90 @@
+import numpy as np
+import pytest
+import torch
+
+from torchproj.core import (CaptureError, InputError, atomic_output, check_finite, check_image, check_shape,
+                            pixel_grid, read_image, round_to_pixel, write_image)
+
+
+class TestCheckShape:
+    def test_binds_named_dimensions(self):
+        assert check_shape(torch.zeros(5, 7, 2), "prj_xy", ["H", "W", 2]) == {"H": 5, "W": 7}
+
+    def test_leading_star(self):
+        assert check_shape(torch.zeros(4, 3, 5, 6), "img", ["*", "C", "H", "W"]) == {"C": 3, "H": 5, "W": 6}
+
+    @pytest.mark.parametrize("shape", [(5, 7), (5, 7, 3), (5, 7, 2, 1)])
+    def test_wrong_shape_names_argument(self, shape):
+        with pytest.raises(InputError, match=r"prj_xy must have shape \(H, W, 2\)"):
+            check_shape(torch.zeros(shape), "prj_xy", ["H", "W", 2])
+
+    def test_repeated_letter_must_agree(self):
+        with pytest.raises(InputError, match="equal sizes for 'N'"):
+            check_shape(torch.zeros(3, 4), "a", ["N", "N"])
+
+    def test_not_a_tensor(self):
+        with pytest.raises(InputError, match="must be a torch.Tensor"):
+            check_shape(np.zeros(3), "a", ["N"])
+
+    def test_input_error_is_value_error(self):
+        assert issubclass(InputError, ValueError)
+
+
+def test_check_finite_counts_bad_values():
+    x = torch.ones(4)
+    x[1] = float("nan")
+    x[2] = float("inf")
+    with pytest.raises(InputError, match="2 non-finite"):
+        check_finite(x, "x")
+
+
+def test_check_image_range():
+    with pytest.raises(InputError, match=r"must lie in \[0, 1\]"):
+        check_image(torch.full((1, 2, 2), 1.5), "target")
+    with pytest.raises(InputError, match="1 or 3 channels"):
+        check_image(torch.zeros(2, 2, 2), "target")
+    assert check_image(torch.zeros(3, 4, 5), "target") == {"C": 3, "H": 4, "W": 5}
+
+
+def test_pixel_centres_are_integers():
+    grid = pixel_grid(2, 3)
+    assert grid.shape == (2, 3, 2)
+    assert grid[1, 2].tolist() == [2.0, 1.0]  # (x, y) of row 1, column 2
+    u = torch.tensor([-0.5, -0.49, 0.49, 0.5, 2.51])
+    assert round_to_pixel(u).tolist() == [0, 0, 0, 1, 3]
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_image_round_trip(tmp_path, bits, channels):
+    peak = (1 << bits) - 1
+    img = torch.randint(0, peak + 1, (channels, 9, 11)).float() / peak
+    path = tmp_path / f"img{bits}.png"
+    write_image(path, img, bits)
+    back = read_image(path)
+    assert back.shape == img.shape
+    assert torch.equal(back, img)
+
+
+def test_read_image_errors_name_the_file(tmp_path):
+    with pytest.raises(CaptureError, match="missing.png: file not found"):
+        read_image(tmp_path / "missing.png")
+    bad = tmp_path / "truncated.png"
+    write_image(bad, torch.rand(1, 20, 20))
+    bad.write_bytes(bad.read_bytes()[:30])
+    with pytest.raises(CaptureError, match="truncated.png: cannot be read"):
+        read_image(bad)
+
+
+def test_atomic_output_leaves_nothing_on_failure(tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError):
+        with atomic_output(out) as stage:
+            (stage / "report.json").write_text("{}")
+            raise RuntimeError("boom")
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
+    with atomic_output(out) as stage:
+        (stage / "report.json").write_text("{}")
+    assert (out / "report.json").is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]

@@ -1,0 +1,132 @@
+import copy
+
+import numpy as np
+import pytest
+import torch
+from kornia.geometry.camera import project_points
+
+from torchproj.core import ConfigError
+from torchproj.scene import BUILTIN_SCENES, load_scene, parse_scene, rotation_from_euler_deg, rotation_from_rotvec
+
+from ..helpers import small_config
+
+
+@pytest.mark.parametrize("name", BUILTIN_SCENES)
+def test_builtin_scenes_load(name):
+    scene = load_scene(name)
+    assert scene.name == name
+    assert len(scene.projectors) >= 2 and scene.states
+    for state in scene.states:
+        assert all(s in scene.surfaces for s in state.surfaces)
+
+
+def test_paper_rig_matches_the_paper():
+    scene = load_scene()
+    assert [(p.width, p.height) for p in scene.projectors] == [(1024, 768), (1024, 768)]
+    assert (scene.camera.width, scene.camera.height) == (1600, 1200)
+    # Vertically stacked: the projectors differ only in y.
+    a, b = (p.centre for p in scene.projectors)
+    assert abs(a[0] - b[0]) < 1e-9 and abs(a[2] - b[2]) < 1e-9 and abs(a[1] - b[1]) > 0.05
+    depths = sorted(s.world_from_local[2, 3] for s in scene.surfaces.values())
+    assert depths == pytest.approx([0.8, 1.0])
+
+
+def test_look_at_centres_the_target():
+    scene = load_scene()
+    target = torch.tensor([0.0, 0.0, 0.9], dtype=torch.float64)
+    for dev in scene.projectors:
+        pose = torch.as_tensor(dev.world_from_prj)
+        local = (target - pose[:3, 3]) @ pose[:3, :3]
+        uv = project_points(local[None], torch.as_tensor(dev.K))[0]
+        assert uv.tolist() == pytest.approx([dev.cx, dev.cy], abs=1e-6)
+        # The image's up (-y) points to world up (-y): the rig is not upside down.
+        assert pose[1, 1] > 0.9
+
+
+def test_rotations_are_orthonormal():
+    for r in [rotation_from_rotvec(np.array([0.3, -0.2, 1.1])), rotation_from_euler_deg(np.array([10, 20, 30]))]:
+        assert np.allclose(r @ r.T, np.eye(3)) and np.isclose(np.linalg.det(r), 1)
+
+
+def _bad(mutate):
+    data = small_config()
+    mutate(data)
+    with pytest.raises(ConfigError) as info:
+        parse_scene(data)
+    return str(info.value)
+
+
+def test_unknown_key_suggests_the_right_one():
+    msg = _bad(lambda d: d["camera"].update(focl=1000))
+    assert msg.startswith("camera.focl: unknown key") and "did you mean 'focal'" in msg
+
+
+def test_wrong_type_names_the_field():
+    msg = _bad(lambda d: d["projectors"][1].update(focal="long"))
+    assert msg.startswith("projectors[1].focal: must be a number")
+
+
+def test_negative_focal_length():
+    msg = _bad(lambda d: d["projectors"][0].update(focal=-5))
+    assert msg.startswith("projectors[0].focal: must be greater than 0")
+
+
+def test_pose_that_is_not_a_rotation():
+    def mutate(d):
+        d["surfaces"]["near_plane"]["pose"] = {"position": [0, 0, 0.8], "rotation": [[1, 0, 0], [0, 2, 0], [0, 0, 1]]}
+
+    msg = _bad(mutate)
+    assert msg.startswith("surfaces.near_plane.pose.rotation: is not a rotation")
+    assert "orthonormal" in msg
+
+
+def test_reflection_is_not_a_rotation():
+    def mutate(d):
+        d["surfaces"]["near_plane"]["pose"] = {"position": [0, 0, 0.8], "rotation": [[-1, 0, 0], [0, 1, 0], [0, 0, 1]]}
+
+    assert "is not a rotation" in _bad(mutate)
+
+
+def test_surface_behind_the_camera():
+    msg = _bad(lambda d: d["surfaces"]["far_plane"]["pose"].update(position=[0, 0, -1.0]))
+    assert msg.startswith("surfaces.far_plane.pose.position: lies behind the camera")
+
+
+def test_missing_mesh_file(tmp_path):
+    def mutate(d):
+        d["surfaces"]["near_plane"] = {"type": "mesh", "file": "head.obj", "pose": {"position": [0, 0, 0.8]}}
+
+    data = small_config()
+    mutate(data)
+    with pytest.raises(ConfigError, match=r"surfaces.near_plane.file: mesh file .*head.obj' not found"):
+        parse_scene(data, base_dir=tmp_path)
+
+
+def test_state_naming_an_unknown_surface():
+    msg = _bad(lambda d: d["states"][0].update(surfaces=["nope"]))
+    assert msg.startswith("states[0].surfaces: names unknown surface 'nope'")
+
+
+def test_transmittance_only_on_screens():
+    def mutate(d):
+        d["surfaces"]["box"] = {"type": "box", "size": [0.1, 0.1, 0.1], "transmittance": 0.5,
+                                "pose": {"position": [0, 0, 0.9]}}
+
+    assert _bad(mutate).startswith("surfaces.box.transmittance: is only supported on screens")
+
+
+def test_two_orientations_conflict():
+    msg = _bad(lambda d: d["camera"]["pose"].update(rotvec=[0, 0, 0]))
+    assert msg.startswith("camera.pose.rotvec: conflicts with 'look_at'")
+
+
+def test_missing_config_file_is_clear():
+    with pytest.raises(ConfigError, match="not found"):
+        load_scene("no_such_scene")
+
+
+def test_valid_config_is_not_mutated():
+    data = small_config()
+    before = copy.deepcopy(data)
+    parse_scene(data)
+    assert data == before

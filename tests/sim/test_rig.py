@@ -1,0 +1,188 @@
+"""The virtual rig against independent float64 physics, and its capture mechanics."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from torchproj.core import InputError
+from torchproj.scene import parse_scene
+from torchproj.sim import VirtualRig
+
+from ..helpers import small_config, small_scene
+
+
+def _expected_radiance(scene, geo, patterns_value: dict[int, float]):
+    """Radiance at pixel centres from the physics contract, in float64 numpy, from the cast points."""
+    pts = geo.points.double().numpy().reshape(-1, 3)
+    nrm = geo.normals.double().numpy().reshape(-1, 3)
+    albedo = np.array([scene.surfaces[scene.states[0].surfaces[0]].albedo[0]])
+    total = np.full(len(pts), scene.ambient) * albedo / math.pi
+    for j, p in enumerate(scene.projectors):
+        x = patterns_value.get(j, 0.0)
+        rel = (pts - p.centre) @ p.world_from_prj[:3, :3]
+        u = p.fx * rel[:, 0] / rel[:, 2] + p.cx
+        v = p.fy * rel[:, 1] / rel[:, 2] + p.cy
+        cu, cv = np.floor(u + 0.5), np.floor(v + 0.5)
+        r2 = (cu - p.cx) ** 2 + (cv - p.cy) ** 2
+        corners = np.array([[0, 0], [p.width - 1, 0], [0, p.height - 1], [p.width - 1, p.height - 1]])
+        r2max = (((corners - [p.cx, p.cy]) ** 2).sum(1)).max()
+        light = p.power * (p.response_a * x ** p.response_b[0] + p.black_level) * (1 - p.vignetting * r2 / r2max)
+        to = p.centre - pts
+        dist = np.linalg.norm(to, axis=1)
+        cos = np.clip((nrm * to).sum(1) / dist, 0, None)
+        inside = (cu >= 0) & (cu < p.width) & (cv >= 0) & (cv < p.height)
+        total += np.where(inside, albedo / math.pi * light * cos / dist**2, 0)
+    return total.reshape(geo.points.shape[:2])
+
+
+def test_radiance_matches_the_physics_contract():
+    scene = small_scene(supersampling=1)
+    rig = VirtualRig(scene)
+    state = scene.states[0].name
+    geo = rig.geometry(state)
+    prj = scene.projectors[0]
+    white = torch.ones(1, 1, prj.height, prj.width)
+    got = rig.radiance(state, {0: white * 0.7})[0, 0].double().numpy()
+    want = _expected_radiance(scene, geo, {0: 0.7})
+    on_surface = np.isfinite(geo.points.numpy()).all(-1)
+    assert on_surface.mean() > 0.3
+    np.testing.assert_allclose(got[on_surface], want[on_surface], rtol=2e-4)
+    assert np.all(got[~on_surface] == 0)  # the background reflects nothing
+
+
+def test_geometry_is_cast_once_per_state():
+    rig = VirtualRig(small_scene())
+    assert rig.geometry("near") is rig.geometry("near")
+
+
+def test_primitive_scenes_use_no_mesh_machinery():
+    code = ("import torch, sys; from tests.helpers import small_scene; from torchproj.sim import VirtualRig; "
+            "r = VirtualRig(small_scene('box_cylinders')); r.geometry('together'); "
+            "print(any(m.startswith(('embreex', 'trimesh')) for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def _segment_hits_cylinder(a, b, surf, steps=400):
+    t = np.linspace(0.001, 0.999, steps)[:, None]
+    p = a + t * (b - a) - surf.world_from_local[:3, 3]
+    local = p @ surf.world_from_local[:3, :3]
+    return bool(np.any((local[:, 0] ** 2 + local[:, 2] ** 2 <= surf.radius**2) & (np.abs(local[:, 1]) <= surf.height / 2)))
+
+
+def test_shadows_match_an_independent_segment_test():
+    scene = small_scene("box_cylinders", supersampling=1)
+    rig = VirtualRig(scene)
+    geo = rig.geometry("together")
+    box = scene.states[0].surfaces.index("box")
+    cylinders = [scene.surfaces[n] for n in ("cylinder_left", "cylinder_right")]
+    on_box = (geo.surface_id == box).numpy()
+    rng = np.random.default_rng(0)
+    for j, p in enumerate(scene.projectors):
+        lit = np.isfinite(geo.prj_xy[j].numpy()).all(-1)
+        pts = geo.points.double().numpy()
+        # Box points facing the projector and inside its image: unlit exactly where shadowed.
+        rel = (pts - p.centre) @ p.world_from_prj[:3, :3]
+        u = p.fx * rel[..., 0] / rel[..., 2] + p.cx
+        v = p.fy * rel[..., 1] / rel[..., 2] + p.cy
+        facing = (geo.normals.double().numpy() * (p.centre - pts)).sum(-1) > 0
+        candidates = on_box & facing & (u > 0) & (u < p.width - 1) & (v > 0) & (v < p.height - 1)
+        shadowed_idx = np.argwhere(candidates & ~lit)
+        lit_idx = np.argwhere(candidates & lit)
+        assert len(shadowed_idx) > 50, "the cylinders should shadow part of the box"
+        for idx, expect in [(shadowed_idx, True), (lit_idx, False)]:
+            pick = idx[rng.choice(len(idx), size=min(150, len(idx)), replace=False)]
+            verdicts = [any(_segment_hits_cylinder(pts[r, c], p.centre, s) for s in cylinders) for r, c in pick]
+            assert np.mean(np.array(verdicts) == expect) > 0.97
+        # And the projector's light really does not reach the shadow.
+        white = torch.ones(1, 1, p.height, p.width)
+        diff = rig.radiance("together", {j: white})[0, 0] - rig.radiance("together", {})[0, 0]
+        assert float(diff[torch.from_numpy(candidates & ~lit)].abs().max()) == 0.0
+
+
+def test_semi_transparent_screen_passes_light_twice():
+    """Behind a screen of transmittance t, light is dimmed once on the way in and once on the way out."""
+    data = small_config("two_screens", supersampling=1)
+    t = data["surfaces"]["front_screen"]["transmittance"]
+    both = VirtualRig(parse_scene(data))
+    back_only = dict(data, states=[{"name": "s", "surfaces": ["back_screen"]}])
+    front_only = dict(data, states=[{"name": "s", "surfaces": ["front_screen"]}])
+    white = {0: torch.ones(1, 1, 192, 256)}
+
+    def projected(rig, state):
+        # White minus black: the projector's own light, without ambient light (which reaches the
+        # back screen without crossing the front one).
+        return rig.radiance(state, white)[0, 0] - rig.radiance(state, {})[0, 0]
+
+    r_both = projected(both, "both")
+    r_back = projected(VirtualRig(parse_scene(back_only)), "s")
+    r_front = projected(VirtualRig(parse_scene(front_only)), "s")
+    front_rig = VirtualRig(parse_scene(front_only))
+    back_rig = VirtualRig(parse_scene(back_only))
+    seen_through = torch.isfinite(front_rig.geometry("s").points).all(-1) & (r_back > 0)
+    # Does the projector's light reach the back point through the front screen too? Intersect the
+    # segment point -> projector with the front rectangle analytically.
+    front = data["surfaces"]["front_screen"]
+    z0, (w, h) = front["pose"]["position"][2], front["size"]
+    pts = back_rig.geometry("s").points.double()
+    centre = torch.tensor(parse_scene(data).projectors[0].centre)
+    s_ = (z0 - pts[..., 2]) / (centre[2] - pts[..., 2])
+    q = pts + s_[..., None] * (centre - pts)
+    lit_through = (q[..., 0].abs() <= w / 2) & (q[..., 1].abs() <= h / 2)
+    # Away from the screen's edges, where a pixel's footprint straddles them.
+    interior = torch.nn.functional.max_pool2d((~seen_through).float()[None, None], 5, 1, 2)[0, 0] == 0
+    factor = torch.where(lit_through, t * t, t)
+    assert int((interior & lit_through).sum()) > 1000 and int((interior & ~lit_through).sum()) > 100
+    edge = torch.nn.functional.max_pool2d(lit_through.float()[None, None], 3, 1, 1)[0, 0] != \
+        -torch.nn.functional.max_pool2d(-lit_through.float()[None, None], 3, 1, 1)[0, 0]
+    check = interior & ~edge
+    torch.testing.assert_close(r_both[check], (r_front + factor * r_back)[check].float(), rtol=1e-4, atol=1e-7)
+
+
+def test_capture_noise_follows_the_sensor_model():
+    scene = small_scene(bit_depth=16, supersampling=1)
+    rig = VirtualRig(scene)
+    white = {0: torch.ones(1, 1, 192, 256)}
+    clean = rig.capture("near", white, noise=False)[0, 0]
+    a = rig.capture("near", white, seed=1)[0, 0]
+    b = rig.capture("near", white, seed=2)[0, 0]
+    assert torch.equal(a, rig.capture("near", white, seed=1)[0, 0])  # seeded: repeatable
+    mask = (clean > 0.2) & (clean < 0.9)
+    cam = scene.camera
+    predicted = torch.sqrt(clean[mask] / cam.full_well + cam.read_noise**2)
+    measured = (a - b)[mask] / math.sqrt(2)
+    assert float(measured.std() / predicted.mean()) == pytest.approx(1.0, abs=0.05)
+
+
+def test_captures_are_quantised_to_the_bit_depth():
+    rig = VirtualRig(small_scene())
+    img = rig.capture("far", {1: torch.rand(2, 1, 192, 256)})
+    assert img.shape == (2, 1, 300, 400)
+    assert torch.equal(torch.round(img * 255) / 255, img)
+
+
+def test_colour_camera_and_colour_patterns():
+    scene = small_scene(channels=3, supersampling=1)
+    scene.surfaces["near_plane"].albedo = (0.9, 0.5, 0.1)
+    rig = VirtualRig(scene)
+    red = torch.zeros(1, 3, 192, 256)
+    red[:, 0] = 1
+    img = rig.radiance("near", {0: red})[0]
+    lit = img[0] > img[0].max() * 0.5
+    # Green and blue only see black level and ambient light; red sees the projector.
+    assert float(img[0][lit].mean()) > 5 * float(img[1][lit].mean())
+    grey = rig.radiance("near", {0: torch.ones(1, 1, 192, 256)})[0]
+    ratio = grey[:, lit].mean(1)
+    assert float(ratio[0] / ratio[2]) == pytest.approx(9.0, rel=0.01)  # albedo 0.9 vs 0.1
+
+
+def test_bad_patterns_get_clear_errors():
+    rig = VirtualRig(small_scene())
+    with pytest.raises(InputError, match="unknown projector 'left'"):
+        rig.capture("near", {"left": torch.ones(1, 1, 192, 256)})
+    with pytest.raises(InputError, match=r"patterns\['upper'\] must have shape \(N, C, 192, 256\)"):
+        rig.capture("near", {"upper": torch.ones(1, 1, 100, 256)})

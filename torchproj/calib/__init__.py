@@ -1,0 +1,36 @@
+"""Calibration: Gray code and its decoding, correspondence maps, response fit, triangulation."""
+
+from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
+from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel
+from .maps import fill_holes, inverse_map
+from .pipeline import ProjectorCalibration, calibrate_projector
+from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
+from .triangulate import ProCamCalibration, read_opencv_calibration, triangulate, write_ply
+from .virtual import DecodingError, decoding_error, simulate_calibration
+
+__all__ = [
+    "DEFAULT_NAMES",
+    "DecodingError",
+    "GrayDecoding",
+    "GraycodeCapture",
+    "ProCamCalibration",
+    "ProjectorCalibration",
+    "ResponseCurve",
+    "calibrate_projector",
+    "decode_gray",
+    "decoding_error",
+    "fill_holes",
+    "fit_response",
+    "graycode_bits",
+    "graycode_patterns",
+    "inverse_map",
+    "measure_ramp",
+    "ramp_pattern",
+    "read_graycode_folder",
+    "read_opencv_calibration",
+    "refine_subpixel",
+    "simulate_calibration",
+    "triangulate",
+    "write_graycode_folder",
+    "write_ply",
+]

@@ -1,0 +1,106 @@
+"""Capture folders: the images a camera took while one projector showed the calibration sequence.
+
+Layout (that of ``shared/data/procam_chessboard/capture_0``): the Gray-code captures in pattern
+order, then the all-white capture, then the all-black one, named by a template that defaults to
+``graycode_{:02d}.png`` (``graycode_00.png`` ... ``graycode_41.png`` for a 1024x768 projector).
+Optional photometric captures sit beside them as ``ramp.png`` and ``ramp_mirrored.png``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..core.errors import CaptureError
+from ..core.imageio import read_image, write_image
+from .graycode import graycode_bits
+
+__all__ = ["GraycodeCapture", "read_graycode_folder", "write_graycode_folder", "DEFAULT_NAMES",
+           "RAMP_NAMES"]
+
+DEFAULT_NAMES = "graycode_{:02d}.png"
+RAMP_NAMES = ("ramp.png", "ramp_mirrored.png")
+_DARK = 8 / 255  # a white capture whose brightest pixel is below this saw no projector light
+
+
+@dataclass
+class GraycodeCapture:
+    """Images of one capture folder, float :math:`(C, H, W)` each (conventions module).
+
+    Attributes:
+        patterns: :math:`(N, C, H, W)` Gray-code captures in pattern order.
+        white, black: :math:`(C, H, W)`.
+        ramp: :math:`(2, C, H, W)` ramp and mirrored ramp captures, or None if absent.
+    """
+
+    patterns: torch.Tensor
+    white: torch.Tensor
+    black: torch.Tensor
+    ramp: torch.Tensor | None = None
+
+
+def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, int],
+                         names: str = DEFAULT_NAMES) -> GraycodeCapture:
+    """Read and check a capture folder.
+
+    Args:
+        folder: the folder.
+        projector_size: ``(width, height)`` of the projector that showed the sequence.
+        names: file name template, formatted with the image index (``graycode_{:02d}.png``).
+
+    Raises:
+        CaptureError: naming the file and what to do, for a missing folder or image, an unreadable
+            file, images of different sizes, or a white capture that shows no projector light.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaptureError(f"{folder}: capture folder not found")
+    nx, ny = graycode_bits(*projector_size)
+    count = 2 * (nx + ny) + 2
+    paths = [folder / names.format(i) for i in range(count)]
+    missing = [p.name for p in paths if not p.is_file()]
+    if missing:
+        raise CaptureError(
+            f"{folder}: expected {count} images for a {projector_size[0]}x{projector_size[1]} projector "
+            f"({2 * nx} column + {2 * ny} row Gray-code images, then white, then black) named like "
+            f"{paths[0].name}; missing {len(missing)}: {', '.join(missing[:4])}"
+            f"{' ...' if len(missing) > 4 else ''} (check --projector and the name template)")
+    extra = folder / names.format(count)
+    if extra.is_file():
+        raise CaptureError(f"{extra}: one image more than a {projector_size[0]}x{projector_size[1]} projector's "
+                           f"{count}; check --projector, or move extra files out of the folder")
+    images = []
+    for p in paths:
+        img = read_image(p)
+        if images and img.shape != images[0].shape:
+            raise CaptureError(f"{p}: size {tuple(img.shape)} (C, H, W) differs from {paths[0].name}'s "
+                               f"{tuple(images[0].shape)}; all captures must come from one camera setting")
+        images.append(img)
+    stack = torch.stack(images)
+    white, black = stack[-2], stack[-1]
+    if float(white.max()) < _DARK:
+        raise CaptureError(f"{paths[-2]}: the white capture is dark everywhere (max {float(white.max()) * 255:.0f}/255): "
+                           "was the projector on and pointed at the scene? Capture again")
+    ramp = None
+    ramp_paths = [folder / n for n in RAMP_NAMES]
+    if all(p.is_file() for p in ramp_paths):
+        ramp = torch.stack([read_image(p) for p in ramp_paths])
+        if ramp.shape[1:] != white.shape:
+            raise CaptureError(f"{ramp_paths[0]}: size differs from the Gray-code captures")
+    return GraycodeCapture(patterns=stack[:-2], white=white, black=black, ramp=ramp)
+
+
+def write_graycode_folder(folder: str | os.PathLike, capture: GraycodeCapture, bits: int = 8,
+                          names: str = DEFAULT_NAMES) -> None:
+    """Write a capture in the folder layout :func:`read_graycode_folder` reads."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    images = list(capture.patterns) + [capture.white, capture.black]
+    for i, img in enumerate(images):
+        write_image(folder / names.format(i), img, bits)
+    if capture.ramp is not None:
+        for name, img in zip(RAMP_NAMES, capture.ramp):
+            write_image(folder / name, img, bits)

@@ -1,0 +1,100 @@
+"""Correspondence maps: the inverse map (projector -> camera) and hole filling.
+
+Conventions: :mod:`torchproj.core.conventions`. The forward map ``prj_xy`` is :math:`(H, W, 2)`
+projector coordinates per camera pixel; the inverse map ``cam_xy`` is :math:`(H_p, W_p, 2)` camera
+coordinates per projector cell; NaN marks "no correspondence" in both.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+
+from ..core.checks import check, check_shape
+from ..core.conventions import pixel_grid, round_to_pixel
+
+__all__ = ["inverse_map", "fill_holes"]
+
+
+def inverse_map(prj_xy: torch.Tensor, projector_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each projector cell, the mean camera position of the camera pixels it lights.
+
+    Args:
+        prj_xy: :math:`(H, W, 2)` projector coordinates per camera pixel (NaN where invalid).
+        projector_size: ``(width, height)``.
+
+    Returns:
+        ``cam_xy`` :math:`(H_p, W_p, 2)` camera coordinates (NaN where no camera pixel decoded to the
+        cell) and ``count`` :math:`(H_p, W_p)` how many camera pixels did.
+    """
+    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    width, height = projector_size
+    h, w = prj_xy.shape[:2]
+    ok = torch.isfinite(prj_xy).all(-1)
+    cell = round_to_pixel(prj_xy[ok])
+    inside = (cell[:, 0] >= 0) & (cell[:, 0] < width) & (cell[:, 1] >= 0) & (cell[:, 1] < height)
+    flat = cell[inside, 1] * width + cell[inside, 0]
+    cam = pixel_grid(h, w, device=prj_xy.device, dtype=torch.float64)[ok][inside]
+    sums = torch.zeros(height * width, 2, dtype=torch.float64, device=prj_xy.device).index_add_(0, flat, cam)
+    count = torch.zeros(height * width, dtype=torch.int64, device=prj_xy.device).index_add_(
+        0, flat, torch.ones_like(flat))
+    cam_xy = (sums / count[:, None].clamp_min(1)).to(torch.float32)
+    cam_xy[count == 0] = float("nan")
+    return cam_xy.reshape(height, width, 2), count.reshape(height, width)
+
+
+def fill_holes(values: torch.Tensor, max_area: int = 16) -> torch.Tensor:
+    """Fill small holes in a map by harmonic interpolation from the surrounding valid entries.
+
+    The paper's hole filling: decoding drops isolated correspondences where the camera samples the
+    surface more coarsely than the projector (or a bit flips), leaving holes of a few pixels inside
+    valid regions. A hole is a connected set (8-connectivity) of NaN entries that does not touch the
+    image border and has at most ``max_area`` entries; larger gaps (shadows, object edges, the
+    background) are genuine and stay NaN.
+
+    Args:
+        values: :math:`(H, W, D)` map with NaN where missing.
+        max_area: largest hole, in entries, that is filled.
+
+    Returns:
+        :math:`(H, W, D)` map with the small holes filled.
+    """
+    check_shape(values, "values", ["H", "W", "D"])
+    check(max_area >= 0, f"max_area must be >= 0, got {max_area}")
+    missing = ~torch.isfinite(values).all(-1)
+    labels, n = ndimage.label(missing.cpu().numpy(), structure=np.ones((3, 3)))
+    if n == 0:
+        return values.clone()
+    sizes = np.bincount(labels.ravel())
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    fillable = sizes <= max_area
+    fillable[0] = False
+    fillable[border] = False
+    todo = torch.from_numpy(fillable[labels]).to(values.device)
+    holes = todo.clone()
+    out = torch.nan_to_num(values.clone())
+    known = (~missing).to(values.dtype)
+    kernel = torch.ones(1, 1, 3, 3, dtype=values.dtype, device=values.device)
+    # First guess: each pass fills the hole pixels that touch a known pixel, so holes close from
+    # their rims.
+    while bool(todo.any()):
+        num = F.conv2d((out * known[..., None]).permute(2, 0, 1)[:, None], kernel, padding=1)[:, 0]
+        den = F.conv2d(known[None, None], kernel, padding=1)[0, 0]
+        ring = todo & (den > 0)
+        if not bool(ring.any()):
+            break
+        out[ring] = (num[:, ring] / den[ring]).T
+        known = known.clone()
+        known[ring] = 1
+        todo = todo & ~ring
+    # Then relax to the harmonic interpolant of the rim (Jacobi sweeps of the 4-neighbour
+    # Laplacian): smooth, and exact wherever the map is locally affine, as on a plane.
+    cross = torch.tensor([[0, 1, 0], [1, 0, 1], [0, 1, 0]], dtype=values.dtype, device=values.device) / 4
+    if bool(holes.any()):
+        for _ in range(4 * int(np.sqrt(max_area)) + 20):
+            avg = F.conv2d(out.permute(2, 0, 1)[:, None], cross[None, None], padding=1)[:, 0]
+            out[holes] = avg[:, holes].T
+    out[(~known.bool())] = float("nan")
+    return out

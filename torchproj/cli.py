@@ -1,0 +1,246 @@
+"""The ``torchproj`` command: thin wrappers that parse arguments and call the library's rooms."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import __version__
+from .core.errors import TorchprojError
+from .core.output import atomic_output, write_json
+
+__all__ = ["main", "build_parser"]
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 1024x768, got {text!r}") from None
+    return w, h
+
+
+def _progress(iterable, **kw):
+    from tqdm import tqdm
+
+    return tqdm(iterable, file=sys.stderr, leave=False, **kw)
+
+
+# ------------------------------------------------------------------------------------- scene
+def cmd_scene(args) -> int:
+    from .scene import load_scene
+
+    scene = load_scene(args.config)
+    cam = scene.camera
+    print(f"scene {scene.name} ({scene.source})")
+    for p in scene.projectors:
+        print(f"  projector {p.name}: {p.width}x{p.height}, f={p.fx:g}px, at {np.round(p.centre, 3).tolist()} m, "
+              f"response x^{'/'.join(f'{b:g}' for b in p.response_b)}, black {p.black_level:g}")
+    print(f"  camera: {cam.width}x{cam.height}, f={cam.fx:g}px, {cam.channels} channel(s), "
+          f"{cam.bit_depth}-bit, {cam.supersampling}x{cam.supersampling} samples per pixel")
+    for s in scene.surfaces.values():
+        print(f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m")
+    for st in scene.states:
+        print(f"  state {st.name}: {', '.join(st.surfaces)}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------- simulate
+def cmd_simulate(args) -> int:
+    from .calib import (calibrate_projector, decoding_error, ramp_pattern, read_graycode_folder,
+                        simulate_calibration, write_graycode_folder)
+    from .figures import calibration_summary
+    from .scene import load_scene
+    from .sim import VirtualRig
+
+    t_start = time.perf_counter()
+    scene = load_scene(args.config)
+    rig = VirtualRig(scene, device=args.device)
+    timings = {"cast": 0.0, "capture": 0.0, "calibrate": 0.0}
+    results, rows = [], []
+    with atomic_output(args.out) as stage:
+        jobs = [(st.name, j) for st in scene.states for j in range(len(scene.projectors))]
+        for state, j in _progress(jobs, desc="calibrating states x projectors"):
+            proj = scene.projectors[j]
+            t0 = time.perf_counter()
+            geo = rig.geometry(state)
+            timings["cast"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            capture = simulate_calibration(rig, state, j, noise=not args.no_noise)
+            timings["capture"] += time.perf_counter() - t0
+            if args.write_captures:
+                folder = stage / "captures" / state / proj.name
+                write_graycode_folder(folder, capture, bits=scene.camera.bit_depth)
+                capture = read_graycode_folder(folder, (proj.width, proj.height))
+            t0 = time.perf_counter()
+            cal = calibrate_projector(capture, (proj.width, proj.height))
+            timings["calibrate"] += time.perf_counter() - t0
+            truth = geo.prj_xy[j]
+            err_int = decoding_error(cal.decoding.prj_xy, truth)
+            err_sub = decoding_error(cal.prj_xy, truth)
+            # Compensation check (paper fig. 4c): the linearised ramp plus its mirror should be flat.
+            ramps = torch.cat([ramp_pattern(proj.width, proj.height), ramp_pattern(proj.width, proj.height, mirrored=True)])
+            shot = rig.capture(state, {j: cal.response.to_pattern(ramps)}, noise=not args.no_noise)
+            lit = cal.decoding.valid & ((capture.white - capture.black).mean(0) > 0.1)
+            norm = ((shot - capture.black) / (capture.white - capture.black).clamp_min(1e-3)).mean(1)
+            flat = (norm[0] + norm[1])[lit]
+            out_dir = stage / "calibration" / state / proj.name
+            out_dir.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(out_dir / "correspondence.npz", prj_xy=cal.prj_xy.numpy(),
+                                prj_xy_integer=cal.decoding.prj_xy.numpy(), cam_xy=cal.cam_xy.numpy(),
+                                count=cal.count.numpy(), contrast=cal.decoding.contrast.numpy())
+            results.append({
+                "state": state, "projector": proj.name,
+                "decoding_integer": err_int.as_dict(), "decoding_subpixel": err_sub.as_dict(),
+                "response_fit": cal.response.as_dict(), "response_true_b": list(proj.response_b),
+                "compensated_ramp_sum": {"mean": float(flat.mean()), "std": float(flat.std())},
+            })
+            levels, measured = _ramp_points(capture, cal, proj)
+            rows.append({"label": f"{state}/{proj.name}", "prj_xy": cal.prj_xy,
+                         "error": (cal.prj_xy - truth).norm(dim=-1), "levels": levels, "measured": measured,
+                         "fitted": lambda x, a=float(cal.response.a[0]), b=float(cal.response.b[0]),
+                         c=float(cal.response.c[0]): a * x**b + c,
+                         "fit_b": float(cal.response.b[0]), "true_b": proj.response_b[0]})
+        calibration_summary(stage / "calibration.png", rows)
+        timings["total"] = time.perf_counter() - t_start
+        report = {"scene": scene.name, "config": str(scene.source), "torchproj": __version__,
+                  "device": str(rig.device), "noise": not args.no_noise,
+                  "timings_s": {k: round(v, 3) for k, v in timings.items()}, "calibrations": results}
+        write_json(stage / "report.json", report)
+        (stage / "report.md").write_text(_simulate_markdown(report))
+    print(_simulate_markdown(report))
+    print(f"wrote {args.out}/report.json, report.md, calibration.png")
+    return 0
+
+
+def _ramp_points(capture, cal, proj):
+    from .calib import measure_ramp
+
+    levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, cal.decoding.prj_xy[..., 0],
+                                    proj.width)
+    return levels.numpy(), measured.numpy()
+
+
+def _simulate_markdown(report: dict) -> str:
+    lines = [f"# Virtual-rig calibration: {report['scene']}", "",
+             "Decoded coordinates against the simulator's truth, over the camera pixels each projector truly "
+             "lights. `exact`: decoded cell equals the true cell; RMS: distance to the continuous true "
+             "coordinate (projector pixels). Flatness: compensated ramp plus its mirror, normalised by "
+             "white - black (ideal 1, std 0).", "",
+             "| state | projector | decoded | exact | RMS integer | RMS sub-pixel | fitted b (true) | ramp+mirror mean / std |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in report["calibrations"]:
+        di, ds = r["decoding_integer"], r["decoding_subpixel"]
+        b = "/".join(f"{v:.3f}" for v in r["response_fit"]["b"])
+        tb = "/".join(f"{v:g}" for v in r["response_true_b"])
+        f = r["compensated_ramp_sum"]
+        lines.append(f"| {r['state']} | {r['projector']} | {di['decoded']:.2%} | {di['exact']:.2%} | "
+                     f"{di['rms_px']:.3f} | {ds['rms_px']:.3f} | {b} ({tb}) | {f['mean']:.3f} / {f['std']:.3f} |")
+    t = report["timings_s"]
+    lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------ decode
+def cmd_decode(args) -> int:
+    from .calib import (calibrate_projector, read_graycode_folder, read_opencv_calibration, triangulate,
+                        write_ply)
+    from .figures import decode_summary
+
+    calib = read_opencv_calibration(args.calibration) if args.calibration else None
+    t_read = time.perf_counter()
+    capture = read_graycode_folder(args.capture_dir, args.projector, names=args.names)
+    t_read = time.perf_counter() - t_read
+    cal = calibrate_projector(capture, args.projector, white_threshold=args.white_threshold,
+                              black_threshold=args.black_threshold, subpixel=not args.no_subpixel,
+                              max_hole=args.fill_holes)
+    dec = cal.decoding
+    report = {"capture_dir": str(args.capture_dir), "projector": list(args.projector),
+              "camera": [int(dec.valid.shape[1]), int(dec.valid.shape[0])],
+              "valid_fraction": dec.valid_fraction, "read_s": round(t_read, 4),
+              "decode_s": round(cal.timings_s["decode"], 4), "maps_s": round(cal.timings_s["maps"], 4),
+              "white_threshold": args.white_threshold, "black_threshold": args.black_threshold,
+              "subpixel": not args.no_subpixel}
+    arrays = {"prj_xy": dec.prj_xy.numpy().astype(np.float32), "prj_xy_refined": cal.prj_xy.numpy(),
+              "valid": dec.valid.numpy(), "contrast": dec.contrast.numpy().astype(np.float32),
+              "cam_xy": cal.cam_xy.numpy(), "count": cal.count.numpy().astype(np.int32)}
+    points = None
+    with atomic_output(args.out) as stage:
+        if calib is not None:
+            src = cal.prj_xy
+            ok = torch.isfinite(src).all(-1)
+            ys, xs = torch.nonzero(ok, as_tuple=True)
+            cam_xy = torch.stack([xs, ys], -1).double()
+            t0 = time.perf_counter()
+            pts = triangulate(cam_xy, src[ok].double(), calib).float()
+            report["triangulate_s"] = round(time.perf_counter() - t0, 4)
+            points = torch.full(ok.shape + (3,), float("nan"))
+            points[ok] = pts
+            arrays["points"] = points.numpy()
+            report["points"] = int(ok.sum())
+            grey = (capture.white.mean(0)[ok] * 255).clamp(0, 255).to(torch.uint8).numpy()
+            write_ply(stage / "points.ply", pts.numpy(), np.repeat(grey[:, None], 3, 1))
+        np.savez_compressed(stage / "correspondence.npz", **arrays)
+        write_json(stage / "report.json", report)
+        decode_summary(stage / "decoded.png", dec.prj_xy, dec.contrast, points,
+                       title=f"{args.capture_dir}: {dec.valid_fraction:.1%} of the camera decoded")
+    print(f"decoded {dec.valid_fraction:.1%} of {report['camera'][0]}x{report['camera'][1]} camera pixels in "
+          f"{report['decode_s']:.3f} s (reading {t_read:.2f} s)" + (f"; {report['points']} points" if calib else ""))
+    print(f"wrote {args.out}/correspondence.npz, report.json, decoded.png" + (", points.ply" if calib else ""))
+    return 0
+
+
+# -------------------------------------------------------------------------------------- main
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torchproj", description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--version", action="version", version=f"torchproj {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("scene", help="check a scene config and print what it describes")
+    p.add_argument("config", nargs="?", help="YAML file or built-in name (default: paper_two_planes)")
+    p.set_defaults(func=cmd_scene)
+
+    p = sub.add_parser("simulate", help="calibrate every state and projector of a scene on the virtual rig, "
+                                        "and check the result against the simulator's truth")
+    p.add_argument("config", nargs="?", help="YAML file or built-in name (default: paper_two_planes)")
+    p.add_argument("--out", default="out/simulate", help="output folder (default: out/simulate)")
+    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
+    p.add_argument("--no-noise", action="store_true", help="capture without camera noise")
+    p.add_argument("--write-captures", action="store_true",
+                   help="also write each capture as a folder of PNGs (the layout of a real capture) and "
+                        "calibrate from those files")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("decode", help="decode a folder of real Gray-code captures (and triangulate)")
+    p.add_argument("capture_dir", type=Path, help="folder of captures: Gray code in order, then white, then black")
+    p.add_argument("--projector", type=_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--calibration", type=Path, help="OpenCV camera-projector calibration (XML/YAML) to triangulate")
+    p.add_argument("--names", default="graycode_{:02d}.png", help="file name template (default: graycode_{:02d}.png)")
+    p.add_argument("--white-threshold", type=float, default=5, help="8-bit units (OpenCV default 5)")
+    p.add_argument("--black-threshold", type=float, default=40, help="8-bit units (OpenCV default 40)")
+    p.add_argument("--no-subpixel", action="store_true", help="triangulate integer cells, no sub-pixel fit")
+    p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
+    p.set_defaults(func=cmd_decode)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``torchproj`` console command."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except TorchprojError as exc:
+        print(f"torchproj {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

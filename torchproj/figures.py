@@ -1,0 +1,74 @@
+"""PNG summaries a person can check at a glance (matplotlib, off-screen)."""
+
+from __future__ import annotations
+
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+__all__ = ["decode_summary", "calibration_summary"]
+
+
+def _map_panel(ax, data, title, cmap="viridis", label=None, **kw):
+    im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, interpolation="nearest", **kw)
+    ax.set_title(title, fontsize=9)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    cb = plt.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    if label:
+        cb.set_label(label, fontsize=8)
+
+
+def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torch.Tensor,
+                   points: torch.Tensor | None = None, title: str = "") -> None:
+    """Decoded projector x and y per camera pixel, the contrast (white - black), and depth."""
+    n = 4 if points is not None else 3
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6))
+    _map_panel(axes[0], prj_xy[..., 0].numpy(), "projector x (column)", label="px")
+    _map_panel(axes[1], prj_xy[..., 1].numpy(), "projector y (row)", label="px")
+    _map_panel(axes[2], contrast.numpy(), "white - black (decoding confidence)", cmap="gray")
+    if points is not None:
+        _map_panel(axes[3], points[..., 2].numpy(), "triangulated depth z", cmap="turbo",
+                   label="calibration units")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
+    """One row per (state, projector): decoded x, decoded y, error against the truth, response fit.
+
+    Each row dict holds ``label``, ``prj_xy`` (H, W, 2), ``error`` (H, W) pixels or None,
+    ``levels``, ``measured`` (L, C), ``fitted`` (callable on x in [0, 1]) and ``true_b``.
+    """
+    fig, axes = plt.subplots(len(rows), 4, figsize=(17, 3.4 * len(rows)), squeeze=False)
+    for ax_row, row in zip(axes, rows):
+        _map_panel(ax_row[0], row["prj_xy"][..., 0].numpy(), f"{row['label']}: projector x", label="px")
+        _map_panel(ax_row[1], row["prj_xy"][..., 1].numpy(), f"{row['label']}: projector y", label="px")
+        if row.get("error") is not None:
+            _map_panel(ax_row[2], row["error"].numpy(), "|decoded - true| (sub-pixel)", cmap="magma",
+                       label="projector px", vmin=0, vmax=0.5)
+        else:
+            ax_row[2].axis("off")
+        ax = ax_row[3]
+        if row.get("levels") is not None:
+            x = np.linspace(0, 1, 200)
+            ax.plot(row["levels"], row["measured"][:, 0], "o", ms=3, label="measured (median)")
+            ax.plot(x, row["fitted"](x), "-", label=f"fit a x^b + c, b={row['fit_b']:.3f}")
+            if row.get("true_b") is not None:
+                ax.plot(x, x ** row["true_b"], "--", label=f"true x^{row['true_b']:.2f}")
+            ax.set_xlabel("pattern value x")
+            ax.set_ylabel("relative light")
+            ax.legend(fontsize=7)
+            ax.set_title("response (normalised by white - black)", fontsize=9)
+        else:
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
