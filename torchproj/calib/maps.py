@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from scipy import ndimage
 
 from ..core.checks import check, check_shape
@@ -72,29 +71,18 @@ def fill_holes(values: torch.Tensor, max_area: int = 16) -> torch.Tensor:
     fillable = sizes <= max_area
     fillable[0] = False
     fillable[border] = False
-    todo = torch.from_numpy(fillable[labels]).to(values.device)
-    holes = todo.clone()
-    out = torch.nan_to_num(values.clone())
-    known = (~missing).to(values.dtype)
-    kernel = torch.ones(1, 1, 3, 3, dtype=values.dtype, device=values.device)
-    # First guess: each pass fills the hole pixels that touch a known pixel, so holes close from
-    # their rims.
-    while bool(todo.any()):
-        num = F.conv2d((out * known[..., None]).permute(2, 0, 1)[:, None], kernel, padding=1)[:, 0]
-        den = F.conv2d(known[None, None], kernel, padding=1)[0, 0]
-        ring = todo & (den > 0)
-        if not bool(ring.any()):
-            break
-        out[ring] = (num[:, ring] / den[ring]).T
-        known = known.clone()
-        known[ring] = 1
-        todo = todo & ~ring
-    # Then relax to the harmonic interpolant of the rim (Jacobi sweeps of the 4-neighbour
-    # Laplacian): smooth, and exact wherever the map is locally affine, as on a plane.
-    cross = torch.tensor([[0, 1, 0], [1, 0, 1], [0, 1, 0]], dtype=values.dtype, device=values.device) / 4
-    if bool(holes.any()):
-        for _ in range(4 * int(np.sqrt(max_area)) + 20):
-            avg = F.conv2d(out.permute(2, 0, 1)[:, None], cross[None, None], padding=1)[:, 0]
-            out[holes] = avg[:, holes].T
-    out[(~known.bool())] = float("nan")
-    return out
+    holes = torch.from_numpy(np.flatnonzero(fillable[labels])).to(values.device)
+    out = values.clone().reshape(-1, values.shape[-1])
+    if holes.numel() == 0:
+        return out.reshape(values.shape)
+    # Harmonic interpolation of the rim: Jacobi sweeps of the 4-neighbour Laplacian over the hole
+    # pixels only. Smooth, and exact wherever the map is locally affine, as on a plane. A hole's
+    # 4-neighbours are hole pixels or valid ones (it touches no border and no other gap).
+    w = values.shape[1]
+    neighbours = torch.stack([holes - 1, holes + 1, holes - w, holes + w], 1)  # (M, 4)
+    around = out[neighbours]  # (M, 4, D); NaN at neighbours inside the hole
+    known = torch.isfinite(around).all(-1, keepdim=True)
+    out[holes] = torch.nan_to_num(around).sum(1) / known.sum(1).clamp_min(1)  # start from the known rim
+    for _ in range(50 + 10 * max_area):
+        out[holes] = out[neighbours].mean(1)
+    return out.reshape(values.shape)
