@@ -5,7 +5,7 @@ from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_pattern
 from .maps import fill_holes, inverse_map
 from .pipeline import ProjectorCalibration, calibrate_projector
 from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
-from .triangulate import ProCamCalibration, read_opencv_calibration, triangulate, write_ply
+from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, write_ply
 from .virtual import DecodingError, decoding_error, simulate_calibration
 
 __all__ = [
@@ -20,6 +20,7 @@ __all__ = [
     "decode_gray",
     "decoding_error",
     "fill_holes",
+    "fit_plane",
     "fit_response",
     "graycode_bits",
     "graycode_patterns",

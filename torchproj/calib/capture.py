@@ -9,6 +9,7 @@ Optional photometric captures sit beside them as ``ramp.png`` and ``ramp_mirrore
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,13 +73,13 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
     if extra.is_file():
         raise CaptureError(f"{extra}: one image more than a {projector_size[0]}x{projector_size[1]} projector's "
                            f"{count}; check --projector, or move extra files out of the folder")
-    images = []
-    for p in paths:
-        img = read_image(p)
-        if images and img.shape != images[0].shape:
+    # PNG decoding releases the GIL: read on a few threads.
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        images = list(pool.map(read_image, paths))
+    for p, img in zip(paths, images):
+        if img.shape != images[0].shape:
             raise CaptureError(f"{p}: size {tuple(img.shape)} (C, H, W) differs from {paths[0].name}'s "
                                f"{tuple(images[0].shape)}; all captures must come from one camera setting")
-        images.append(img)
     stack = torch.stack(images)
     white, black = stack[-2], stack[-1]
     if float(white.max()) < _DARK:

@@ -22,7 +22,7 @@ from kornia.geometry.epipolar import triangulate_points
 from ..core.checks import check_shape
 from ..core.errors import CaptureError
 
-__all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "write_ply"]
+__all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "fit_plane", "write_ply"]
 
 
 @dataclass
@@ -87,6 +87,23 @@ def triangulate(cam_xy: torch.Tensor, prj_xy: torch.Tensor, calib: ProCamCalibra
     P1 = torch.cat([torch.eye(3, dtype=torch.float64), torch.zeros(3, 1, dtype=torch.float64)], 1)
     P2 = calib.prj_from_cam
     return triangulate_points(P1[None], P2[None], cam_n[None], prj_n[None])[0]
+
+
+def fit_plane(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Least-squares plane through points (SVD of the centred cloud).
+
+    Args:
+        points: :math:`(N, 3)`.
+
+    Returns:
+        ``centroid`` (3,), unit ``normal`` (3,) and signed ``residuals`` (N,), the distances of the
+        points from the plane in the points' units.
+    """
+    check_shape(points, "points", ["N", 3])
+    centroid = points.mean(0)
+    centred = points - centroid
+    normal = torch.linalg.svd(centred, full_matrices=False)[2][2]
+    return centroid, normal, centred @ normal
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:

@@ -1,0 +1,28 @@
+"""The public API surface: a change here is a change users feel, so it is made on purpose."""
+
+import torchproj.calib
+import torchproj.core
+import torchproj.scene
+import torchproj.sim
+
+SURFACE = {
+    "core": ["CaptureError", "ConfigError", "InputError", "TorchprojError", "atomic_output", "check", "check_finite",
+             "check_image", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_uint", "write_image",
+             "write_json"],
+    "scene": ["BUILTIN_SCENES", "Camera", "Projector", "Scene", "State", "Surface", "builtin_config", "load_scene",
+              "look_at", "parse_scene", "rotation_from_euler_deg", "rotation_from_rotvec"],
+    "sim": ["Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
+    "calib": ["DEFAULT_NAMES", "DecodingError", "GrayDecoding", "GraycodeCapture", "ProCamCalibration",
+              "ProjectorCalibration", "ResponseCurve", "calibrate_projector", "decode_gray", "decoding_error",
+              "fill_holes", "fit_plane", "fit_response", "graycode_bits", "graycode_patterns", "inverse_map", "measure_ramp",
+              "ramp_pattern", "read_graycode_folder", "read_opencv_calibration", "refine_subpixel",
+              "simulate_calibration", "triangulate", "write_graycode_folder", "write_ply"],
+}
+
+
+def test_public_api_surface():
+    for room, names in SURFACE.items():
+        module = getattr(torchproj, room)
+        assert sorted(module.__all__) == sorted(names), room
+        for name in names:
+            assert hasattr(module, name), f"{room}.{name}"

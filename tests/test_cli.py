@@ -1,0 +1,83 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from torchproj.cli import main
+from torchproj.scene import BUILTIN_SCENES
+
+from .helpers import small_config
+
+
+@pytest.mark.parametrize("name", BUILTIN_SCENES)
+def test_scene_describes_builtin_configs(name, capsys):
+    assert main(["scene", name]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"scene {name}") and "projector" in out and "state" in out
+
+
+def test_bad_config_exits_with_a_named_field(tmp_path, capsys):
+    data = small_config()
+    data["camera"]["focal"] = -1
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["scene", str(path)]) == 2
+    assert "camera.focal: must be greater than 0" in capsys.readouterr().err
+
+
+def test_simulate_then_decode_the_written_folders(tmp_path):
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(dict(small_config(camera=(240, 180), projector=(128, 96)), name="small")))
+    out = tmp_path / "sim"
+    assert main(["simulate", str(path), "--out", str(out), "--write-captures"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["scene"] == "small" and len(report["calibrations"]) == 4
+    for row in report["calibrations"]:
+        assert row["decoding_integer"]["decoded"] > 0.99 and row["decoding_integer"]["exact"] > 0.999
+        assert row["decoding_subpixel"]["rms_px"] < row["decoding_integer"]["rms_px"]
+        assert abs(row["response_fit"]["b"][0] - row["response_true_b"][0]) < 0.1
+    for name in ("report.md", "calibration.png", "calibration/near/upper/correspondence.npz"):
+        assert (out / name).is_file()
+    # The written capture folder is a real capture to the decoder.
+    dec = tmp_path / "dec"
+    assert main(["decode", str(out / "captures" / "far" / "lower"), "--projector", "128x96", "--out", str(dec)]) == 0
+    got = np.load(dec / "correspondence.npz")["prj_xy"]
+    want = np.load(out / "calibration" / "far" / "lower" / "correspondence.npz")["prj_xy_integer"]
+    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
+
+
+def test_failed_decode_writes_nothing(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    out = tmp_path / "dec"
+    assert main(["decode", str(empty), "--projector", "64x48", "--out", str(out)]) == 2
+    assert "expected 26 images" in capsys.readouterr().err
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
+
+
+def test_projector_size_is_checked(capsys):
+    with pytest.raises(SystemExit):
+        main(["decode", "x", "--projector", "1024by768", "--out", "y"])
+    assert "expected WIDTHxHEIGHT" in capsys.readouterr().err
+
+
+def test_console_script_is_installed():
+    out = subprocess.run([sys.executable, "-m", "torchproj.cli", "--version"], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.startswith("torchproj ")
+
+
+@pytest.mark.slow
+def test_main_job_on_the_full_resolution_paper_rig(tmp_path):
+    """`torchproj simulate` with no arguments: the README's first command, at full resolution."""
+    out = tmp_path / "sim"
+    assert main(["simulate", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["scene"] == "paper_two_planes"
+    for row in report["calibrations"]:
+        assert row["decoding_integer"]["decoded"] > 0.999 and row["decoding_integer"]["exact"] > 0.9999
+        assert row["decoding_subpixel"]["rms_px"] < 0.12
+        assert abs(row["response_fit"]["b"][0] - row["response_true_b"][0]) < 0.03
+        assert abs(row["compensated_ramp_sum"]["mean"] - 1) < 0.01 and row["compensated_ramp_sum"]["std"] < 0.03

@@ -1,0 +1,91 @@
+"""Draw a scene's rig in 3D: projector and camera frusta, and the surfaces of every state.
+
+    python viz/rig.py [CONFIG] [--out rig.png] [--show]
+
+Off-screen PNG by default (pyvista); ``--show`` opens a window where a display exists. Each state's
+surfaces get their own colour; frusta are drawn to ``--depth`` metres.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+
+from torchproj.scene import Scene, load_scene
+
+STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"]
+DEVICE_COLOURS = {"camera": "black", "projector": "#d62728"}
+
+
+def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, depth: float) -> pv.PolyData:
+    """Lines from the optical centre through the image corners (pixel-centre convention) to ``depth``."""
+    corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]])
+    rays = np.c_[(corners - K[:2, 2]) / np.diag(K)[:2], np.ones(4)] * depth
+    pts = np.vstack([np.zeros(3), rays]) @ world_from_dev[:3, :3].T + world_from_dev[:3, 3]
+    lines = [2, 0, 1, 2, 0, 2, 2, 0, 3, 2, 0, 4, 2, 1, 2, 2, 2, 3, 2, 3, 4, 2, 4, 1]
+    return pv.PolyData(pts, lines=np.array(lines))
+
+
+def surface_mesh(surface) -> pv.DataSet:
+    """A pyvista mesh of a surface in its local frame (as :class:`torchproj.scene.Surface` defines it)."""
+    if surface.type == "rectangle":
+        mesh = pv.Plane(i_size=surface.size[0], j_size=surface.size[1])
+    elif surface.type == "plane":
+        mesh = pv.Plane(i_size=2.0, j_size=2.0)
+    elif surface.type == "box":
+        sx, sy, sz = surface.size
+        mesh = pv.Box(bounds=(-sx / 2, sx / 2, -sy / 2, sy / 2, -sz / 2, sz / 2))
+    elif surface.type == "cylinder":
+        mesh = pv.Cylinder(radius=surface.radius, height=surface.height, direction=(0, 1, 0), resolution=64)
+    elif surface.type == "sphere":
+        mesh = pv.Sphere(radius=1.0, theta_resolution=48, phi_resolution=48).scale(surface.radii, inplace=False)
+    else:
+        mesh = pv.read(surface.mesh_file).scale(surface.scale, inplace=False)
+    return mesh.transform(surface.world_from_local, inplace=False)
+
+
+def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = False,
+             window_size=(1000, 750)) -> pv.Plotter:
+    plotter = pv.Plotter(off_screen=not show, window_size=window_size)
+    cam = scene.camera
+    plotter.add_mesh(frustum(cam.K, cam.width, cam.height, cam.world_from_cam, depth), color="black", line_width=2)
+    plotter.add_point_labels([cam.world_from_cam[:3, 3]], ["camera"], font_size=12, point_size=8)
+    for p in scene.projectors:
+        plotter.add_mesh(frustum(p.K, p.width, p.height, p.world_from_prj, depth), color="#d62728", line_width=2)
+        plotter.add_point_labels([p.centre], [p.name], font_size=12, point_size=8, text_color="#d62728")
+    for i, state in enumerate(scene.states):
+        colour = STATE_COLOURS[i % len(STATE_COLOURS)]
+        for name in state.surfaces:
+            surf = scene.surfaces[name]
+            plotter.add_mesh(surface_mesh(surf), color=colour, opacity=0.45 if surf.transmittance else 0.9,
+                             label=f"{state.name}: {name}")
+    plotter.add_legend(bcolor="white", size=(0.3, 0.25))
+    plotter.add_axes()
+    plotter.camera_position = [(1.6, -0.9, -0.9), (0.0, 0.0, 0.7), (0, -1, 0)]
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        plotter.screenshot(str(out))
+    if show:
+        plotter.show()
+    return plotter
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("config", nargs="?", help="YAML file or built-in name (default: paper_two_planes)")
+    parser.add_argument("--out", type=Path, default=Path("out/rig.png"))
+    parser.add_argument("--depth", type=float, default=1.1, help="frustum length in metres")
+    parser.add_argument("--show", action="store_true", help="open a window (needs a display)")
+    args = parser.parse_args(argv)
+    scene = load_scene(args.config)
+    draw_rig(scene, args.out, args.depth, args.show).close()
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
