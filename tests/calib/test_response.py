@@ -54,3 +54,15 @@ def test_measure_ramp_needs_a_lit_scene():
     dark = torch.zeros(1, 10, 10)
     with pytest.raises(InputError, match="usable levels"):
         measure_ramp(dark, dark + 0.5, dark, torch.full((10, 10), float("nan")), 64)
+
+
+def test_response_is_fitted_per_colour_channel():
+    from ..helpers import small_config
+    from torchproj.scene import parse_scene
+
+    data = small_config(camera=(320, 240), channels=3)
+    data["projectors"][0]["response"] = {"a": 1.0, "b": [1.8, 2.2, 2.6]}
+    rig = VirtualRig(parse_scene(data))
+    cal = calibrate_projector(simulate_calibration(rig, "far", 0), (256, 192))
+    assert cal.response.b.shape == (3,)
+    assert torch.allclose(cal.response.b, torch.tensor([1.8, 2.2, 2.6]), atol=0.05)

@@ -186,3 +186,20 @@ def test_bad_patterns_get_clear_errors():
         rig.capture("near", {"left": torch.ones(1, 1, 192, 256)})
     with pytest.raises(InputError, match=r"patterns\['upper'\] must have shape \(N, C, 192, 256\)"):
         rig.capture("near", {"upper": torch.ones(1, 1, 100, 256)})
+
+
+def test_distorted_camera_rays_land_where_opencv_projects_them():
+    import cv2
+
+    scene = small_scene(supersampling=1, distortion=[-0.15, 0.04, 0.001, -0.0005, 0.0])
+    geo = VirtualRig(scene).geometry("near")
+    cam = scene.camera
+    seen = torch.isfinite(geo.points).all(-1)
+    pts = geo.points[seen].double().numpy()
+    cam_from_world = np.linalg.inv(cam.world_from_cam)
+    local = pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    uv, _ = cv2.projectPoints(local, np.zeros(3), np.zeros(3), cam.K, np.array(cam.distortion))
+    ys, xs = torch.nonzero(seen, as_tuple=True)
+    expected = np.stack([xs.numpy(), ys.numpy()], -1)
+    assert seen.float().mean() > 0.3
+    assert np.abs(uv[:, 0] - expected).max() < 0.02
