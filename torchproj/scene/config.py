@@ -40,7 +40,24 @@ BUILTIN_SCENES = ("paper_two_planes", "three_planes", "box_cylinders", "head_two
 
 
 @dataclass
-class Projector:
+class Pinhole:
+    """Resolution and intrinsics shared by cameras and projectors (pixels, conventions module)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+
+@dataclass
+class Projector(Pinhole):
     """A pinhole projector with an LCD pixel grid.
 
     Emitted light of a pixel with pattern value x in [0, 1] (per colour channel):
@@ -49,14 +66,8 @@ class Projector:
     principal point. ``power`` is the irradiance in W/m^2 on a surface facing the projector at 1 m.
     """
 
-    name: str
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    world_from_prj: np.ndarray
+    name: str = ""
+    world_from_prj: np.ndarray = field(default_factory=lambda: np.eye(4))
     response_a: float = 1.0
     response_b: tuple[float, ...] = (2.2,)
     black_level: float = 0.01
@@ -64,16 +75,12 @@ class Projector:
     power: float = 1.0
 
     @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
-
-    @property
     def centre(self) -> np.ndarray:
         return self.world_from_prj[:3, 3]
 
 
 @dataclass
-class Camera:
+class Camera(Pinhole):
     """A pinhole camera with optional distortion (OpenCV's k1, k2, p1, p2, k3).
 
     Pixel value before noise: ``exposure * radiance`` (linear; ``gamma`` != 1 bends it as
@@ -82,13 +89,7 @@ class Camera:
     Each pixel integrates ``supersampling**2`` rays over its footprint.
     """
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    world_from_cam: np.ndarray
+    world_from_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     distortion: tuple[float, ...] = ()
     channels: int = 1
     exposure: float = 1.0
@@ -97,10 +98,6 @@ class Camera:
     read_noise: float = 0.0
     bit_depth: int = 8
     supersampling: int = 2
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
 
 @dataclass
