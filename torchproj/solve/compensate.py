@@ -1,0 +1,33 @@
+"""Compensation: solved linear light -> 8-bit pattern images through each projector's inverse response."""
+
+from __future__ import annotations
+
+import torch
+
+from ..calib.response import ResponseCurve
+from ..core.checks import check, check_shape
+
+__all__ = ["compensate"]
+
+
+def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> list[torch.Tensor]:
+    """Turn linear relative light per projector into the 8-bit values to send to it.
+
+    Args:
+        images: per projector, :math:`(C, H_j, W_j)` linear relative light in [0, 1] (0 = the
+            projector's black, 1 = its white), e.g. from :meth:`TransportOperator.to_images`.
+        responses: per projector, its fitted :class:`~torchproj.calib.ResponseCurve`.
+
+    Returns:
+        per projector, :math:`(C, H_j, W_j)` uint8 pattern images.
+    """
+    check(len(images) == len(responses), f"got {len(images)} images but {len(responses)} response curves")
+    out = []
+    for j, (img, resp) in enumerate(zip(images, responses)):
+        check_shape(img, f"images[{j}]", ["C", "H", "W"])
+        lo, hi = float(img.min()), float(img.max())
+        check(lo >= -1e-6 and hi <= 1 + 1e-6, f"images[{j}] must lie in [0, 1] (bring wider bounds into range "
+                                              f"with to_projectable first), got [{lo:.3g}, {hi:.3g}]")
+        x = resp.to_pattern(img.clamp(0, 1))
+        out.append(torch.round(x * 255).to(torch.uint8))
+    return out

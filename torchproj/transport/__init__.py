@@ -1,0 +1,7 @@
+"""The sparse light-transport operator ``i = A p``: targets, building, row merging."""
+
+from .build import StateCalibration, Target, build_transport, group_rows, target_on_camera
+from .operator import TransportOperator, csr_from_coo
+
+__all__ = ["StateCalibration", "Target", "TransportOperator", "build_transport", "csr_from_coo", "group_rows",
+           "target_on_camera"]

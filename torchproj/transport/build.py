@@ -1,0 +1,247 @@
+"""Building ``i = A p`` from calibration results and target images.
+
+Model (radiometric weighting): a camera pixel r of state k sees
+``black_k(r) + sum_j w_j(r) * p_j(cell_j(r))``, where ``w_j(r)`` is projector j's white-minus-black
+at r, measured from the same Gray-code capture set (it folds fall-off, angle, albedo and vignetting
+into one number), ``cell_j(r)`` the decoded projector coordinate, and ``p_j`` the projector's linear
+relative light (0 = black, 1 = white). A target asks for ``black_k(r) + scale * t(r)`` at its pixels,
+so ``A[r, (j, cell)] = w_j(r)`` and ``i[r] = scale * t(r)``. With the bilinear footprint a pixel
+spreads its weight over the four cells around its sub-pixel coordinate.
+
+Rows with the same columns merge exactly: their normal-equation blocks add, and an equivalent set
+of at most ``s`` rows (s = columns per row) replaces them (``R^T R = sum a a^T``, ``R^T b = sum i a``),
+so the model follows the projector pixels, not the camera pixels. The constant left over keeps the
+objective equal to the unmerged one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from kornia.geometry.transform import get_perspective_transform, warp_perspective
+
+from ..core.checks import check, check_finite, check_image, check_shape
+from ..core.conventions import round_to_pixel
+from .operator import TransportOperator, csr_from_coo
+
+__all__ = ["Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows"]
+
+
+@dataclass
+class StateCalibration:
+    """What calibration recovered for one scene state, per projector.
+
+    Attributes:
+        prj_xy: list over projectors of :math:`(H, W, 2)` projector coordinates per camera pixel
+            (NaN where unknown), e.g. :attr:`torchproj.calib.ProjectorCalibration.prj_xy`.
+        weight: list over projectors of :math:`(H, W)` white minus black of that projector.
+        projector_sizes: ``(width, height)`` per projector.
+    """
+
+    prj_xy: list[torch.Tensor]
+    weight: list[torch.Tensor]
+    projector_sizes: list[tuple[int, int]]
+
+    def lit(self) -> torch.Tensor:
+        """:math:`(H, W)` pixels lit (decoded) by at least one projector."""
+        return torch.stack([torch.isfinite(m).all(-1) for m in self.prj_xy]).any(0)
+
+
+@dataclass
+class Target:
+    """An image to show in one scene state, on a region of the camera view.
+
+    Attributes:
+        state: the scene state's name.
+        image: :math:`(C, h, w)` float in [0, 1].
+        mask: :math:`(H, W)` bool camera pixels of the surface(s) that show the image; None means
+            every pixel the projectors light in that state.
+        corners: :math:`(4, 2)` camera coordinates where the image's top-left, top-right,
+            bottom-right and bottom-left corners go; None fits the image to the mask's bounding box.
+        name: for reports.
+    """
+
+    state: str
+    image: torch.Tensor
+    mask: torch.Tensor | None = None
+    corners: torch.Tensor | None = None
+    name: str = ""
+
+
+def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warp a target image onto camera pixels (kornia ``warp_perspective``).
+
+    Args:
+        target: the target.
+        mask: :math:`(H, W)` the camera pixels the image may cover.
+
+    Returns:
+        ``values`` :math:`(C, H, W)` and ``covered`` :math:`(H, W)`: mask pixels the warped image
+        reaches.
+    """
+    sizes = check_image(target.image, f"target {target.name!r} image")
+    h_img, w_img = sizes["H"], sizes["W"]
+    H, W = mask.shape
+    if target.corners is not None:
+        corners = torch.as_tensor(target.corners, dtype=torch.float32)
+        check_shape(corners, "corners", [4, 2])
+    else:
+        ys, xs = torch.nonzero(mask, as_tuple=True)
+        check(len(xs) > 0, f"target {target.name!r}: its region holds no lit camera pixel in state {target.state!r}")
+        x0, x1, y0, y1 = float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max())
+        corners = torch.tensor([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    src = torch.tensor([[0.0, 0.0], [w_img - 1, 0.0], [w_img - 1, h_img - 1], [0.0, h_img - 1]])
+    dst_from_src = get_perspective_transform(src[None], corners[None])  # 1x3x3, pixel centres
+    image = torch.cat([target.image.float(), torch.ones(1, h_img, w_img)])[None]
+    warped = warp_perspective(image, dst_from_src, (H, W), mode="bilinear", align_corners=True)[0]
+    covered = mask & (warped[-1] > 0.999)
+    return warped[:-1].clamp(0, 1), covered
+
+
+def group_rows(columns: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Group identical rows of an integer matrix :math:`(N, s)` (exact lexicographic sort).
+
+    Returns:
+        ``group`` :math:`(N,)` group index of each row, and the number of groups.
+    """
+    order = torch.arange(columns.shape[0], device=columns.device)
+    for k in range(columns.shape[1] - 1, -1, -1):  # stable sorts from the last key to the first
+        order = order[torch.sort(columns[order, k], stable=True).indices]
+    ordered = columns[order]
+    new = torch.ones(columns.shape[0], dtype=torch.bool, device=columns.device)
+    new[1:] = (ordered[1:] != ordered[:-1]).any(1)
+    group_sorted = torch.cumsum(new.long(), 0) - 1
+    group = torch.empty_like(group_sorted)
+    group[order] = group_sorted
+    return group, int(new.sum())
+
+
+def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], bilinear: bool):
+    """Cells and weights of one projector for rows: :math:`(N, s)` flat cells (-1 = none), weights."""
+    w, h = size
+    ok = torch.isfinite(prj_xy).all(-1) & (weight > 0)
+    if not bilinear:
+        cell = round_to_pixel(torch.nan_to_num(prj_xy, nan=-10.0))
+        ok &= (cell[:, 0] >= 0) & (cell[:, 0] < w) & (cell[:, 1] >= 0) & (cell[:, 1] < h)
+        flat = torch.where(ok, cell[:, 1] * w + cell[:, 0], -1)
+        return flat[:, None], torch.where(ok, weight, 0.0)[:, None]
+    u = torch.nan_to_num(prj_xy, nan=-10.0)
+    base = torch.floor(u).long()
+    frac = u - base
+    cells, weights = [], []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            cx, cy = base[:, 0] + dx, base[:, 1] + dy
+            f = (frac[:, 0] if dx else 1 - frac[:, 0]) * (frac[:, 1] if dy else 1 - frac[:, 1])
+            inside = ok & (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h) & (f > 0)
+            cells.append(torch.where(inside, cy * w + cx, -1))
+            weights.append(torch.where(inside, weight * f, 0.0))
+    return torch.stack(cells, 1), torch.stack(weights, 1)
+
+
+def _merge(columns: torch.Tensor, values: torch.Tensor, rhs: torch.Tensor, target: torch.Tensor):
+    """Replace rows sharing the same columns by an equivalent smaller set (float64 algebra).
+
+    Args:
+        columns: :math:`(N, s)` global column per slot (-1 for unused slots).
+        values: :math:`(N, s)` matrix entries.
+        rhs: :math:`(N, C)`.
+        target: :math:`(N,)` target index per row.
+
+    Returns:
+        merged ``columns, values, rhs, target`` and the constant :math:`(C,)`.
+    """
+    group, n_groups = group_rows(columns)
+    s = columns.shape[1]
+    a = values.double()
+    gram = torch.zeros(n_groups, s, s, dtype=torch.float64, device=a.device)
+    gram.index_add_(0, group, a[:, :, None] * a[:, None, :])
+    cross = torch.zeros(n_groups, s, rhs.shape[1], dtype=torch.float64, device=a.device)
+    cross.index_add_(0, group, a[:, :, None] * rhs.double()[:, None, :])
+    total = rhs.double().pow(2).sum(0)
+    lam, vec = torch.linalg.eigh(gram)  # ascending eigenvalues, (G, s) and (G, s, s)
+    keep = lam > lam[:, -1:].clamp_min(1e-300) * 1e-9
+    root = lam.clamp_min(0).sqrt()
+    rows_val = (root[:, :, None] * vec.transpose(1, 2))  # (G, k, s): row k = sqrt(l_k) v_k^T
+    rows_rhs = (vec.transpose(1, 2) @ cross) / torch.where(keep, root, 1.0)[:, :, None]  # (G, k, C)
+    first = torch.full((n_groups,), columns.shape[0], dtype=torch.int64, device=a.device)
+    first.scatter_reduce_(0, group, torch.arange(columns.shape[0], device=a.device), reduce="amin")
+    g_idx, k_idx = torch.nonzero(keep, as_tuple=True)
+    new_cols = columns[first][g_idx]
+    new_vals = rows_val[g_idx, k_idx].to(values.dtype)
+    new_rhs = rows_rhs[g_idx, k_idx]
+    constant = (total - new_rhs.pow(2).sum(0)).clamp_min(0)
+    return new_cols, new_vals, new_rhs.to(rhs.dtype), target[first][g_idx], constant.to(rhs.dtype)
+
+
+def build_transport(calibrations: dict[str, StateCalibration], targets: list[Target], *,
+                    footprint: str = "nearest", merge: bool = True, scale: float | None = None,
+                    device="cpu") -> TransportOperator:
+    """Build the sparse light-transport operator and its right-hand side.
+
+    Args:
+        calibrations: state name -> :class:`StateCalibration` (from Gray-code calibration).
+        targets: at least one :class:`Target`; each names a calibrated state.
+        footprint: ``"nearest"`` (one cell per projector and row, as the paper) or ``"bilinear"``.
+        merge: merge rows with the same columns (exact; smaller model).
+        scale: camera value asked for a target value of 1; None picks half the median, over the
+            target pixels, of the light all projectors together can put there.
+        device: where the operator lives.
+
+    Returns:
+        a :class:`TransportOperator` with ``rhs`` = scale * targets.
+    """
+    check(footprint in ("nearest", "bilinear"), f"footprint must be 'nearest' or 'bilinear', got {footprint!r}")
+    check(len(targets) >= 1, "targets must hold at least one Target")
+    channels = {t.image.shape[0] for t in targets}
+    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
+    n_ch = channels.pop()
+    sizes = None
+    row_cols, row_vals, row_rhs, row_tgt = [], [], [], []
+    for ti, target in enumerate(targets):
+        check(target.state in calibrations, f"target {target.name or ti!r} names state {target.state!r}, which was "
+                                            f"not calibrated; calibrated states: {sorted(calibrations)}")
+        cal = calibrations[target.state]
+        sizes = sizes or cal.projector_sizes
+        check(cal.projector_sizes == sizes, "every state must be calibrated with the same projectors")
+        lit = cal.lit()
+        mask = lit if target.mask is None else target.mask.to(torch.bool)
+        check_shape(mask, f"target {target.name!r} mask", list(lit.shape))
+        check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
+                                        f"{target.state!r}: no pixel of its mask is lit by any projector")
+        values, covered = target_on_camera(target, mask & lit)
+        rows = torch.nonzero(covered.reshape(-1))[:, 0]
+        cols, vals = [], []
+        offset = 0
+        for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
+            check_finite(weight, f"weight[{j}] of state {target.state!r}")
+            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint == "bilinear")
+            cols.append(torch.where(c >= 0, c + offset, -1))
+            vals.append(v)
+            offset += sizes[j][0] * sizes[j][1]
+        cols, vals = torch.cat(cols, 1), torch.cat(vals, 1)
+        lit_rows = (vals > 0).any(1)
+        row_cols.append(cols[lit_rows])
+        row_vals.append(vals[lit_rows])
+        row_rhs.append(values.reshape(n_ch, -1)[:, rows[lit_rows]].T)
+        row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64))
+    cols, vals = torch.cat(row_cols), torch.cat(row_vals).float()
+    targets_rhs, tgt = torch.cat(row_rhs).float(), torch.cat(row_tgt)
+    if scale is None:
+        scale = 0.5 * float(vals.sum(1).median())
+    check(scale > 0, f"scale must be positive, got {scale}")
+    rhs = targets_rhs * scale
+    constant = None
+    if merge:
+        cols, vals, rhs, tgt, constant = _merge(cols, vals, rhs, tgt)
+    # Variables only for the cells that light at least one row.
+    used = cols >= 0
+    global_cols, compact = torch.unique(cols[used], return_inverse=True)
+    row_index = torch.arange(cols.shape[0])[:, None].expand_as(cols)[used]
+    matrix = csr_from_coo(row_index, compact, vals[used], (cols.shape[0], global_cols.numel()))
+    starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
+    projector = torch.searchsorted(starts, global_cols, right=True) - 1
+    op = TransportOperator(matrix, rhs, projector, global_cols - starts[projector], sizes, constant, tgt)
+    op.scale = scale
+    return op.to(device)

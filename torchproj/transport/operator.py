@@ -1,0 +1,202 @@
+"""The light-transport operator ``i = A p`` as a ``torch.nn.Module``.
+
+Rows are (merged) target pixels, columns the projector cells that light at least one row; the
+variables ``p`` are the projectors' linear relative light in each of those cells (0 = the
+projector's black, 1 = its white; see :mod:`torchproj.calib.response`). RGB targets are C
+right-hand sides of the same A, so ``p`` is :math:`(N_{cols}, C)` and ``A p`` is :math:`(N_{rows}, C)`.
+
+The matrix and its transpose are held as CSR buffers, so ``.to(device)`` moves them and the
+adjoint is a product as fast as the forward one. Autograd flows through :meth:`A` (its backward is
+:meth:`A_adjoint`) so the operator can sit inside a user's training-style loop.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from torch import nn
+
+from ..core.checks import check, check_finite, check_shape
+
+__all__ = ["TransportOperator", "csr_from_coo"]
+
+
+def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """A CSR matrix from COO triplets (duplicates summed, columns sorted within each row)."""
+    n_rows, n_cols = shape
+    key = rows * n_cols + cols
+    key, inverse = torch.unique(key, return_inverse=True)
+    merged = torch.zeros(key.shape[0], dtype=vals.dtype, device=vals.device).index_add_(0, inverse, vals)
+    r, c = key // n_cols, key % n_cols
+    crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=vals.device)
+    crow[1:] = torch.cumsum(torch.bincount(r, minlength=n_rows), 0)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(crow, c, merged, shape, check_invariants=False)
+
+
+def _spmm(matrix: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """CSR times a dense (N, C) block, one column at a time (faster than a multi-column product on CPU)."""
+    if x.shape[1] == 1:
+        return matrix @ x
+    return torch.stack([matrix @ x[:, c] for c in range(x.shape[1])], 1)
+
+
+class _Apply(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, forward_matrix, adjoint_matrix):
+        ctx.adjoint = adjoint_matrix
+        return _spmm(forward_matrix, x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return _spmm(ctx.adjoint, grad.contiguous()), None, None
+
+
+class TransportOperator(nn.Module):
+    """Sparse ``A`` (rows x columns) with the bookkeeping that maps columns back to projector cells.
+
+    Args:
+        matrix: CSR :math:`(N_{rows}, N_{cols})`.
+        rhs: :math:`(N_{rows}, C)` target values ``i`` (already in camera units).
+        column_projector: :math:`(N_{cols},)` projector index of each column.
+        column_cell: :math:`(N_{cols},)` flat cell index ``y * W_j + x`` of each column.
+        projector_sizes: ``(width, height)`` of each projector.
+        constant: :math:`(C,)` part of the objective that merging rows took out of ``A`` and ``rhs``
+            (0 without merging), so that :meth:`objective` equals the unmerged ``||A p - i||^2``.
+        row_target: :math:`(N_{rows},)` index of the target each row belongs to (for reports).
+    """
+
+    def __init__(self, matrix: torch.Tensor, rhs: torch.Tensor, column_projector: torch.Tensor,
+                 column_cell: torch.Tensor, projector_sizes: list[tuple[int, int]], constant: torch.Tensor | None = None,
+                 row_target: torch.Tensor | None = None):
+        super().__init__()
+        check(matrix.layout == torch.sparse_csr, "matrix must be a CSR tensor (torch.sparse_csr)")
+        n_rows, n_cols = matrix.shape
+        check_shape(rhs, "rhs", [n_rows, "C"])
+        check_finite(rhs, "rhs")
+        check_finite(matrix.values(), "matrix values")
+        check_shape(column_projector, "column_projector", [n_cols])
+        check_shape(column_cell, "column_cell", [n_cols])
+        counts = matrix.crow_indices().diff()
+        check(bool((counts > 0).all()), f"{int((counts == 0).sum())} rows of A are empty: every target pixel must be "
+                                        "lit by at least one projector (drop unlit pixels from the target)")
+        self.register_buffer("crow", matrix.crow_indices())
+        self.register_buffer("col", matrix.col_indices())
+        self.register_buffer("val", matrix.values())
+        transpose = matrix.to_sparse_coo().t().coalesce()
+        csc = csr_from_coo(transpose.indices()[0], transpose.indices()[1], transpose.values(), (n_cols, n_rows))
+        self.register_buffer("t_crow", csc.crow_indices())
+        self.register_buffer("t_col", csc.col_indices())
+        self.register_buffer("t_val", csc.values())
+        self.register_buffer("rhs", rhs)
+        self.register_buffer("column_projector", column_projector)
+        self.register_buffer("column_cell", column_cell)
+        self.register_buffer("constant", torch.zeros(rhs.shape[1], dtype=rhs.dtype, device=rhs.device)
+                             if constant is None else constant)
+        self.register_buffer("row_target", torch.zeros(n_rows, dtype=torch.int64, device=rhs.device)
+                             if row_target is None else row_target)
+        self.projector_sizes = [tuple(s) for s in projector_sizes]
+        self.shape = (n_rows, n_cols)
+
+    # ------------------------------------------------------------------------------- matrices
+    def _csr(self, transpose: bool = False) -> torch.Tensor:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+            if transpose:
+                return torch.sparse_csr_tensor(self.t_crow, self.t_col, self.t_val, self.shape[::-1],
+                                               check_invariants=False)
+            return torch.sparse_csr_tensor(self.crow, self.col, self.val, self.shape, check_invariants=False)
+
+    @property
+    def channels(self) -> int:
+        return self.rhs.shape[1]
+
+    @property
+    def nnz(self) -> int:
+        return int(self.val.numel())
+
+    def size_report(self) -> dict:
+        """Model size: variables (columns), rows and nonzeros."""
+        return {"variables": self.shape[1], "rows": self.shape[0], "nnz": self.nnz}
+
+    # -------------------------------------------------------------------------------- products
+    def _check_vector(self, x: torch.Tensor, name: str, n: int) -> torch.Tensor:
+        if x.dim() == 1:
+            x = x[:, None]
+        check_shape(x, name, [n, "C"])
+        check(x.device == self.val.device, f"{name} is on {x.device} but the operator is on {self.val.device}; "
+                                            "move one with .to(device)")
+        check(x.dtype == self.val.dtype, f"{name} has dtype {x.dtype} but the operator holds {self.val.dtype}")
+        return x
+
+    def A(self, p: torch.Tensor) -> torch.Tensor:
+        """``A p``: :math:`(N_{cols}, C)` (or :math:`(N_{cols},)`) -> :math:`(N_{rows}, C)`."""
+        p = self._check_vector(p, "p", self.shape[1])
+        return _Apply.apply(p, self._csr(), self._csr(transpose=True))
+
+    def A_adjoint(self, r: torch.Tensor) -> torch.Tensor:
+        """``A^T r``: :math:`(N_{rows}, C)` -> :math:`(N_{cols}, C)`."""
+        r = self._check_vector(r, "r", self.shape[0])
+        return _Apply.apply(r, self._csr(transpose=True), self._csr())
+
+    def forward(self, p: torch.Tensor) -> torch.Tensor:
+        return self.A(p)
+
+    def residual(self, p: torch.Tensor) -> torch.Tensor:
+        return self.A(p) - self.rhs
+
+    def objective(self, p: torch.Tensor) -> torch.Tensor:
+        """``||A p - i||^2`` summed over channels (including the constant merged rows left out)."""
+        return self.residual(p).pow(2).sum() + self.constant.sum()
+
+    def gradient(self, p: torch.Tensor) -> torch.Tensor:
+        """Gradient of :meth:`objective` / 2: ``A^T (A p - i)``."""
+        return self.A_adjoint(self.residual(p))
+
+    # ------------------------------------------------------------------------------- analysis
+    def adjointness_test(self, generator: torch.Generator | None = None) -> float:
+        """Relative gap ``|<A x, y> - <x, A^T y>| / (|A x| |y|)`` for random x, y (~1e-7 in float32)."""
+        x = torch.randn(self.shape[1], 1, generator=generator, dtype=self.val.dtype).to(self.val.device)
+        y = torch.randn(self.shape[0], 1, generator=generator, dtype=self.val.dtype).to(self.val.device)
+        ax = self.A(x)
+        lhs = (ax * y).sum()
+        rhs = (x * self.A_adjoint(y)).sum()
+        return float((lhs - rhs).abs() / (ax.norm() * y.norm()).clamp_min(1e-30))
+
+    def lipschitz(self, iterations: int = 50, generator: torch.Generator | None = None) -> float:
+        """Largest eigenvalue of ``A^T A`` (the squared largest singular value) by power iteration.
+
+        Power iteration approaches it from below; the result is multiplied by 1.01 so that a step
+        of ``1 / L`` stays safe.
+        """
+        x = torch.rand(self.shape[1], 1, generator=generator, dtype=self.val.dtype).to(self.val.device)
+        x /= x.norm()
+        value = 0.0
+        for _ in range(iterations):
+            y = self.A_adjoint(self.A(x))
+            value = float(y.norm())
+            if value == 0:
+                return 0.0
+            x = y / value
+        return value * 1.01
+
+    def dense(self) -> torch.Tensor:
+        """The matrix as a dense tensor (small problems and tests only)."""
+        return self._csr().to_dense()
+
+    # ------------------------------------------------------------------------------- patterns
+    def to_images(self, p: torch.Tensor, fill: float = 0.0) -> list[torch.Tensor]:
+        """Scatter column values into one :math:`(C, H_j, W_j)` image per projector.
+
+        Cells that light no target are not variables; they get ``fill`` (default 0: black).
+        """
+        p = self._check_vector(p, "p", self.shape[1])
+        images = []
+        for j, (w, h) in enumerate(self.projector_sizes):
+            img = torch.full((h * w, p.shape[1]), fill, dtype=p.dtype, device=p.device)
+            sel = self.column_projector == j
+            img[self.column_cell[sel]] = p[sel]
+            images.append(img.T.reshape(p.shape[1], h, w))
+        return images
