@@ -1,0 +1,136 @@
+"""Solvers against scipy's bounded least squares and float64 dense algebra."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import lsq_linear
+
+from torchproj.calib import ResponseCurve
+from torchproj.core import InputError
+from torchproj.solve import (ClampedAdam, compensate, solve_adam, solve_fista, solve_lf, solve_patterns, solve_pgd,
+                             to_projectable)
+from torchproj.transport import build_transport
+
+from ..transport.test_build import synthetic_calibration, targets
+
+
+@pytest.fixture(scope="module")
+def problem():
+    op = build_transport(synthetic_calibration(shape=(30, 40)), targets(channels=3), scale=0.9).double()
+    A = op.dense().numpy()
+    return op, A, op.rhs.numpy()
+
+
+def objective(op, A, b, x):
+    """The objective in dense float64, including what row merging took out of A and b."""
+    return float(((A @ x - b) ** 2).sum()) + float(op.constant.sum())
+
+
+def reference(A, b, bounds):
+    return np.stack([lsq_linear(A, b[:, c], bounds=bounds, tol=1e-12, max_iter=5000).x for c in range(b.shape[1])], 1)
+
+
+@pytest.mark.parametrize("bounds", [(0.0, 1.0), (-100 / 255, 1.0)])
+@pytest.mark.parametrize("solver", [solve_pgd, solve_fista])
+def test_proximal_solvers_reach_the_bounded_optimum(problem, solver, bounds):
+    op, A, b = problem
+    ref = reference(A, b, bounds)
+    f_ref = objective(op, A, b, ref)
+    res = solver(op, bounds, max_iter=20000, tol=1e-14)
+    assert res.objective == pytest.approx(f_ref, rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(res.patterns.numpy(), ref, atol=2e-3)
+    assert float(res.patterns.min()) >= bounds[0] and float(res.patterns.max()) <= bounds[1]
+
+
+def test_adam_gets_close(problem):
+    op, A, b = problem
+    f_ref = objective(op, A, b, reference(A, b, (0, 1)))
+    res = solve_adam(op, (0, 1), lr=0.01, max_iter=3000, tol=1e-12)
+    assert res.objective <= f_ref * 1.01 + 1e-6
+    assert 0 <= float(res.patterns.min()) and float(res.patterns.max()) <= 1
+
+
+def test_lf_is_the_normalised_least_squares_solution(problem):
+    op, A, b = problem
+    res = solve_lf(op, (0, 1), max_iter=2000, tol=1e-12)
+    x = np.linalg.lstsq(A, b, rcond=None)[0]
+    expected = (x - x.min()) / (x.max() - x.min())
+    np.testing.assert_allclose(res.patterns.numpy(), expected, atol=1e-4)
+
+
+def test_projected_gradient_never_raises_the_objective(problem):
+    op, _, _ = problem
+    for solver in (solve_pgd, solve_fista):
+        values = [f for _, f in solver(op, (0, 1), max_iter=300, tol=0).history]
+        assert all(b <= a * (1 + 1e-12) + 1e-12 for a, b in zip(values, values[1:])), solver.__name__
+
+
+def test_fista_beats_pgd_at_equal_iterations(problem):
+    op, _, _ = problem
+    f_pgd = solve_pgd(op, (0, 1), max_iter=50, tol=0).objective
+    f_fista = solve_fista(op, (0, 1), max_iter=50, tol=0).objective
+    assert f_fista < f_pgd
+
+
+def test_stopping_rule_fires(problem):
+    op, _, _ = problem
+    res = solve_fista(op, (0, 1), max_iter=10000, tol=1e-6)
+    assert res.converged and res.iterations < 10000
+    assert len(res.history) == res.iterations + 1 and res.time_s > 0
+
+
+def test_adam_warns_when_the_learning_rate_is_too_large(problem):
+    op, _, _ = problem
+    with pytest.warns(RuntimeWarning, match="lower the learning rate"):
+        solve_adam(op, (-50.0, 50.0), lr=20.0, max_iter=60, tol=0)
+
+
+def test_clamped_adam_in_a_training_loop_with_a_scheduler():
+    target = torch.tensor([2.0, -1.0, 0.3])
+    p = torch.zeros(3, requires_grad=True)
+    opt = ClampedAdam([p], lr=0.1, bounds=(0.0, 1.0))
+    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=50, gamma=0.5)
+    for _ in range(300):
+        opt.zero_grad()
+        ((p - target) ** 2).sum().backward()
+        opt.step()
+        sched.step()
+    torch.testing.assert_close(p.detach(), torch.tensor([1.0, 0.0, 0.3]), atol=1e-3, rtol=0)
+    state = opt.state_dict()
+    again = ClampedAdam([torch.zeros(3, requires_grad=True)], lr=0.1, bounds=(0.0, 1.0))
+    again.load_state_dict(state)
+    assert again.param_groups[0]["bounds"] == (0.0, 1.0) and again.param_groups[0]["lr"] == opt.param_groups[0]["lr"]
+
+
+@pytest.mark.parametrize("bounds", [(1.0, 1.0), (0.5, 0.2), (0.0, float("nan"))])
+def test_bad_bounds(problem, bounds):
+    op, _, _ = problem
+    with pytest.raises(InputError, match="bounds"):
+        solve_patterns(op, "fista", bounds)
+
+
+def test_unknown_solver(problem):
+    with pytest.raises(InputError, match="unknown solver 'magic'"):
+        solve_patterns(problem[0], "magic")
+
+
+def test_clamped_adam_rejects_bad_lr():
+    with pytest.raises(ValueError, match="Invalid learning rate"):
+        ClampedAdam([torch.zeros(1, requires_grad=True)], lr=-1.0)
+
+
+def test_to_projectable_and_compensation():
+    p = torch.tensor([[-100 / 255], [0.2], [1.0]])
+    q = to_projectable(p, (-100 / 255, 1.0))
+    assert float(q.min()) == pytest.approx(0) and float(q.max()) == pytest.approx(1)
+    assert torch.equal(to_projectable(p.clamp(0, 1), (0, 1)), p.clamp(0, 1))
+    curve = ResponseCurve(a=torch.tensor([0.95]), b=torch.tensor([2.2]), c=torch.tensor([0.03]))
+    light = torch.linspace(0, 1, 256).reshape(1, 16, 16)
+    pattern = compensate([light], [curve])[0]
+    assert pattern.dtype == torch.uint8 and pattern.shape == (1, 16, 16)
+    # The projector's relative light for the sent values reproduces the asked light.
+    sent = pattern.float() / 255
+    relative = (curve(sent) - curve(torch.zeros(1, 1, 1))) / (curve(torch.ones(1, 1, 1)) - curve(torch.zeros(1, 1, 1)))
+    assert float((relative - light).abs().max()) < 0.02
+    with pytest.raises(InputError, match="to_projectable"):
+        compensate([light - 0.5], [curve])

@@ -1,0 +1,192 @@
+"""The operator against brute-force dense construction, and its algebra."""
+
+import numpy as np
+import pytest
+import torch
+
+from torchproj.core import InputError
+from torchproj.transport import StateCalibration, Target, TransportOperator, build_transport, csr_from_coo, group_rows
+from torchproj.transport.build import target_on_camera
+
+SIZES = [(12, 9), (10, 8)]
+
+
+def synthetic_calibration(seed=0, shape=(15, 20)):
+    """Two projectors, two states: random sub-pixel correspondences with holes, random weights."""
+    g = torch.Generator().manual_seed(seed)
+    cals = {}
+    for s, state in enumerate(("near", "far")):
+        prj, wts = [], []
+        for w, h in SIZES:
+            xy = torch.rand(*shape, 2, generator=g) * torch.tensor([w - 1.0, h - 1.0])
+            xy[torch.rand(shape, generator=g) < 0.15] = float("nan")
+            prj.append(xy)
+            wts.append(0.2 + torch.rand(shape, generator=g))
+        cals[state] = StateCalibration(prj, wts, SIZES)
+    return cals
+
+
+def targets(channels=1, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return [Target("near", torch.rand(channels, 6, 8, generator=g), name="a"),
+            Target("far", torch.rand(channels, 7, 5, generator=g), name="b")]
+
+
+def dense_reference(cals, tgts, scale, bilinear=False):
+    """Rows, columns and values by plain loops (independent of the vectorised builder)."""
+    offsets = [0, SIZES[0][0] * SIZES[0][1]]
+    rows, rhs = [], []
+    for t in tgts:
+        cal = cals[t.state]
+        lit = cal.lit()
+        values, covered = target_on_camera(t, lit)
+        for y in range(lit.shape[0]):
+            for x in range(lit.shape[1]):
+                if not covered[y, x]:
+                    continue
+                entries = {}
+                for j, (w, h) in enumerate(SIZES):
+                    u = cal.prj_xy[j][y, x].double().numpy()
+                    if not np.isfinite(u).all():
+                        continue
+                    wt = float(cal.weight[j][y, x])
+                    if bilinear:
+                        bx, by = int(np.floor(u[0])), int(np.floor(u[1]))
+                        fx, fy = u[0] - bx, u[1] - by
+                        for dx, dy, f in [(0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
+                                          (1, 1, fx * fy)]:
+                            if 0 <= bx + dx < w and 0 <= by + dy < h and f > 0:
+                                entries[offsets[j] + (by + dy) * w + bx + dx] = wt * f
+                    else:
+                        cx, cy = int(np.floor(u[0] + 0.5)), int(np.floor(u[1] + 0.5))
+                        entries[offsets[j] + cy * w + cx] = wt
+                if entries:
+                    rows.append(entries)
+                    rhs.append(values[:, y, x].double().numpy() * scale)
+    cols = sorted({c for r in rows for c in r})
+    index = {c: i for i, c in enumerate(cols)}
+    A = np.zeros((len(rows), len(cols)))
+    for i, r in enumerate(rows):
+        for c, v in r.items():
+            A[i, index[c]] = v
+    return A, np.array(rhs), np.array(cols)
+
+
+@pytest.mark.parametrize("footprint", ["nearest", "bilinear"])
+def test_sparse_equals_dense_reference(footprint):
+    cals, tgts = synthetic_calibration(), targets()
+    op = build_transport(cals, tgts, footprint=footprint, merge=False, scale=0.7)
+    A, rhs, cols = dense_reference(cals, tgts, 0.7, bilinear=footprint == "bilinear")
+    global_cols = torch.tensor([0, SIZES[0][0] * SIZES[0][1]])[op.column_projector] + op.column_cell
+    assert global_cols.tolist() == cols.tolist()
+    np.testing.assert_allclose(op.dense().double().numpy(), A, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(op.rhs.double().numpy(), rhs, rtol=1e-5, atol=1e-6)
+    assert op.size_report() == {"variables": A.shape[1], "rows": A.shape[0], "nnz": int((A != 0).sum())}
+
+
+@pytest.mark.parametrize("footprint", ["nearest", "bilinear"])
+def test_merging_rows_keeps_the_objective(footprint):
+    # A camera finer than the projectors: many rows share their cells.
+    cals = synthetic_calibration(shape=(40, 50))
+    for cal in cals.values():
+        cal.prj_xy = [torch.floor(m) for m in cal.prj_xy]  # integer cells: identical supports are common
+    tgts = targets(channels=3)
+    full = build_transport(cals, tgts, footprint=footprint, merge=False, scale=0.5).double()
+    merged = build_transport(cals, tgts, footprint=footprint, merge=True, scale=0.5).double()
+    assert merged.shape[1] == full.shape[1] and merged.shape[0] < full.shape[0]
+    g = torch.Generator().manual_seed(3)
+    for _ in range(3):
+        p = torch.rand(full.shape[1], 3, generator=g, dtype=torch.float64)
+        assert float(merged.objective(p)) == pytest.approx(float(full.objective(p)), rel=1e-5)
+    # Same normal equations: the gradients agree too.
+    p = torch.rand(full.shape[1], 3, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(merged.gradient(p), full.gradient(p), rtol=1e-5, atol=1e-5)
+
+
+def test_adjointness_and_lipschitz():
+    op = build_transport(synthetic_calibration(), targets(), footprint="bilinear", scale=1.0)
+    assert op.adjointness_test() < 1e-5
+    sigma = np.linalg.svd(op.dense().double().numpy(), compute_uv=False)[0]
+    L = op.lipschitz(iterations=300)
+    assert sigma**2 <= L <= 1.02 * sigma**2
+
+
+def test_autograd_through_the_operator():
+    op = build_transport(synthetic_calibration(), targets(), scale=1.0).double()
+    p = torch.rand(op.shape[1], 1, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: op.A(x), (p,))
+    loss = op.objective(p)
+    loss.backward()
+    torch.testing.assert_close(p.grad, 2 * op.gradient(p.detach()))
+
+
+def test_state_dict_and_device_move():
+    op = build_transport(synthetic_calibration(), targets(), scale=1.0)
+    names = set(op.state_dict())
+    assert {"crow", "col", "val", "t_crow", "rhs", "column_projector", "column_cell"} <= names
+    moved = op.to("cpu")
+    assert moved.val.device.type == "cpu"
+
+
+def test_to_images_scatters_columns_back():
+    op = build_transport(synthetic_calibration(), targets(), scale=1.0)
+    p = torch.arange(op.shape[1], dtype=torch.float32)[:, None] + 1
+    imgs = op.to_images(p)
+    assert [tuple(i.shape) for i in imgs] == [(1, 9, 12), (1, 8, 10)]
+    j0 = op.column_projector == 0
+    assert imgs[0].reshape(-1)[op.column_cell[j0]].tolist() == p[j0, 0].tolist()
+    assert int((torch.cat([i.reshape(-1) for i in imgs]) > 0).sum()) == op.shape[1]  # others stay black
+
+
+def test_group_rows_is_exact():
+    cols = torch.tensor([[3, 1], [1, 3], [3, 1], [0, 0], [1, 3]])
+    group, n = group_rows(cols)
+    assert n == 3
+    assert group[0] == group[2] and group[1] == group[4] and len({int(g) for g in group}) == 3
+
+
+def test_corners_place_the_image():
+    img = torch.zeros(1, 4, 4)
+    img[0, 0, 0] = 1.0  # top-left pixel bright
+    corners = torch.tensor([[5.0, 2.0], [14.0, 2.0], [14.0, 11.0], [5.0, 11.0]])
+    values, covered = target_on_camera(Target("s", img, corners=corners), torch.ones(15, 20, dtype=torch.bool))
+    assert values[0, 2, 5] == pytest.approx(1.0) and values[0, 11, 14] == pytest.approx(0.0)
+    assert covered[2:12, 5:15].all() and not covered[:, :5].any()
+
+
+class TestBadInput:
+    def test_unknown_state(self):
+        with pytest.raises(InputError, match="names state 'middle', which was not calibrated"):
+            build_transport(synthetic_calibration(), [Target("middle", torch.rand(1, 4, 4), name="m")])
+
+    def test_target_outside_the_lit_region(self):
+        mask = torch.zeros(15, 20, dtype=torch.bool)
+        cals = synthetic_calibration()
+        for m in cals["near"].prj_xy:
+            m[0, 0] = float("nan")
+        mask[0, 0] = True
+        with pytest.raises(InputError, match="lies outside the lit region"):
+            build_transport(cals, [Target("near", torch.rand(1, 4, 4), mask=mask, name="corner")])
+
+    def test_target_values_out_of_range(self):
+        with pytest.raises(InputError, match=r"must lie in \[0, 1\]"):
+            build_transport(synthetic_calibration(), [Target("near", torch.full((1, 4, 4), 2.0), name="x")])
+
+    def test_non_finite_weights(self):
+        cals = synthetic_calibration()
+        cals["near"].weight[0][3, 3] = float("inf")
+        with pytest.raises(InputError, match="non-finite"):
+            build_transport(cals, targets())
+
+    def test_empty_rows(self):
+        m = csr_from_coo(torch.tensor([0]), torch.tensor([0]), torch.tensor([1.0]), (2, 1))
+        with pytest.raises(InputError, match="1 rows of A are empty"):
+            TransportOperator(m, torch.zeros(2, 1), torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.long),
+                              [(1, 1)])
+
+    def test_vector_shape_dtype(self):
+        op = build_transport(synthetic_calibration(), targets(), scale=1.0)
+        with pytest.raises(InputError, match="p must have shape"):
+            op.A(torch.zeros(op.shape[1] + 1, 1))
+        with pytest.raises(InputError, match="dtype"):
+            op.A(torch.zeros(op.shape[1], 1, dtype=torch.float64))
