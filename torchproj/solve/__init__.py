@@ -1,19 +1,21 @@
 """Box-constrained pattern solvers on the transport operator, and compensation to 8-bit patterns."""
 
 from .compensate import compensate
+from .eo import component_chains, epipolar_chains, fundamental_between_projectors, solve_eo
 from .solvers import (ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd,
                       to_projectable)
 
-SOLVERS = {"lf": solve_lf, "pgd": solve_pgd, "fista": solve_fista, "adam": solve_adam}
+SOLVERS = {"lf": solve_lf, "eo": solve_eo, "pgd": solve_pgd, "fista": solve_fista, "adam": solve_adam}
 
 
 def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> SolveResult:
-    """Solve with a named method (``lf``, ``pgd``, ``fista``, ``adam``); see each ``solve_*``."""
+    """Solve with a named method (``lf``, ``eo``, ``pgd``, ``fista``, ``adam``); see each ``solve_*``."""
     from ..core.checks import check
 
     check(method in SOLVERS, f"unknown solver {method!r}; choose from {sorted(SOLVERS)}")
     return SOLVERS[method](op, bounds, **kwargs)
 
 
-__all__ = ["ClampedAdam", "SOLVERS", "SolveResult", "check_bounds", "compensate", "solve_adam", "solve_fista",
-           "solve_lf", "solve_patterns", "solve_pgd", "to_projectable"]
+__all__ = ["ClampedAdam", "SOLVERS", "SolveResult", "check_bounds", "compensate", "component_chains",
+           "epipolar_chains", "fundamental_between_projectors", "solve_adam", "solve_eo", "solve_fista", "solve_lf",
+           "solve_patterns", "solve_pgd", "to_projectable"]

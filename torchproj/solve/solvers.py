@@ -34,6 +34,7 @@ class SolveResult:
         time_s: wall time.
         converged: whether the stopping rule fired before the iteration limit.
         method: the solver's name.
+        info: solver-specific facts (EO: number and sizes of chains, share of A it kept).
     """
 
     patterns: torch.Tensor
@@ -43,6 +44,7 @@ class SolveResult:
     time_s: float = 0.0
     converged: bool = False
     method: str = ""
+    info: dict = field(default_factory=dict)
 
 
 def check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
