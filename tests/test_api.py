@@ -1,9 +1,12 @@
 """The public API surface: a change here is a change users feel, so it is made on purpose."""
 
 import torchproj.calib
+import torchproj.evaluate
 import torchproj.core
 import torchproj.scene
 import torchproj.sim
+import torchproj.solve
+import torchproj.transport
 
 SURFACE = {
     "core": ["CaptureError", "ConfigError", "InputError", "TorchprojError", "atomic_output", "check", "check_finite",
@@ -17,6 +20,12 @@ SURFACE = {
               "fill_holes", "fit_plane", "fit_response", "graycode_bits", "graycode_patterns", "inverse_map", "measure_ramp",
               "ramp_pattern", "read_graycode_folder", "read_opencv_calibration", "refine_subpixel",
               "simulate_calibration", "triangulate", "write_graycode_folder", "write_ply"],
+    "transport": ["StateCalibration", "Target", "TransportOperator", "build_transport", "csr_from_coo", "group_rows",
+                  "target_on_camera"],
+    "solve": ["ClampedAdam", "SOLVERS", "SolveResult", "check_bounds", "compensate", "component_chains",
+              "epipolar_chains", "fundamental_between_projectors", "solve_adam", "solve_eo", "solve_fista",
+              "solve_lf", "solve_patterns", "solve_pgd", "to_projectable"],
+    "evaluate": ["model_space_psnr", "psnr"],
 }
 
 

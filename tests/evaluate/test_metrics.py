@@ -1,0 +1,33 @@
+import math
+
+import pytest
+import torch
+from skimage.metrics import peak_signal_noise_ratio
+
+from torchproj.core import InputError
+from torchproj.evaluate import model_space_psnr, psnr
+from torchproj.transport import build_transport
+
+from ..transport.test_build import synthetic_calibration, targets
+
+
+def test_psnr_matches_scikit_image():
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(3, 20, 20, generator=g), torch.rand(3, 20, 20, generator=g)
+    assert psnr(a, b) == pytest.approx(peak_signal_noise_ratio(b.numpy(), a.numpy(), data_range=1.0), rel=1e-9)
+    assert psnr(a, a) == math.inf
+
+
+def test_model_space_psnr_per_target():
+    op = build_transport(synthetic_calibration(), targets(), merge=False, scale=1.0)
+    exact = torch.linalg.lstsq(op.dense().double(), op.rhs.double()).solution.float()
+    scores = model_space_psnr(op, exact)
+    assert len(scores) == 2 and all(s > 10 for s in scores)
+    assert model_space_psnr(op, torch.zeros_like(exact))[0] < scores[0]
+    # Merged rows mix pixels (and leave a constant behind): refuse them.
+    cals = synthetic_calibration(shape=(40, 50))
+    for cal in cals.values():
+        cal.prj_xy = [torch.floor(m) for m in cal.prj_xy]
+    merged = build_transport(cals, targets(), merge=True, scale=1.0)
+    with pytest.raises(InputError, match="merge=False"):
+        model_space_psnr(merged, torch.zeros(merged.shape[1], 1))

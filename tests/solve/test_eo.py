@@ -1,0 +1,104 @@
+"""EO chains: the epipolar geometry against the simulator, and the per-chain solves against scipy."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import lsq_linear
+
+from torchproj.calib import calibrate_projector, simulate_calibration
+from torchproj.core import InputError
+from torchproj.sim import VirtualRig
+from torchproj.solve import (component_chains, epipolar_chains, fundamental_between_projectors, solve_eo,
+                             solve_fista)
+from torchproj.transport import StateCalibration, Target, TransportOperator, build_transport, csr_from_coo
+
+from ..helpers import small_scene
+from ..transport.test_build import synthetic_calibration, targets
+
+
+@pytest.fixture(scope="module")
+def paper_rig():
+    scene = small_scene(camera=(320, 240), projector=(128, 96))
+    rig = VirtualRig(scene)
+    cals = {}
+    for st in scene.states:
+        pcs = [calibrate_projector(simulate_calibration(rig, st.name, j), (128, 96)) for j in range(2)]
+        cals[st.name] = StateCalibration([c.prj_xy for c in pcs], [c.decoding.contrast for c in pcs], [(128, 96)] * 2)
+    return scene, rig, cals
+
+
+def test_fundamental_matrix_fits_the_true_correspondences(paper_rig):
+    scene, rig, cals = paper_rig
+    F = fundamental_between_projectors(cals)
+    # The simulator's exact projector coordinates of the same surface points satisfy x2^T F x1 = 0:
+    # measure the distance of x2 from the epipolar line F x1, in pixels.
+    truth = rig.geometry("far").prj_xy
+    both = torch.isfinite(truth).all(-1).all(0)
+    x1 = torch.cat([truth[0][both], torch.ones(int(both.sum()), 1)], 1).double()
+    x2 = torch.cat([truth[1][both], torch.ones(int(both.sum()), 1)], 1).double()
+    lines = x1 @ F.T
+    dist = (lines * x2).sum(1).abs() / lines[:, :2].norm(dim=1)
+    assert float(dist.median()) < 0.1 and float(dist.quantile(0.99)) < 0.5
+    # Vertically stacked projectors: epipolar lines run (nearly) vertically.
+    assert float((lines[:, 1].abs() / lines[:, :2].norm(dim=1)).max()) < 0.1
+
+
+def test_epipolar_chains_follow_projector_columns(paper_rig):
+    _, _, cals = paper_rig
+    img = torch.rand(1, 16, 16, generator=torch.Generator().manual_seed(0))
+    op = build_transport(cals, [Target("near", img, name="a"), Target("far", img, name="b")])
+    chain = epipolar_chains(op, fundamental_between_projectors(cals))
+    # In projector 0, cells of one chain share (almost) one column: the epipolar lines are vertical.
+    j0 = op.column_projector == 0
+    x = (op.column_cell[j0] % 128).float()
+    spread = [float(x[chain[j0] == c].max() - x[chain[j0] == c].min()) for c in torch.unique(chain[j0])[:50]]
+    assert np.median(spread) <= 2
+    assert int(chain.max()) + 1 > 50  # many small chains, not one
+
+
+def test_eo_with_components_is_exact():
+    op = build_transport(synthetic_calibration(shape=(30, 40)), targets(channels=3), scale=0.9).double()
+    res = solve_eo(op, (0, 1), chains="components", max_iter=20000, tol=1e-14)
+    A, b = op.dense().numpy(), op.rhs.numpy()
+    ref = np.stack([lsq_linear(A, b[:, c], bounds=(0, 1), tol=1e-12).x for c in range(3)], 1)
+    f_ref = float(((A @ ref - b) ** 2).sum() + op.constant.sum())
+    assert res.info["weight_kept"] == pytest.approx(1.0)
+    assert res.objective == pytest.approx(f_ref, rel=1e-6)
+
+
+def test_each_chain_is_solved_to_its_own_optimum():
+    """Two decoupled blocks with different scales: EO must solve both exactly, in one batched run."""
+    rows = torch.tensor([0, 0, 1, 1, 2, 3, 3, 4])
+    cols = torch.tensor([0, 1, 1, 2, 0, 3, 4, 4])
+    vals = torch.tensor([1.0, 0.5, 0.3, 1.2, 0.7, 100.0, 50.0, 80.0], dtype=torch.float64)
+    m = csr_from_coo(rows, cols, vals, (5, 5))
+    rhs = torch.tensor([[0.9], [2.0], [-0.3], [120.0], [10.0]], dtype=torch.float64)
+    op = TransportOperator(m, rhs, torch.zeros(5, dtype=torch.long), torch.arange(5), [(5, 1)])
+    chain = component_chains(op)
+    assert chain.tolist()[:3] == [chain[0]] * 3 and chain[3] == chain[4] != chain[0]
+    res = solve_eo(op, (0, 1), chains=chain, max_iter=50000, tol=1e-15)
+    ref = lsq_linear(op.dense().numpy(), rhs[:, 0].numpy(), bounds=(0, 1), tol=1e-14).x
+    np.testing.assert_allclose(res.patterns[:, 0].numpy(), ref, atol=1e-6)
+
+
+def test_eo_stays_in_bounds_and_reports_its_approximation(paper_rig):
+    _, _, cals = paper_rig
+    g = torch.Generator().manual_seed(1)
+    op = build_transport(cals, [Target("near", torch.rand(1, 20, 20, generator=g), name="a"),
+                                Target("far", torch.rand(1, 20, 20, generator=g), name="b")])
+    for bounds in [(0.0, 1.0), (-100 / 255, 1.0)]:
+        res = solve_eo(op, bounds, calibrations=cals, max_iter=500)
+        eps = 1e-6  # float32 patterns against float64 bounds
+        assert bounds[0] - eps <= float(res.patterns.min()) and float(res.patterns.max()) <= bounds[1] + eps
+        assert torch.isfinite(res.patterns).all()
+        assert 0.5 < res.info["weight_kept"] < 1.0  # rows straddling bands lose their other entries
+        # The global optimum is at least as good as the chain approximation.
+        assert solve_fista(op, bounds, max_iter=500).objective <= res.objective * (1 + 1e-6)
+
+
+def test_epipolar_chains_need_two_projectors_and_calibrations():
+    op = build_transport(synthetic_calibration(), targets(), scale=1.0)
+    with pytest.raises(InputError, match="needs the calibrations"):
+        solve_eo(op, (0, 1), chains="epipolar")
+    with pytest.raises(InputError, match="chains must be"):
+        solve_eo(op, (0, 1), chains="rows")
