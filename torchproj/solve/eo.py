@@ -14,10 +14,10 @@ its own with the box constraint ``lo <= p <= hi``. Two ways to form chains:
   dropped), but on a rig whose camera is finer than the projectors neighbouring cells are coupled
   and a component can span most of the image.
 
-All chains are solved at once: the problem restricted to the chains is block diagonal, and each
-block runs its own accelerated projected gradient with its own step size (its own Lipschitz
-constant by a per-chain power iteration), momentum and restarts, until every chain has converged.
-No Python loop runs over chains.
+All chains are solved at once: the problem restricted to the chains is block diagonal (so is its
+normal matrix ``Q``), and each block runs its own accelerated projected gradient with its own step
+size (its own Lipschitz bound from a per-chain power iteration), momentum and restarts, until every
+chain has converged. No Python loop runs over chains.
 """
 
 from __future__ import annotations
@@ -167,51 +167,50 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     check(chain.shape == (op.shape[1],), f"chain index must have shape ({op.shape[1]},)")
     n = int(chain.max()) + 1
     block, row_chain, kept = _split(op, chain)
-    rhs = block.rhs
+    ne = block.normal_equations()  # block diagonal: Q couples columns of one chain only
+    q = ne.q
 
-    # Per-chain Lipschitz constants: power iteration on the block-diagonal A^T A, normalised per chain.
-    g = torch.Generator().manual_seed(0)
-    x = torch.rand(op.shape[1], 1, generator=g, dtype=op.val.dtype).to(op.val.device)
-    lam = torch.zeros(n, dtype=op.val.dtype, device=op.val.device)
-    for _ in range(40):
-        y = block.A_adjoint(block.A(x))
-        lam = _per_chain(y * y, chain, n).sqrt()
-        x = y / lam.clamp_min(1e-30)[chain][:, None]
-    step = (1.0 / (lam * 1.01).clamp_min(1e-30))[chain][:, None]  # per column
+    # Per-chain step sizes: power iteration on the block-diagonal Q, normalised chain by chain;
+    # max over a chain of (Q x)_i / x_i bounds its largest eigenvalue from above (Q >= 0).
+    x = torch.ones(op.shape[1], 1, dtype=op.val.dtype, device=op.val.device)
+    for _ in range(30):
+        y = ne.product(x)
+        x = y / _per_chain(y * y, chain, n).sqrt().clamp_min(1e-30)[chain][:, None]
+    ratio = (ne.product(x) / x.clamp_min(1e-30))[:, 0]
+    lam = torch.zeros(n, dtype=op.val.dtype, device=op.val.device).scatter_reduce_(0, chain, ratio, reduce="amax")
+    step = (1.0 / lam.clamp_min(1e-30))[chain][:, None]
+    rows_const = _per_chain(block.rhs.double().pow(2), row_chain, n)
 
-    def chain_objective(ax):
-        return _per_chain((ax - rhs).pow(2), row_chain, n)
+    def chain_objective(p, qp):
+        return _per_chain((p.double() * (qp.double() - 2 * q.double())), chain, n) + rows_const
 
     x = torch.full((op.shape[1], op.channels), min(max(0.5 * (lo + hi), lo), hi), dtype=op.val.dtype,
                    device=op.val.device)
-    ax = block.A(x)
-    y, ay = x, ax
+    qx = ne.product(x)
+    y, qy = x, qx
     t_k = torch.ones(n, dtype=op.val.dtype, device=op.val.device)
-    f = chain_objective(ax)
+    f = chain_objective(x, qx)
     active = torch.ones(n, dtype=torch.bool, device=op.val.device)
     history = [(time.perf_counter() - t0, float(op.objective(x)))]
     it = 0
     for it in range(1, max_iter + 1):
-        x_new = (y - step * block.A_adjoint(ay - rhs)).clamp_(lo, hi)
-        ax_new = block.A(x_new)
-        f_new = chain_objective(ax_new)
+        x_new = (y - step * (qy - q)).clamp_(lo, hi)
+        qx_new = ne.product(x_new)
+        f_new = chain_objective(x_new, qx_new)
         restart = (f_new > f) & (t_k > 1)
         if bool(restart.any()):
             # Chains whose objective would rise drop their momentum and step from x instead.
-            plain = (x - step * block.A_adjoint(ax - rhs)).clamp_(lo, hi)
             cols = restart[chain][:, None]
-            x_new = torch.where(cols, plain, x_new)
-            ax_new = block.A(x_new)
-            f_new = chain_objective(ax_new)
+            x_new = torch.where(cols, (x - step * (qx - q)).clamp_(lo, hi), x_new)
+            qx_new = ne.product(x_new)
+            f_new = chain_objective(x_new, qx_new)
             t_k = torch.where(restart, torch.ones_like(t_k), t_k)
         t_next = 0.5 * (1 + torch.sqrt(1 + 4 * t_k * t_k))
         beta = ((t_k - 1) / t_next)[chain][:, None]
-        row_beta = ((t_k - 1) / t_next)[row_chain][:, None]
-        y, ay = x_new + beta * (x_new - x), ax_new + row_beta * (ax_new - ax)
+        y, qy = x_new + beta * (x_new - x), qx_new + beta * (qx_new - qx)
         t_k = t_next
-        changed = (f - f_new).abs() > tol * f_new.abs().clamp_min(1e-30)
-        active &= changed
-        x, ax, f = x_new, ax_new, f_new
+        active &= (f - f_new).abs() > tol * f_new.abs().clamp_min(1e-30)
+        x, qx, f = x_new, qx_new, f_new
         if it % 10 == 0:
             history.append((time.perf_counter() - t0, float(op.objective(x))))
         if not bool(active.any()):

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_finite
 from ..transport.operator import TransportOperator
 
 __all__ = ["SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "to_projectable",
@@ -78,7 +78,8 @@ def _start(op: TransportOperator, x0: torch.Tensor | None, lo: float, hi: float)
         return torch.full((op.shape[1], op.channels), min(max(0.5 * (lo + hi), lo), hi), dtype=op.val.dtype,
                           device=op.val.device)
     check(x0.shape == (op.shape[1], op.channels), f"x0 must have shape {(op.shape[1], op.channels)}, got {tuple(x0.shape)}")
-    return x0.clamp(lo, hi)
+    check_finite(x0, "x0")
+    return x0.to(op.val.device, op.val.dtype).clamp(lo, hi)
 
 
 def _stop(prev: float, cur: float, tol: float) -> bool:
@@ -106,43 +107,40 @@ def _proximal(op, bounds, max_iter, tol, x0, lipschitz, progress, accelerate):
     lo, hi = check_bounds(bounds)
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     t0 = time.perf_counter()
-    L = op.lipschitz() if lipschitz is None else float(lipschitz)
+    # On the normal equations the gradient is Q p - q: one sparse product per iteration. Q is
+    # linear, so Q y follows from Q x by the same extrapolation as y.
+    ne = op.normal_equations()
+    L = ne.lipschitz() if lipschitz is None else float(lipschitz)
     check(L > 0, "the operator is zero: nothing to solve")
     step = 1.0 / L
-    rhs, constant = op.rhs, float(op.constant.sum())
-
-    def value(ax):
-        return float((ax - rhs).pow(2).sum()) + constant
-
-    # A is linear, so A y follows from A x by the same extrapolation as y: two products per
-    # iteration (A^T for the gradient, A for the new point) instead of three.
+    q = ne.q
     x = _start(op, x0, lo, hi)
-    ax = op.A(x)
-    y, ay, t_k = x, ax, 1.0
-    f = value(ax)
+    qx = ne.product(x)
+    y, qy, t_k = x, qx, 1.0
+    f = ne.objective(x, qx)
     history = [(time.perf_counter() - t0, f)]
     bar = _progress(max_iter, "fista" if accelerate else "pgd", progress)
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
-        x_new = (y - step * op.A_adjoint(ay - rhs)).clamp_(lo, hi)
-        ax_new = op.A(x_new)
-        f_new = value(ax_new)
+        x_new = (y - step * (qy - q)).clamp_(lo, hi)
+        qx_new = ne.product(x_new)
+        f_new = ne.objective(x_new, qx_new)
         if accelerate and f_new > f and t_k > 1.0:
             # Restart: drop the momentum and take a plain projected step from x (monotone).
-            x_new = (x - step * op.A_adjoint(ax - rhs)).clamp_(lo, hi)
-            ax_new = op.A(x_new)
-            f_new = value(ax_new)
+            x_new = (x - step * (qx - q)).clamp_(lo, hi)
+            qx_new = ne.product(x_new)
+            f_new = ne.objective(x_new, qx_new)
             t_k = 1.0
         if accelerate:
             t_next = 0.5 * (1 + math.sqrt(1 + 4 * t_k * t_k))
             beta = (t_k - 1) / t_next
-            y, ay = x_new + beta * (x_new - x), ax_new + beta * (ax_new - ax)
+            y, qy = x_new + beta * (x_new - x), qx_new + beta * (qx_new - qx)
             t_k = t_next
         else:
-            y, ay = x_new, ax_new
+            y, qy = x_new, qx_new
         done = _stop(f, f_new, tol)
-        x, ax, f = x_new, ax_new, f_new
+        x, qx, f = x_new, qx_new, f_new
         history.append((time.perf_counter() - t0, f))
         if bar is not None:
             bar.update(1)
@@ -239,8 +237,9 @@ def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 300, t
     """
     lo, hi = check_bounds(bounds)
     t0 = time.perf_counter()
+    ne = op.normal_equations()
     x = torch.zeros(op.shape[1], op.channels, dtype=op.val.dtype, device=op.val.device)
-    r = op.A_adjoint(op.rhs)  # residual of the normal equations at x = 0
+    r = ne.q.clone()  # residual of the normal equations at x = 0
     d = r.clone()
     rr = (r * r).sum(0)
     r0 = rr.clamp_min(1e-30)
@@ -248,14 +247,14 @@ def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 300, t
     bar = _progress(max_iter, "lf (cg)", progress)
     it, converged = 0, False
     for it in range(1, max_iter + 1):
-        q = op.A_adjoint(op.A(d))
-        alpha = rr / (d * q).sum(0).clamp_min(1e-30)
+        qd = ne.product(d)
+        alpha = rr / (d * qd).sum(0).clamp_min(1e-30)
         x += alpha * d
-        r -= alpha * q
+        r -= alpha * qd
         rr_new = (r * r).sum(0)
         d = r + (rr_new / rr.clamp_min(1e-30)) * d
         rr = rr_new
-        history.append((time.perf_counter() - t0, float(op.objective(x))))
+        history.append((time.perf_counter() - t0, ne.objective(x, ne.q - r)))  # CG keeps r = q - Q x
         if bar is not None:
             bar.update(1)
         if bool((rr <= tol * tol * r0).all()):

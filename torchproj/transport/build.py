@@ -43,6 +43,32 @@ class StateCalibration:
     weight: list[torch.Tensor]
     projector_sizes: list[tuple[int, int]]
 
+    @classmethod
+    def from_calibrations(cls, calibrations, weighting: str = "radiometric", camera=None,
+                          projectors=None) -> "StateCalibration":
+        """From one :class:`~torchproj.calib.ProjectorCalibration` per projector.
+
+        Args:
+            calibrations: per projector, its calibration in this state.
+            weighting: ``"radiometric"`` (measured white minus black: fall-off, angle, albedo and
+                vignetting in one number) or ``"geometric"`` (the paper's ``cos / d^2`` from
+                triangulated points and normals; needs ``camera`` and ``projectors``, the rig's
+                intrinsics and poses).
+        """
+        check(weighting in ("radiometric", "geometric"),
+              f"weighting must be 'radiometric' or 'geometric', got {weighting!r}")
+        prj_xy = [c.prj_xy for c in calibrations]
+        sizes = [(c.cam_xy.shape[1], c.cam_xy.shape[0]) for c in calibrations]
+        if weighting == "radiometric":
+            weight = [c.decoding.contrast.clamp_min(0) for c in calibrations]
+        else:
+            check(camera is not None and projectors is not None,
+                  "geometric weighting needs the camera and projectors (intrinsics and poses) to triangulate")
+            from .geometric import geometric_weights
+
+            weight = geometric_weights(prj_xy, camera, projectors)
+        return cls(prj_xy, weight, sizes)
+
     def lit(self) -> torch.Tensor:
         """:math:`(H, W)` pixels lit (decoded) by at least one projector."""
         return torch.stack([torch.isfinite(m).all(-1) for m in self.prj_xy]).any(0)
