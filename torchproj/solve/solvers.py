@@ -88,59 +88,73 @@ def _stop(prev: float, cur: float, tol: float) -> bool:
 
 
 def solve_pgd(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, tol: float = 1e-6,
-              x0: torch.Tensor | None = None, lipschitz: float | None = None, progress: bool = False) -> SolveResult:
-    """Projected gradient with step 1/L: monotone (the objective never rises)."""
-    return _proximal(op, bounds, max_iter, tol, x0, lipschitz, progress, accelerate=False)
+              x0: torch.Tensor | None = None, precondition: bool = True, progress: bool = False) -> SolveResult:
+    """Projected gradient with step 1/L: monotone (the objective never rises).
+
+    ``precondition`` runs it on the Jacobi-scaled normal equations (still a box, still step 1/L of
+    the scaled system; see :meth:`NormalEquations.jacobi`).
+    """
+    return _proximal(op, bounds, max_iter, tol, x0, precondition, progress, accelerate=False)
 
 
 def solve_fista(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, tol: float = 1e-6,
-                x0: torch.Tensor | None = None, lipschitz: float | None = None, progress: bool = False) -> SolveResult:
+                x0: torch.Tensor | None = None, precondition: bool = True, progress: bool = False) -> SolveResult:
     """FISTA (accelerated projected gradient, step 1/L) with adaptive restart.
 
     Momentum is reset whenever the objective would rise (O'Donoghue & Candes), so the reported
     iterates never get worse and the method keeps FISTA's speed on well-conditioned parts.
+    ``precondition`` as in :func:`solve_pgd`.
     """
-    return _proximal(op, bounds, max_iter, tol, x0, lipschitz, progress, accelerate=True)
+    return _proximal(op, bounds, max_iter, tol, x0, precondition, progress, accelerate=True)
 
 
-def _proximal(op, bounds, max_iter, tol, x0, lipschitz, progress, accelerate):
+def _proximal(op, bounds, max_iter, tol, x0, precondition, progress, accelerate):
     lo, hi = check_bounds(bounds)
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     t0 = time.perf_counter()
-    # On the normal equations the gradient is Q p - q: one sparse product per iteration. Q is
-    # linear, so Q y follows from Q x by the same extrapolation as y.
+    # On the normal equations the gradient is Q z - q: one sparse product per iteration. Q is
+    # linear, so Q y follows from Q z by the same extrapolation as y.
     ne = op.normal_equations()
-    L = ne.lipschitz() if lipschitz is None else float(lipschitz)
+    if precondition:
+        ne = ne.jacobi()
+    L = ne.lipschitz()
     check(L > 0, "the operator is zero: nothing to solve")
-    step = 1.0 / L
-    q = ne.q
-    x = _start(op, x0, lo, hi)
-    qx = ne.product(x)
-    y, qy, t_k = x, qx, 1.0
-    f = ne.objective(x, qx)
+    step, q = 1.0 / L, ne.q
+    if ne.scale is None:
+        z_lo, z_hi, unscale = lo, hi, 1.0
+    else:
+        z_lo, z_hi, unscale = lo / ne.scale, hi / ne.scale, ne.scale
+
+    def project(v):
+        return v.clamp_(lo, hi) if ne.scale is None else torch.minimum(torch.maximum(v, z_lo), z_hi)
+
+    z = _start(op, x0, lo, hi) / unscale
+    qz = ne.product(z)
+    y, qy, t_k = z, qz, 1.0
+    f = ne.objective(z, qz)
     history = [(time.perf_counter() - t0, f)]
     bar = _progress(max_iter, "fista" if accelerate else "pgd", progress)
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
-        x_new = (y - step * (qy - q)).clamp_(lo, hi)
-        qx_new = ne.product(x_new)
-        f_new = ne.objective(x_new, qx_new)
+        z_new = project(y - step * (qy - q))
+        qz_new = ne.product(z_new)
+        f_new = ne.objective(z_new, qz_new)
         if accelerate and f_new > f and t_k > 1.0:
-            # Restart: drop the momentum and take a plain projected step from x (monotone).
-            x_new = (x - step * (qx - q)).clamp_(lo, hi)
-            qx_new = ne.product(x_new)
-            f_new = ne.objective(x_new, qx_new)
+            # Restart: drop the momentum and take a plain projected step from z (monotone).
+            z_new = project(z - step * (qz - q))
+            qz_new = ne.product(z_new)
+            f_new = ne.objective(z_new, qz_new)
             t_k = 1.0
         if accelerate:
             t_next = 0.5 * (1 + math.sqrt(1 + 4 * t_k * t_k))
             beta = (t_k - 1) / t_next
-            y, qy = x_new + beta * (x_new - x), qx_new + beta * (qx_new - qx)
+            y, qy = z_new + beta * (z_new - z), qz_new + beta * (qz_new - qz)
             t_k = t_next
         else:
-            y, qy = x_new, qx_new
+            y, qy = z_new, qz_new
         done = _stop(f, f_new, tol)
-        x, qx, f = x_new, qx_new, f_new
+        z, qz, f = z_new, qz_new, f_new
         history.append((time.perf_counter() - t0, f))
         if bar is not None:
             bar.update(1)
@@ -149,8 +163,10 @@ def _proximal(op, bounds, max_iter, tol, x0, lipschitz, progress, accelerate):
             break
     if bar is not None:
         bar.close()
+    x = (z * unscale).clamp_(lo, hi)  # undo the scaling; the clamp only removes round-off
     return SolveResult(patterns=x, iterations=it, objective=f, history=history, time_s=time.perf_counter() - t0,
-                       converged=converged, method="fista" if accelerate else "pgd")
+                       converged=converged, method="fista" if accelerate else "pgd",
+                       info={"lipschitz": L, "preconditioned": bool(precondition)})
 
 
 class ClampedAdam(torch.optim.Adam):

@@ -1,0 +1,50 @@
+"""Solver quality on an operator calibrated on the virtual rig (the paper's two planes, small)."""
+
+import pytest
+import torch
+from skimage import data
+
+from torchproj.calib import calibrate_projector, simulate_calibration
+from torchproj.evaluate import model_space_psnr
+from torchproj.sim import VirtualRig
+from torchproj.solve import solve_eo, solve_fista, solve_lf, to_projectable
+from torchproj.transport import StateCalibration, Target, build_transport
+
+from ..helpers import small_scene
+
+
+@pytest.fixture(scope="module")
+def calibrated():
+    scene = small_scene(camera=(400, 300), projector=(256, 192))
+    rig = VirtualRig(scene)
+    cals = {st.name: StateCalibration.from_calibrations(
+        [calibrate_projector(simulate_calibration(rig, st.name, j), (256, 192)) for j in range(2)])
+        for st in scene.states}
+    rgb = [torch.from_numpy(getattr(data, n)()).permute(2, 0, 1).float() / 255 for n in ("astronaut", "chelsea")]
+    targets = [Target("near", rgb[0], name="astronaut"), Target("far", rgb[1], name="chelsea")]
+    op = build_transport(cals, targets)
+    full = build_transport(cals, targets, merge=False, scale=op.scale)
+    return cals, op, full
+
+
+def test_bounded_optimum_beats_the_paper_baselines(calibrated):
+    cals, op, full = calibrated
+    best = solve_fista(op, (0, 1), max_iter=3000, tol=1e-10)
+    lf = solve_lf(op, (0, 1))
+    eo = solve_eo(op, (0, 1), calibrations=cals, max_iter=1000)
+    neg = -100 / 255
+    eo_neg = solve_eo(op, (neg, 1), calibrations=cals, max_iter=1000)
+    psnr = {name: min(model_space_psnr(full, p)) for name, p in [
+        ("fista", best.patterns), ("lf", lf.patterns), ("eo", eo.patterns),
+        ("eo_neg", to_projectable(eo_neg.patterns, (neg, 1)))]}
+    # The paper's ordering: EO_0^255 well above LF and EO_-100^255; the exact optimum above all.
+    assert psnr["fista"] > psnr["eo"] > psnr["lf"] + 3
+    assert psnr["eo"] > psnr["eo_neg"]
+    assert psnr["fista"] > 15
+
+
+def test_twenty_fista_iterations_are_nearly_optimal(calibrated):
+    _, op, full = calibrated
+    best = model_space_psnr(full, solve_fista(op, (0, 1), max_iter=3000, tol=1e-10).patterns)
+    quick = model_space_psnr(full, solve_fista(op, (0, 1), max_iter=20, tol=0).patterns)
+    assert all(b - q < 0.3 for b, q in zip(best, quick))
