@@ -184,8 +184,7 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     def chain_objective(p, qp):
         return _per_chain((p.double() * (qp.double() - 2 * q.double())), chain, n) + rows_const
 
-    x = torch.full((op.shape[1], op.channels), min(max(0.5 * (lo + hi), lo), hi), dtype=op.val.dtype,
-                   device=op.val.device)
+    x = torch.full((op.shape[1], op.channels), 0.5 * (lo + hi), dtype=op.val.dtype, device=op.val.device)
     qx = ne.product(x)
     y, qy = x, qx
     t_k = torch.ones(n, dtype=op.val.dtype, device=op.val.device)

@@ -1,7 +1,8 @@
 """Box-constrained least squares ``min ||A p - i||^2  s.t.  lo <= p <= hi`` on a transport operator.
 
-The solvers know only the operator (``A``, ``A_adjoint``, ``objective``, ``lipschitz``); a box
-constraint is a projection, a clamp. Bounds are in linear relative light, the paper's 8-bit bounds
+The solvers know only the operator: ``A`` and ``A_adjoint`` (Adam, through autograd) or its
+normal equations ``Q = A^T A``, ``q = A^T i`` (PGD, FISTA, LF: one sparse product per iteration). A
+box constraint is a projection, a clamp. Bounds are in linear relative light, the paper's 8-bit bounds
 divided by 255 (``EO_0^255`` is ``(0, 1)``, ``EO_-100^255`` is ``(-100/255, 1)``); bounds outside
 [0, 1] are brought back into the projectable range by :func:`to_projectable`.
 """
@@ -75,8 +76,7 @@ def _progress(total: int, desc: str, enabled: bool):
 
 def _start(op: TransportOperator, x0: torch.Tensor | None, lo: float, hi: float) -> torch.Tensor:
     if x0 is None:
-        return torch.full((op.shape[1], op.channels), min(max(0.5 * (lo + hi), lo), hi), dtype=op.val.dtype,
-                          device=op.val.device)
+        return torch.full((op.shape[1], op.channels), 0.5 * (lo + hi), dtype=op.val.dtype, device=op.val.device)
     check(x0.shape == (op.shape[1], op.channels), f"x0 must have shape {(op.shape[1], op.channels)}, got {tuple(x0.shape)}")
     check_finite(x0, "x0")
     return x0.to(op.val.device, op.val.dtype).clamp(lo, hi)
