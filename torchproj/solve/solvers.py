@@ -125,8 +125,9 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, progress, accelerate)
     else:
         z_lo, z_hi, unscale = lo / ne.scale, hi / ne.scale, ne.scale
 
-    def project(v):
-        return v.clamp_(lo, hi) if ne.scale is None else torch.minimum(torch.maximum(v, z_lo), z_hi)
+    def gradient_step(v, qv):
+        # clamp(v - step (Q v - q)) in two fused passes: the products dominate, not these.
+        return torch.clamp(torch.add(v, torch.sub(qv, q), alpha=-step), z_lo, z_hi)
 
     z = _start(op, x0, lo, hi) / unscale
     qz = ne.product(z)
@@ -137,19 +138,20 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, progress, accelerate)
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
-        z_new = project(y - step * (qy - q))
+        z_new = gradient_step(y, qy)
         qz_new = ne.product(z_new)
         f_new = ne.objective(z_new, qz_new)
         if accelerate and f_new > f and t_k > 1.0:
             # Restart: drop the momentum and take a plain projected step from z (monotone).
-            z_new = project(z - step * (qz - q))
+            z_new = gradient_step(z, qz)
             qz_new = ne.product(z_new)
             f_new = ne.objective(z_new, qz_new)
             t_k = 1.0
         if accelerate:
             t_next = 0.5 * (1 + math.sqrt(1 + 4 * t_k * t_k))
             beta = (t_k - 1) / t_next
-            y, qy = z_new + beta * (z_new - z), qz_new + beta * (qz_new - qz)
+            # y = z_new + beta (z_new - z), and Q y likewise, as one interpolation each.
+            y, qy = torch.lerp(z, z_new, 1 + beta), torch.lerp(qz, qz_new, 1 + beta)
             t_k = t_next
         else:
             y, qy = z_new, qz_new

@@ -224,6 +224,7 @@ class NormalEquations:
 
     def __init__(self, Q: torch.Tensor, q: torch.Tensor, c: torch.Tensor, scale: torch.Tensor | None = None):
         self.Q, self.q, self.c, self.scale = Q, q, c, scale
+        self._two_q = 2 * q
         self._lipschitz = None
         self._jacobi = None
 
@@ -262,7 +263,7 @@ class NormalEquations:
 
     def objective(self, p: torch.Tensor, qp: torch.Tensor) -> float:
         """Objective from p and its product ``Q p``, summed in float64."""
-        return float((p * (qp - 2 * self.q)).sum(dtype=torch.float64) + self.c.sum())
+        return float((p * (qp - self._two_q)).sum(dtype=torch.float64) + self.c.sum())
 
     def lipschitz(self, iterations: int = 30) -> float:
         """An upper bound of the largest eigenvalue of Q (cached).
