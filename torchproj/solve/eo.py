@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from ..core.checks import check
 from ..transport.build import StateCalibration
 from ..transport.operator import TransportOperator, csr_from_coo
-from .solvers import SolveResult, check_bounds
+from .solvers import SolveResult, progress_bar, check_bounds
 
 __all__ = ["fundamental_between_projectors", "epipolar_chains", "component_chains", "solve_eo"]
 
@@ -137,7 +137,7 @@ def _per_chain(values: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tenso
 
 def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Tensor = "epipolar",
              calibrations: dict[str, StateCalibration] | None = None, band: float = 1.0, max_iter: int = 2000,
-             tol: float = 1e-8) -> SolveResult:
+             tol: float = 1e-8, progress: bool | None = None) -> SolveResult:
     """The paper's EO: independent chains, each solved within ``bounds``.
 
     Args:
@@ -150,6 +150,7 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
         band: epipolar band width in projector pixels.
         max_iter: iteration limit of the per-chain solves.
         tol: a chain has converged when its objective changes by less than ``tol`` relatively.
+        progress: progress bar (None: on a terminal, for solves longer than a second).
 
     Returns:
         a :class:`SolveResult` whose ``objective`` is on the full operator (cross-chain light included).
@@ -191,8 +192,11 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     f = chain_objective(x, qx)
     active = torch.ones(n, dtype=torch.bool, device=op.val.device)
     history = [(time.perf_counter() - t0, float(op.objective(x)))]
+    bar = progress_bar(max_iter, "eo", progress)
     it = 0
     for it in range(1, max_iter + 1):
+        if bar is not None:
+            bar.update(1)
         x_new = (y - step * (qy - q)).clamp_(lo, hi)
         qx_new = ne.product(x_new)
         f_new = chain_objective(x_new, qx_new)
@@ -214,6 +218,8 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
             history.append((time.perf_counter() - t0, float(op.objective(x))))
         if not bool(active.any()):
             break
+    if bar is not None:
+        bar.close()
     objective = float(op.objective(x))
     history.append((time.perf_counter() - t0, objective))
     sizes = torch.bincount(chain)

@@ -66,12 +66,13 @@ def to_projectable(p: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor
     return (p - lo) / (hi - lo)
 
 
-def _progress(total: int, desc: str, enabled: bool):
-    if not enabled:
+def progress_bar(total: int, desc: str, enabled: bool | None):
+    """A progress bar: None shows it on a terminal once a solve has run for a second."""
+    if enabled is False:
         return None
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, leave=False)
+    return tqdm(total=total, desc=desc, leave=False, disable=None if enabled is None else False, delay=1.0)
 
 
 def _start(op: TransportOperator, x0: torch.Tensor | None, lo: float, hi: float) -> torch.Tensor:
@@ -88,7 +89,7 @@ def _stop(prev: float, cur: float, tol: float) -> bool:
 
 
 def solve_pgd(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, tol: float = 1e-6,
-              x0: torch.Tensor | None = None, precondition: bool = True, progress: bool = False) -> SolveResult:
+              x0: torch.Tensor | None = None, precondition: bool = True, progress: bool | None = None) -> SolveResult:
     """Projected gradient with step 1/L: monotone (the objective never rises).
 
     ``precondition`` runs it on the Jacobi-scaled normal equations (still a box, still step 1/L of
@@ -98,7 +99,7 @@ def solve_pgd(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, 
 
 
 def solve_fista(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, tol: float = 1e-6,
-                x0: torch.Tensor | None = None, precondition: bool = True, progress: bool = False) -> SolveResult:
+                x0: torch.Tensor | None = None, precondition: bool = True, progress: bool | None = None) -> SolveResult:
     """FISTA (accelerated projected gradient, step 1/L) with adaptive restart.
 
     Momentum is reset whenever the objective would rise (O'Donoghue & Candes), so the reported
@@ -134,7 +135,7 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, progress, accelerate)
     y, qy, t_k = z, qz, 1.0
     f = ne.objective(z, qz)
     history = [(time.perf_counter() - t0, f)]
-    bar = _progress(max_iter, "fista" if accelerate else "pgd", progress)
+    bar = progress_bar(max_iter, "fista" if accelerate else "pgd", progress)
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
@@ -201,7 +202,7 @@ class ClampedAdam(torch.optim.Adam):
 
 
 def solve_adam(op: TransportOperator, bounds=(0.0, 1.0), *, lr: float = 0.02, max_iter: int = 500,
-               tol: float = 1e-6, x0: torch.Tensor | None = None, progress: bool = False,
+               tol: float = 1e-6, x0: torch.Tensor | None = None, progress: bool | None = None,
                rise_window: int = 20) -> SolveResult:
     """Clamped Adam on the objective through autograd (as a user's training loop would run it).
 
@@ -218,7 +219,7 @@ def solve_adam(op: TransportOperator, bounds=(0.0, 1.0), *, lr: float = 0.02, ma
     with torch.no_grad():
         f = float(op.objective(p))
     history = [(time.perf_counter() - t0, f)]
-    bar = _progress(max_iter, "adam", progress)
+    bar = progress_bar(max_iter, "adam", progress)
     converged, warned, it = False, False, 0
     for it in range(1, max_iter + 1):
         opt.zero_grad(set_to_none=True)
@@ -246,7 +247,7 @@ def solve_adam(op: TransportOperator, bounds=(0.0, 1.0), *, lr: float = 0.02, ma
 
 
 def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 300, tol: float = 1e-6,
-             progress: bool = False) -> SolveResult:
+             progress: bool | None = None) -> SolveResult:
     """The predecessor method (LF): unconstrained least squares, then linear normalisation into range.
 
     Conjugate gradients on the normal equations ``A^T A p = A^T i`` (the global sparse solve), then
@@ -262,7 +263,7 @@ def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 300, t
     rr = (r * r).sum(0)
     r0 = rr.clamp_min(1e-30)
     history = [(time.perf_counter() - t0, float(op.objective(x)))]
-    bar = _progress(max_iter, "lf (cg)", progress)
+    bar = progress_bar(max_iter, "lf (cg)", progress)
     it, converged = 0, False
     for it in range(1, max_iter + 1):
         qd = ne.product(d)
