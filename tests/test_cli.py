@@ -81,3 +81,16 @@ def test_main_job_on_the_full_resolution_paper_rig(tmp_path):
         assert row["decoding_subpixel"]["rms_px"] < 0.12
         assert abs(row["response_fit"]["b"][0] - row["response_true_b"][0]) < 0.03
         assert abs(row["compensated_ramp_sum"]["mean"] - 1) < 0.01 and row["compensated_ramp_sum"]["std"] < 0.03
+
+
+@pytest.mark.slow
+def test_run_with_no_arguments_on_the_full_resolution_paper_rig(tmp_path, monkeypatch):
+    """`torchproj run`: the README's first command, as a newcomer runs it."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["run"]) == 0
+    report = json.loads((tmp_path / "out" / "run" / "report.json").read_text())
+    assert report["scene"] == "paper_two_planes" and report["solver"] == "fista"
+    near, far = report["targets"]
+    assert near["psnr_db"] > 17 and far["psnr_db"] > 16.5
+    assert near["ssim"] > 0.5 and far["ssim"] > 0.5
+    assert report["timings_s"]["total"] < 120

@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-__all__ = ["decode_summary", "calibration_summary"]
+__all__ = ["decode_summary", "calibration_summary", "run_overview"]
 
 
 def _map_panel(ax, data, title, cmap="viridis", label=None, **kw):
@@ -69,6 +69,45 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
             ax.set_title("response (normalised by white - black)", fontsize=9)
         else:
             ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projector_names: list[str],
+                 targets: list[dict], report_rows: list[dict]) -> None:
+    """Projector patterns on top; one row per target: the target on the camera, the capture, the error.
+
+    ``targets`` items hold ``name``, ``values`` (C, H, W), ``covered`` (H, W) and ``estimate``
+    (C, H, W); all three panels are cropped to the target's pixels.
+    """
+    n_cols = max(3, len(patterns))
+    fig, axes = plt.subplots(1 + len(targets), n_cols, figsize=(4.2 * n_cols, 3.4 * (1 + len(targets))),
+                             squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for j, (pat, name) in enumerate(zip(patterns, projector_names)):
+        img = pat.permute(1, 2, 0).numpy()
+        axes[0, j].imshow(img[..., 0] if img.shape[2] == 1 else img, cmap="gray", vmin=0, vmax=255)
+        axes[0, j].set_title(f"pattern for projector {name} (8-bit)", fontsize=9)
+    for row, (t, r) in enumerate(zip(targets, report_rows), start=1):
+        ys, xs = torch.nonzero(t["covered"], as_tuple=True)
+        y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+        mask = t["covered"][y0:y1, x0:x1]
+
+        def crop(img):
+            c = img[:, y0:y1, x0:x1].clone()
+            c[:, ~mask] = float("nan")
+            c = c.permute(1, 2, 0).numpy()
+            return c[..., 0] if c.shape[2] == 1 else np.nan_to_num(c)
+
+        err = (t["estimate"] - t["values"]).abs().mean(0, keepdim=True)
+        for col, (img, title, kw) in enumerate([
+                (t["values"], f"target {t['name']}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
+                (t["estimate"], f"captured: {r['psnr_db']:.1f} dB, SSIM {r['ssim']:.2f}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
+                (err, f"|captured - target| (crosstalk {r['crosstalk']:.2f})", {"cmap": "magma", "vmin": 0, "vmax": 0.5})]):
+            axes[row, col].imshow(crop(img), interpolation="nearest", **kw)
+            axes[row, col].set_title(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)

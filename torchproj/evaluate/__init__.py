@@ -1,5 +1,6 @@
-"""Evaluation: metrics (PSNR) in model space and, later, on captures."""
+"""Evaluation: metrics, and the main job on the virtual rig (``run_virtual``)."""
 
-from .metrics import model_space_psnr, psnr
+from .metrics import crosstalk, masked_ssim, model_space_psnr, psnr
+from .run import RunResult, default_images, run_virtual
 
-__all__ = ["model_space_psnr", "psnr"]
+__all__ = ["RunResult", "crosstalk", "default_images", "masked_ssim", "model_space_psnr", "psnr", "run_virtual"]
