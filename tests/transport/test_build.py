@@ -190,3 +190,13 @@ class TestBadInput:
             op.A(torch.zeros(op.shape[1] + 1, 1))
         with pytest.raises(InputError, match="dtype"):
             op.A(torch.zeros(op.shape[1], 1, dtype=torch.float64))
+
+
+def test_normal_equations_follow_dtype_changes():
+    op = build_transport(synthetic_calibration(), targets(), scale=1.0)
+    assert op.normal_equations().Q.dtype == torch.float32
+    op = op.double()
+    ne = op.normal_equations()
+    assert ne.Q.dtype == torch.float64
+    p = torch.rand(op.shape[1], 1, dtype=torch.float64)
+    assert ne.objective(p, ne.product(p)) == pytest.approx(float(op.objective(p)), rel=1e-10)

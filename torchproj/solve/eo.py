@@ -127,7 +127,7 @@ def _split(op: TransportOperator, chain: torch.Tensor):
     matrix = csr_from_coo(rows[keep], op.col[keep], op.val[keep], op.shape)
     kept = float(op.val[keep].pow(2).sum() / op.val.pow(2).sum())
     return TransportOperator(matrix, op.rhs, op.column_projector, op.column_cell, op.projector_sizes,
-                             op.constant, op.row_target), row_chain, kept
+                             op.constant, op.row_target, op.scale), row_chain, kept
 
 
 def _per_chain(values: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:

@@ -268,6 +268,5 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     matrix = csr_from_coo(row_index, compact, vals[used], (cols.shape[0], global_cols.numel()))
     starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
     projector = torch.searchsorted(starts, global_cols, right=True) - 1
-    op = TransportOperator(matrix, rhs, projector, global_cols - starts[projector], sizes, constant, tgt)
-    op.scale = scale
-    return op.to(device)
+    return TransportOperator(matrix, rhs, projector, global_cols - starts[projector], sizes, constant, tgt,
+                             scale).to(device)

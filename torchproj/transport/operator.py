@@ -68,11 +68,12 @@ class TransportOperator(nn.Module):
         constant: :math:`(C,)` part of the objective that merging rows took out of ``A`` and ``rhs``
             (0 without merging), so that :meth:`objective` equals the unmerged ``||A p - i||^2``.
         row_target: :math:`(N_{rows},)` index of the target each row belongs to (for reports).
+        scale: camera value that a target value of 1 asks for (``rhs = scale * target``).
     """
 
     def __init__(self, matrix: torch.Tensor, rhs: torch.Tensor, column_projector: torch.Tensor,
                  column_cell: torch.Tensor, projector_sizes: list[tuple[int, int]], constant: torch.Tensor | None = None,
-                 row_target: torch.Tensor | None = None):
+                 row_target: torch.Tensor | None = None, scale: float = 1.0):
         super().__init__()
         check(matrix.layout == torch.sparse_csr, "matrix must be a CSR tensor (torch.sparse_csr)")
         n_rows, n_cols = matrix.shape
@@ -101,6 +102,7 @@ class TransportOperator(nn.Module):
                              if row_target is None else row_target)
         self.projector_sizes = [tuple(s) for s in projector_sizes]
         self.shape = (n_rows, n_cols)
+        self.scale = float(scale)
 
     # ------------------------------------------------------------------------------- matrices
     def _csr(self, transpose: bool = False) -> torch.Tensor:
@@ -187,7 +189,8 @@ class TransportOperator(nn.Module):
         Built once (scipy's sparse product) and cached. Iterative solvers use it to pay one sparse
         product per iteration instead of two.
         """
-        if getattr(self, "_normal", None) is None or self._normal.q.device != self.val.device:
+        cached = getattr(self, "_normal", None)
+        if cached is None or cached.q.device != self.val.device or cached.q.dtype != self.val.dtype:
             self._normal = NormalEquations.from_operator(self)
         return self._normal
 
