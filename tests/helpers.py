@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
-import torch
 import yaml
 
 from torchproj.scene import builtin_config, parse_scene

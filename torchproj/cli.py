@@ -102,9 +102,10 @@ def cmd_simulate(args) -> int:
                 "response_fit": cal.response.as_dict(), "response_true_b": list(proj.response_b),
                 "compensated_ramp_sum": {"mean": float(flat.mean()), "std": float(flat.std())},
             })
-            levels, measured = _ramp_points(capture, cal, proj)
+            levels, measured = cal.ramp
             rows.append({"label": f"{state}/{proj.name}", "prj_xy": cal.prj_xy,
-                         "error": (cal.prj_xy - truth).norm(dim=-1), "levels": levels, "measured": measured,
+                         "error": (cal.prj_xy - truth).norm(dim=-1), "levels": levels.numpy(),
+                         "measured": measured.numpy(),
                          "fitted": lambda x, a=float(cal.response.a[0]), b=float(cal.response.b[0]),
                          c=float(cal.response.c[0]): a * x**b + c,
                          "fit_b": float(cal.response.b[0]), "true_b": proj.response_b[0]})
@@ -118,14 +119,6 @@ def cmd_simulate(args) -> int:
     print(_simulate_markdown(report))
     print(f"wrote {args.out}/report.json, report.md, calibration.png")
     return 0
-
-
-def _ramp_points(capture, cal, proj):
-    from .calib import measure_ramp
-
-    levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, cal.decoding.prj_xy[..., 0],
-                                    proj.width)
-    return levels.numpy(), measured.numpy()
 
 
 def _simulate_markdown(report: dict) -> str:

@@ -15,7 +15,7 @@ def synthetic_calibration(seed=0, shape=(15, 20)):
     """Two projectors, two states: random sub-pixel correspondences with holes, random weights."""
     g = torch.Generator().manual_seed(seed)
     cals = {}
-    for s, state in enumerate(("near", "far")):
+    for state in ("near", "far"):
         prj, wts = [], []
         for w, h in SIZES:
             xy = torch.rand(*shape, 2, generator=g) * torch.tensor([w - 1.0, h - 1.0])

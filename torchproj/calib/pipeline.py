@@ -28,6 +28,7 @@ class ProjectorCalibration:
             small holes filled; NaN where unknown.
         count: :math:`(H_p, W_p)` camera pixels that decoded to each cell (before filling).
         response: fitted response curve, if the capture held a ramp.
+        ramp: ``(levels (L,), measured (L, C))``, the points the curve was fitted to, or None.
         timings_s: seconds spent in each step.
     """
 
@@ -36,6 +37,7 @@ class ProjectorCalibration:
     cam_xy: torch.Tensor
     count: torch.Tensor
     response: ResponseCurve | None
+    ramp: tuple[torch.Tensor, torch.Tensor] | None
     timings_s: dict
 
 
@@ -66,12 +68,13 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     if max_hole:
         cam_xy = fill_holes(cam_xy, max_hole)
     timings["maps"] = time.perf_counter() - t0
-    response = None
+    response = ramp = None
     if capture.ramp is not None:
         t0 = time.perf_counter()
         levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, dec.prj_xy[..., 0],
                                         projector_size[0], ramp_steps)
         response = fit_response(levels, measured)
+        ramp = (levels, measured)
         timings["response"] = time.perf_counter() - t0
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
-                                timings_s=timings)
+                                ramp=ramp, timings_s=timings)
