@@ -25,7 +25,7 @@ SURFACE = {
     "solve": ["ClampedAdam", "SOLVERS", "SolveResult", "check_bounds", "compensate", "component_chains",
               "epipolar_chains", "fundamental_between_projectors", "solve_adam", "solve_eo", "solve_fista",
               "solve_lf", "solve_patterns", "solve_pgd", "to_projectable"],
-    "evaluate": ["RunResult", "crosstalk", "default_images", "masked_ssim", "model_space_psnr", "psnr", "run_virtual"],
+    "evaluate": ["RunResult", "VirtualCalibration", "calibrate_virtual", "crosstalk", "default_images", "masked_ssim", "model_space_psnr", "psnr", "run_virtual"],
 }
 
 
