@@ -33,6 +33,14 @@ def _progress(iterable, **kw):
     return tqdm(iterable, file=sys.stderr, leave=False, **kw)
 
 
+def _write_report(stage: Path, report: dict, markdown) -> str:
+    """``report.json`` and its ``report.md`` rendering into the staging folder; returns the markdown."""
+    text = markdown(report)
+    write_json(stage / "report.json", report)
+    (stage / "report.md").write_text(text)
+    return text
+
+
 # ------------------------------------------------------------------------------------- scene
 def cmd_scene(args) -> int:
     from .scene import load_scene
@@ -114,9 +122,8 @@ def cmd_simulate(args) -> int:
         report = {"scene": scene.name, "config": str(scene.source), "torchproj": __version__,
                   "device": str(rig.device), "noise": not args.no_noise,
                   "timings_s": {k: round(v, 3) for k, v in timings.items()}, "calibrations": results}
-        write_json(stage / "report.json", report)
-        (stage / "report.md").write_text(_simulate_markdown(report))
-    print(_simulate_markdown(report))
+        text = _write_report(stage, report, _simulate_markdown)
+    print(text)
     print(f"wrote {args.out}/report.json, report.md, calibration.png")
     return 0
 
@@ -171,9 +178,8 @@ def cmd_run(args) -> int:
             write_image(stage / "captures" / f"{state}.png", shot, bits=scene.camera.bit_depth)
         run_overview(stage / "overview.png", result.patterns, [p.name for p in scene.projectors], result.targets,
                      report["targets"])
-        write_json(stage / "report.json", report)
-        (stage / "report.md").write_text(_run_markdown(report))
-    print(_run_markdown(report))
+        text = _write_report(stage, report, _run_markdown)
+    print(text)
     print(f"wrote {args.out}/report.json, report.md, overview.png, patterns/, captures/")
     return 0
 
