@@ -17,7 +17,6 @@ is a sparse product. This matrix is the simulator's private ground truth: the so
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -26,6 +25,7 @@ from kornia.geometry.camera import project_points, unproject_points
 
 from ..core.checks import check, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
+from ..core.sparse import csr_tensor
 from ..scene.config import Projector, Scene
 from .camera import apply_camera
 from .primitives import make_caster
@@ -186,11 +186,8 @@ class VirtualRig:
             rows, cols = key // n_cells, key % n_cells
             crow = torch.zeros(n_pix + 1, dtype=torch.int64, device=self.device)
             crow[1:] = torch.cumsum(torch.bincount(rows, minlength=n_pix), 0)
-            with warnings.catch_warnings():
-                # torch flags CSR as beta on construction; the products used here are stable.
-                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-                transport.append([torch.sparse_csr_tensor(crow, cols, val[:, ch].contiguous(), (n_pix, n_cells),
-                                                          check_invariants=False) for ch in range(n_alb)])
+            transport.append([csr_tensor(crow, cols, val[:, ch].contiguous(), (n_pix, n_cells))
+                              for ch in range(n_alb)])
 
         truth = self._centre_truth(casters, transmit)
         return StateGeometry(state=state_name, transport=transport,

@@ -12,12 +12,12 @@ adjoint is a product as fast as the forward one. Autograd flows through :meth:`A
 
 from __future__ import annotations
 
-import warnings
 
 import torch
 from torch import nn
 
 from ..core.checks import check, check_finite, check_shape
+from ..core.sparse import csr_tensor
 
 __all__ = ["TransportOperator", "NormalEquations", "csr_from_coo"]
 
@@ -31,7 +31,7 @@ def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, sha
     r, c = key // n_cols, key % n_cols
     crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=vals.device)
     crow[1:] = torch.cumsum(torch.bincount(r, minlength=n_rows), 0)
-    return _csr(crow, c, merged, shape)
+    return csr_tensor(crow, c, merged, shape)
 
 
 def _spmm(matrix: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -107,8 +107,8 @@ class TransportOperator(nn.Module):
     # ------------------------------------------------------------------------------- matrices
     def _csr(self, transpose: bool = False) -> torch.Tensor:
         if transpose:
-            return _csr(self.t_crow, self.t_col, self.t_val, self.shape[::-1])
-        return _csr(self.crow, self.col, self.val, self.shape)
+            return csr_tensor(self.t_crow, self.t_col, self.t_val, self.shape[::-1])
+        return csr_tensor(self.crow, self.col, self.val, self.shape)
 
     @property
     def channels(self) -> int:
@@ -239,7 +239,7 @@ class NormalEquations:
                        shape=op.shape)
         q_mat = (a.T @ a).tocsr()
         q_mat.sort_indices()
-        Q = _csr(torch.from_numpy(q_mat.indptr).long(), torch.from_numpy(q_mat.indices).long(),
+        Q = csr_tensor(torch.from_numpy(q_mat.indptr).long(), torch.from_numpy(q_mat.indices).long(),
                  torch.from_numpy(q_mat.data).to(op.val.dtype), q_mat.shape).to(op.val.device)
         return cls(Q, op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
 
@@ -256,7 +256,7 @@ class NormalEquations:
             diag = torch.zeros(self.Q.shape[0], dtype=val.dtype, device=val.device).index_add_(
                 0, rows, torch.where(rows == col, val, torch.zeros_like(val)))
             s = diag.clamp_min(1e-30).rsqrt()
-            Q = _csr(crow, col, val * s[rows] * s[col], self.Q.shape)
+            Q = csr_tensor(crow, col, val * s[rows] * s[col], self.Q.shape)
             self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
         return self._jacobi
 
@@ -287,9 +287,3 @@ class NormalEquations:
             else:
                 self._lipschitz = 1.05 * float(y.norm() / x.norm())
         return self._lipschitz
-
-
-def _csr(crow, col, val, shape) -> torch.Tensor:
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-        return torch.sparse_csr_tensor(crow, col, val, shape, check_invariants=False)
