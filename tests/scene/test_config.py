@@ -130,3 +130,50 @@ def test_valid_config_is_not_mutated():
     before = copy.deepcopy(data)
     parse_scene(data)
     assert data == before
+
+
+def _with_targets(targets):
+    data = small_config("box_cylinders")
+    data["targets"] = targets
+    return data
+
+
+def test_targets_name_surfaces_of_their_state():
+    scene = parse_scene(_with_targets([
+        {"name": "cyl", "state": "together", "surfaces": ["cylinder_left", "cylinder_right"], "image": "astronaut"},
+        {"name": "box", "state": "together", "surfaces": ["box"]}]))
+    assert [(t.name, t.surfaces, t.image) for t in scene.target_specs()] == [
+        ("cyl", ["cylinder_left", "cylinder_right"], "astronaut"), ("box", ["box"], None)]
+
+
+def test_without_targets_each_state_is_one_target():
+    scene = parse_scene(small_config())
+    assert [(t.name, t.state, t.surfaces) for t in scene.target_specs()] == [("near", "near", None), ("far", "far", None)]
+
+
+@pytest.mark.parametrize("target, message", [
+    ({"name": "a", "state": "elsewhere"}, r"targets\[0\]\.state: must be one of"),
+    ({"name": "a", "state": "together", "surfaces": ["near_plane"]}, "not present in state"),
+    ({"name": "a", "state": "together", "surfaces": []}, "non-empty list"),
+    ({"name": "a", "state": "together", "image": "missing.png"}, "not found"),
+    ({"name": "a", "state": "together", "colour": 1}, "unknown key"),
+])
+def test_bad_targets_name_the_field(target, message):
+    with pytest.raises(ConfigError, match=message):
+        parse_scene(_with_targets([target]))
+
+
+def test_target_names_are_unique():
+    with pytest.raises(ConfigError, match="unique"):
+        parse_scene(_with_targets([{"name": "a", "state": "together"}, {"name": "a", "state": "together"}]))
+
+
+def test_target_image_paths_are_relative_to_the_config(tmp_path):
+    import yaml
+
+    from torchproj.core import write_image
+
+    write_image(tmp_path / "logo.png", torch.rand(1, 8, 8))
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(_with_targets([{"name": "a", "state": "together", "image": "logo.png"}])))
+    assert load_scene(path).targets[0].image == str(tmp_path / "logo.png")

@@ -5,7 +5,9 @@ Every check runs at load time, before any work, and a failure raises
 Units and frames: :mod:`torchproj.core.conventions` and :mod:`torchproj.scene.pose`.
 
 A scene holds J projectors, one camera, named surfaces and K *states*. A state lists the surfaces
-present at one moment (the same box near, then far, is two surfaces in two states).
+present at one moment (the same box near, then far, is two surfaces in two states). Optional
+*targets* say which image should appear on which surfaces of which state; without them, each state
+is one target covering everything the projectors light there.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ __all__ = [
     "Camera",
     "Surface",
     "State",
+    "TargetSpec",
     "Scene",
     "load_scene",
     "parse_scene",
@@ -36,7 +39,8 @@ __all__ = [
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
-BUILTIN_SCENES = ("paper_two_planes", "three_planes", "box_cylinders", "head_two_positions", "two_screens")
+BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
+                  "two_screens")
 
 
 @dataclass
@@ -136,6 +140,25 @@ class State:
 
 
 @dataclass
+class TargetSpec:
+    """An image to show on some surfaces of one state.
+
+    Attributes:
+        name: for reports.
+        state: the state in which the image should appear.
+        surfaces: the surfaces that carry it (their camera pixels are the target's mask); None means
+            everything lit in the state.
+        image: a scikit-image test image name (``astronaut``, ``checkerboard``...) or an image file
+            (relative to the config's folder); None leaves the choice to the caller.
+    """
+
+    name: str
+    state: str
+    surfaces: list[str] | None = None
+    image: str | None = None
+
+
+@dataclass
 class Scene:
     name: str
     projectors: list[Projector]
@@ -144,7 +167,12 @@ class Scene:
     states: list[State]
     ambient: float = 0.0
     seed: int = 0
+    targets: list[TargetSpec] = field(default_factory=list)
     source: Path | None = field(default=None, compare=False)
+
+    def target_specs(self) -> list[TargetSpec]:
+        """The scene's targets, or one per state (all its surfaces) when the config names none."""
+        return self.targets or [TargetSpec(name=st.name, state=st.name) for st in self.states]
 
     def state(self, name: str) -> State:
         for s in self.states:
@@ -284,6 +312,41 @@ def _check_in_front(scene: Scene) -> None:
                               "move the surface in front of the camera or turn the camera towards it")
 
 
+def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> list[TargetSpec]:
+    raw = top.raw("targets")
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError("targets", "must be a non-empty list of {name, state, surfaces, image}",
+                          "or leave it out: each state is then one target")
+    targets = []
+    for i, t in enumerate(raw):
+        tf = Fields(t, f"targets[{i}]")
+        state = tf.text("state", choices=tuple(states))
+        surfaces = None
+        if tf.has("surfaces"):
+            surfaces = tf.raw("surfaces")
+            if not isinstance(surfaces, list) or not surfaces:
+                raise ConfigError(tf.where("surfaces"), "must be a non-empty list of surface names")
+            for m in surfaces:
+                if m not in states[state].surfaces:
+                    raise ConfigError(tf.where("surfaces"), f"names {m!r}, which is not present in state {state!r}",
+                                      f"choose from {states[state].surfaces}")
+        image = tf.text("image") if tf.has("image") else None
+        if image is not None and Path(image).suffix:
+            path = Path(image) if Path(image).is_absolute() else base_dir / image
+            if not path.is_file():
+                raise ConfigError(tf.where("image"), f"image file {str(path)!r} not found",
+                                  "paths are relative to the config file's folder; a name without a suffix "
+                                  "is a scikit-image test image")
+            image = str(path)
+        targets.append(TargetSpec(name=tf.text("name", f"target{i}"), state=state,
+                                  surfaces=None if surfaces is None else list(surfaces), image=image))
+        tf.done()
+    names = [t.name for t in targets]
+    if len(set(names)) != len(names):
+        raise ConfigError("targets", f"names must be unique, got {names}")
+    return targets
+
+
 def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene") -> Scene:
     """Validate a scene mapping (as loaded from YAML) into a :class:`Scene`."""
     base_dir = Path(base_dir)
@@ -320,9 +383,10 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     state_names = [s.name for s in states]
     if len(set(state_names)) != len(state_names):
         raise ConfigError("states", f"names must be unique, got {state_names}")
+    targets = _parse_targets(top, {s.name: s for s in states}, base_dir) if top.has("targets") else []
     scene = Scene(
         name=top.text("name", name), projectors=projectors, camera=camera, surfaces=surfaces, states=states,
-        ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0),
+        ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0), targets=targets,
     )
     top.done()
     _check_in_front(scene)
