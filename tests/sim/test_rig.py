@@ -107,6 +107,10 @@ def test_shadows_match_an_independent_segment_test():
 def test_semi_transparent_screen_passes_light_twice():
     """Behind a screen of transmittance t, light is dimmed once on the way in and once on the way out."""
     data = small_config("two_screens", supersampling=1)
+    # One screen straight behind the other, so that the camera looks through the front one.
+    data["surfaces"]["front_screen"].update(size=[0.40, 0.30], pose={"position": [0.0, 0.0, 0.8]})
+    data["surfaces"]["back_screen"].update(size=[0.50, 0.375], pose={"position": [0.0, 0.0, 1.0]})
+    data.pop("targets")
     t = data["surfaces"]["front_screen"]["transmittance"]
     both = VirtualRig(parse_scene(data))
     back_only = dict(data, states=[{"name": "s", "surfaces": ["back_screen"]}])
@@ -203,3 +207,32 @@ def test_distorted_camera_rays_land_where_opencv_projects_them():
     expected = np.stack([xs.numpy(), ys.numpy()], -1)
     assert seen.float().mean() > 0.3
     assert np.abs(uv[:, 0] - expected).max() < 0.02
+
+
+def test_surface_mask_is_the_projected_outline_of_the_surface():
+    from matplotlib.path import Path as Polygon
+
+    scene = small_scene("two_screens", supersampling=1)
+    rig = VirtualRig(scene)
+    cam = scene.camera
+    cam_from_world = np.linalg.inv(cam.world_from_cam)
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+    pixels = np.stack([xs.ravel(), ys.ravel()], 1)
+    for name in ("front_screen", "back_screen"):
+        surf = scene.surfaces[name]
+        w, h = surf.size
+        corners = np.array([[-w / 2, -h / 2, 0, 1], [w / 2, -h / 2, 0, 1], [w / 2, h / 2, 0, 1], [-w / 2, h / 2, 0, 1]])
+        local = (cam_from_world @ surf.world_from_local @ corners.T)[:3]
+        uv = (cam.K @ local)[:2] / local[2]
+        inside = Polygon(uv.T).contains_points(pixels).reshape(cam.height, cam.width)
+        mask = rig.surface_mask("both", [name]).numpy()
+        # The side-by-side screens do not overlap in the camera: the mask is the whole outline,
+        # up to the pixels its edge passes through.
+        assert (mask != inside).mean() < 0.01 * inside.mean()
+    assert not (rig.surface_mask("both", ["front_screen"]) & rig.surface_mask("both", ["back_screen"])).any()
+    everything = rig.surface_mask("both")
+    assert bool((everything == (rig.geometry("both").surface_id >= 0)).all())
+    with pytest.raises(InputError, match="not present in state"):
+        rig.surface_mask("both", ["near_plane"])
+    rig.release("both")
+    assert "both" not in rig._geometry

@@ -9,7 +9,8 @@ from ..scene.config import Camera
 __all__ = ["apply_camera"]
 
 
-def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Generator | None) -> torch.Tensor:
+def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Generator | None,
+                 quantise: bool = True) -> torch.Tensor:
     """Turn linear radiance into stored pixel values.
 
     The sensor collects ``exposure * radiance`` (1.0 = full well). Shot noise is Poisson in the
@@ -21,6 +22,7 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
         radiance: :math:`(N, C, H, W)` linear radiance.
         camera: the camera description.
         generator: random generator for the noise; None captures without noise.
+        quantise: False keeps the exact values (the expected image, for oracle comparisons).
 
     Returns:
         :math:`(N, C, H, W)` values in [0, 1] on the quantisation grid ``k / (2^bits - 1)``.
@@ -39,5 +41,5 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
         v.clamp_(0, 1)
         if camera.gamma != 1.0:
             v.pow_(1.0 / camera.gamma)
-        out[i] = v.mul_(peak).round_().div_(peak)
+        out[i] = v.mul_(peak).round_().div_(peak) if quantise else v
     return out

@@ -273,6 +273,28 @@ class VirtualRig:
         return dict(prj_xy=prj_xy.reshape(-1, h, w, 2), points=points.reshape(h, w, 3),
                     normals=normals.reshape(h, w, 3), surface_id=sid_map.reshape(h, w))
 
+    def release(self, state: str | None = None) -> None:
+        """Drop the cached geometry of one state (None: all) to free its transport matrices."""
+        if state is None:
+            self._geometry.clear()
+        else:
+            self._geometry.pop(state, None)
+
+    def surface_mask(self, state: str, surfaces: list[str] | None = None) -> torch.Tensor:
+        """:math:`(H, W)` camera pixels whose centre sees one of ``surfaces`` first (None: any surface).
+
+        On the virtual rig this stands in for the mask a user paints over a real capture to say
+        where a target's image belongs.
+        """
+        geo = self.geometry(state)
+        members = self.scene.state(state).surfaces
+        if surfaces is None:
+            return geo.surface_id >= 0
+        for name in surfaces:
+            check(name in members, f"surface {name!r} is not present in state {state!r}; present: {members}")
+        index = torch.tensor([members.index(n) for n in surfaces], device=geo.surface_id.device)
+        return torch.isin(geo.surface_id, index)
+
     # ------------------------------------------------------------------------------ capture
     def emitted(self, j: int, patterns: torch.Tensor) -> torch.Tensor:
         """Light of each LCD cell of projector j for pattern values in [0, 1].
@@ -336,7 +358,7 @@ class VirtualRig:
         return total.reshape(n, out_c, cam.height, cam.width)
 
     def capture(self, state: str, patterns: dict[str | int, torch.Tensor], seed: int | None = None,
-                noise: bool = True) -> torch.Tensor:
+                noise: bool = True, quantise: bool = True) -> torch.Tensor:
         """Capture what the camera sees while the projectors show ``patterns``.
 
         Args:
@@ -344,9 +366,10 @@ class VirtualRig:
             patterns: as in :meth:`radiance`.
             seed: seed for this capture's noise (default: the rig's generator, seeded by the scene).
             noise: False gives the noise-free (still quantised) image.
+            quantise: False skips quantisation (with ``noise=False``: the expected image).
 
         Returns:
             :math:`(N, C, H, W)` float images in [0, 1], quantised to the camera's bit depth.
         """
         gen = self.generator if seed is None else torch.Generator(device=self.device).manual_seed(seed)
-        return apply_camera(self.radiance(state, patterns), self.scene.camera, gen if noise else None)
+        return apply_camera(self.radiance(state, patterns), self.scene.camera, gen if noise else None, quantise)
