@@ -200,3 +200,18 @@ def test_normal_equations_follow_dtype_changes():
     assert ne.Q.dtype == torch.float64
     p = torch.rand(op.shape[1], 1, dtype=torch.float64)
     assert ne.objective(p, ne.product(p)) == pytest.approx(float(op.objective(p)), rel=1e-10)
+
+
+def test_with_rhs_equals_a_fresh_build():
+    cals = synthetic_calibration()
+    op = build_transport(cals, targets(channels=3), merge=False, scale=0.7).double()
+    op.normal_equations().jacobi().lipschitz()  # cached parts the copy should share
+    other = targets(channels=3, seed=5)
+    fresh = build_transport(cals, other, merge=False, scale=0.7).double()
+    swapped = op.with_rhs(fresh.rhs)
+    p = torch.rand(op.shape[1], 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    assert float(swapped.objective(p)) == pytest.approx(float(fresh.objective(p)), rel=1e-12)
+    ne, ref = swapped.normal_equations().jacobi(), fresh.normal_equations().jacobi()
+    assert torch.allclose(ne.q, ref.q) and torch.allclose(ne.c, ref.c)
+    assert ne.Q is op.normal_equations().jacobi().Q  # shared, not rebuilt
+    assert torch.equal(op.rhs, build_transport(cals, targets(channels=3), merge=False, scale=0.7).double().rhs)

@@ -12,6 +12,7 @@ adjoint is a product as fast as the forward one. Autograd flows through :meth:`A
 
 from __future__ import annotations
 
+import copy
 
 import torch
 from torch import nn
@@ -194,6 +195,30 @@ class TransportOperator(nn.Module):
             self._normal = NormalEquations.from_operator(self)
         return self._normal
 
+    def with_rhs(self, rhs: torch.Tensor, constant: torch.Tensor | None = None) -> "TransportOperator":
+        """The same ``A`` with other targets (rows in the same order): shares the matrices and ``Q``.
+
+        Args:
+            rhs: :math:`(N_{rows}, C')` new target values, camera units.
+            constant: :math:`(C',)` merged-away constant belonging to ``rhs`` (None: 0, exact for an
+                operator built with ``merge=False``).
+        """
+        check_shape(rhs, "rhs", [self.shape[0], "C"])
+        check_finite(rhs, "rhs")
+        rhs = rhs.to(self.val.device, self.val.dtype)
+        new = copy.copy(self)
+        new._buffers = dict(self._buffers)
+        new._buffers["rhs"] = rhs
+        new._buffers["constant"] = (torch.zeros(rhs.shape[1], dtype=rhs.dtype, device=rhs.device)
+                                    if constant is None else constant.to(rhs))
+        cached = getattr(self, "_normal", None)
+        if cached is not None and cached.q.dtype == rhs.dtype and cached.q.device == rhs.device:
+            new._normal = cached.with_targets(new.A_adjoint(rhs), rhs.double().pow(2).sum(0)
+                                              + new.constant.double())
+        else:
+            new._normal = None
+        return new
+
     def dense(self) -> torch.Tensor:
         """The matrix as a dense tensor (small problems and tests only)."""
         return self._csr().to_dense()
@@ -242,6 +267,16 @@ class NormalEquations:
         Q = csr_tensor(torch.from_numpy(q_mat.indptr).long(), torch.from_numpy(q_mat.indices).long(),
                  torch.from_numpy(q_mat.data).to(op.val.dtype), q_mat.shape).to(op.val.device)
         return cls(Q, op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
+
+    def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
+        """The same ``Q`` (and its cached scaling and Lipschitz bound) with new ``q`` and ``c``."""
+        new = NormalEquations(self.Q, q, c)
+        new._lipschitz = self._lipschitz
+        if self._jacobi is not None:
+            s = self._jacobi.scale
+            new._jacobi = NormalEquations(self._jacobi.Q, q * s, c, s)
+            new._jacobi._lipschitz = self._jacobi._lipschitz
+        return new
 
     def jacobi(self) -> "NormalEquations":
         """The system in the variables ``z = p / scale`` with ``scale = diag(Q)^-1/2`` (cached).
