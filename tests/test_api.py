@@ -12,7 +12,7 @@ SURFACE = {
     "core": ["CaptureError", "ConfigError", "InputError", "TorchprojError", "atomic_output", "check", "check_finite",
              "check_image", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_uint", "write_image",
              "write_json"],
-    "scene": ["BUILTIN_SCENES", "Camera", "Projector", "Scene", "State", "Surface", "builtin_config", "load_scene",
+    "scene": ["BUILTIN_SCENES", "Camera", "Projector", "Scene", "State", "Surface", "TargetSpec", "builtin_config", "load_scene",
               "look_at", "parse_scene", "rotation_from_euler_deg", "rotation_from_rotvec"],
     "sim": ["Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": ["DEFAULT_NAMES", "DecodingError", "GrayDecoding", "GraycodeCapture", "ProCamCalibration",
@@ -24,8 +24,10 @@ SURFACE = {
                   "geometric_weights", "group_rows", "normal_map", "point_map", "target_on_camera", "triangulate_rays"],
     "solve": ["ClampedAdam", "SOLVERS", "SolveResult", "check_bounds", "compensate", "component_chains",
               "epipolar_chains", "fundamental_between_projectors", "solve_adam", "solve_eo", "solve_fista",
-              "solve_lf", "solve_patterns", "solve_pgd", "to_projectable"],
-    "evaluate": ["RunResult", "VirtualCalibration", "calibrate_virtual", "crosstalk", "default_images", "masked_ssim", "model_space_psnr", "psnr", "run_virtual"],
+              "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "to_projectable"],
+    "evaluate": ["DepthSweep", "RunResult", "VirtualCalibration", "calibrate_virtual", "crosstalk", "default_images",
+                 "depth_sweep", "masked_ssim", "model_space_psnr", "psnr", "run_virtual", "scene_images",
+                 "target_image"],
 }
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from pathlib import Path
@@ -149,14 +150,22 @@ def _simulate_markdown(report: dict) -> str:
 
 
 # --------------------------------------------------------------------------------------- run
-def _bounds(text: str) -> tuple[float, float]:
+def _pair(text: str, example: str, strict: bool) -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LO,HI in 8-bit units such as 0,255 or -100,255, got {text!r}") from None
-    if not lo < hi:
-        raise argparse.ArgumentTypeError(f"bounds need LO < HI, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected LO,HI such as {example}, got {text!r}") from None
+    if not (lo < hi if strict else lo <= hi):
+        raise argparse.ArgumentTypeError(f"need LO {'<' if strict else '<='} HI, got {text!r}")
     return lo, hi
+
+
+def _bounds(text: str) -> tuple[float, float]:
+    return _pair(text, "0,255 or -100,255 (8-bit units)", strict=True)
+
+
+def _limits(text: str) -> tuple[float, float]:
+    return _pair(text, "0.5,1.5", strict=False)
 
 
 def cmd_run(args) -> int:
@@ -166,8 +175,11 @@ def cmd_run(args) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.config)
+    gain_offset = None
+    if args.gain is not None or args.offset is not None:
+        gain_offset = (args.gain or (1.0, 1.0), args.offset or (0.0, 0.0))
     result = run_virtual(scene, solver=args.solver, bounds_8bit=args.bounds, device=args.device,
-                         max_iter=args.max_iter)
+                         max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset)
     report = result.report
     with atomic_output(args.out) as stage:
         (stage / "patterns").mkdir()
@@ -186,15 +198,22 @@ def cmd_run(args) -> int:
 
 def _run_markdown(report: dict) -> str:
     m, t = report["model"], report["timings_s"]
+    adjusted = "gain_offset_limits" in report
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}", "",
+             f"Calibration: {report['calibration']}.", "",
              f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              f"Evaluation: {report['evaluation']}.", "",
-             "| target | state | PSNR (dB) | SSIM | crosstalk | pixels |", "|---|---|---|---|---|---|"]
+             "| target | state | PSNR (dB) | SSIM | crosstalk | pixels |"
+             + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else ""),
+             "|---|---|---|---|---|---|" + ("---|---|---|---|" if adjusted else "")]
     for r in report["targets"]:
-        lines.append(f"| {r['name']} | {r['state']} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['crosstalk']:.3f} | "
-                     f"{r['pixels']} |")
+        line = (f"| {r['name']} | {r['state']} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['crosstalk']:.3f} | "
+                f"{r['pixels']} |")
+        if adjusted:
+            line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
+        lines.append(line)
     lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()), ""]
     return "\n".join(lines)
 
@@ -267,6 +286,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
     p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
     p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+    p.add_argument("--oracle", action="store_true",
+                   help="build the operator from the simulator's exact geometry instead of calibration "
+                        "(shows what calibration costs)")
+    p.add_argument("--gain", type=_limits, metavar="LO,HI",
+                   help="also optimise one gain per target within these limits (fista; e.g. 0.5,1.5)")
+    p.add_argument("--offset", type=_limits, metavar="LO,HI",
+                   help="also optimise one offset per target within these limits (fista; e.g. -0.2,0.2)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("simulate", help="calibrate every state and projector of a scene on the virtual rig, "
@@ -294,9 +320,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_PAIR_OPTIONS = ("--bounds", "--gain", "--offset")
+
+
+def _join_negative_pairs(argv: list[str]) -> list[str]:
+    """``--bounds -100,255`` -> ``--bounds=-100,255``: argparse takes a value starting with '-' (and
+    not a plain number) for an option, so the paper's own notation would otherwise be refused."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in _PAIR_OPTIONS and i + 1 < len(argv) and re.fullmatch(r"-[\d.]+,-?[\d.]+", argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchproj`` console command."""
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(_join_negative_pairs(argv))
     try:
         return args.func(args)
     except TorchprojError as exc:

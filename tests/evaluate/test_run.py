@@ -2,13 +2,16 @@
 
 import json
 
+import numpy as np
 import pytest
 import torch
 import yaml
 
 from torchproj.cli import main
-from torchproj.evaluate import calibrate_virtual, crosstalk, masked_ssim, run_virtual
+from torchproj.core import InputError
+from torchproj.evaluate import calibrate_virtual, crosstalk, depth_sweep, masked_ssim, run_virtual, target_image
 from torchproj.scene import parse_scene
+from torchproj.sim import VirtualRig
 
 from ..helpers import small_config
 
@@ -64,3 +67,103 @@ def test_ssim_and_crosstalk_measure_what_they_say():
     mix = 0.7 * a + 0.3 * b
     assert crosstalk(mix, [b], mask) > crosstalk(a, [b], mask) + 0.2
     assert crosstalk(a, [], mask) == 0.0
+
+
+def _small(name, tmp_path_factory, **camera):
+    path = tmp_path_factory.mktemp(name) / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(dict(small_config(name, **camera), name=name)))
+    return path
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    return _small("box_cylinders", tmp_path_factory)
+
+
+def test_targets_on_surfaces_of_one_state(box):
+    """Box behind two cylinders: one image on the cylinders, another on the box, both at once."""
+    scene = parse_scene(yaml.safe_load(box.read_text()))
+    result = run_virtual(scene)
+    rows = {r["name"]: r for r in result.report["targets"]}
+    assert set(rows) == {"cylinders", "box"} and {r["state"] for r in rows.values()} == {"together"}
+    masks = {d["name"]: d["covered"] for d in result.targets}
+    rig = VirtualRig(scene)
+    rig_masks = {"cylinders": rig.surface_mask("together", ["cylinder_left", "cylinder_right"]),
+                 "box": rig.surface_mask("together", ["box"])}
+    for name, covered in masks.items():
+        assert bool((covered <= rig_masks[name]).all()), name  # scored only on its own surfaces
+        assert int(covered.sum()) > 0.5 * int(rig_masks[name].sum()), name
+        assert rows[name]["psnr_db"] > 18 and rows[name]["ssim"] > 0.5, name
+    assert not (masks["cylinders"] & masks["box"]).any()
+
+
+def test_oracle_mode_uses_the_exact_geometry(config):
+    scene = parse_scene(yaml.safe_load(config.read_text()))
+    oracle = calibrate_virtual(scene, oracle=True)
+    truth = oracle.rig.geometry("near").prj_xy
+    assert oracle.oracle and all(torch.allclose(a, b, equal_nan=True) for a, b in zip(oracle.states["near"].prj_xy, truth))
+    report = run_virtual(scene, calibration=oracle).report
+    assert report["calibration"].startswith("oracle")
+    calibrated = run_virtual(scene).report
+    for o, c in zip(report["targets"], calibrated["targets"]):
+        # Calibration costs little on this rig, but the oracle must not be worse by more than noise.
+        assert o["psnr_db"] > c["psnr_db"] - 0.3 and o["psnr_db"] > 15
+
+
+def test_gain_and_offset_from_the_command_line(config, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(config), "--out", str(out), "--gain", "0.5,1", "--offset", "-0.1,0.2"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["solver"] == "fista+gain/offset"
+    assert report["gain_offset_limits"] == {"gain": [0.5, 1.0], "offset": [-0.1, 0.2]}
+    for t in report["targets"]:
+        assert 0.5 <= t["gain"] <= 1.0 and -0.1 <= t["offset"] <= 0.2
+        # Scored against the image it chose to show, the adjusted target is reached more closely.
+        assert t["psnr_db"] > t["psnr_db_original"]
+    assert "gain" in (out / "report.md").read_text()
+
+
+def test_negative_bounds_in_the_papers_notation(config, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(config), "--out", str(out), "--solver", "lf", "--bounds", "-100,255"]) == 0
+    assert json.loads((out / "report.json").read_text())["bounds_8bit"] == [-100.0, 255.0]
+
+
+def test_colour_targets_end_to_end(tmp_path_factory):
+    scene = parse_scene(yaml.safe_load(_small("colour_two_planes", tmp_path_factory).read_text()))
+    result = run_virtual(scene)
+    assert all(p.shape[0] == 3 for p in result.patterns)
+    assert all(c.shape[0] == 3 for c in result.captures.values())
+    for t, d in zip(result.report["targets"], result.targets):
+        assert t["psnr_db"] > 15 and t["ssim"] > 0.4
+        # Colour, not grey: the target's channels differ, and the capture follows them.
+        assert float((d["values"][0] - d["values"][2]).abs().mean()) > 0.05
+        cov = d["covered"]
+        corr = torch.corrcoef(torch.stack([(d["values"][0] - d["values"][2])[cov], (d["estimate"][0] - d["estimate"][2])[cov]]))
+        assert float(corr[0, 1]) > 0.5
+
+
+def test_depth_sweep_peaks_where_each_image_belongs(config):
+    scene = parse_scene(yaml.safe_load(config.read_text()))
+    result = run_virtual(scene)
+    depths = [0.7, 0.8, 0.9, 1.0, 1.1]
+    sweep = depth_sweep(scene, "near_plane", depths, result.patterns, result.targets, result.report["scale"])
+    assert sweep.psnr_db.shape == (5, 2)
+    assert depths[int(np.nanargmax(sweep.psnr_db[:, 0]))] == 0.8
+    assert depths[int(np.nanargmax(sweep.psnr_db[:, 1]))] == 1.0
+    assert np.nanmax(sweep.psnr_db[:, 0]) > np.nanmax(sweep.psnr_db[[0, 2, 3, 4], 0]) + 3
+    assert np.nanmax(sweep.ssim[:, 1]) > 2 * np.nanmax(sweep.ssim[[0, 1, 2], 1])
+    with pytest.raises(InputError, match="unknown surface"):
+        depth_sweep(scene, "wall", depths, result.patterns, result.targets, 1.0)
+
+
+def test_target_images_by_name_or_file(tmp_path):
+    from torchproj.core import write_image
+
+    grey = target_image("astronaut", 1)
+    assert grey.shape[0] == 1 and 0 <= float(grey.min()) and float(grey.max()) <= 1
+    assert target_image("horse", 3).shape[0] == 3  # a boolean silhouette, repeated to RGB
+    write_image(tmp_path / "t.png", torch.rand(3, 10, 12))
+    assert target_image(str(tmp_path / "t.png"), 1).shape == (1, 10, 12)
+    with pytest.raises(InputError, match="unknown image"):
+        target_image("lena", 1)
