@@ -167,3 +167,12 @@ def test_target_images_by_name_or_file(tmp_path):
     assert target_image(str(tmp_path / "t.png"), 1).shape == (1, 10, 12)
     with pytest.raises(InputError, match="unknown image"):
         target_image("lena", 1)
+
+
+def test_oracle_knows_the_pixels_a_decoder_could_see(box):
+    scene = parse_scene(yaml.safe_load(box.read_text()))
+    oracle = calibrate_virtual(scene, oracle=True)
+    calibrated = calibrate_virtual(scene)
+    a, b = oracle.states["together"].lit(), calibrated.states["together"].lit()
+    # Same shadow threshold: the lit sets differ only at edges and unreliable bits, not wholesale.
+    assert float((a ^ b).float().sum()) < 0.05 * float(b.float().sum())

@@ -93,7 +93,9 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     Args:
         oracle: skip calibration and take the simulator's exact geometry (projector coordinates at
             pixel centres), expected white-minus-black weights (no noise, no quantisation) and true
-            responses. It shows how much quality calibration costs; it is not available on a real rig.
+            responses, on the pixels whose white minus black passes the decoder's shadow threshold
+            (40/255, as ``calibrate_projector``). It shows how much quality calibration costs; it is
+            not available on a real rig.
     """
     if oracle:
         return _oracle_calibration(scene, device)
@@ -117,19 +119,23 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
                               seconds=time.perf_counter() - t0)
 
 
-def _oracle_calibration(scene: Scene, device) -> VirtualCalibration:
+def _oracle_calibration(scene: Scene, device, black_threshold: float = 40) -> VirtualCalibration:
     t0 = time.perf_counter()
     rig = VirtualRig(scene, device=device)
     states, black = {}, {}
     for st in scene.states:
         geo = rig.geometry(st.name)
         dark = rig.capture(st.name, {}, noise=False, quantise=False)[0]
-        weight = []
+        weight, prj_xy = [], []
         for j, proj in enumerate(scene.projectors):
             white = rig.capture(st.name, {j: torch.ones(1, 1, proj.height, proj.width)}, noise=False, quantise=False)[0]
             weight.append((white - dark).mean(0).cpu())
-        states[st.name] = StateCalibration([xy.cpu() for xy in geo.prj_xy], weight,
-                                           [(p.width, p.height) for p in scene.projectors])
+            # Exact coordinates where a decoder could see the projector at all (the shadow mask's
+            # threshold), so that oracle and calibration solve for the same pixels.
+            xy = geo.prj_xy[j].cpu().clone()
+            xy[weight[-1] <= black_threshold / 255] = float("nan")
+            prj_xy.append(xy)
+        states[st.name] = StateCalibration(prj_xy, weight, [(p.width, p.height) for p in scene.projectors])
         black[st.name] = dark.cpu()
     responses = [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
                  for p in scene.projectors]
