@@ -31,3 +31,16 @@ def test_model_space_psnr_per_target():
     merged = build_transport(cals, targets(), merge=True, scale=1.0)
     with pytest.raises(InputError, match="merge=False"):
         model_space_psnr(merged, torch.zeros(merged.shape[1], 1))
+
+
+def test_crosstalk_ignores_colour_balance():
+    """Two unrelated colour images with the same channel means (a warm tint): no trace of one in the other."""
+    from torchproj.evaluate import crosstalk
+
+    g = torch.Generator().manual_seed(3)
+    tint = torch.tensor([0.7, 0.4, 0.1])[:, None, None]
+    a = 0.3 * torch.rand(3, 50, 50, generator=g) + tint
+    b = 0.3 * torch.rand(3, 50, 50, generator=g) + tint
+    mask = torch.ones(50, 50, dtype=torch.bool)
+    assert crosstalk(a, [b], mask) < 0.05
+    assert crosstalk(0.5 * a + 0.5 * b, [b], mask) > 0.6

@@ -56,16 +56,19 @@ def masked_ssim(estimate: torch.Tensor, reference: torch.Tensor, mask: torch.Ten
 
 def crosstalk(captured: torch.Tensor, others: list[torch.Tensor], mask: torch.Tensor) -> float:
     """How much of other targets' images shows in a capture: the largest absolute Pearson
-    correlation, over the mask's pixels, between the capture and each other target's image placed on
-    the same pixels (0: no trace of it; 1: it is fully there)."""
+    correlation, over the mask's pixels (each channel centred on its own mean, then pooled), between
+    the capture and each other target's image placed on the same pixels (0: no trace of it; 1: it is
+    fully there)."""
     if not others:
         return 0.0
-    c = captured[:, mask].double().reshape(-1)
-    c = c - c.mean()
+    # Centred per channel: colour images differ in their channel means, and a single mean over all
+    # channels would count that difference as a trace of the other image.
+    c = captured[:, mask].double()
+    c = (c - c.mean(1, keepdim=True)).reshape(-1)
     best = 0.0
     for other in others:
-        o = other[:, mask].double().reshape(-1)
-        o = o - o.mean()
+        o = other[:, mask].double()
+        o = (o - o.mean(1, keepdim=True)).reshape(-1)
         denom = float(c.norm() * o.norm())
         if denom > 0:
             best = max(best, abs(float((c * o).sum()) / denom))
