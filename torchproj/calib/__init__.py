@@ -1,5 +1,6 @@
 """Calibration: Gray code and its decoding, correspondence maps, response fit, triangulation."""
 
+from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
 from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel
 from .maps import fill_holes, inverse_map
@@ -9,6 +10,8 @@ from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, 
 from .virtual import DecodingError, decoding_error, simulate_calibration
 
 __all__ = [
+    "BUNDLE_VERSION",
+    "CalibrationBundle",
     "DEFAULT_NAMES",
     "DecodingError",
     "GrayDecoding",
@@ -16,6 +19,7 @@ __all__ = [
     "ProCamCalibration",
     "ProjectorCalibration",
     "ResponseCurve",
+    "calibrate_folders",
     "calibrate_projector",
     "decode_gray",
     "decoding_error",
@@ -25,6 +29,7 @@ __all__ = [
     "graycode_bits",
     "graycode_patterns",
     "inverse_map",
+    "load_bundle",
     "measure_ramp",
     "ramp_pattern",
     "read_graycode_folder",
@@ -32,6 +37,8 @@ __all__ = [
     "refine_subpixel",
     "simulate_calibration",
     "triangulate",
+    "write_bundle",
     "write_graycode_folder",
     "write_ply",
+    "write_sequence",
 ]

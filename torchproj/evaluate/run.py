@@ -18,7 +18,7 @@ from ..core.checks import check
 from ..core.imageio import read_image
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
-from ..solve import compensate, solve_eo, solve_gain_offset, solve_patterns, to_projectable
+from ..solve import compensate, make_patterns, solve_gain_offset, to_projectable
 from ..transport import StateCalibration, Target, build_transport, target_on_camera
 from .metrics import crosstalk, masked_ssim, psnr
 
@@ -207,12 +207,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                                    progress=progress)
         model = op.size_report()
         op = result.info.pop("operator")
-    elif solver == "eo":
-        result = solve_eo(op, (lo, hi), calibrations=cal.states, max_iter=max_iter, progress=progress)
+        light = to_projectable(result.patterns, (lo, hi)).clamp(0, 1)
+        patterns = compensate([img.cpu() for img in op.to_images(light)], cal.responses)
     else:
-        result = solve_patterns(op, solver, (lo, hi), max_iter=max_iter, progress=progress)
-    light = to_projectable(result.patterns, (lo, hi)).clamp(0, 1)
-    patterns = compensate([img.cpu() for img in op.to_images(light)], cal.responses)
+        result, _, patterns = make_patterns(op, solver, (lo, hi), cal.responses, calibrations=cal.states,
+                                            max_iter=max_iter, progress=progress)
     timings["solve"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -1,6 +1,6 @@
 """Box-constrained pattern solvers on the transport operator, and compensation to 8-bit patterns."""
 
-from .compensate import compensate
+from .compensate import compensate, make_patterns
 from .eo import component_chains, epipolar_chains, fundamental_between_projectors, solve_eo
 from .gain_offset import solve_gain_offset
 from .solvers import (ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd,
@@ -18,5 +18,5 @@ def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> So
 
 
 __all__ = ["ClampedAdam", "SOLVERS", "SolveResult", "check_bounds", "compensate", "component_chains",
-           "epipolar_chains", "fundamental_between_projectors", "solve_adam", "solve_eo", "solve_fista",
+           "epipolar_chains", "fundamental_between_projectors", "make_patterns", "solve_adam", "solve_eo", "solve_fista",
            "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "to_projectable"]

@@ -7,7 +7,7 @@ import torch
 from ..calib.response import ResponseCurve
 from ..core.checks import check, check_shape
 
-__all__ = ["compensate"]
+__all__ = ["compensate", "make_patterns"]
 
 
 def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> list[torch.Tensor]:
@@ -31,3 +31,29 @@ def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> li
         x = resp.to_pattern(img.clamp(0, 1))
         out.append(torch.round(x * 255).to(torch.uint8))
     return out
+
+
+def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
+                  max_iter: int = 300, progress: bool | None = None):
+    """Solve, bring the solution into what projectors can show, and compensate their responses.
+
+    Args:
+        op: the transport operator.
+        solver: a name of :data:`~torchproj.solve.SOLVERS`; ``eo`` needs ``calibrations``.
+        bounds: the solver's box, linear light (the paper's 8-bit bounds over 255).
+        responses: per projector, its response curve.
+
+    Returns:
+        ``(result, light, patterns)``: the :class:`SolveResult`, per projector the linear light
+        :math:`(C, H_j, W_j)` in [0, 1] it should emit, and the uint8 patterns to send it.
+    """
+    from . import solve_patterns
+    from .eo import solve_eo
+    from .solvers import to_projectable
+
+    if solver == "eo":
+        result = solve_eo(op, bounds, calibrations=calibrations, max_iter=max_iter, progress=progress)
+    else:
+        result = solve_patterns(op, solver, bounds, max_iter=max_iter, progress=progress)
+    light = [img.cpu() for img in op.to_images(to_projectable(result.patterns, bounds).clamp(0, 1))]
+    return result, light, compensate(light, responses)

@@ -69,6 +69,35 @@ class StateCalibration:
             weight = geometric_weights(prj_xy, camera, projectors)
         return cls(prj_xy, weight, sizes)
 
+    @classmethod
+    def from_bundle(cls, bundle) -> dict[str, "StateCalibration"]:
+        """State name -> calibration, from a :class:`~torchproj.calib.CalibrationBundle` (radiometric)."""
+        sizes = [(w, h) for _, w, h in bundle.projectors]
+        return {name: cls([m["prj_xy"] for m in maps], [m["contrast"].clamp_min(0) for m in maps], sizes)
+                for name, maps in bundle.states.items()}
+
+    def predict(self, light: list[torch.Tensor], black: torch.Tensor) -> torch.Tensor:
+        """What the camera should see when the projectors emit ``light``, by this calibration's model.
+
+        Args:
+            light: per projector, :math:`(C, H_j, W_j)` linear relative light (0 = black, 1 = white).
+            black: :math:`(C, H, W)` the state's all-black capture.
+
+        Returns:
+            :math:`(C, H, W)`: black plus, per projector, its weight times the light of the cell each
+            pixel decoded to (the nearest footprint of :func:`build_transport`).
+        """
+        out = black.float().clone()
+        for j, (xy, weight, img) in enumerate(zip(self.prj_xy, self.weight, light)):
+            w, h = self.projector_sizes[j]
+            check_shape(img, f"light[{j}]", ["C", h, w])
+            ok = torch.isfinite(xy).all(-1)
+            cell = round_to_pixel(torch.nan_to_num(xy, nan=-10.0))
+            ok &= (cell[..., 0] >= 0) & (cell[..., 0] < w) & (cell[..., 1] >= 0) & (cell[..., 1] < h)
+            flat = img.reshape(img.shape[0], -1)[:, (cell[..., 1] * w + cell[..., 0]).clamp(0, w * h - 1)]
+            out += torch.where(ok, weight, 0.0) * flat
+        return out
+
     def lit(self) -> torch.Tensor:
         """:math:`(H, W)` pixels lit (decoded) by at least one projector."""
         return torch.stack([torch.isfinite(m).all(-1) for m in self.prj_xy]).any(0)

@@ -1,0 +1,128 @@
+"""The real-rig path through files: sequence, capture folders, calibrate, solve. The proof is that
+captures the virtual rig writes as folders give the same patterns as ``torchproj run``."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from torchproj.calib import (calibrate_folders, graycode_patterns, load_bundle, simulate_calibration,
+                             write_graycode_folder)
+from torchproj.cli import main
+from torchproj.core import CaptureError, read_image, write_image
+from torchproj.evaluate import run_virtual
+from torchproj.scene import parse_scene
+from torchproj.sim import VirtualRig
+
+from .helpers import CHESSBOARD, small_config
+
+
+@pytest.fixture(scope="module")
+def scene():
+    data = small_config()
+    # States in name order, so that the bundle (which lists a capture root's states by name) and the
+    # run take each projector's response from the same state.
+    data["states"] = sorted(data["states"], key=lambda s: s["name"])
+    return parse_scene(data, name="small")
+
+
+@pytest.fixture(scope="module")
+def capture_root(scene, tmp_path_factory):
+    """The virtual rig's calibration captures written as a real bench would store them."""
+    root = tmp_path_factory.mktemp("captures")
+    rig = VirtualRig(scene)  # same seed and capture order as run_virtual's calibration: same noise
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            write_graycode_folder(root / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
+    return root
+
+
+def test_sequence_is_what_the_virtual_rig_shows(tmp_path):
+    assert main(["sequence", "--projector", "256x192", "--out", str(tmp_path / "seq")]) == 0
+    manifest = json.loads((tmp_path / "seq" / "sequence.json").read_text())
+    files = [e["file"] for e in manifest["images"]]
+    gray = graycode_patterns(256, 192)
+    assert len(files) == len(gray) + 2 and files[-2:] == ["ramp.png", "ramp_mirrored.png"]
+    assert [e["kind"] for e in manifest["images"]][len(gray) - 2:len(gray)] == ["white", "black"]
+    for i in (0, 5, len(gray) - 1):
+        assert torch.equal(read_image(tmp_path / "seq" / files[i]), gray[i])
+
+
+def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_root, tmp_path):
+    calib, solved = tmp_path / "calib", tmp_path / "solved"
+    assert main(["calibrate", str(capture_root), "--projector", "256x192", "--out", str(calib)]) == 0
+    assert (calib / "calibration.png").is_file()
+    bundle = load_bundle(calib)
+    assert list(bundle.states) == ["far", "near"] and bundle.camera_size == (400, 300)
+    assert main(["solve", str(calib), "--targets", "far=astronaut", "near=chelsea", "--out", str(solved)]) == 0
+    run = run_virtual(scene)
+    report = json.loads((solved / "report.json").read_text())
+    assert report["objective"] == pytest.approx(run.report["objective"], rel=1e-5)
+    shown = {}
+    for j, p in enumerate(scene.projectors):
+        from_files = (read_image(solved / "patterns" / f"{p.name}.png") * 255).round()
+        diff = (from_files - run.patterns[j].float()).abs()
+        assert float(diff.max()) <= 1 and float((diff > 0).float().mean()) < 0.01, p.name
+        shown[j] = from_files[None] / 255
+    # Fed those patterns, the virtual rig shows the targets at the same quality as the run.
+    rig = VirtualRig(scene)
+    for t, row in zip(run.targets, run.report["targets"]):
+        shot = rig.capture(row["state"], shown)[0]
+        black = rig.capture(row["state"], {})[0]
+        est = ((shot - black) / run.report["scale"]).clamp(0, 1)
+        cov = t["covered"]
+        got = 10 * np.log10(1 / float(((est[:, cov] - t["values"][:, cov]) ** 2).mean()))
+        assert got == pytest.approx(row["psnr_db"], abs=0.3)
+    assert (solved / "predicted" / "near.png").is_file()
+    for row in report["targets"]:
+        assert row["predicted_psnr_db"] > 15
+
+
+def test_bad_capture_folders_are_named(capture_root, tmp_path):
+    import shutil
+
+    broken = tmp_path / "root"
+    shutil.copytree(capture_root, broken)
+    (broken / "far" / "upper" / "graycode_03.png").write_bytes(b"not a png")  # a truncated transfer
+    with pytest.raises(CaptureError, match="graycode_03.png.*cannot be read"):
+        calibrate_folders(broken, {"*": (256, 192)})
+    shutil.copy(capture_root / "far" / "upper" / "graycode_03.png", broken / "far" / "upper" / "graycode_03.png")
+    (broken / "near" / "lower" / "graycode_07.png").unlink()
+    with pytest.raises(CaptureError, match="graycode_07.png"):
+        calibrate_folders(broken, {"*": (256, 192)})
+    shutil.rmtree(broken / "near" / "lower")
+    with pytest.raises(CaptureError, match="one folder per projector"):
+        calibrate_folders(broken, {"*": (256, 192)})
+    with pytest.raises(CaptureError, match="--projector"):
+        calibrate_folders(capture_root)  # no sequence.json and no size given
+    dark = tmp_path / "dark"
+    shutil.copytree(capture_root / "near" / "upper", dark / "s" / "p")
+    white = len(graycode_patterns(256, 192)) - 2
+    write_image(dark / "s" / "p" / f"graycode_{white:02d}.png", torch.zeros(1, 300, 400))
+    with pytest.raises(CaptureError, match="dark everywhere"):
+        calibrate_folders(dark, {"*": (256, 192)})
+
+
+def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path, capsys):
+    calib = tmp_path / "calib"
+    assert main(["calibrate", str(capture_root), "--projector", "256x192", "--out", str(calib)]) == 0
+    out = tmp_path / "solved"
+    assert main(["solve", str(calib), "--targets", "middle=astronaut", "--out", str(out)]) == 2
+    assert "no state 'middle'" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD} (they live in "
+                                                     "../shared/data beside the checkout)")
+def test_calibrate_real_captures_matches_decode(tmp_path):
+    assert main(["calibrate", str(CHESSBOARD), "--states", "capture_0", "capture_1", "--projector", "1024x768",
+                 "--calibration", str(CHESSBOARD / "calibration_result.xml"), "--out", str(tmp_path / "calib")]) == 0
+    bundle = load_bundle(tmp_path / "calib")
+    assert list(bundle.states) == ["capture_0", "capture_1"] and bundle.procam_calibration.is_file() and bundle.projectors == [("projector", 1024, 768)]
+    assert main(["decode", str(CHESSBOARD / "capture_0"), "--projector", "1024x768", "--out", str(tmp_path / "dec")]) == 0
+    with np.load(tmp_path / "dec" / "correspondence.npz") as dec:
+        m = bundle.states["capture_0"][0]
+        np.testing.assert_array_equal(m["valid"].numpy(), dec["valid"])
+        np.testing.assert_array_equal(np.nan_to_num(m["prj_xy_integer"].numpy(), nan=-1),
+                                      np.nan_to_num(dec["prj_xy"], nan=-1))
+        np.testing.assert_allclose(m["prj_xy"].numpy(), dec["prj_xy_refined"], equal_nan=True)

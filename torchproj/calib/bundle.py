@@ -1,0 +1,255 @@
+"""The real-rig path through files: the sequence to project, capture folders, the calibration bundle.
+
+Sequence (``write_sequence``): per projector, the images to show in order, named as their captures
+must be named: ``graycode_00.png`` ... (Gray-code pattern/inverse pairs, columns first, most
+significant bit first), then white and black (the last two ``graycode_`` indices), then ``ramp.png``
+and ``ramp_mirrored.png`` (the photometric ramp), with ``sequence.json`` saying what each image is.
+
+Capture root (what ``calibrate_folders`` reads), one folder per scene state and projector, each
+holding the camera's image of every sequence image under the same file name::
+
+    CAPTURE_ROOT/
+      near/                    a scene state
+        upper/                 a projector: graycode_00.png ... graycode_41.png, ramp.png, ramp_mirrored.png
+        lower/                 (sequence.json here gives the projector's size)
+      far/
+        upper/ ...
+
+A state folder that holds ``graycode_00.png`` itself is one projector named ``projector`` (the layout
+of ``shared/data/procam_chessboard``).
+
+Bundle (``write_bundle`` / ``load_bundle``), format version 1: ``bundle.json`` (camera size and
+channels, projectors and sizes, states, response curves, decoded fractions, files) and per state
+``STATE/PROJECTOR.npz`` (``prj_xy`` refined and filled, ``prj_xy_integer``, ``valid``, ``contrast``
+(white minus black, [0, 1] units: the radiometric weight), ``cam_xy`` inverse map, ``count``) and
+``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..core.errors import CaptureError
+from ..core.imageio import write_image
+from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
+from .graycode import graycode_bits, graycode_patterns
+from .pipeline import ProjectorCalibration, calibrate_projector
+from .response import ResponseCurve, ramp_pattern
+
+__all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
+           "write_sequence"]
+
+BUNDLE_VERSION = 1
+SEQUENCE_FILE = "sequence.json"
+_MIN_DECODED = 0.001  # below this fraction of the camera decoded, a folder is an error
+_FEW_DECODED = 0.02  # below this, a warning
+
+
+def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_steps: int = 32) -> dict:
+    """Write the images one projector shows, in order, and ``sequence.json``; returns the manifest."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    gray = graycode_patterns(width, height)
+    nx, ny = graycode_bits(width, height)
+    entries = []
+    for i, img in enumerate(gray):
+        if i < 2 * (nx + ny):
+            axis, bit = ("x", i // 2) if i < 2 * nx else ("y", (i - 2 * nx) // 2)
+            entry = {"kind": "graycode", "axis": axis, "bit": bit, "inverse": bool(i % 2)}
+        else:
+            entry = {"kind": "white" if i == 2 * (nx + ny) else "black"}
+        entries.append({"file": DEFAULT_NAMES.format(i), **entry})
+        write_image(folder / entries[-1]["file"], img)
+    for name, mirrored in zip(RAMP_NAMES, (False, True)):
+        write_image(folder / name, ramp_pattern(width, height, ramp_steps, mirrored=mirrored)[0])
+        entries.append({"file": name, "kind": "ramp_mirrored" if mirrored else "ramp", "steps": ramp_steps})
+    manifest = {"version": BUNDLE_VERSION, "projector": [width, height], "order": "show and capture in this order; "
+                "save each capture under the same file name", "images": entries}
+    (folder / SEQUENCE_FILE).write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+@dataclass
+class CalibrationBundle:
+    """What calibration of a real (or virtual) rig recovered, as the solver needs it.
+
+    Attributes:
+        camera_size: ``(width, height)``.
+        channels: camera channels.
+        projectors: ``[(name, width, height)]`` in column order.
+        states: state name -> per projector :class:`ProjectorCalibration`-like arrays (see module).
+        black: state name -> :math:`(C, H, W)` all-black capture.
+        responses: per projector, its :class:`ResponseCurve` (None where no ramp was captured).
+        ramps: per projector, the measured ramp points its curve was fitted to (or None).
+        decoded: state -> projector -> fraction of camera pixels decoded.
+    """
+
+    camera_size: tuple[int, int]
+    channels: int
+    projectors: list[tuple[str, int, int]]
+    states: dict[str, list[dict]]
+    black: dict[str, torch.Tensor]
+    responses: list[ResponseCurve | None]
+    decoded: dict[str, dict[str, float]] = field(default_factory=dict)
+    procam_calibration: Path | None = None
+    ramps: list = field(default_factory=list)  # per projector, (levels (L,), measured (L, C)) the fit used, or None
+
+
+def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, only: list[str] | None = None):
+    """``{state: [(projector name, folder, (w, h))]}`` in sorted order, checked for a common set."""
+    if not root.is_dir():
+        raise CaptureError(f"{root}: capture root not found")
+    if only is not None:
+        for name in only:
+            if not (root / name).is_dir():
+                raise CaptureError(f"{root / name}: state folder not found")
+    layout = {}
+    for state_dir in sorted(p for p in root.iterdir() if p.is_dir() and (only is None or p.name in only)):
+        if (state_dir / DEFAULT_NAMES.format(0)).is_file():
+            folders = [("projector", state_dir)]
+        else:
+            folders = [(p.name, p) for p in sorted(state_dir.iterdir()) if p.is_dir()]
+        if not folders:
+            continue
+        entries = []
+        for name, folder in folders:
+            manifest = folder / SEQUENCE_FILE
+            if manifest.is_file():
+                size = tuple(json.loads(manifest.read_text())["projector"])
+            elif sizes and (name in sizes or "*" in sizes):
+                size = sizes.get(name, sizes.get("*"))
+            else:
+                raise CaptureError(f"{folder}: no {SEQUENCE_FILE} says the projector's size; give it with "
+                                   f"--projector WxH (all projectors) or --projector {name}=WxH")
+            entries.append((name, folder, (int(size[0]), int(size[1]))))
+        layout[state_dir.name] = entries
+    if not layout:
+        raise CaptureError(f"{root}: no capture folders (expected {root}/STATE/PROJECTOR/{DEFAULT_NAMES.format(0)} "
+                           "...; see the README's capture layout)")
+    first_state, first = next(iter(layout.items()))
+    names = [(n, s) for n, _, s in first]
+    for state, entries in layout.items():
+        if [(n, s) for n, _, s in entries] != names:
+            raise CaptureError(f"{root / state}: projectors {[(n, s) for n, _, s in entries]} differ from "
+                               f"{first_state}'s {names}; every state needs one folder per projector")
+    return layout
+
+
+def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]] | None = None, *,
+                      states: list[str] | None = None, progress: bool | None = None, **options) -> CalibrationBundle:
+    """Decode every state and projector under a capture root and fit the projectors' responses.
+
+    Args:
+        root: the capture root (module docstring).
+        sizes: projector sizes where folders hold no ``sequence.json``: name -> ``(w, h)``, or
+            ``{"*": (w, h)}`` for all.
+        states: the state folders to calibrate (default: every folder of the root).
+        options: passed to :func:`~torchproj.calib.calibrate_projector` (thresholds, hole size).
+
+    The response of each projector comes from the first state whose folder holds the ramps.
+    """
+    from tqdm import tqdm
+
+    root = Path(root)
+    layout = _projector_folders(root, sizes, states)
+    first = next(iter(layout.values()))
+    projectors = [(n, s[0], s[1]) for n, _, s in first]
+    maps, black, decoded = {}, {}, {}
+    responses: list[ResponseCurve | None] = [None] * len(projectors)
+    ramps: list = [None] * len(projectors)
+    shape = None
+    jobs = [(state, j, entry) for state, entries in layout.items() for j, entry in enumerate(entries)]
+    for state, j, (name, folder, size) in tqdm(jobs, desc="calibrating states x projectors", leave=False,
+                                               delay=1.0, disable=None if progress is None else not progress):
+        capture = read_graycode_folder(folder, size)
+        if shape is None:
+            shape = tuple(capture.white.shape)
+        elif tuple(capture.white.shape) != shape:
+            raise CaptureError(f"{folder}: images of size {tuple(capture.white.shape)} (C, H, W), but earlier "
+                               f"folders hold {shape}; all captures must come from one camera setting")
+        cal = calibrate_projector(capture, size, **options)
+        fraction = cal.decoding.valid_fraction
+        if fraction < _MIN_DECODED:
+            raise CaptureError(f"{folder}: only {fraction:.3%} of the camera decoded; is the projector aimed at the "
+                               "scene, in focus, and bright enough against room light? Capture again")
+        if fraction < _FEW_DECODED:
+            warnings.warn(f"{folder}: only {fraction:.1%} of the camera decoded; targets there will be small",
+                          stacklevel=2)
+        decoded.setdefault(state, {})[name] = fraction
+        maps.setdefault(state, []).append(_maps(cal))
+        black.setdefault(state, []).append(capture.black)
+        if responses[j] is None and cal.response is not None:
+            responses[j], ramps[j] = cal.response, cal.ramp
+    return CalibrationBundle(camera_size=(shape[2], shape[1]), channels=shape[0], projectors=projectors,
+                             states=maps, black={s: torch.stack(b).mean(0) for s, b in black.items()},
+                             responses=responses, decoded=decoded, ramps=ramps)
+
+
+def _maps(cal: ProjectorCalibration) -> dict:
+    return {"prj_xy": cal.prj_xy, "prj_xy_integer": cal.decoding.prj_xy, "valid": cal.decoding.valid,
+            "contrast": cal.decoding.contrast.float(), "cam_xy": cal.cam_xy, "count": cal.count}
+
+
+def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:
+    """Write a bundle into ``folder`` (module docstring: the format)."""
+    folder = Path(folder)
+    files = {}
+    for state, maps in bundle.states.items():
+        (folder / state).mkdir(parents=True, exist_ok=True)
+        for (name, _, _), m in zip(bundle.projectors, maps):
+            np.savez_compressed(folder / state / f"{name}.npz", **{k: v.numpy() for k, v in m.items()})
+            files.setdefault(state, {})[name] = f"{state}/{name}.npz"
+        np.savez_compressed(folder / state / "black.npz", black=bundle.black[state].numpy())
+    meta = {
+        "format": "torchproj calibration bundle", "version": BUNDLE_VERSION,
+        "camera": {"size": list(bundle.camera_size), "channels": bundle.channels},
+        "projectors": [{"name": n, "size": [w, h]} for n, w, h in bundle.projectors],
+        "states": list(bundle.states),
+        "responses": [None if r is None else r.as_dict() for r in bundle.responses],
+        "ramps": [None if r is None else {"levels": r[0].tolist(), "measured": r[1].tolist()}
+                  for r in (bundle.ramps or [None] * len(bundle.projectors))],
+        "decoded_fraction": bundle.decoded, "files": files,
+    }
+    if procam_calibration is not None:
+        shutil.copyfile(procam_calibration, folder / "procam_calibration.xml")
+        meta["procam_calibration"] = "procam_calibration.xml"
+    (folder / "bundle.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def load_bundle(folder: str | os.PathLike) -> CalibrationBundle:
+    """Read a bundle written by :func:`write_bundle` (or ``torchproj calibrate``)."""
+    folder = Path(folder)
+    path = folder / "bundle.json"
+    if not path.is_file():
+        raise CaptureError(f"{folder}: not a calibration bundle (no bundle.json); make one with torchproj calibrate")
+    meta = json.loads(path.read_text())
+    if meta.get("version") != BUNDLE_VERSION:
+        raise CaptureError(f"{path}: bundle format version {meta.get('version')!r}, this torchproj reads "
+                           f"version {BUNDLE_VERSION}; calibrate again")
+    projectors = [(p["name"], *p["size"]) for p in meta["projectors"]]
+    states, black = {}, {}
+    for state in meta["states"]:
+        maps = []
+        for name, _, _ in projectors:
+            with np.load(folder / meta["files"][state][name]) as data:
+                maps.append({k: torch.from_numpy(data[k]) for k in data.files})
+        states[state] = maps
+        with np.load(folder / state / "black.npz") as data:
+            black[state] = torch.from_numpy(data["black"])
+    responses = [None if r is None else ResponseCurve(*(torch.tensor(r[k]) for k in ("a", "b", "c")))
+                 for r in meta["responses"]]
+    ramps = [None if r is None else (torch.tensor(r["levels"]), torch.tensor(r["measured"]))
+             for r in meta.get("ramps", [None] * len(projectors))]
+    xml = meta.get("procam_calibration")
+    return CalibrationBundle(camera_size=tuple(meta["camera"]["size"]), channels=meta["camera"]["channels"],
+                             projectors=projectors, states=states, black=black, responses=responses,
+                             decoded=meta.get("decoded_fraction", {}), ramps=ramps,
+                             procam_calibration=None if xml is None else folder / xml)
