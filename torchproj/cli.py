@@ -218,6 +218,122 @@ def _run_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+# ------------------------------------------------------------------------------- real rig
+def cmd_sequence(args) -> int:
+    from .calib import write_sequence
+
+    w, h = args.projector
+    with atomic_output(args.out) as stage:
+        manifest = write_sequence(stage, w, h, ramp_steps=args.ramp_steps)
+    print(f"wrote {len(manifest['images'])} images for a {w}x{h} projector and sequence.json to {args.out}: show them "
+          "in order and save each capture under the same file name in CAPTURE_ROOT/STATE/PROJECTOR/")
+    return 0
+
+
+def _projector_sizes(values: list[str] | None) -> dict[str, tuple[int, int]] | None:
+    sizes = {}
+    for v in values or []:
+        name, _, size = v.rpartition("=")
+        sizes[name or "*"] = _size(size)
+    return sizes or None
+
+
+def cmd_calibrate(args) -> int:
+    from .calib import calibrate_folders, write_bundle
+    from .figures import calibration_summary
+
+    t0 = time.perf_counter()
+    if args.calibration is not None and not args.calibration.is_file():
+        raise TorchprojError(f"{args.calibration}: calibration file not found")
+    bundle = calibrate_folders(args.capture_root, _projector_sizes(args.projector), states=args.states,
+                               white_threshold=args.white_threshold, black_threshold=args.black_threshold,
+                               max_hole=args.fill_holes)
+    rows = []
+    for state, maps in bundle.states.items():
+        for (name, _, _), m, resp, ramp in zip(bundle.projectors, maps, bundle.responses, bundle.ramps):
+            row = {"label": f"{state}/{name}", "prj_xy": m["prj_xy"], "error": None, "valid": m["valid"]}
+            if ramp is not None:
+                row.update(levels=ramp[0].numpy(), measured=ramp[1].numpy(), fit_b=float(resp.b[0]),
+                           fitted=lambda x, r=resp: float(r.a[0]) * x ** float(r.b[0]) + float(r.c[0]))
+            rows.append(row)
+    with atomic_output(args.out) as stage:
+        write_bundle(stage, bundle, args.calibration)
+        calibration_summary(stage / "calibration.png", rows)
+    missing = [n for (n, _, _), r in zip(bundle.projectors, bundle.responses) if r is None]
+    print(f"calibrated {len(bundle.states)} state(s) x {len(bundle.projectors)} projector(s) from {args.capture_root} "
+          f"in {time.perf_counter() - t0:.1f} s; decoded: " + ", ".join(
+              f"{s}/{p} {f:.1%}" for s, d in bundle.decoded.items() for p, f in d.items()))
+    if missing:
+        print(f"no ramp captures for {missing}: solve will assume a linear response there", file=sys.stderr)
+    print(f"wrote {args.out}/bundle.json, STATE/PROJECTOR.npz, STATE/black.npz, calibration.png")
+    return 0
+
+
+def _targets(values: list[str]) -> list[tuple[str, str]]:
+    out = []
+    for v in values:
+        state, sep, image = v.partition("=")
+        if not sep or not state or not image:
+            raise TorchprojError(f"--targets {v!r}: expected STATE=IMAGE (an image file or a scikit-image name)")
+        out.append((state, image))
+    return out
+
+
+def cmd_solve(args) -> int:
+    import warnings
+
+    from .calib import ResponseCurve, load_bundle
+    from .core.imageio import write_image
+    from .evaluate import psnr, target_image
+    from .solve import make_patterns
+    from .transport import StateCalibration, Target, build_transport, target_on_camera
+
+    t0 = time.perf_counter()
+    bundle = load_bundle(args.bundle)
+    states = StateCalibration.from_bundle(bundle)
+    targets = []
+    for state, image in _targets(args.targets):
+        if state not in states:
+            raise TorchprojError(f"--targets {state}={image}: the bundle has no state {state!r}; its states: "
+                                 f"{sorted(states)}")
+        targets.append(Target(state, target_image(image, bundle.channels), name=f"{state}"))
+    responses = []
+    for (name, _, _), r in zip(bundle.projectors, bundle.responses):
+        if r is None:
+            warnings.warn(f"projector {name}: the bundle holds no response curve (no ramp captured); assuming "
+                          "a linear response", stacklevel=1)
+            r = ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1))
+        responses.append(r)
+    lo, hi = (b / 255 for b in args.bounds)
+    op = build_transport(states, targets, device=args.device)
+    result, light, patterns = make_patterns(op, args.solver, (lo, hi), responses, calibrations=states,
+                                            max_iter=args.max_iter)
+    rows = []
+    with atomic_output(args.out) as stage:
+        (stage / "patterns").mkdir()
+        for (name, _, _), pat in zip(bundle.projectors, patterns):
+            write_image(stage / "patterns" / f"{name}.png", pat.float() / 255)
+        (stage / "predicted").mkdir()
+        for t in targets:
+            view = states[t.state].predict(light, bundle.black[t.state])
+            write_image(stage / "predicted" / f"{t.name}.png", view.clamp(0, 1))
+            values, covered = target_on_camera(t, states[t.state].lit())
+            estimate = ((view - bundle.black[t.state]) / op.scale).clamp(0, 1)
+            rows.append({"name": t.name, "state": t.state, "pixels": int(covered.sum()),
+                         "predicted_psnr_db": psnr(estimate[:, covered], values[:, covered])})
+        report = {"bundle": str(args.bundle), "solver": args.solver, "bounds_8bit": list(args.bounds),
+                  "model": op.size_report(), "objective": result.objective, "iterations": result.iterations,
+                  "scale": op.scale, "timings_s": {"total": round(time.perf_counter() - t0, 3),
+                                                   "solve": round(result.time_s, 3)},
+                  "predicted": "black capture plus each projector's weight times the light of the decoded cell "
+                               "(the calibration's own model; project the patterns and capture to measure)",
+                  "targets": rows}
+        write_json(stage / "report.json", report)
+    print(f"solved {len(targets)} target(s) with {args.solver}: {op.shape[1]} variables, objective "
+          f"{result.objective:.4g}; wrote {args.out}/patterns/, predicted/, report.json")
+    return 0
+
+
 # ------------------------------------------------------------------------------------ decode
 def cmd_decode(args) -> int:
     from .calib import (calibrate_projector, read_graycode_folder, read_opencv_calibration, triangulate,
@@ -305,6 +421,36 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write each capture as a folder of PNGs (the layout of a real capture) and "
                         "calibrate from those files")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("sequence", help="write the images to show on a projector, in order, with sequence.json")
+    p.add_argument("--projector", type=_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--ramp-steps", type=int, default=32, help="bars in the photometric ramp (default 32)")
+    p.set_defaults(func=cmd_sequence)
+
+    p = sub.add_parser("calibrate", help="decode every state and projector of a capture root into a calibration bundle")
+    p.add_argument("capture_root", type=Path, help="CAPTURE_ROOT/STATE/PROJECTOR/ folders of captures")
+    p.add_argument("--out", type=Path, required=True, help="bundle folder")
+    p.add_argument("--projector", action="append", metavar="[NAME=]WxH",
+                   help="projector size where a folder holds no sequence.json (repeat per projector)")
+    p.add_argument("--states", nargs="+", metavar="STATE", help="state folders to calibrate (default: all)")
+    p.add_argument("--calibration", type=Path, help="OpenCV camera-projector calibration to keep in the bundle")
+    p.add_argument("--white-threshold", type=float, default=5, help="8-bit units (OpenCV default 5)")
+    p.add_argument("--black-threshold", type=float, default=40, help="8-bit units (OpenCV default 40)")
+    p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("solve", help="patterns for real projectors from a calibration bundle and target images")
+    p.add_argument("bundle", type=Path, help="bundle folder from torchproj calibrate")
+    p.add_argument("--targets", nargs="+", required=True, metavar="STATE=IMAGE",
+                   help="the image to show in each state (a file, or a scikit-image name such as astronaut)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--solver", default="fista", choices=["fista", "pgd", "adam", "lf", "eo"],
+                   help="pattern solver (default: fista)")
+    p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI", help="solver bounds, 8-bit units")
+    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
+    p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+    p.set_defaults(func=cmd_solve)
 
     p = sub.add_parser("decode", help="decode a folder of real Gray-code captures (and triangulate)")
     p.add_argument("capture_dir", type=Path, help="folder of captures: Gray code in order, then white, then black")

@@ -44,7 +44,8 @@ def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torc
 def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
     """One row per (state, projector): decoded x, decoded y, error against the truth, response fit.
 
-    Each row dict holds ``label``, ``prj_xy`` (H, W, 2), ``error`` (H, W) pixels or None,
+    Each row dict holds ``label``, ``prj_xy`` (H, W, 2), ``error`` (H, W) pixels or None (then
+    ``valid`` (H, W), the decoded mask, is shown if given),
     ``levels``, ``measured`` (L, C), ``fitted`` (callable on x in [0, 1]) and ``true_b``.
     """
     fig, axes = plt.subplots(len(rows), 4, figsize=(17, 3.4 * len(rows)), squeeze=False)
@@ -54,6 +55,10 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
         if row.get("error") is not None:
             _map_panel(ax_row[2], row["error"].numpy(), "|decoded - true| (sub-pixel)", cmap="magma",
                        label="projector px", vmin=0, vmax=0.5)
+        elif row.get("valid") is not None:
+            valid = row["valid"]
+            _map_panel(ax_row[2], valid.float().numpy(), f"decoded ({float(valid.float().mean()):.1%} of the camera)",
+                       cmap="gray", vmin=0, vmax=1)
         else:
             ax_row[2].axis("off")
         ax = ax_row[3]
