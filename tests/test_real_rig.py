@@ -126,3 +126,49 @@ def test_calibrate_real_captures_matches_decode(tmp_path):
         np.testing.assert_array_equal(np.nan_to_num(m["prj_xy_integer"].numpy(), nan=-1),
                                       np.nan_to_num(dec["prj_xy"], nan=-1))
         np.testing.assert_allclose(m["prj_xy"].numpy(), dec["prj_xy_refined"], equal_nan=True)
+
+
+class _RigDisplay:
+    """A projector that is one of the virtual rig's: remembers what it was told to show."""
+
+    def __init__(self):
+        self.image = None
+
+    def show(self, image):
+        self.image = image
+
+
+class _RigCamera:
+    """A camera that photographs the virtual rig while the display's projector shows its image."""
+
+    def __init__(self, rig, state, projector, display):
+        self.rig, self.state, self.j, self.display = rig, state, projector, display
+
+    def grab(self):
+        shown = torch.from_numpy(self.display.image.astype(np.float32) / 255)[None, None]
+        shot = self.rig.capture(self.state, {self.j: shown})[0]
+        return (shot[0] * 255).round().to(torch.uint8).numpy()
+
+
+def test_capture_helper_with_a_fake_display_and_camera(scene, tmp_path):
+    from torchproj.calib import capture_sequence
+
+    assert main(["sequence", "--projector", "256x192", "--out", str(tmp_path / "seq")]) == 0
+    rig = VirtualRig(scene)
+    for j, p in enumerate(scene.projectors):
+        display = _RigDisplay()
+        capture_sequence(tmp_path / "seq", tmp_path / "captures" / "near" / p.name, display,
+                         _RigCamera(rig, "near", j, display), settle_s=0)
+    bundle = calibrate_folders(tmp_path / "captures")  # sizes from the copied sequence.json
+    names = [p.name for p in scene.projectors]
+    assert [n for n, _, _ in bundle.projectors] == sorted(names)  # a capture root lists projectors by name
+    for (name, _, _), m, response in zip(bundle.projectors, bundle.states["near"], bundle.responses):
+        j = names.index(name)
+        truth = rig.geometry("near").prj_xy
+        ok = m["valid"] & torch.isfinite(truth[j]).all(-1)
+        assert float(ok.float().mean()) > 0.4
+        assert float((torch.floor(m["prj_xy_integer"][ok] + 0.5) == torch.floor(truth[j][ok] + 0.5)).all(-1)
+                     .float().mean()) > 0.99
+        assert float(response.b[0]) == pytest.approx(scene.projectors[j].response_b[0], abs=0.05)
+    with pytest.raises(CaptureError, match="sequence.json"):
+        capture_sequence(tmp_path, tmp_path / "x", _RigDisplay(), None)

@@ -230,6 +230,21 @@ def cmd_sequence(args) -> int:
     return 0
 
 
+def cmd_capture(args) -> int:
+    from .calib import OpenCVCamera, OpenCVDisplay, capture_sequence
+
+    x, y = (int(v) for v in args.screen.split(","))
+    display, camera = OpenCVDisplay(x, y), OpenCVCamera(args.camera)
+    try:
+        with atomic_output(args.out) as stage:
+            capture_sequence(args.sequence_dir, stage, display, camera, settle_s=args.settle)
+    finally:
+        display.close()
+        camera.close()
+    print(f"captured the sequence of {args.sequence_dir} into {args.out}")
+    return 0
+
+
 def _projector_sizes(values: list[str] | None) -> dict[str, tuple[int, int]] | None:
     sizes = {}
     for v in values or []:
@@ -427,6 +442,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--ramp-steps", type=int, default=32, help="bars in the photometric ramp (default 32)")
     p.set_defaults(func=cmd_sequence)
+
+    p = sub.add_parser("capture", help="show a sequence full-screen on a projector and grab a camera frame for each "
+                                       "image (needs an OpenCV build with a GUI)")
+    p.add_argument("sequence_dir", type=Path, help="folder from torchproj sequence")
+    p.add_argument("--out", type=Path, required=True, help="CAPTURE_ROOT/STATE/PROJECTOR folder to write")
+    p.add_argument("--camera", type=int, default=0, help="OpenCV camera index (default 0)")
+    p.add_argument("--screen", default="0,0", metavar="X,Y", help="top-left corner of the projector's screen in the "
+                                                                 "desktop (default 0,0; e.g. 1920,0 for a second screen)")
+    p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
+    p.set_defaults(func=cmd_capture)
 
     p = sub.add_parser("calibrate", help="decode every state and projector of a capture root into a calibration bundle")
     p.add_argument("capture_root", type=Path, help="CAPTURE_ROOT/STATE/PROJECTOR/ folders of captures")

@@ -1,5 +1,6 @@
 """Calibration: Gray code and its decoding, correspondence maps, response fit, triangulation."""
 
+from .acquire import OpenCVCamera, OpenCVDisplay, capture_sequence
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
 from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel
@@ -16,10 +17,13 @@ __all__ = [
     "DecodingError",
     "GrayDecoding",
     "GraycodeCapture",
+    "OpenCVCamera",
+    "OpenCVDisplay",
     "ProCamCalibration",
     "ProjectorCalibration",
     "ResponseCurve",
     "calibrate_folders",
+    "capture_sequence",
     "calibrate_projector",
     "decode_gray",
     "decoding_error",

@@ -1,0 +1,97 @@
+"""A small capture helper for benches: show a sequence full-screen on a projector, grab a frame each.
+
+The loop only needs two things, so anything can stand in for them: a *display* with
+``show(image)`` (an :math:`(H, W)` or :math:`(H, W, 3)` uint8 array) and a *camera* with ``grab()``
+returning a uint8 or uint16 :math:`(H, W)` / :math:`(H, W, 3)` array (BGR from OpenCV, converted).
+:class:`OpenCVDisplay` and :class:`OpenCVCamera` are the OpenCV ones. Showing a window needs an
+OpenCV build with a GUI (``opencv-contrib-python`` in place of the headless wheel torchproj
+installs); grabbing from a camera works with either.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ..core.errors import CaptureError
+from ..core.imageio import read_image, write_image
+from .bundle import SEQUENCE_FILE
+
+__all__ = ["OpenCVCamera", "OpenCVDisplay", "capture_sequence"]
+
+
+class OpenCVDisplay:
+    """A borderless full-screen window on the screen whose top-left corner is at ``(x, y)``."""
+
+    def __init__(self, x: int = 0, y: int = 0, name: str = "torchproj"):
+        self.name = name
+        try:
+            cv2.namedWindow(name, cv2.WINDOW_NORMAL)
+        except cv2.error as exc:
+            raise CaptureError("this OpenCV build cannot open windows (the headless wheel): install "
+                               "opencv-contrib-python in place of opencv-contrib-python-headless to show patterns "
+                               f"({str(exc).strip()})") from None
+        cv2.moveWindow(name, x, y)
+        cv2.setWindowProperty(name, cv2.WND_PROP_FULLSCREEN, cv2.WINDOW_FULLSCREEN)
+
+    def show(self, image: np.ndarray) -> None:
+        cv2.imshow(self.name, image[..., ::-1] if image.ndim == 3 else image)
+        cv2.waitKey(1)
+
+    def close(self) -> None:
+        cv2.destroyWindow(self.name)
+
+
+class OpenCVCamera:
+    """``cv2.VideoCapture`` by device index; drops ``flush`` frames so that a grab is fresh."""
+
+    def __init__(self, index: int = 0, flush: int = 2):
+        self.cap = cv2.VideoCapture(index)
+        if not self.cap.isOpened():
+            raise CaptureError(f"camera {index}: cannot be opened (is it connected and free?)")
+        self.flush = flush
+
+    def grab(self) -> np.ndarray:
+        for _ in range(self.flush):
+            self.cap.grab()
+        ok, frame = self.cap.read()
+        if not ok:
+            raise CaptureError("the camera returned no frame; check its connection")
+        return frame[..., ::-1] if frame.ndim == 3 else frame
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike, display, camera, *,
+                     settle_s: float = 0.2) -> Path:
+    """Show every image of a sequence (``torchproj sequence``) in order and save each capture under the
+    same file name, plus ``sequence.json``, in ``out_dir`` (a ``CAPTURE_ROOT/STATE/PROJECTOR`` folder).
+
+    Args:
+        settle_s: seconds to wait after showing an image before grabbing (projector and camera lag).
+    """
+    sequence_dir, out_dir = Path(sequence_dir), Path(out_dir)
+    manifest_path = sequence_dir / SEQUENCE_FILE
+    if not manifest_path.is_file():
+        raise CaptureError(f"{sequence_dir}: no {SEQUENCE_FILE}; write the sequence with torchproj sequence")
+    manifest = json.loads(manifest_path.read_text())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for entry in manifest["images"]:
+        pattern = read_image(sequence_dir / entry["file"])
+        display.show((pattern.permute(1, 2, 0).squeeze(-1).numpy() * 255).round().astype(np.uint8))
+        time.sleep(settle_s)
+        frame = np.asarray(camera.grab())
+        scale = 65535.0 if frame.dtype == np.uint16 else 255.0
+        image = torch.from_numpy(frame.astype(np.float32) / scale)
+        image = image[None] if image.dim() == 2 else image.permute(2, 0, 1)
+        write_image(out_dir / entry["file"], image, bits=16 if frame.dtype == np.uint16 else 8)
+    shutil.copyfile(manifest_path, out_dir / SEQUENCE_FILE)
+    return out_dir
