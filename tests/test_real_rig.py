@@ -102,6 +102,16 @@ def test_bad_capture_folders_are_named(capture_root, tmp_path):
     write_image(dark / "s" / "p" / f"graycode_{white:02d}.png", torch.zeros(1, 300, 400))
     with pytest.raises(CaptureError, match="dark everywhere"):
         calibrate_folders(dark, {"*": (256, 192)})
+    # Every pattern equal to its inverse (the projector froze on one image): nothing decodes.
+    frozen = tmp_path / "frozen"
+    shutil.copytree(capture_root / "near" / "upper", frozen / "s" / "p")
+    for i in range(white):
+        shutil.copy(capture_root / "near" / "upper" / "graycode_00.png", frozen / "s" / "p" / f"graycode_{i:02d}.png")
+    with pytest.raises(CaptureError, match=r"frozen.*(decoded; is the projector aimed|usable levels)"):
+        calibrate_folders(frozen, {"*": (256, 192)})
+    (frozen / "s" / "p" / "ramp.png").unlink()  # without the ramp, the decoding check speaks
+    with pytest.raises(CaptureError, match="0.000% of the camera decoded; is the projector aimed"):
+        calibrate_folders(frozen, {"*": (256, 192)})
 
 
 def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path, capsys):

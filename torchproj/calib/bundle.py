@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.errors import CaptureError
+from ..core.errors import CaptureError, InputError
 from ..core.imageio import write_image
 from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
 from .graycode import graycode_bits, graycode_patterns
@@ -175,7 +175,10 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         elif tuple(capture.white.shape) != shape:
             raise CaptureError(f"{folder}: images of size {tuple(capture.white.shape)} (C, H, W), but earlier "
                                f"folders hold {shape}; all captures must come from one camera setting")
-        cal = calibrate_projector(capture, size, **options)
+        try:
+            cal = calibrate_projector(capture, size, **options)
+        except InputError as exc:  # e.g. a ramp with no usable levels: name the folder it came from
+            raise CaptureError(f"{folder}: {exc}") from None
         fraction = cal.decoding.valid_fraction
         if fraction < _MIN_DECODED:
             raise CaptureError(f"{folder}: only {fraction:.3%} of the camera decoded; is the projector aimed at the "
