@@ -311,6 +311,8 @@ def cmd_solve(args) -> int:
         if state not in states:
             raise TorchprojError(f"--targets {state}={image}: the bundle has no state {state!r}; its states: "
                                  f"{sorted(states)}")
+        if any(t.state == state for t in targets):
+            raise TorchprojError(f"--targets {state}={image}: state {state!r} already has a target; give one per state")
         targets.append(Target(state, target_image(image, bundle.channels), name=f"{state}"))
     responses = []
     for (name, _, _), r in zip(bundle.projectors, bundle.responses):
