@@ -236,3 +236,17 @@ def test_surface_mask_is_the_projected_outline_of_the_surface():
         rig.surface_mask("both", ["near_plane"])
     rig.release("both")
     assert "both" not in rig._geometry
+
+
+def test_rig_warns_when_camera_samples_cannot_resolve_projector_cells():
+    import warnings
+
+    from ..helpers import small_scene
+
+    # Camera pixels larger than projector cells, as in box_positions: 2 x 2 samples are 0.59 cells apart.
+    with pytest.warns(UserWarning, match="0.59 projector cells apart.*camera.supersampling to 3"):
+        VirtualRig(small_scene("box_positions", camera=(200, 150), projector=(256, 192), supersampling=2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        VirtualRig(small_scene("box_positions", camera=(200, 150), projector=(256, 192)))
+        VirtualRig(small_scene("paper_two_planes"))
