@@ -25,9 +25,11 @@ SURFACE = {
     "solve": ["ClampedAdam", "SOLVERS", "SolveResult", "check_bounds", "compensate", "component_chains",
               "epipolar_chains", "fundamental_between_projectors", "make_patterns", "solve_adam", "solve_eo", "solve_fista",
               "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "to_projectable"],
-    "evaluate": ["DepthSweep", "RunResult", "VirtualCalibration", "calibrate_virtual", "crosstalk", "default_images",
-                 "depth_sweep", "masked_ssim", "model_space_psnr", "psnr", "run_virtual", "scene_images",
-                 "target_image"],
+    "evaluate": ["DepthSweep", "PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "RunResult",
+                 "VirtualCalibration", "box_surface_distance", "calibrate_virtual", "crosstalk", "default_images",
+                 "depth_sweep", "evaluate_positioning", "feedback_profile", "masked_ssim", "model_space_psnr",
+                 "place_by_feedback", "pose_error", "psnr", "random_pose_near", "rig_procam", "run_virtual",
+                 "scan_surface", "scene_images", "target_image"],
 }
 
 

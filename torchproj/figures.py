@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-__all__ = ["decode_summary", "calibration_summary", "run_overview", "depth_selectivity"]
+__all__ = ["decode_summary", "calibration_summary", "run_overview", "depth_selectivity", "positioning_feedback"]
 
 
 def _map_panel(ax, data, title, cmap="viridis", label=None, **kw):
@@ -143,6 +143,48 @@ def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict
     axes[0].legend(fontsize=7)
     fig.suptitle("Depth selectivity: each image should appear where it belongs (vertical lines) and fade elsewhere",
                  fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], trials: list[dict]) -> None:
+    """What guides a placement: the feedback (PSNR of the camera image against the target image) with
+    the box moved from its goal along depth and across, and the best feedback so far in each trial.
+
+    Args:
+        profiles: position name -> :func:`~torchproj.evaluate.feedback_profile` output.
+        trials: per trial, ``{"position", "trial", "history" (feedback per look), "rmse_mm"}``.
+    """
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    names = list(profiles)
+    for k, name in enumerate(names):
+        prof = profiles[name]
+        for ax, key in zip(axes[:2], ("depth", "across")):
+            ax.plot(prof["offsets_mm"], prof[key], "-o", color=colours[k % len(colours)], markersize=3,
+                    label=f"{name}")
+    for ax, title in zip(axes[:2], ("moved along depth (world z)", "moved across (world x)")):
+        ax.set_xscale("symlog", linthresh=1.0)
+        reach = max(abs(v) for prof in profiles.values() for v in prof["offsets_mm"]) if profiles else 1.0
+        ticks = [t for t in (-reach, -10, -1, 0, 1, 10, reach) if abs(t) <= reach]
+        ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+        ax.axvline(0, color="grey", lw=0.8)
+        ax.set_xlabel("displacement from the goal (mm, symmetric log scale)")
+        ax.set_ylabel("feedback: PSNR against the target (dB)")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    for t in trials:
+        k = names.index(t["position"]) if t["position"] in names else 0
+        axes[2].plot(np.maximum.accumulate(np.asarray(t["history"])), color=colours[k % len(colours)], lw=1,
+                     label=f"{t['position']} #{t['trial']}: {t['rmse_mm']:.1f} mm")
+    axes[2].set_xlabel("camera looks")
+    axes[2].set_ylabel("best feedback so far (dB)")
+    axes[2].set_title("placement trials (legend: scan RMSE)", fontsize=10)
+    axes[2].grid(alpha=0.3)
+    axes[2].legend(fontsize=7)
+    fig.suptitle("Guidance by the projected image: how sharply the feedback peaks at the goal pose", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

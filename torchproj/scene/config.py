@@ -40,7 +40,7 @@ __all__ = [
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
-                  "two_screens")
+                  "two_screens", "box_positions")
 
 
 @dataclass
