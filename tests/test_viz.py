@@ -9,6 +9,8 @@ import pytest
 from torchproj.core import read_image
 from torchproj.scene import load_scene
 
+from .helpers import CHESSBOARD, small_config
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -50,3 +52,94 @@ def test_frustum_passes_through_the_image_corners(rig_module):
     assert local[2] == pytest.approx(1.0)
     assert p.fx * local[0] / local[2] + p.cx == pytest.approx(-0.5)
     assert p.fy * local[1] / local[2] + p.cy == pytest.approx(-0.5)
+
+
+@pytest.fixture(scope="module")
+def viz():
+    pytest.importorskip("pyvista")
+    return {name: _load(name) for name in ("positioning", "point_cloud", "correspondences")}
+
+
+def _colours(path):
+    rgb = read_image(path).numpy()
+    hot = (rgb[0] > 0.8) & (rgb[1] > 0.45) & (rgb[2] < 0.45)  # the top of the plasma colour map
+    red = (rgb[0] > 0.8) & (rgb[1] < 0.2) & (rgb[2] < 0.2)  # the goal box's wireframe
+    painted = (np.abs(rgb - 1).sum(0) > 0.1)  # anything but the white background
+    return hot.sum(), red.sum(), painted.sum()
+
+
+def _box_front_points(pose, size, n=60):
+    """Points on the box face whose outward normal is local -z (the face the rig sees)."""
+    g = np.linspace(-0.45, 0.45, n)
+    u, v = np.meshgrid(g * size[0], g * size[1])
+    local = np.c_[u.ravel(), v.ravel(), np.full(u.size, -size[2] / 2)]
+    return local @ pose[:3, :3].T + pose[:3, 3]
+
+
+def test_positioning_view_colours_the_error(viz, tmp_path):
+    box = load_scene("box_positions").surfaces["box_near"]
+    goal, size = box.world_from_local, np.array(box.size)
+    normal = goal[:3, :3] @ np.array([0.0, 0.0, -1.0])
+    counts = {}
+    for shift_mm in (1, 12):
+        placed = goal.copy()
+        placed[:3, 3] += shift_mm / 1000 * normal
+        scan = {"points": _box_front_points(placed, size), "goal_pose": goal, "box_size": size}
+        out = tmp_path / f"shift{shift_mm}.png"
+        viz["positioning"].draw_scan(scan, out, max_mm=15, window_size=(400, 300)).close()
+        counts[shift_mm] = _colours(out)
+    assert counts[1][1] > 50 and counts[12][1] > 50  # the wireframe is drawn
+    assert counts[1][2] > 2000  # and the scan
+    assert counts[12][0] > 500 and counts[1][0] < 0.1 * counts[12][0]
+
+
+def test_point_cloud_view_fits_the_plane(viz, tmp_path):
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-100, 100, size=(5000, 2))
+    bump = 3.0 * np.exp(-(xy**2).sum(1) / 400)  # a 3 mm bump in the middle of a tilted plane (mm)
+    points = np.c_[xy, 800 + 0.2 * xy[:, 0] + bump]
+    out = tmp_path / "plane.png"
+    plotter, residual = viz["point_cloud"].draw_plane_fit(points, out, window_size=(400, 300))
+    plotter.close()
+    tilt = np.array([-0.2, 0.0, 1.0]) / np.linalg.norm([-0.2, 0.0, 1.0])
+    expected = (points - points.mean(0)) @ tilt
+    assert np.allclose(np.abs(residual), np.abs(expected), atol=0.1)  # the least-squares plane of the cloud
+    rgb = read_image(out).numpy()
+    warm = (rgb[0] > rgb[2] + 0.3).sum()
+    cool = (rgb[2] > rgb[0] + 0.3).sum()
+    assert warm > 200 and cool > 200
+
+
+@pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD}")
+def test_point_cloud_view_of_the_real_chessboard(viz, tmp_path):
+    from torchproj.cli import main
+
+    out = tmp_path / "dec"
+    assert main(["decode", str(CHESSBOARD / "capture_1"), "--projector", "1024x768", "--out", str(out),
+                 "--calibration", str(CHESSBOARD / "calibration_result.xml")]) == 0
+    assert viz["point_cloud"].main([str(out)]) == 0
+    assert (out / "points.png").is_file() and _colours(out / "points.png")[2] > 5000
+
+
+def test_correspondences_view_triangulates_onto_the_planes(viz, tmp_path):
+    import yaml
+
+    from torchproj.cli import main
+
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(dict(small_config(camera=(240, 180), projector=(128, 96)), name="small")))
+    assert main(["simulate", str(path), "--out", str(tmp_path / "sim")]) == 0
+    scene = load_scene(path)
+    clouds = viz["correspondences"].correspondence_clouds(scene, tmp_path / "sim")
+    assert len(clouds) == 4
+    for c in clouds:
+        plane_z = scene.surfaces[scene.state(c["state"]).surfaces[0]].world_from_local[2, 3]
+        assert len(c["points"]) > 1000
+        assert np.median(np.abs(c["points"][:, 2] - plane_z)) < 2e-3  # metres
+    images = []
+    for colour in ("projector", "contrast"):
+        out = tmp_path / f"{colour}.png"
+        assert viz["correspondences"].main([str(tmp_path / "sim"), "--colour", colour, "--out", str(out)]) == 0
+        images.append(read_image(out).numpy())
+        assert _colours(out)[2] > 2000
+    assert not np.array_equal(images[0], images[1])

@@ -12,40 +12,14 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import pyvista as pv
 
-from torchproj.scene import Scene, load_scene
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import finish, frustum, surface_mesh  # noqa: E402
+
+from torchproj.scene import Scene, load_scene  # noqa: E402
 
 STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"]
-DEVICE_COLOURS = {"camera": "black", "projector": "#d62728"}
-
-
-def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, depth: float) -> pv.PolyData:
-    """Lines from the optical centre through the image corners (pixel-centre convention) to ``depth``."""
-    corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]])
-    rays = np.c_[(corners - K[:2, 2]) / np.diag(K)[:2], np.ones(4)] * depth
-    pts = np.vstack([np.zeros(3), rays]) @ world_from_dev[:3, :3].T + world_from_dev[:3, 3]
-    lines = [2, 0, 1, 2, 0, 2, 2, 0, 3, 2, 0, 4, 2, 1, 2, 2, 2, 3, 2, 3, 4, 2, 4, 1]
-    return pv.PolyData(pts, lines=np.array(lines))
-
-
-def surface_mesh(surface) -> pv.DataSet:
-    """A pyvista mesh of a surface in its local frame (as :class:`torchproj.scene.Surface` defines it)."""
-    if surface.type == "rectangle":
-        mesh = pv.Plane(i_size=surface.size[0], j_size=surface.size[1])
-    elif surface.type == "plane":
-        mesh = pv.Plane(i_size=2.0, j_size=2.0)
-    elif surface.type == "box":
-        sx, sy, sz = surface.size
-        mesh = pv.Box(bounds=(-sx / 2, sx / 2, -sy / 2, sy / 2, -sz / 2, sz / 2))
-    elif surface.type == "cylinder":
-        mesh = pv.Cylinder(radius=surface.radius, height=surface.height, direction=(0, 1, 0), resolution=64)
-    elif surface.type == "sphere":
-        mesh = pv.Sphere(radius=1.0, theta_resolution=48, phi_resolution=48).scale(surface.radii, inplace=False)
-    else:
-        mesh = pv.read(surface.mesh_file).scale(surface.scale, inplace=False)
-    return mesh.transform(surface.world_from_local, inplace=False)
 
 
 def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = False,
@@ -66,12 +40,7 @@ def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = Fa
     plotter.add_legend(bcolor="white", size=(0.3, 0.25))
     plotter.add_axes()
     plotter.camera_position = [(1.6, -0.9, -0.9), (0.0, 0.0, 0.7), (0, -1, 0)]
-    if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        plotter.screenshot(str(out))
-    if show:
-        plotter.show()
-    return plotter
+    return finish(plotter, out, show)
 
 
 def main(argv=None) -> int:

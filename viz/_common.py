@@ -1,0 +1,55 @@
+"""Helpers shared by the viz scripts: device frusta, surface meshes, saving a view."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+
+__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe"]
+
+
+def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, depth: float) -> pv.PolyData:
+    """Lines from the optical centre through the image corners (pixel-centre convention) to ``depth``."""
+    corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]])
+    rays = np.c_[(corners - K[:2, 2]) / np.diag(K)[:2], np.ones(4)] * depth
+    pts = np.vstack([np.zeros(3), rays]) @ world_from_dev[:3, :3].T + world_from_dev[:3, 3]
+    lines = [2, 0, 1, 2, 0, 2, 2, 0, 3, 2, 0, 4, 2, 1, 2, 2, 2, 3, 2, 3, 4, 2, 4, 1]
+    return pv.PolyData(pts, lines=np.array(lines))
+
+
+def surface_mesh(surface) -> pv.DataSet:
+    """A pyvista mesh of a surface in its local frame (as :class:`torchproj.scene.Surface` defines it)."""
+    if surface.type == "rectangle":
+        mesh = pv.Plane(i_size=surface.size[0], j_size=surface.size[1])
+    elif surface.type == "plane":
+        mesh = pv.Plane(i_size=2.0, j_size=2.0)
+    elif surface.type == "box":
+        sx, sy, sz = surface.size
+        mesh = pv.Box(bounds=(-sx / 2, sx / 2, -sy / 2, sy / 2, -sz / 2, sz / 2))
+    elif surface.type == "cylinder":
+        mesh = pv.Cylinder(radius=surface.radius, height=surface.height, direction=(0, 1, 0), resolution=64)
+    elif surface.type == "sphere":
+        mesh = pv.Sphere(radius=1.0, theta_resolution=48, phi_resolution=48).scale(surface.radii, inplace=False)
+    else:
+        mesh = pv.read(surface.mesh_file).scale(surface.scale, inplace=False)
+    return mesh.transform(surface.world_from_local, inplace=False)
+
+
+def box_wireframe(world_from_local: np.ndarray, size) -> pv.PolyData:
+    """The edges of a box (local frame: :class:`torchproj.scene.Surface`) at a pose."""
+    sx, sy, sz = size
+    box = pv.Box(bounds=(-sx / 2, sx / 2, -sy / 2, sy / 2, -sz / 2, sz / 2))
+    return box.transform(np.asarray(world_from_local, dtype=np.float64), inplace=False).extract_all_edges()
+
+
+def finish(plotter: pv.Plotter, out: Path | None, show: bool) -> pv.Plotter:
+    """Save the view as a PNG (creating its folder) and open a window if asked."""
+    if out is not None:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        plotter.screenshot(str(out))
+    if show:
+        plotter.show()
+    return plotter
