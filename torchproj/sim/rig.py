@@ -87,9 +87,10 @@ def _warn_if_undersampled(scene: Scene, limit: float = 0.4) -> None:
     Each camera pixel is simulated by s x s point samples, each lighting from the one cell it falls
     in. Where samples are spaced more than ``limit`` cells apart (on a surface about as far from the
     camera as from the projectors: spacing / cell = f_projector / (f_camera s)), a solver can learn
-    where the samples fall and put light only there: quality looks higher at the exact pose and
-    collapses a fraction of a millimetre away (measured on ``box_positions``: 3.5 dB with 2 x 2
-    samples, gone 0.5 mm off; with 4 x 4 within 0.3 dB of 8 x 8).
+    where the samples fall and put light only there: quality looks higher at the exact pose than a
+    finer simulation of the same light gives, and collapses a fraction of a millimetre away
+    (``benchmarks/sampling.py``: 3-5 dB on ``box_positions`` with 2 x 2 samples; with 4 x 4 within
+    0.35 dB of 8 x 8).
     """
     cam = scene.camera
     spacing = max(p.fx for p in scene.projectors) / (cam.fx * cam.supersampling)
