@@ -150,21 +150,26 @@ def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict
 
 def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], trials: list[dict]) -> None:
     """What guides a placement: the feedback (PSNR of the camera image against the target image) with
-    the box moved from its goal along depth and across, and the best feedback so far in each trial.
+    the box moved from its goal along depth, across and vertically, and the best feedback so far in
+    each trial.
 
     Args:
         profiles: position name -> :func:`~torchproj.evaluate.feedback_profile` output.
         trials: per trial, ``{"position", "trial", "history" (feedback per look), "rmse_mm"}``.
     """
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    axes = axes.ravel()
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     names = list(profiles)
+    keys = ("depth", "across", "vertical")
     for k, name in enumerate(names):
         prof = profiles[name]
-        for ax, key in zip(axes[:2], ("depth", "across")):
-            ax.plot(prof["offsets_mm"], prof[key], "-o", color=colours[k % len(colours)], markersize=3,
-                    label=f"{name}")
-    for ax, title in zip(axes[:2], ("moved along depth (world z)", "moved across (world x)")):
+        for ax, key in zip(axes[:3], keys):
+            if key in prof:
+                ax.plot(prof["offsets_mm"], prof[key], "-o", color=colours[k % len(colours)], markersize=3,
+                        label=f"{name}")
+    for ax, title in zip(axes[:3], ("moved along depth (world z)", "moved across (world x)",
+                                    "moved vertically (world y, along the projectors' baseline)")):
         ax.set_xscale("symlog", linthresh=1.0)
         reach = max(abs(v) for prof in profiles.values() for v in prof["offsets_mm"]) if profiles else 1.0
         ticks = [t for t in (-reach, -10, -1, 0, 1, 10, reach) if abs(t) <= reach]
@@ -177,13 +182,13 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
         ax.legend(fontsize=8)
     for t in trials:
         k = names.index(t["position"]) if t["position"] in names else 0
-        axes[2].plot(np.maximum.accumulate(np.asarray(t["history"])), color=colours[k % len(colours)], lw=1,
+        axes[3].plot(np.maximum.accumulate(np.asarray(t["history"])), color=colours[k % len(colours)], lw=1,
                      label=f"{t['position']} #{t['trial']}: {t['rmse_mm']:.1f} mm")
-    axes[2].set_xlabel("camera looks")
-    axes[2].set_ylabel("best feedback so far (dB)")
-    axes[2].set_title("placement trials (legend: scan RMSE)", fontsize=10)
-    axes[2].grid(alpha=0.3)
-    axes[2].legend(fontsize=7)
+    axes[3].set_xlabel("camera looks")
+    axes[3].set_ylabel("best feedback so far (dB)")
+    axes[3].set_title("placement trials (legend: scan RMSE)", fontsize=10)
+    axes[3].grid(alpha=0.3)
+    axes[3].legend(fontsize=7)
     fig.suptitle("Guidance by the projected image: how sharply the feedback peaks at the goal pose", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -139,9 +139,9 @@ def test_position_report_and_files(position_run):
         assert p["rmse_percent_mean"] == pytest.approx(mean, abs=1e-3)
         assert p["paper_rmse_percent"] in (1.47, 1.26)
         # The feedback peaks at the goal (within a millimetre: camera noise on a flat top), along depth
-        # and across, and falls clearly towards the ends.
+        # across and vertically, and falls clearly towards the ends.
         prof = report["feedback_profiles"][p["name"]]
-        for key in ("depth", "across"):
+        for key in ("depth", "across", "vertical"):
             assert abs(prof["offsets_mm"][int(np.argmax(prof[key]))]) <= 1.0
             assert max(prof[key]) - max(prof[key][0], prof[key][-1]) > 2.0
     for name in ("report.md", "feedback.png", "patterns/upper.png", "patterns/lower.png"):

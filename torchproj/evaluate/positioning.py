@@ -194,9 +194,10 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
 
 # --------------------------------------------------------------------------------------- profiles
 def feedback_profile(feedback, goal: np.ndarray, offsets_m: np.ndarray) -> dict:
-    """Feedback with the box moved from the goal along depth (world z) and across (world x)."""
+    """Feedback with the box moved from the goal along depth (world z), across (world x) and
+    vertically (world y)."""
     out = {"offsets_mm": (np.asarray(offsets_m) * 1000).round(3).tolist()}
-    for key, axis in (("depth", 2), ("across", 0)):
+    for key, axis in (("depth", 2), ("across", 0), ("vertical", 1)):
         values = []
         for off in offsets_m:
             shift = np.zeros(6)
