@@ -29,7 +29,7 @@ SURFACE = {
                  "VirtualCalibration", "box_surface_distance", "calibrate_virtual", "crosstalk", "default_images",
                  "depth_sweep", "evaluate_positioning", "feedback_profile", "masked_ssim", "model_space_psnr",
                  "place_by_feedback", "pose_error", "psnr", "random_pose_near", "rig_procam", "run_virtual",
-                 "scan_surface", "scene_images", "target_image"],
+                 "scan_distance", "scan_surface", "scene_images", "target_image"],
 }
 
 

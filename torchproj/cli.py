@@ -278,6 +278,56 @@ def _position_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def _scan_points(folder: Path, mask: np.ndarray | None) -> np.ndarray:
+    """The triangulated points of a ``torchproj decode --calibration`` folder, inside ``mask``."""
+    path = folder / "correspondence.npz"
+    if not path.is_file():
+        raise TorchprojError(f"{path}: not found; give the --out folder of torchproj decode")
+    data = np.load(path)
+    if "points" not in data:
+        raise TorchprojError(f"{path}: holds no points; run torchproj decode with --calibration FILE.xml")
+    points = data["points"]
+    keep = np.isfinite(points).all(-1)
+    if mask is not None:
+        if mask.shape != keep.shape:
+            raise TorchprojError(f"--mask is {mask.shape[1]}x{mask.shape[0]} but the camera of {folder} is "
+                                 f"{keep.shape[1]}x{keep.shape[0]}; paint the mask over a capture of that camera")
+        keep &= mask
+    return points[keep].astype(np.float64)
+
+
+def cmd_placement_error(args) -> int:
+    from .core.imageio import read_image
+    from .evaluate import scan_distance
+
+    if args.distance <= 0:
+        raise TorchprojError(f"--distance must be the object-projector distance (> 0), got {args.distance:g}")
+    mask = None
+    if args.mask is not None:
+        mask = read_image(args.mask).mean(0).numpy() > 0.5
+    placed = _scan_points(args.placed, mask)
+    reference = _scan_points(args.reference, mask)
+    if len(placed) == 0 or len(reference) == 0:
+        raise TorchprojError("no scanned points" + (" inside --mask" if mask is not None else "") + " in "
+                             + (str(args.placed) if len(placed) == 0 else str(args.reference)))
+    dist = scan_distance(placed, reference)
+    rmse = float(np.sqrt(np.mean(dist**2)))
+    report = {"placed": str(args.placed), "reference": str(args.reference), "mask": str(args.mask) if args.mask else None,
+              "points": int(len(placed)), "reference_points": int(len(reference)),
+              "rmse": round(rmse, 4), "median": round(float(np.median(dist)), 4),
+              "p95": round(float(np.percentile(dist, 95)), 4), "distance": args.distance,
+              "rmse_percent": round(100 * rmse / args.distance, 4),
+              "units": "the calibration's (usually mm)",
+              "method": "distance from each point of the placed scan to the nearest point of the reference scan "
+                        "(the object scanned at its goal pose); percent of --distance"}
+    with atomic_output(args.out) as stage:
+        write_json(stage / "report.json", report)
+    print(f"RMSE {rmse:.3f} ({report['rmse_percent']:.3f}% of {args.distance:g}) over {len(placed)} points; "
+          f"median {report['median']:.3f}, 95th percentile {report['p95']:.3f}")
+    print(f"wrote {args.out}/report.json")
+    return 0
+
+
 # ------------------------------------------------------------------------------- real rig
 def cmd_sequence(args) -> int:
     from .calib import write_sequence
@@ -502,6 +552,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
     p.add_argument("--max-iter", type=int, default=300, help="iteration limit of the pattern solver (default 300)")
     p.set_defaults(func=cmd_position)
+
+    p = sub.add_parser("placement-error", help="score a real placement: a scan of the placed object against a "
+                                               "scan of it at the goal (both from torchproj decode --calibration)")
+    p.add_argument("placed", type=Path, help="torchproj decode --calibration output of the placed object")
+    p.add_argument("--reference", type=Path, required=True,
+                   help="torchproj decode --calibration output of the object at its goal pose")
+    p.add_argument("--distance", type=float, required=True,
+                   help="object-projector distance, in the calibration's units, for the percentage")
+    p.add_argument("--mask", type=Path, help="camera-sized image, white on the object: score only those pixels")
+    p.add_argument("--out", type=Path, default=Path("out/placement_error"), help="output folder")
+    p.set_defaults(func=cmd_placement_error)
 
     p = sub.add_parser("simulate", help="calibrate every state and projector of a scene on the virtual rig, "
                                         "and check the result against the simulator's truth")

@@ -10,11 +10,11 @@ import yaml
 from torchproj.cli import main
 from torchproj.core import ConfigError, InputError
 from torchproj.evaluate import (box_surface_distance, evaluate_positioning, place_by_feedback, pose_error,
-                                random_pose_near, scan_surface)
+                                random_pose_near, scan_distance, scan_surface)
 from torchproj.scene import parse_scene, rotation_from_euler_deg
 from torchproj.sim import VirtualRig
 
-from ..helpers import small_config, small_scene
+from ..helpers import CHESSBOARD, small_config, small_scene
 
 SMALL = dict(camera=(320, 240), projector=(256, 192))
 
@@ -169,3 +169,66 @@ def test_position_refuses_bad_settings(box_scene):
     for kwargs in ({"trials": 0}, {"spread_mm": -1}, {"max_evaluations": 3}):
         with pytest.raises(InputError, match="must"):
             evaluate_positioning(box_scene, **kwargs)
+
+
+def _fake_decode(folder, points):
+    folder.mkdir(parents=True)
+    np.savez_compressed(folder / "correspondence.npz", points=points.astype(np.float32))
+    return folder
+
+
+def test_placement_error_of_real_scans_from_files(tmp_path, capsys):
+    # A plane scanned at its goal and 5 units further away (camera frame, calibration units).
+    ys, xs = np.mgrid[0:120, 0:160].astype(np.float64)
+    goal = np.stack([xs - 80, ys - 60, np.full_like(xs, 700.0)], -1)
+    goal[:10] = np.nan  # rows the decoder missed
+    placed = goal + np.array([0, 0, 5.0])
+    ref = _fake_decode(tmp_path / "goal", goal)
+    moved = _fake_decode(tmp_path / "placed", placed)
+    out = tmp_path / "err"
+    assert main(["placement-error", str(moved), "--reference", str(ref), "--distance", "700", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["rmse"] == pytest.approx(5.0, abs=1e-3) and report["points"] == 110 * 160
+    assert report["rmse_percent"] == pytest.approx(100 * 5 / 700, abs=1e-3)
+    # A mask keeps only the pixels it paints white.
+    from torchproj.core import write_image
+    mask = torch.zeros(1, 120, 160)
+    mask[:, 60:, :80] = 1
+    write_image(tmp_path / "mask.png", mask)
+    assert main(["placement-error", str(moved), "--reference", str(ref), "--distance", "700", "--mask",
+                 str(tmp_path / "mask.png"), "--out", str(tmp_path / "masked")]) == 0
+    assert json.loads((tmp_path / "masked" / "report.json").read_text())["points"] == 60 * 80
+    # Scans without points, and a mask of the wrong size, are refused before anything is written.
+    (tmp_path / "nopoints").mkdir()
+    np.savez_compressed(tmp_path / "nopoints" / "correspondence.npz", prj_xy=np.zeros((2, 2, 2)))
+    bad = tmp_path / "bad"
+    assert main(["placement-error", str(tmp_path / "nopoints"), "--reference", str(ref), "--distance", "700",
+                 "--out", str(bad)]) == 2
+    assert "--calibration" in capsys.readouterr().err
+    write_image(tmp_path / "small_mask.png", torch.ones(1, 10, 10))
+    assert main(["placement-error", str(moved), "--reference", str(ref), "--distance", "700", "--mask",
+                 str(tmp_path / "small_mask.png"), "--out", str(bad)]) == 2
+    assert "--mask is 10x10" in capsys.readouterr().err and not bad.exists()
+
+
+@pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD}")
+def test_placement_error_between_the_real_chessboard_captures(tmp_path):
+    from scipy.spatial.distance import cdist
+
+    calib = str(CHESSBOARD / "calibration_result.xml")
+    for name in ("capture_0", "capture_1"):
+        assert main(["decode", str(CHESSBOARD / name), "--projector", "1024x768", "--calibration", calib,
+                     "--out", str(tmp_path / name)]) == 0
+    assert main(["placement-error", str(tmp_path / "capture_0"), "--reference", str(tmp_path / "capture_0"),
+                 "--distance", "700", "--out", str(tmp_path / "same")]) == 0
+    assert json.loads((tmp_path / "same" / "report.json").read_text())["rmse"] == 0
+    assert main(["placement-error", str(tmp_path / "capture_1"), "--reference", str(tmp_path / "capture_0"),
+                 "--distance", "700", "--out", str(tmp_path / "moved")]) == 0
+    report = json.loads((tmp_path / "moved" / "report.json").read_text())
+    # Against brute-force nearest neighbours on a sample of the placed points.
+    load = lambda name: np.load(tmp_path / name / "correspondence.npz")["points"]  # noqa: E731
+    placed, ref = (p[np.isfinite(p).all(-1)].astype(np.float64) for p in (load("capture_1"), load("capture_0")))
+    sample = placed[np.random.default_rng(0).choice(len(placed), 100, replace=False)]
+    brute = cdist(sample, ref).min(1)
+    assert np.allclose(scan_distance(sample, ref), brute)
+    assert report["rmse"] > 1.0 and report["points"] == len(placed)

@@ -39,7 +39,8 @@ from .metrics import psnr
 from .run import VirtualCalibration, calibrate_virtual, run_virtual
 
 __all__ = ["PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance", "evaluate_positioning",
-           "feedback_profile", "place_by_feedback", "pose_error", "random_pose_near", "rig_procam", "scan_surface"]
+           "feedback_profile", "place_by_feedback", "pose_error", "random_pose_near", "rig_procam", "scan_distance",
+           "scan_surface"]
 
 # Paper section 5.2: average RMSE as a percentage of the box-projector distance, and that distance.
 PAPER_RMSE_PERCENT = {"near": {"percent": 1.47, "distance_mm": 710}, "far": {"percent": 1.26, "distance_mm": 880}}
@@ -190,6 +191,16 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
     if not points:
         return {"points": np.zeros((0, 3)), "projector": np.zeros(0, dtype=int)}
     return {"points": np.concatenate(points), "projector": np.concatenate(owner)}
+
+
+def scan_distance(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Distance from each scanned point :math:`(N, 3)` to the nearest point of a reference scan
+    :math:`(M, 3)` (same units): how a real placement is scored when the goal is itself a scan of the
+    object at its goal pose rather than a model."""
+    from scipy.spatial import cKDTree
+
+    check(len(points) > 0 and len(reference) > 0, "both scans need points (decode with --calibration)")
+    return cKDTree(reference).query(points, k=1)[0]
 
 
 # --------------------------------------------------------------------------------------- profiles
