@@ -18,7 +18,7 @@ from ..core.checks import check
 from ..core.imageio import read_image
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
-from ..solve import compensate, make_patterns, solve_gain_offset, to_projectable
+from ..solve import SolveResult, compensate, make_patterns, solve_gain_offset, to_projectable
 from ..transport import StateCalibration, Target, build_transport, target_on_camera
 from .metrics import crosstalk, masked_ssim, psnr
 
@@ -151,6 +151,7 @@ class RunResult:
     patterns: list[torch.Tensor]  # per projector, (C, H_j, W_j) uint8
     captures: dict[str, torch.Tensor]  # per state, (C, H, W) float in [0, 1]
     targets: list[dict] = field(default_factory=list)  # per target: name, values, covered, estimate
+    solution: SolveResult | None = None  # the solver's own result (values in its bounds, history)
 
 
 def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
@@ -244,6 +245,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         "bounds_8bit": list(bounds_8bit), "device": str(device),
         "calibration": "oracle (the simulator's exact geometry)" if cal.oracle else "Gray code on the virtual rig",
         "model": model if gain_offset is not None else op.size_report(), "objective": result.objective,
+        "unexplained_fraction": round(op.unexplained(result.patterns), 5),
         "iterations": result.iterations, "scale": op.scale,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "evaluation": ("captured image minus the state's black capture, divided by the target scale, against the "
@@ -256,4 +258,4 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     }
     if gain_offset is not None:
         report["gain_offset_limits"] = {"gain": list(gain_offset[0]), "offset": list(gain_offset[1])}
-    return RunResult(report=report, patterns=patterns, captures=captures, targets=details)
+    return RunResult(report=report, patterns=patterns, captures=captures, targets=details, solution=result)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 from ..calib.response import ResponseCurve
@@ -33,6 +35,25 @@ def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> li
     return out
 
 
+UNEXPLAINED_WARNING = 0.1
+
+
+def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WARNING) -> float:
+    """Warn when the patterns leave more than ``limit`` of the targets' energy unexplained.
+
+    Shipped scenes stay under 0.07 (``benchmarks/stability.py``); past 0.1 the targets cannot be shown
+    apart: no projector baseline, targets asking opposite light along the same rays, more targets
+    than the projectors can carry, or a calibration drowned in noise. Returns the share.
+    """
+    share = op.unexplained(patterns)
+    if share > limit:
+        warnings.warn(f"the patterns leave {share:.0%} of the targets' energy unexplained (over {limit:.0%}): expect "
+                      "faint images and crosstalk. The scene may be ill-posed: projectors too close together, targets "
+                      "too close in depth or asking opposite light along the same rays, more targets than the "
+                      "projectors can carry, or a noisy calibration", stacklevel=3)
+    return share
+
+
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
                   max_iter: int = 300, progress: bool | None = None):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
@@ -55,5 +76,6 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         result = solve_eo(op, bounds, calibrations=calibrations, max_iter=max_iter, progress=progress)
     else:
         result = solve_patterns(op, solver, bounds, max_iter=max_iter, progress=progress)
+    warn_if_ill_posed(op, result.patterns)
     light = [img.cpu() for img in op.to_images(to_projectable(result.patterns, bounds).clamp(0, 1))]
     return result, light, compensate(light, responses)

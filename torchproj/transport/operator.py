@@ -153,6 +153,16 @@ class TransportOperator(nn.Module):
         """``||A p - i||^2`` summed over channels (including the constant merged rows left out)."""
         return self.residual(p).pow(2).sum() + self.constant.sum()
 
+    def unexplained(self, p: torch.Tensor) -> float:
+        """Share of the targets' energy the patterns leave unexplained: ``||A p - i||^2 / ||i||^2``.
+
+        0 means every target is reproduced exactly, 1 is no better than projecting nothing. It stays
+        high whatever the solver when the targets cannot be told apart (too little baseline or depth
+        between them) or ask for opposite light along the same rays.
+        """
+        energy = float(self.rhs.pow(2).sum() + self.constant.sum())
+        return float(self.objective(p)) / energy if energy > 0 else 0.0
+
     def gradient(self, p: torch.Tensor) -> torch.Tensor:
         """Gradient of :meth:`objective` / 2: ``A^T (A p - i)``."""
         return self.A_adjoint(self.residual(p))
