@@ -235,12 +235,12 @@ def cmd_position(args) -> int:
         for proj, pat in zip(scene.projectors, result.patterns):
             write_image(stage / "patterns" / f"{proj.name}.png", pat.float() / 255)
         (stage / "scans").mkdir()
+        goals = {p["name"]: scene.surfaces[p["surface"]] for p in report["positions"]}
         for t in result.trials:
-            size = scene.surfaces[next(p["surface"] for p in report["positions"] if p["name"] == t.position)].size
+            box = goals[t.position]
             np.savez_compressed(stage / "scans" / f"{t.position}_{t.trial}.npz", points=t.scan["points"],
-                                projector=t.scan["projector"], goal_pose=next(
-                                    np.array(p["goal_pose"]) for p in report["positions"] if p["name"] == t.position),
-                                placed_pose=t.placed, start_pose=t.start, box_size=np.array(size))
+                                projector=t.scan["projector"], goal_pose=box.world_from_local, placed_pose=t.placed,
+                                start_pose=t.start, box_size=np.array(box.size))
         positioning_feedback(stage / "feedback.png", result.profiles,
                              [{"position": t.position, "trial": t.trial, "history": t.history, "rmse_mm": t.rmse_mm}
                               for t in result.trials])
