@@ -1,4 +1,4 @@
-"""Sparse CSR construction shared by the simulator and the transport operator."""
+"""Sparse CSR construction and products shared by the simulator and the transport operator."""
 
 from __future__ import annotations
 
@@ -6,15 +6,36 @@ import warnings
 
 import torch
 
-__all__ = ["csr_tensor"]
+__all__ = ["csr_tensor", "spmm"]
+
+_INT32_LIMIT = 2**31 - 1
 
 
 def csr_tensor(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     """A CSR tensor from its arrays, without invariant checks (callers build them sorted).
 
+    Indices are stored as int32 wherever they fit. The CPU's sparse kernels (MKL) take 32-bit
+    indices and torch converts 64-bit ones on every product; on the paper's full-size rig that
+    conversion cost as much as the product itself (``benchmarks/solvers.py`` measures the product).
+
     torch flags CSR support as beta on every construction; the products torchproj uses are stable,
     so that warning is silenced here rather than everywhere.
     """
+    if max(shape) <= _INT32_LIMIT and col.numel() <= _INT32_LIMIT:
+        crow, col = crow.to(torch.int32), col.to(torch.int32)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
         return torch.sparse_csr_tensor(crow, col, val, shape, check_invariants=False)
+
+
+def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """``matrix @ x`` for a CSR matrix and a dense :math:`(N, K)` block, written into ``out``.
+
+    ``addmm`` with ``beta=0`` into a given output is torch's direct path to the sparse kernel:
+    ``matrix @ x`` first fills a zero result and copies it, which doubles the time of a product.
+    ``out`` (:math:`(M, K)`, same dtype and device) lets iterative solvers reuse one buffer; its
+    contents are ignored.
+    """
+    if out is None:
+        out = torch.empty(matrix.shape[0], x.shape[1], dtype=x.dtype, device=x.device)
+    return torch.addmm(out, matrix, x, beta=0, out=out)

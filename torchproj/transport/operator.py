@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ..core.checks import check, check_finite, check_shape
-from ..core.sparse import csr_tensor
+from ..core.sparse import csr_tensor, spmm
 
 __all__ = ["TransportOperator", "NormalEquations", "csr_from_coo"]
 
@@ -35,26 +35,15 @@ def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, sha
     return csr_tensor(crow, c, merged, shape)
 
 
-def _spmm(matrix: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """CSR times a dense (N, C) block.
-
-    torch's CPU kernel is fastest on a few columns at once (RGB: 2.4x faster than three products)
-    but slows down badly on many, so wide blocks go one column at a time.
-    """
-    if x.shape[1] <= 4:
-        return matrix @ x
-    return torch.stack([matrix @ x[:, c] for c in range(x.shape[1])], 1)
-
-
 class _Apply(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, forward_matrix, adjoint_matrix):
         ctx.adjoint = adjoint_matrix
-        return _spmm(forward_matrix, x)
+        return spmm(forward_matrix, x)
 
     @staticmethod
     def backward(ctx, grad):
-        return _spmm(ctx.adjoint, grad.contiguous()), None, None
+        return spmm(ctx.adjoint, grad), None, None
 
 
 class TransportOperator(nn.Module):
@@ -77,6 +66,7 @@ class TransportOperator(nn.Module):
                  row_target: torch.Tensor | None = None, scale: float = 1.0):
         super().__init__()
         check(matrix.layout == torch.sparse_csr, "matrix must be a CSR tensor (torch.sparse_csr)")
+        matrix = csr_tensor(matrix.crow_indices(), matrix.col_indices(), matrix.values(), matrix.shape)
         n_rows, n_cols = matrix.shape
         check_shape(rhs, "rhs", [n_rows, "C"])
         check_finite(rhs, "rhs")
@@ -249,6 +239,21 @@ class TransportOperator(nn.Module):
         return images
 
 
+def _sum_float64(x: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    """Sum of all of x, as accurate as a float64 sum at the speed of a float32 one.
+
+    The objective is a small difference of large terms (the targets' energy ``c`` and
+    ``p^T (Q p - 2 q)``), so one float32 rounding of the total already costs ~1e-6 of it, as much as
+    a solver's stopping tolerance. Partial sums of ``chunk`` values stay in float32 (their rounding
+    errors are independent and mostly cancel); only the partial sums are added in float64, which
+    avoids converting the whole block.
+    """
+    flat = x.reshape(-1)
+    whole = flat.numel() // chunk * chunk
+    partial = flat[:whole].view(-1, chunk).sum(1)
+    return partial.sum(dtype=torch.float64) + flat[whole:].sum(dtype=torch.float64)
+
+
 class NormalEquations:
     """The objective ``||A p - i||^2 + const`` written as ``p^T Q p - 2 q^T p + c`` (per channel).
 
@@ -274,8 +279,8 @@ class NormalEquations:
                        shape=op.shape)
         q_mat = (a.T @ a).tocsr()
         q_mat.sort_indices()
-        Q = csr_tensor(torch.from_numpy(q_mat.indptr).long(), torch.from_numpy(q_mat.indices).long(),
-                 torch.from_numpy(q_mat.data).to(op.val.dtype), q_mat.shape).to(op.val.device)
+        Q = csr_tensor(torch.from_numpy(q_mat.indptr), torch.from_numpy(q_mat.indices),
+                       torch.from_numpy(q_mat.data).to(op.val.dtype), q_mat.shape).to(op.val.device)
         return cls(Q, op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
 
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
@@ -305,13 +310,17 @@ class NormalEquations:
             self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
         return self._jacobi
 
-    def product(self, p: torch.Tensor) -> torch.Tensor:
-        """``Q p`` for :math:`(N_{cols}, C)` p."""
-        return _spmm(self.Q, p)
+    def product(self, p: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """``Q p`` for :math:`(N_{cols}, C)` p, into ``out`` when given (its contents are ignored)."""
+        return spmm(self.Q, p, out)
 
-    def objective(self, p: torch.Tensor, qp: torch.Tensor) -> float:
-        """Objective from p and its product ``Q p``, summed in float64."""
-        return float((p * (qp - self._two_q)).sum(dtype=torch.float64) + self.c.sum())
+    def objective(self, p: torch.Tensor, qp: torch.Tensor, work: torch.Tensor | None = None) -> float:
+        """Objective from p and its product ``Q p``, summed in float64.
+
+        ``work`` (shaped like p) is scratch space, so an iterative solver allocates nothing per call.
+        """
+        work = torch.sub(qp, self._two_q, out=work).mul_(p)
+        return float(_sum_float64(work) + self.c.sum())
 
     def lipschitz(self, iterations: int = 30) -> float:
         """An upper bound of the largest eigenvalue of Q (cached).
@@ -324,9 +333,9 @@ class NormalEquations:
         if self._lipschitz is None:
             x = torch.ones(self.Q.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
             for _ in range(iterations):
-                y = self.Q @ x
+                y = spmm(self.Q, x)
                 x = y / y.norm().clamp_min(1e-30)
-            y = self.Q @ x
+            y = spmm(self.Q, x)
             if float(self.Q.values().min()) >= 0 and bool((x > 0).all()):
                 self._lipschitz = float((y / x).max())
             else:
