@@ -77,6 +77,17 @@ def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_r
     assert (solved / "predicted" / "near.png").is_file()
     for row in report["targets"]:
         assert row["predicted_psnr_db"] > 15
+    # The same bundle with one homography per plane gives what the virtual run gives with them.
+    planar = tmp_path / "planar"
+    assert main(["solve", str(calib), "--targets", "far=astronaut", "near=chelsea", "--out", str(planar),
+                 "--maps", "homography"]) == 0
+    report = json.loads((planar / "report.json").read_text())
+    run = run_virtual(scene, maps="homography")
+    assert report["maps"] == "homography" and sorted(report["homographies"]) == ["far", "near"]
+    assert report["objective"] == pytest.approx(run.report["objective"], rel=1e-4)
+    for state, fits in report["homographies"].items():
+        for ours, theirs in zip(fits, run.report["homographies"][state]):
+            assert ours["p95_px"] < 1 and np.allclose(ours["matrix"], theirs["matrix"], rtol=1e-4, atol=1e-4)
 
 
 def test_bad_capture_folders_are_named(capture_root, tmp_path):

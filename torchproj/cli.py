@@ -179,7 +179,8 @@ def cmd_run(args) -> int:
     if args.gain is not None or args.offset is not None:
         gain_offset = (args.gain or (1.0, 1.0), args.offset or (0.0, 0.0))
     result = run_virtual(scene, solver=args.solver, bounds_8bit=args.bounds, device=args.device,
-                         max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset)
+                         max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
+                         plane_tolerance=args.plane_tolerance)
     report = result.report
     with atomic_output(args.out) as stage:
         (stage / "patterns").mkdir()
@@ -196,12 +197,21 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _add_map_options(p) -> None:
+    p.add_argument("--maps", default="decoded", choices=["decoded", "homography"],
+                   help="camera-to-projector maps: decoded per pixel (default), or one homography per state and "
+                        "projector fitted to them (scenes where each state is one plane)")
+    p.add_argument("--plane-tolerance", type=float, default=1.0, metavar="PX",
+                   help="with --maps homography: the largest 95th-percentile distance (projector pixels) between "
+                        "decoded and fitted coordinates that counts as a plane (default 1)")
+
+
 def _run_markdown(report: dict) -> str:
     m, t = report["model"], report["timings_s"]
     adjusted = "gain_offset_limits" in report
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}", "",
-             f"Calibration: {report['calibration']}.", "",
+             f"Calibration: {report['calibration']}; maps: {report['maps']}.", "",
              f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              f"Evaluation: {report['evaluation']}.", "",
@@ -214,6 +224,12 @@ def _run_markdown(report: dict) -> str:
         if adjusted:
             line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
         lines.append(line)
+    if "homographies" in report:
+        lines += ["", "Homographies (distance from decoded to fitted coordinates, projector pixels):", "",
+                  "| state | projector | median | 95th percentile | decoded pixels |", "|---|---|---|---|---|"]
+        for state, fits in report["homographies"].items():
+            lines += [f"| {state} | {j} | {f['median_px']:.3f} | {f['p95_px']:.3f} | {f['points']} |"
+                      for j, f in enumerate(fits)]
     lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()), ""]
     return "\n".join(lines)
 
@@ -411,7 +427,7 @@ def cmd_solve(args) -> int:
     from .core.imageio import write_image
     from .evaluate import psnr, target_image
     from .solve import make_patterns
-    from .transport import StateCalibration, Target, build_transport, target_on_camera
+    from .transport import StateCalibration, Target, build_transport, planar_calibration, target_on_camera
 
     t0 = time.perf_counter()
     bundle = load_bundle(args.bundle)
@@ -432,6 +448,9 @@ def cmd_solve(args) -> int:
             r = ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1))
         responses.append(r)
     lo, hi = (b / 255 for b in args.bounds)
+    fits = None
+    if args.maps == "homography":
+        states, fits = planar_calibration(states, args.plane_tolerance)
     op = build_transport(states, targets, device=args.device)
     result, light, patterns = make_patterns(op, args.solver, (lo, hi), responses, calibrations=states,
                                             max_iter=args.max_iter)
@@ -454,7 +473,9 @@ def cmd_solve(args) -> int:
                                                    "solve": round(result.time_s, 3)},
                   "predicted": "black capture plus each projector's weight times the light of the decoded cell "
                                "(the calibration's own model; project the patterns and capture to measure)",
-                  "targets": rows}
+                  "targets": rows, "maps": args.maps}
+        if fits is not None:
+            report["homographies"] = {state: [f.as_dict() for f in per] for state, per in fits.items()}
         write_json(stage / "report.json", report)
     print(f"solved {len(targets)} target(s) with {args.solver}: {op.shape[1]} variables, objective "
           f"{result.objective:.4g}; wrote {args.out}/patterns/, predicted/, report.json")
@@ -536,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also optimise one gain per target within these limits (fista; e.g. 0.5,1.5)")
     p.add_argument("--offset", type=_limits, metavar="LO,HI",
                    help="also optimise one offset per target within these limits (fista; e.g. -0.2,0.2)")
+    _add_map_options(p)
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("position", help="the paper's positioning test on the virtual rig: place a box guided only "
@@ -613,6 +635,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI", help="solver bounds, 8-bit units")
     p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
     p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+    _add_map_options(p)
     p.set_defaults(func=cmd_solve)
 
     p = sub.add_parser("decode", help="decode a folder of real Gray-code captures (and triangulate)")

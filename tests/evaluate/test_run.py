@@ -39,6 +39,15 @@ def test_run_writes_a_complete_report(config, tmp_path):
         assert (out / name).is_file(), name
 
 
+def test_run_with_homography_maps_writes_the_fits(config, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(config), "--out", str(out), "--maps", "homography", "--plane-tolerance", "0.8"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["maps"] == "homography" and "homography" in report["timings_s"]
+    assert [len(v) for v in report["homographies"].values()] == [2, 2]
+    assert "Homographies" in (out / "report.md").read_text()
+
+
 def test_bounded_solver_beats_the_baseline_on_the_captures(config):
     scene = parse_scene(yaml.safe_load(config.read_text()))
     cal = calibrate_virtual(scene)  # one calibration, three solvers

@@ -19,7 +19,7 @@ from ..core.imageio import read_image
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
 from ..solve import SolveResult, compensate, make_patterns, solve_gain_offset, to_projectable
-from ..transport import StateCalibration, Target, build_transport, target_on_camera
+from ..transport import StateCalibration, Target, build_transport, planar_calibration, target_on_camera
 from .metrics import crosstalk, masked_ssim, psnr
 
 __all__ = ["RunResult", "VirtualCalibration", "calibrate_virtual", "default_images", "run_virtual", "scene_images",
@@ -156,8 +156,8 @@ class RunResult:
 
 def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
                 device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
-                oracle: bool = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None
-                ) -> RunResult:
+                oracle: bool = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
+                maps: str = "decoded", plane_tolerance: float = 1.0) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -176,6 +176,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             per target with FISTA (:func:`~torchproj.solve.solve_gain_offset`); None asks for the
             images as they are. Metrics then compare with the adjusted image ``g t + o``, and the
             report also scores against the original.
+        maps: ``"decoded"`` (default: the per-pixel Gray-code maps) or ``"homography"`` (one fitted
+            homography per state and projector, :func:`~torchproj.transport.planar_calibration`;
+            for scenes where each state is one plane; refused otherwise).
+        plane_tolerance: with ``maps="homography"``, the largest 95th-percentile distance
+            (projector pixels) between decoded and fitted coordinates that counts as a plane.
     """
     check(solver in SOLVER_NAMES, f"unknown solver {solver!r}; choose from {list(SOLVER_NAMES)}")
     check(gain_offset is None or solver == "fista", "gain_offset works with the fista solver; drop --solver or "
@@ -186,19 +191,25 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     images = scene_images(scene) if images is None else images
     check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
     t_total = time.perf_counter()
+    check(maps in ("decoded", "homography"), f"maps must be 'decoded' or 'homography', got {maps!r}")
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle)
     timings = {"calibrate": cal.seconds if calibration is None else 0.0}
+    states, fits = cal.states, None
+    if maps == "homography":
+        t0 = time.perf_counter()
+        states, fits = planar_calibration(cal.states, plane_tolerance)
+        timings["homography"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     targets = [Target(spec.state, img.to(torch.float32), name=spec.name,
                       mask=None if spec.surfaces is None else cal.rig.surface_mask(spec.state, spec.surfaces).cpu())
                for spec, img in zip(specs, images)]
     if gain_offset is None:
-        op = build_transport(cal.states, targets, device=device)
+        op = build_transport(states, targets, device=device)
     else:
         # Unmerged rows, so that any per-target g t + o is an exact right-hand side of the same A.
-        op = build_transport(cal.states, targets, merge=False, device=device)
-        flat = build_transport(cal.states, [replace(t, image=torch.ones_like(t.image)) for t in targets],
+        op = build_transport(states, targets, merge=False, device=device)
+        flat = build_transport(states, [replace(t, image=torch.ones_like(t.image)) for t in targets],
                                merge=False, scale=op.scale, device=device)
     timings["transport"] = time.perf_counter() - t0
 
@@ -211,7 +222,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         light = to_projectable(result.patterns, (lo, hi)).clamp(0, 1)
         patterns = compensate([img.cpu() for img in op.to_images(light)], cal.responses)
     else:
-        result, _, patterns = make_patterns(op, solver, (lo, hi), cal.responses, calibrations=cal.states,
+        result, _, patterns = make_patterns(op, solver, (lo, hi), cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress)
     timings["solve"] = time.perf_counter() - t0
 
@@ -220,7 +231,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     captures = {state: cal.rig.capture(state, shown)[0].cpu() for state in dict.fromkeys(t.state for t in targets)}
     rows, details = [], []
     for k, target in enumerate(targets):
-        lit = cal.states[target.state].lit()
+        lit = states[target.state].lit()
         region = lit if target.mask is None else lit & target.mask
         values, covered = target_on_camera(target, region)
         estimate = ((captures[target.state] - cal.black[target.state]) / op.scale).clamp(0, 1)
@@ -244,6 +255,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         "scene": scene.name, "solver": solver if gain_offset is None else "fista+gain/offset",
         "bounds_8bit": list(bounds_8bit), "device": str(device),
         "calibration": "oracle (the simulator's exact geometry)" if cal.oracle else "Gray code on the virtual rig",
+        "maps": maps,
         "model": model if gain_offset is not None else op.size_report(), "objective": result.objective,
         "unexplained_fraction": round(op.unexplained(result.patterns), 5),
         "iterations": result.iterations, "scale": op.scale,
@@ -256,6 +268,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                           "psnr_db_original and ssim_original with t" if gain_offset is not None else "")),
         "targets": rows,
     }
+    if fits is not None:
+        report["homographies"] = {state: [f.as_dict() for f in per] for state, per in fits.items()}
     if gain_offset is not None:
         report["gain_offset_limits"] = {"gain": list(gain_offset[0]), "offset": list(gain_offset[1])}
     return RunResult(report=report, patterns=patterns, captures=captures, targets=details, solution=result)
