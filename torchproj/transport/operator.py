@@ -239,21 +239,6 @@ class TransportOperator(nn.Module):
         return images
 
 
-def _sum_float64(x: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
-    """Sum of all of x, as accurate as a float64 sum at the speed of a float32 one.
-
-    The objective is a small difference of large terms (the targets' energy ``c`` and
-    ``p^T (Q p - 2 q)``), so one float32 rounding of the total already costs ~1e-6 of it, as much as
-    a solver's stopping tolerance. Partial sums of ``chunk`` values stay in float32 (their rounding
-    errors are independent and mostly cancel); only the partial sums are added in float64, which
-    avoids converting the whole block.
-    """
-    flat = x.reshape(-1)
-    whole = flat.numel() // chunk * chunk
-    partial = flat[:whole].view(-1, chunk).sum(1)
-    return partial.sum(dtype=torch.float64) + flat[whole:].sum(dtype=torch.float64)
-
-
 class NormalEquations:
     """The objective ``||A p - i||^2 + const`` written as ``p^T Q p - 2 q^T p + c`` (per channel).
 
@@ -317,10 +302,13 @@ class NormalEquations:
     def objective(self, p: torch.Tensor, qp: torch.Tensor, work: torch.Tensor | None = None) -> float:
         """Objective from p and its product ``Q p``, summed in float64.
 
-        ``work`` (shaped like p) is scratch space, so an iterative solver allocates nothing per call.
+        The objective is a small difference of large terms (the targets' energy ``c`` and
+        ``p^T (Q p - 2 q)``): a float32 total is off by ~1e-6 of it, as much as a solver's stopping
+        tolerance, and then rounding decides when FISTA restarts and stops. ``work`` (shaped like p)
+        is scratch space, so an iterative solver allocates nothing per call.
         """
         work = torch.sub(qp, self._two_q, out=work).mul_(p)
-        return float(_sum_float64(work) + self.c.sum())
+        return float(work.sum(dtype=torch.float64) + self.c.sum())
 
     def lipschitz(self, iterations: int = 30) -> float:
         """An upper bound of the largest eigenvalue of Q (cached).
