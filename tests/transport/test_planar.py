@@ -123,3 +123,40 @@ def test_too_few_points_are_refused():
     xy[0, :3] = torch.tensor(np.array([[0, 0], [1, 0], [2, 0]], dtype=np.float32))
     with pytest.raises(InputError, match="at least 4 decoded pixels"):
         fit_homography(xy)
+
+
+@pytest.fixture(scope="module")
+def board():
+    from torchproj.calib import decode_gray, read_graycode_folder, refine_subpixel
+
+    from ..helpers import CHESSBOARD
+
+    if not (CHESSBOARD / "capture_0" / "graycode_41.png").is_file():
+        pytest.skip(f"real captures not found at {CHESSBOARD} (they live in ../shared/data beside the checkout)")
+    cap = read_graycode_folder(CHESSBOARD / "capture_0", (1024, 768))
+    dec = decode_gray(cap.patterns, cap.white, cap.black, (1024, 768))
+    white = np.round(cap.white[0].numpy() * 255).astype(np.uint8)
+    ok, corners = cv2.findChessboardCorners(white, (9, 7))
+    assert ok
+    hull = np.zeros(white.shape, np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(corners.reshape(-1, 2)).astype(np.int32), 1)
+    return refine_subpixel(dec.prj_xy, dec.valid), torch.from_numpy(hull.astype(bool))
+
+
+def test_the_real_chessboard_is_one_plane_and_the_whole_frame_is_not(board):
+    xy, hull = board
+    on_board = torch.where(hull[..., None], xy, float("nan"))
+    fit = fit_homography(on_board)
+    # A real plane through real lenses: within the default tolerance of one homography.
+    assert fit.p95 < 1.0 and fit.points > 100_000
+    ok = torch.isfinite(on_board).all(-1)
+    cam = pixel_grid(*xy.shape[:2], dtype=torch.float64)[ok]
+    ref, _ = cv2.findHomography(cam.numpy(), on_board[ok].double().numpy(), cv2.LMEDS)
+    gap = (apply(fit.matrix, cam) - apply(torch.from_numpy(ref), cam)).norm(dim=-1)
+    assert float(gap.quantile(0.95)) < 0.2  # the same plane as OpenCV's robust fit, to a fifth of a cell
+    # The board together with the room around it is not one plane, and is refused.
+    weight = torch.ones(xy.shape[:2])
+    with pytest.raises(InputError, match="not one plane"):
+        planar_calibration({"room": StateCalibration([xy], [weight], [(1024, 768)])})
+    planar, _ = planar_calibration({"board": StateCalibration([on_board], [weight], [(1024, 768)])})
+    assert torch.equal(planar["board"].lit(), ok)
