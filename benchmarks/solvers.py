@@ -155,7 +155,8 @@ def run_size(label: str, projector, camera, log=print) -> dict:
 
     f0 = channel0(solve_fista(op, (0, 1), max_iter=3000, tol=1e-11).patterns[:, 0].double().numpy())
     lsq_rows = []
-    for cap in (1, 3, 10, 30):
+    # Caps close enough together to bracket the time lsq_linear needs for a 1e-3 gap (each run starts afresh).
+    for cap in (1, 3, 10, 14, 18, 22, 26, 30):
         t0 = time.perf_counter()
         sol = lsq_linear(A, b0, bounds=(0, 1), lsmr_tol="auto", max_iter=cap, lsmr_maxiter=200)
         t_lsq = time.perf_counter() - t0
@@ -165,6 +166,7 @@ def run_size(label: str, projector, camera, log=print) -> dict:
         if gap0 <= 1e-3 or t_lsq > 120:
             break
     lsq_reach = next((r for r in lsq_rows if r["relative_gap"] <= 1e-3), None)
+    lsq_short = [r for r in lsq_rows if r["relative_gap"] > 1e-3]  # runs that stopped before the gap: a lower bound
     return {"size": label, "projector": list(projector), "camera": list(camera), "calibrate_s": round(t_cal, 2),
             "build_s": round(t_build, 3),
             "model": {"variables": op.shape[1], "all_projector_cells": cells, "rows_merged": op.shape[0],
@@ -175,6 +177,8 @@ def run_size(label: str, projector, camera, log=print) -> dict:
             "fista_to_1e-3": to_1e3, "lsq_linear_channel0": lsq_rows,
             "lsq_linear_speedup_at_1e-3": (round(lsq_reach["time_s"] / to_1e3["time_s"], 1)
                                            if lsq_reach and to_1e3["time_s"] else None),
+            "lsq_linear_speedup_at_1e-3_at_least": (round(lsq_short[-1]["time_s"] / to_1e3["time_s"], 1)
+                                                    if lsq_short and to_1e3["time_s"] else None),
             "curves": curves}
 
 
@@ -247,7 +251,9 @@ def markdown(result) -> str:
                   f"process's peak (which holds the whole benchmark: {t['peak_rss_gb']:.2f} GB). lsq_linear on one "
                   f"channel: " + ", ".join(f"{q['iterations']} it {q['time_s']:.1f} s gap {q['relative_gap']:.1e}"
                                            for q in r["lsq_linear_channel0"])
-                  + (f"; FISTA (3 channels) is {r['lsq_linear_speedup_at_1e-3']}x faster at a 1e-3 gap."
+                  + (f"; at a 1e-3 gap FISTA (3 channels) is between {r['lsq_linear_speedup_at_1e-3_at_least']}x "
+                     f"(lsq_linear's last run short of the gap) and {r['lsq_linear_speedup_at_1e-3']}x (its first run "
+                     "that reached it) faster."
                      if r["lsq_linear_speedup_at_1e-3"] else "; lsq_linear did not reach a 1e-3 gap."), "",
                   "| method | bounds | time (s) | iterations | gap | model PSNR (dB) | capture PSNR (dB) | capture SSIM | "
                   "x floor |", "|---|---|---|---|---|---|---|---|---|"]
