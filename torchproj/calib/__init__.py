@@ -3,7 +3,8 @@
 from .acquire import OpenCVCamera, OpenCVDisplay, capture_sequence
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
-from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel
+from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel, sequence_bits
+from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .pipeline import ProjectorCalibration, calibrate_projector
 from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
@@ -17,6 +18,7 @@ __all__ = [
     "DecodingError",
     "GrayDecoding",
     "GraycodeCapture",
+    "HomographyFit",
     "OpenCVCamera",
     "OpenCVDisplay",
     "ProCamCalibration",
@@ -25,13 +27,16 @@ __all__ = [
     "calibrate_folders",
     "capture_sequence",
     "calibrate_projector",
+    "check_plane",
     "decode_gray",
     "decoding_error",
     "fill_holes",
+    "fit_homography",
     "fit_plane",
     "fit_response",
     "graycode_bits",
     "graycode_patterns",
+    "homography_map",
     "inverse_map",
     "load_bundle",
     "measure_ramp",
@@ -39,6 +44,7 @@ __all__ = [
     "read_graycode_folder",
     "read_opencv_calibration",
     "refine_subpixel",
+    "sequence_bits",
     "simulate_calibration",
     "triangulate",
     "write_bundle",

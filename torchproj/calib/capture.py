@@ -17,7 +17,7 @@ import torch
 
 from ..core.errors import CaptureError
 from ..core.imageio import read_image, write_image
-from .graycode import graycode_bits
+from .graycode import sequence_bits
 
 __all__ = ["GraycodeCapture", "read_graycode_folder", "write_graycode_folder", "DEFAULT_NAMES",
            "RAMP_NAMES"]
@@ -44,13 +44,15 @@ class GraycodeCapture:
 
 
 def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, int],
-                         names: str = DEFAULT_NAMES) -> GraycodeCapture:
+                         names: str = DEFAULT_NAMES, bits: int | tuple[int, int] | None = None) -> GraycodeCapture:
     """Read and check a capture folder.
 
     Args:
         folder: the folder.
         projector_size: ``(width, height)`` of the projector that showed the sequence.
         names: file name template, formatted with the image index (``graycode_{:02d}.png``).
+        bits: pattern pairs per axis of a shortened sequence
+            (:func:`~torchproj.calib.graycode.sequence_bits`); None: the full sequence.
 
     Raises:
         CaptureError: naming the file and what to do, for a missing folder or image, an unreadable
@@ -59,7 +61,7 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
     folder = Path(folder)
     if not folder.is_dir():
         raise CaptureError(f"{folder}: capture folder not found")
-    nx, ny = graycode_bits(*projector_size)
+    nx, ny = sequence_bits(*projector_size, bits)
     count = 2 * (nx + ny) + 2
     paths = [folder / names.format(i) for i in range(count)]
     missing = [p.name for p in paths if not p.is_file()]
@@ -68,11 +70,12 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
             f"{folder}: expected {count} images for a {projector_size[0]}x{projector_size[1]} projector "
             f"({2 * nx} column + {2 * ny} row Gray-code images, then white, then black) named like "
             f"{paths[0].name}; missing {len(missing)}: {', '.join(missing[:4])}"
-            f"{' ...' if len(missing) > 4 else ''} (check --projector and the name template)")
+            f"{' ...' if len(missing) > 4 else ''} (check --projector, --bits and the name template)")
     extra = folder / names.format(count)
     if extra.is_file():
         raise CaptureError(f"{extra}: one image more than a {projector_size[0]}x{projector_size[1]} projector's "
-                           f"{count}; check --projector, or move extra files out of the folder")
+                           f"{count} ({nx} column + {ny} row bits); check --projector and --bits, or move extra "
+                           "files out of the folder")
     # PNG decoding releases the GIL: read on a few threads.
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         images = list(pool.map(read_image, paths))

@@ -9,6 +9,12 @@ The decoder follows the semantics of OpenCV's ``cv2.structured_light.GrayCodePat
 - column bits come first, most significant bit first, then row bits; the Gray code is turned into
   a binary number; decoded coordinates outside the projector image are invalid.
 
+A shortened sequence keeps only the first (most significant) ``k`` of the ``n`` pattern pairs per
+axis, ``bits=(kx, ky)``: they are exactly the Gray code of the block of ``2^(n-k)`` cells a pixel
+falls in (the top bits of a Gray code are the Gray code of the top bits), so it decodes to the
+block's centre. Such a map is only usable through a model that the coarse blocks pin down, one
+homography per plane (:mod:`torchproj.calib.homography`).
+
 Thresholds are in 8-bit units whatever the file depth (OpenCV's defaults: white 5, black 40).
 Coordinates follow :mod:`torchproj.core.conventions` (a decoded value is the integer centre of the
 LCD cell that lit the pixel).
@@ -26,7 +32,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 
-__all__ = ["GrayDecoding", "graycode_patterns", "graycode_bits", "decode_gray", "refine_subpixel"]
+__all__ = ["GrayDecoding", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
 
@@ -36,18 +42,49 @@ def graycode_bits(width: int, height: int) -> tuple[int, int]:
     return math.ceil(math.log2(width)), math.ceil(math.log2(height))
 
 
-def graycode_patterns(width: int, height: int) -> torch.Tensor:
-    """The Gray-code sequence of a projector, then white and black.
+def sequence_bits(width: int, height: int, bits: int | tuple[int, int] | None = None) -> tuple[int, int]:
+    """The pattern pairs per axis a sequence shows: all of them (None), or the first ``bits``.
+
+    Args:
+        bits: None for the full sequence, one number for both axes (at most the axis's own count
+            is used), or ``(kx, ky)``. At least 2 per axis: the blocks of a shortened sequence are
+            read through a homography, and one bit shows a single block edge per axis, too few
+            lines to pin one down (:func:`~torchproj.calib.fit_homography`).
 
     Returns:
-        :math:`(2 (n_x + n_y) + 2, 1, H, W)` float patterns in {0, 1}: pattern/inverse pairs
+        ``(kx, ky)``, each between 2 (or the axis's count, if smaller) and the axis's
+        :func:`graycode_bits`.
+    """
+    nx, ny = graycode_bits(width, height)
+    if bits is None:
+        return nx, ny
+    kx, ky = (bits, bits) if isinstance(bits, int) else (int(b) for b in bits)
+    check(kx >= min(2, nx) and ky >= min(2, ny),
+          f"bits must be at least 2 Gray-code bits per axis (a homography needs two block edges per axis), got {bits}")
+    if isinstance(bits, int):
+        return min(kx, nx), min(ky, ny)
+    check(kx <= nx and ky <= ny, f"bits must be at most ({nx}, {ny}) for a {width}x{height} projector, got {tuple(bits)}")
+    return kx, ky
+
+
+def graycode_patterns(width: int, height: int, bits: int | tuple[int, int] | None = None) -> torch.Tensor:
+    """The Gray-code sequence of a projector, then white and black.
+
+    Args:
+        bits: keep only the first pattern pairs per axis (:func:`sequence_bits`); None: all.
+
+    Returns:
+        :math:`(2 (k_x + k_y) + 2, 1, H, W)` float patterns in {0, 1}: pattern/inverse pairs
         (columns first, most significant bit first), then all-white, then all-black. This is the
         order of a capture folder (``graycode_00.png`` ...).
     """
+    nx, _ = graycode_bits(width, height)
+    kx, ky = sequence_bits(width, height, bits)
     gen = cv2.structured_light.GrayCodePattern.create(width, height)
     ok, patterns = gen.generate()
     check(bool(ok), f"OpenCV could not generate Gray code for {width}x{height}")
-    stack = np.stack(list(patterns) + [np.full((height, width), 255, np.uint8), np.zeros((height, width), np.uint8)])
+    patterns = list(patterns[:2 * kx]) + list(patterns[2 * nx:2 * (nx + ky)])
+    stack = np.stack(patterns + [np.full((height, width), 255, np.uint8), np.zeros((height, width), np.uint8)])
     return torch.from_numpy(stack).float().div_(255.0)[:, None]
 
 
@@ -61,12 +98,15 @@ class GrayDecoding:
         lit: :math:`(H, W)` bool, the shadow mask (``|white - black| > black_threshold``).
         contrast: :math:`(H, W)` white minus black, in [0, 1] units (a decoding confidence and the
             radiometric weight of this projector at each pixel).
+        block: ``(bx, by)`` projector cells per decoded value: ``(1, 1)`` for a full sequence; for
+            a shortened one ``prj_xy`` is the centre of a block of that many cells.
     """
 
     prj_xy: torch.Tensor
     valid: torch.Tensor
     lit: torch.Tensor
     contrast: torch.Tensor
+    block: tuple[int, int] = (1, 1)
 
     @property
     def valid_fraction(self) -> float:
@@ -91,44 +131,52 @@ def _gray_to_binary(bits: torch.Tensor) -> torch.Tensor:
 
 
 def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, projector_size: tuple[int, int],
-                white_threshold: float = 5, black_threshold: float = 40) -> GrayDecoding:
+                white_threshold: float = 5, black_threshold: float = 40,
+                bits: int | tuple[int, int] | None = None) -> GrayDecoding:
     """Decode a Gray-code capture into per-pixel projector coordinates.
 
     Args:
         patterns: :math:`(N, H, W)` or :math:`(N, C, H, W)` captures of the pattern/inverse pairs,
-            in [0, 1], in :func:`graycode_patterns` order (N = 2 (n_x + n_y)).
+            in [0, 1], in :func:`graycode_patterns` order (N = 2 (k_x + k_y)).
         white: :math:`(H, W)` or :math:`(C, H, W)` capture of the all-white image.
         black: same, all-black.
         projector_size: ``(width, height)`` of the projector.
         white_threshold: minimum ``|pattern - inverse|`` (8-bit units) for a reliable bit.
         black_threshold: minimum ``|white - black|`` (8-bit units) for a lit pixel.
+        bits: the pattern pairs per axis the sequence showed (:func:`sequence_bits`); None: all.
 
     Returns:
-        a :class:`GrayDecoding`.
+        a :class:`GrayDecoding`; with a shortened sequence, ``prj_xy`` holds the centre of the cells
+        of the decoded block that lie inside the projector image.
     """
     width, height = projector_size
     nx, ny = graycode_bits(width, height)
+    kx, ky = sequence_bits(width, height, bits)
     imgs = _grey(patterns) * 255.0
     white8 = _grey(white[None] if white.dim() <= 3 else white)[0] * 255.0
     black8 = _grey(black[None] if black.dim() <= 3 else black)[0] * 255.0
     sizes = check_shape(imgs, "patterns", ["N", "H", "W"])
-    check(sizes["N"] == 2 * (nx + ny),
-          f"patterns must hold {2 * (nx + ny)} images for a {width}x{height} projector "
-          f"({nx} column + {ny} row bits, each a pattern/inverse pair), got {sizes['N']}")
+    check(sizes["N"] == 2 * (kx + ky),
+          f"patterns must hold {2 * (kx + ky)} images for a {width}x{height} projector "
+          f"({kx} column + {ky} row bits, each a pattern/inverse pair), got {sizes['N']}")
     check_shape(white8, "white", [sizes["H"], sizes["W"]])
     check_shape(black8, "black", [sizes["H"], sizes["W"]])
 
     pos, neg = imgs[0::2], imgs[1::2]
-    bits = pos > neg
+    bits_seen = pos > neg
     reliable = ((pos - neg).abs() >= white_threshold - _EPS).all(0)
-    x = _gray_to_binary(bits[:nx])
-    y = _gray_to_binary(bits[nx:])
+    block = (2 ** (nx - kx), 2 ** (ny - ky))
+    # A block index names cells [b * block, (b + 1) * block - 1], cut at the image edge; its
+    # coordinate is the centre of the cells inside (the cell itself for a full sequence).
+    first = [_gray_to_binary(bits_seen[:kx]) * block[0], _gray_to_binary(bits_seen[kx:]) * block[1]]
+    centre = [(f + torch.clamp(f + b, max=size) - 1).to(torch.float32) / 2
+              for f, b, size in zip(first, block, (width, height))]
     contrast = white8 - black8
     lit = contrast.abs() > black_threshold + _EPS
-    valid = lit & reliable & (x < width) & (y < height)
-    prj_xy = torch.stack([x, y], -1).to(torch.float32)
+    valid = lit & reliable & (first[0] < width) & (first[1] < height)
+    prj_xy = torch.stack(centre, -1)
     prj_xy[~valid] = float("nan")
-    return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast / 255.0)
+    return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast / 255.0, block=block)
 
 
 def _offset_kernels(window: int, dtype, device) -> torch.Tensor:

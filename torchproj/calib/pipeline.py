@@ -10,6 +10,7 @@ import torch
 from ..core.checks import check
 from .capture import GraycodeCapture
 from .graycode import GrayDecoding, decode_gray, refine_subpixel
+from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .response import ResponseCurve, fit_response, measure_ramp
 
@@ -30,6 +31,7 @@ class ProjectorCalibration:
         response: fitted response curve, if the capture held a ramp.
         ramp: ``(levels (L,), measured (L, C))``, the points the curve was fitted to, or None.
         timings_s: seconds spent in each step.
+        homography: for a shortened sequence, the homography ``prj_xy`` comes from; else None.
     """
 
     decoding: GrayDecoding
@@ -39,12 +41,18 @@ class ProjectorCalibration:
     response: ResponseCurve | None
     ramp: tuple[torch.Tensor, torch.Tensor] | None
     timings_s: dict
+    homography: HomographyFit | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
                         black_threshold: float = 40, subpixel: bool = True, max_hole: int = 16,
-                        ramp_steps: int = 32) -> ProjectorCalibration:
+                        ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
+                        plane_tolerance: float = 1.0) -> ProjectorCalibration:
     """Decode, refine, fill, invert and fit the response of one capture.
+
+    A shortened sequence (``bits``) decodes to blocks of cells only. Its map is then one
+    homography fitted to the blocks (:mod:`torchproj.calib.homography`), which needs the scene
+    this projector lights to be one plane: a map that is not is refused.
 
     Args:
         capture: the images (:func:`~torchproj.calib.read_graycode_folder` or the virtual rig).
@@ -53,17 +61,32 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         subpixel: refine coordinates by the local affine fit (:func:`refine_subpixel`).
         max_hole: largest hole (pixels) filled in the forward and inverse maps; 0 disables.
         ramp_steps: bars in the ramp pattern, when the capture holds one.
+        bits: pattern pairs per axis the capture holds (:func:`~torchproj.calib.sequence_bits`);
+            None: the full sequence.
+        plane_tolerance: with a shortened sequence, the largest 95th-percentile residual
+            (projector pixels, :func:`~torchproj.calib.fit_homography`) that counts as a plane.
     """
     check(max_hole >= 0, f"max_hole must be >= 0, got {max_hole}")
     timings = {}
     t0 = time.perf_counter()
     dec = decode_gray(capture.patterns, capture.white, capture.black, projector_size,
-                      white_threshold=white_threshold, black_threshold=black_threshold)
+                      white_threshold=white_threshold, black_threshold=black_threshold, bits=bits)
     timings["decode"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    prj_xy = refine_subpixel(dec.prj_xy, dec.valid) if subpixel else dec.prj_xy.clone()
-    if max_hole:
-        prj_xy = fill_holes(prj_xy, max_hole)
+    fit = None
+    if dec.block != (1, 1):
+        fit = fit_homography(dec.prj_xy, block=dec.block)
+        check_plane(fit, plane_tolerance, f"a {dec.block[0]}x{dec.block[1]}-cell Gray-code block map",
+                    "use the full Gray-code sequence (no --bits) for a scene that is not one plane")
+        # The fitted map covers the decoded pixels and the small holes between them.
+        covered = dec.prj_xy.clone()
+        if max_hole:
+            covered = fill_holes(covered, max_hole)
+        prj_xy = homography_map(fit.matrix, torch.isfinite(covered).all(-1), projector_size)
+    else:
+        prj_xy = refine_subpixel(dec.prj_xy, dec.valid) if subpixel else dec.prj_xy.clone()
+        if max_hole:
+            prj_xy = fill_holes(prj_xy, max_hole)
     cam_xy, count = inverse_map(prj_xy, projector_size)
     if max_hole:
         cam_xy = fill_holes(cam_xy, max_hole)
@@ -71,10 +94,13 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     response = ramp = None
     if capture.ramp is not None:
         t0 = time.perf_counter()
-        levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, dec.prj_xy[..., 0],
+        # Ramp bars are told apart by projector column: the decoded cell, or the fitted coordinate
+        # where blocks are wider than a bar.
+        columns = dec.prj_xy[..., 0] if fit is None else prj_xy[..., 0]
+        levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, columns,
                                         projector_size[0], ramp_steps)
         response = fit_response(levels, measured)
         ramp = (levels, measured)
         timings["response"] = time.perf_counter() - t0
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
-                                ramp=ramp, timings_s=timings)
+                                ramp=ramp, timings_s=timings, homography=fit)

@@ -15,15 +15,16 @@ __all__ = ["simulate_calibration", "DecodingError", "decoding_error"]
 
 
 def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp_steps: int = 32,
-                         noise: bool = True) -> GraycodeCapture:
+                         noise: bool = True, bits: int | tuple[int, int] | None = None) -> GraycodeCapture:
     """Capture the calibration sequence of one projector in one state on the virtual rig.
 
-    The projector shows its Gray code, white, black and the ramp and mirrored ramp; the other
-    projectors stay on showing black, as on a real bench.
+    The projector shows its Gray code (the first ``bits`` pairs per axis of it, if given), white,
+    black and the ramp and mirrored ramp; the other projectors stay on showing black, as on a real
+    bench.
     """
     index = projector if isinstance(projector, int) else [p.name for p in rig.scene.projectors].index(projector)
     proj = rig.scene.projectors[index]
-    gray = graycode_patterns(proj.width, proj.height)
+    gray = graycode_patterns(proj.width, proj.height, bits)
     ramps = torch.cat([ramp_pattern(proj.width, proj.height, ramp_steps),
                        ramp_pattern(proj.width, proj.height, ramp_steps, mirrored=True)])
     images = rig.capture(state, {index: torch.cat([gray, ramps])}, noise=noise)
