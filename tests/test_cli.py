@@ -49,6 +49,20 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
     assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
 
 
+def test_simulate_a_shortened_sequence_checks_the_fitted_maps(tmp_path):
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(dict(small_config(camera=(240, 180), projector=(128, 96)), name="small")))
+    out = tmp_path / "sim"
+    assert main(["simulate", str(path), "--out", str(out), "--bits", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    for row in report["calibrations"]:
+        # 16-cell blocks decoded, a map within a tenth of a cell of the simulator's truth fitted to them.
+        assert row["block_cells"] == [16, 16] and row["decoding_integer"]["rms_px"] > 4
+        assert row["decoding_subpixel"]["rms_px"] < 0.1
+        assert abs(row["response_fit"]["b"][0] - row["response_true_b"][0]) < 0.1
+    assert "| 16x16 |" in (out / "report.md").read_text()
+
+
 def test_failed_decode_writes_nothing(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()

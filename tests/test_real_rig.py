@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (calibrate_folders, graycode_patterns, load_bundle, simulate_calibration,
-                             write_graycode_folder)
+from torchproj.calib import (calibrate_folders, graycode_patterns, load_bundle, read_graycode_folder,
+                             simulate_calibration, write_graycode_folder)
 from torchproj.cli import main
 from torchproj.core import CaptureError, read_image, write_image
 from torchproj.evaluate import run_virtual
@@ -90,6 +90,33 @@ def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_r
         for j, theirs in zip(in_run_order, run.report["homographies"][state]):
             ours = fits[j]
             assert ours["p95_px"] < 1 and np.allclose(ours["matrix"], theirs["matrix"], rtol=1e-4, atol=1e-4)
+
+
+def test_a_shortened_sequence_from_folders_matches_the_virtual_run(scene, tmp_path):
+    assert main(["sequence", "--projector", "256x192", "--bits", "3", "--out", str(tmp_path / "seq")]) == 0
+    manifest = json.loads((tmp_path / "seq" / "sequence.json").read_text())
+    assert manifest["bits"] == [3, 3] and len(manifest["images"]) == 16
+    assert [e["bit"] for e in manifest["images"][:12:2]] == [0, 1, 2, 0, 1, 2]
+    assert torch.equal(read_image(tmp_path / "seq" / "graycode_07.png"), graycode_patterns(256, 192, 3)[7])
+    # The rig's captures of that sequence, stored as a bench would store them (sequence.json beside).
+    root = tmp_path / "captures"
+    rig = VirtualRig(scene)
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            folder = root / st.name / p.name
+            write_graycode_folder(folder, simulate_calibration(rig, st.name, j, bits=3), bits=8)
+            (folder / "sequence.json").write_text((tmp_path / "seq" / "sequence.json").read_text())
+    calib, solved = tmp_path / "calib", tmp_path / "solved"
+    assert main(["calibrate", str(root), "--out", str(calib)]) == 0
+    bundle = load_bundle(calib)
+    assert bundle.bits == [(3, 3), (3, 3)] and sorted(bundle.homographies) == ["far", "near"]
+    assert main(["solve", str(calib), "--targets", "far=astronaut", "near=chelsea", "--out", str(solved)]) == 0
+    report = json.loads((solved / "report.json").read_text())
+    run = run_virtual(scene, bits=3)
+    assert report["objective"] == pytest.approx(run.report["objective"], rel=1e-4)
+    # Read with the full sequence's count, the folder is refused with the fix named.
+    with pytest.raises(CaptureError, match=r"missing 20: .*\(check --projector, --bits"):
+        read_graycode_folder(root / "far" / "upper", (256, 192))
 
 
 def test_bad_capture_folders_are_named(capture_root, tmp_path):

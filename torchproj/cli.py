@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from . import __version__
-from .core.errors import TorchprojError
+from .core.errors import InputError, TorchprojError
 from .core.output import atomic_output, write_json
 
 __all__ = ["main", "build_parser"]
@@ -82,14 +82,18 @@ def cmd_simulate(args) -> int:
             geo = rig.geometry(state)
             timings["cast"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            capture = simulate_calibration(rig, state, j, noise=not args.no_noise)
+            capture = simulate_calibration(rig, state, j, noise=not args.no_noise, bits=args.bits)
             timings["capture"] += time.perf_counter() - t0
             if args.write_captures:
                 folder = stage / "captures" / state / proj.name
                 write_graycode_folder(folder, capture, bits=scene.camera.bit_depth)
-                capture = read_graycode_folder(folder, (proj.width, proj.height))
+                capture = read_graycode_folder(folder, (proj.width, proj.height), bits=args.bits)
             t0 = time.perf_counter()
-            cal = calibrate_projector(capture, (proj.width, proj.height))
+            try:
+                cal = calibrate_projector(capture, (proj.width, proj.height), bits=args.bits,
+                                          plane_tolerance=args.plane_tolerance)
+            except InputError as exc:
+                raise InputError(f"state {state!r}, projector {proj.name!r}: {exc}") from None
             timings["calibrate"] += time.perf_counter() - t0
             truth = geo.prj_xy[j]
             err_int = decoding_error(cal.decoding.prj_xy, truth)
@@ -106,7 +110,7 @@ def cmd_simulate(args) -> int:
                                 prj_xy_integer=cal.decoding.prj_xy.numpy(), cam_xy=cal.cam_xy.numpy(),
                                 count=cal.count.numpy(), contrast=cal.decoding.contrast.numpy())
             results.append({
-                "state": state, "projector": proj.name,
+                "state": state, "projector": proj.name, "block_cells": list(cal.decoding.block),
                 "decoding_integer": err_int.as_dict(), "decoding_subpixel": err_sub.as_dict(),
                 "response_fit": cal.response.as_dict(), "response_true_b": list(proj.response_b),
                 "compensated_ramp_sum": {"mean": float(flat.mean()), "std": float(flat.std())},
@@ -133,16 +137,19 @@ def _simulate_markdown(report: dict) -> str:
     lines = [f"# Virtual-rig calibration: {report['scene']}", "",
              "Decoded coordinates against the simulator's truth, over the camera pixels each projector truly "
              "lights. `exact`: decoded cell equals the true cell; RMS: distance to the continuous true "
-             "coordinate (projector pixels). Flatness: compensated ramp plus its mirror, normalised by "
-             "white - black (ideal 1, std 0).", "",
-             "| state | projector | decoded | exact | RMS integer | RMS sub-pixel | fitted b (true) | ramp+mirror mean / std |",
-             "|---|---|---|---|---|---|---|---|"]
+             "coordinate (projector pixels); `block`: cells per decoded value (a shortened sequence decodes "
+             "blocks, and its map is the homography fitted to them: the RMS of the map). Flatness: "
+             "compensated ramp plus its mirror, normalised by white - black (ideal 1, std 0).", "",
+             "| state | projector | block | decoded | exact | RMS decoded | RMS map | fitted b (true) | "
+             "ramp+mirror mean / std |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in report["calibrations"]:
         di, ds = r["decoding_integer"], r["decoding_subpixel"]
         b = "/".join(f"{v:.3f}" for v in r["response_fit"]["b"])
         tb = "/".join(f"{v:g}" for v in r["response_true_b"])
         f = r["compensated_ramp_sum"]
-        lines.append(f"| {r['state']} | {r['projector']} | {di['decoded']:.2%} | {di['exact']:.2%} | "
+        lines.append(f"| {r['state']} | {r['projector']} | {'x'.join(map(str, r['block_cells']))} | "
+                     f"{di['decoded']:.2%} | {di['exact']:.2%} | "
                      f"{di['rms_px']:.3f} | {ds['rms_px']:.3f} | {b} ({tb}) | {f['mean']:.3f} / {f['std']:.3f} |")
     t = report["timings_s"]
     lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
@@ -180,7 +187,7 @@ def cmd_run(args) -> int:
         gain_offset = (args.gain or (1.0, 1.0), args.offset or (0.0, 0.0))
     result = run_virtual(scene, solver=args.solver, bounds_8bit=args.bounds, device=args.device,
                          max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
-                         plane_tolerance=args.plane_tolerance)
+                         plane_tolerance=args.plane_tolerance, bits=args.bits)
     report = result.report
     with atomic_output(args.out) as stage:
         (stage / "patterns").mkdir()
@@ -197,13 +204,21 @@ def cmd_run(args) -> int:
     return 0
 
 
-def _add_map_options(p) -> None:
-    p.add_argument("--maps", default="decoded", choices=["decoded", "homography"],
-                   help="camera-to-projector maps: decoded per pixel (default), or one homography per state and "
-                        "projector fitted to them (scenes where each state is one plane)")
+def _add_map_options(p, maps: bool = True, bits: bool = False) -> None:
+    if maps:
+        p.add_argument("--maps", default="decoded", choices=["decoded", "homography"],
+                       help="camera-to-projector maps: decoded per pixel (default), or one homography per state and "
+                            "projector fitted to them (scenes where each state is one plane)")
+    if bits:
+        p.add_argument("--bits", type=int, metavar="K",
+                       help=_BITS_HELP + "; each capture is then read through one homography (planar scenes only)")
     p.add_argument("--plane-tolerance", type=float, default=1.0, metavar="PX",
-                   help="with --maps homography: the largest 95th-percentile distance (projector pixels) between "
-                        "decoded and fitted coordinates that counts as a plane (default 1)")
+                   help="with --maps homography or --bits: the largest 95th-percentile residual (projector pixels) "
+                        "between decoded and fitted coordinates that counts as a plane (default 1)")
+
+
+_BITS_HELP = ("show only the first K Gray-code pattern pairs per axis (at least 2): 4K + 4 images per projector "
+              "and state with white, black and the two ramps, instead of 44 for a 1024x768 projector")
 
 
 def _run_markdown(report: dict) -> str:
@@ -211,7 +226,10 @@ def _run_markdown(report: dict) -> str:
     adjusted = "gain_offset_limits" in report
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}", "",
-             f"Calibration: {report['calibration']}; maps: {report['maps']}.", "",
+             f"Calibration: {report['calibration']}; maps: {report['maps']}"
+             + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
+                 f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"
+                 for name, g in report["graycode"].items())) + ".", "",
              f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              f"Evaluation: {report['evaluation']}.", "",
@@ -225,11 +243,12 @@ def _run_markdown(report: dict) -> str:
             line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
         lines.append(line)
     if "homographies" in report:
-        lines += ["", "Homographies (distance from decoded to fitted coordinates, projector pixels):", "",
-                  "| state | projector | median | 95th percentile | decoded pixels |", "|---|---|---|---|---|"]
+        lines += ["", "Homographies (residual from decoded to fitted coordinates, projector pixels; for Gray-code "
+                      "blocks, the distance outside the block over the pixels at block edges):", "",
+                  "| state | projector | block (cells) | median | 95th percentile | pixels |", "|---|---|---|---|---|---|"]
         for state, fits in report["homographies"].items():
-            lines += [f"| {state} | {j} | {f['median_px']:.3f} | {f['p95_px']:.3f} | {f['points']} |"
-                      for j, f in enumerate(fits)]
+            lines += [f"| {state} | {j} | {'x'.join(map(str, f['block_cells']))} | {f['median_px']:.3f} | "
+                      f"{f['p95_px']:.3f} | {f['points']} |" for j, f in enumerate(fits)]
     lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()), ""]
     return "\n".join(lines)
 
@@ -350,7 +369,7 @@ def cmd_sequence(args) -> int:
 
     w, h = args.projector
     with atomic_output(args.out) as stage:
-        manifest = write_sequence(stage, w, h, ramp_steps=args.ramp_steps)
+        manifest = write_sequence(stage, w, h, ramp_steps=args.ramp_steps, bits=args.bits)
     print(f"wrote {len(manifest['images'])} images for a {w}x{h} projector and sequence.json to {args.out}: show them "
           "in order and save each capture under the same file name in CAPTURE_ROOT/STATE/PROJECTOR/")
     return 0
@@ -388,7 +407,7 @@ def cmd_calibrate(args) -> int:
         raise TorchprojError(f"{args.calibration}: calibration file not found")
     bundle = calibrate_folders(args.capture_root, _projector_sizes(args.projector), states=args.states,
                                white_threshold=args.white_threshold, black_threshold=args.black_threshold,
-                               max_hole=args.fill_holes)
+                               max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
     rows = []
     for state, maps in bundle.states.items():
         for (name, _, _), m, resp, ramp in zip(bundle.projectors, maps, bundle.responses, bundle.ramps):
@@ -557,7 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also optimise one gain per target within these limits (fista; e.g. 0.5,1.5)")
     p.add_argument("--offset", type=_limits, metavar="LO,HI",
                    help="also optimise one offset per target within these limits (fista; e.g. -0.2,0.2)")
-    _add_map_options(p)
+    _add_map_options(p, bits=True)
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("position", help="the paper's positioning test on the virtual rig: place a box guided only "
@@ -595,12 +614,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--write-captures", action="store_true",
                    help="also write each capture as a folder of PNGs (the layout of a real capture) and "
                         "calibrate from those files")
+    _add_map_options(p, maps=False, bits=True)
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("sequence", help="write the images to show on a projector, in order, with sequence.json")
     p.add_argument("--projector", type=_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--ramp-steps", type=int, default=32, help="bars in the photometric ramp (default 32)")
+    p.add_argument("--bits", type=int, metavar="K", help=_BITS_HELP + "; for scenes where each state is one plane, "
+                                                         "read through a homography")
     p.set_defaults(func=cmd_sequence)
 
     p = sub.add_parser("capture", help="show a sequence full-screen on a projector and grab a camera frame for each "
@@ -623,6 +645,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--white-threshold", type=float, default=5, help="8-bit units (OpenCV default 5)")
     p.add_argument("--black-threshold", type=float, default=40, help="8-bit units (OpenCV default 40)")
     p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
+    p.add_argument("--bits", type=int, metavar="K", help="Gray-code pattern pairs per axis of a shortened sequence, "
+                                                         "where folders hold no sequence.json (which says its own)")
+    _add_map_options(p, maps=False)
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("solve", help="patterns for real projectors from a calibration bundle and target images")

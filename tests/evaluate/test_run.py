@@ -48,6 +48,21 @@ def test_run_with_homography_maps_writes_the_fits(config, tmp_path):
     assert "Homographies" in (out / "report.md").read_text()
 
 
+def test_run_from_three_gray_code_bits_matches_the_full_sequence(config, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(config), "--out", str(out), "--bits", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["maps"] == "homography"
+    # 3 pattern pairs per axis, white, black and two ramps: 16 captures, against 36 for 256x192.
+    assert report["graycode"] == {name: {"bits": [3, 3], "captures_per_state": 16} for name in ("upper", "lower")}
+    assert all(f["block_cells"] == [32, 32] and f["p95_px"] < 1 for per in report["homographies"].values() for f in per)
+    assert "3x3 bits (16 captures per state)" in (out / "report.md").read_text()
+    full = run_virtual(parse_scene(yaml.safe_load(config.read_text()))).report
+    assert full["graycode"]["upper"] == {"bits": [8, 8], "captures_per_state": 36}
+    for short, whole in zip(report["targets"], full["targets"]):
+        assert short["psnr_db"] == pytest.approx(whole["psnr_db"], abs=0.3)
+
+
 def test_bounded_solver_beats_the_baseline_on_the_captures(config):
     scene = parse_scene(yaml.safe_load(config.read_text()))
     cal = calibrate_virtual(scene)  # one calibration, three solvers

@@ -4,6 +4,9 @@ Sequence (``write_sequence``): per projector, the images to show in order, named
 must be named: ``graycode_00.png`` ... (Gray-code pattern/inverse pairs, columns first, most
 significant bit first), then white and black (the last two ``graycode_`` indices), then ``ramp.png``
 and ``ramp_mirrored.png`` (the photometric ramp), with ``sequence.json`` saying what each image is.
+A shortened sequence (``bits``) shows only the first pattern pairs per axis; ``sequence.json``
+records them (``"bits": [kx, ky]``), and calibration reads such a capture through one homography
+per state and projector (:mod:`torchproj.calib.homography`), for planar scenes.
 
 Capture root (what ``calibrate_folders`` reads), one folder per scene state and projector, each
 holding the camera's image of every sequence image under the same file name::
@@ -23,6 +26,8 @@ channels, projectors and sizes, states, response curves, decoded fractions, file
 ``STATE/PROJECTOR.npz`` (``prj_xy`` refined and filled, ``prj_xy_integer``, ``valid``, ``contrast``
 (white minus black, [0, 1] units: the radiometric weight), ``cam_xy`` inverse map, ``count``) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
+Bundles from shortened sequences also record ``graycode_bits`` (per projector) and ``homographies``
+(per state and projector, :meth:`~torchproj.calib.HomographyFit.as_dict`).
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ import torch
 from ..core.errors import CaptureError, InputError
 from ..core.imageio import write_image
 from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
-from .graycode import graycode_bits, graycode_patterns
+from .graycode import graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import ProjectorCalibration, calibrate_projector
 from .response import ResponseCurve, ramp_pattern
 
@@ -53,12 +58,18 @@ _MIN_DECODED = 0.001  # below this fraction of the camera decoded, a folder is a
 _FEW_DECODED = 0.02  # below this, a warning
 
 
-def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_steps: int = 32) -> dict:
-    """Write the images one projector shows, in order, and ``sequence.json``; returns the manifest."""
+def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_steps: int = 32,
+                   bits: int | tuple[int, int] | None = None) -> dict:
+    """Write the images one projector shows, in order, and ``sequence.json``; returns the manifest.
+
+    Args:
+        bits: show only the first pattern pairs per axis (:func:`~torchproj.calib.sequence_bits`),
+            for planar scenes; None: the full sequence.
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    gray = graycode_patterns(width, height)
-    nx, ny = graycode_bits(width, height)
+    gray = graycode_patterns(width, height, bits)
+    nx, ny = sequence_bits(width, height, bits)
     entries = []
     for i, img in enumerate(gray):
         if i < 2 * (nx + ny):
@@ -73,6 +84,8 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
         entries.append({"file": name, "kind": "ramp_mirrored" if mirrored else "ramp", "steps": ramp_steps})
     manifest = {"version": BUNDLE_VERSION, "projector": [width, height], "order": "show and capture in this order; "
                 "save each capture under the same file name", "images": entries}
+    if (nx, ny) != graycode_bits(width, height):
+        manifest["bits"] = [nx, ny]
     (folder / SEQUENCE_FILE).write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
 
@@ -90,6 +103,9 @@ class CalibrationBundle:
         responses: per projector, its :class:`ResponseCurve` (None where no ramp was captured).
         ramps: per projector, the measured ramp points its curve was fitted to (or None).
         decoded: state -> projector -> fraction of camera pixels decoded.
+        bits: per projector, the Gray-code pattern pairs per axis its sequence showed.
+        homographies: state -> projector -> :class:`~torchproj.calib.HomographyFit` as a dict,
+            for projectors calibrated from a shortened sequence.
     """
 
     camera_size: tuple[int, int]
@@ -101,10 +117,17 @@ class CalibrationBundle:
     decoded: dict[str, dict[str, float]] = field(default_factory=dict)
     procam_calibration: Path | None = None
     ramps: list = field(default_factory=list)  # per projector, (levels (L,), measured (L, C)) the fit used, or None
+    bits: list = field(default_factory=list)
+    homographies: dict = field(default_factory=dict)
 
 
-def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, only: list[str] | None = None):
-    """``{state: [(projector name, folder, (w, h))]}`` in sorted order, checked for a common set."""
+def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, only: list[str] | None = None,
+                       bits: int | None = None):
+    """``{state: [(projector name, folder, (w, h), (kx, ky))]}`` in sorted order, checked for a common set.
+
+    A folder's ``sequence.json`` gives its projector's size and bits; ``sizes`` and ``bits`` stand
+    in where a folder has none.
+    """
     if not root.is_dir():
         raise CaptureError(f"{root}: capture root not found")
     if only is not None:
@@ -122,29 +145,38 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
         entries = []
         for name, folder in folders:
             manifest = folder / SEQUENCE_FILE
+            shown = bits
             if manifest.is_file():
-                size = tuple(json.loads(manifest.read_text())["projector"])
+                meta = json.loads(manifest.read_text())
+                size, shown = tuple(meta["projector"]), meta.get("bits")
             elif sizes and (name in sizes or "*" in sizes):
                 size = sizes.get(name, sizes.get("*"))
             else:
                 raise CaptureError(f"{folder}: no {SEQUENCE_FILE} says the projector's size; give it with "
                                    f"--projector WxH (all projectors) or --projector {name}=WxH")
-            entries.append((name, folder, (int(size[0]), int(size[1]))))
+            size = (int(size[0]), int(size[1]))
+            try:
+                shown = sequence_bits(*size, shown)
+            except InputError as exc:
+                raise CaptureError(f"{folder}: {exc}") from None
+            entries.append((name, folder, size, shown))
         layout[state_dir.name] = entries
     if not layout:
         raise CaptureError(f"{root}: no capture folders (expected {root}/STATE/PROJECTOR/{DEFAULT_NAMES.format(0)} "
                            "...; see the README's capture layout)")
     first_state, first = next(iter(layout.items()))
-    names = [(n, s) for n, _, s in first]
+    names = [(n, s, b) for n, _, s, b in first]
     for state, entries in layout.items():
-        if [(n, s) for n, _, s in entries] != names:
-            raise CaptureError(f"{root / state}: projectors {[(n, s) for n, _, s in entries]} differ from "
-                               f"{first_state}'s {names}; every state needs one folder per projector")
+        if [(n, s, b) for n, _, s, b in entries] != names:
+            raise CaptureError(f"{root / state}: projectors (name, size, Gray-code bits) "
+                               f"{[(n, s, b) for n, _, s, b in entries]} differ from {first_state}'s {names}; every "
+                               "state needs one folder per projector, captured with the same sequence")
     return layout
 
 
 def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]] | None = None, *,
-                      states: list[str] | None = None, progress: bool | None = None, **options) -> CalibrationBundle:
+                      states: list[str] | None = None, progress: bool | None = None, bits: int | None = None,
+                      **options) -> CalibrationBundle:
     """Decode every state and projector under a capture root and fit the projectors' responses.
 
     Args:
@@ -152,33 +184,39 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         sizes: projector sizes where folders hold no ``sequence.json``: name -> ``(w, h)``, or
             ``{"*": (w, h)}`` for all.
         states: the state folders to calibrate (default: every folder of the root).
-        options: passed to :func:`~torchproj.calib.calibrate_projector` (thresholds, hole size).
+        bits: Gray-code bits per axis of a shortened sequence, where folders hold no
+            ``sequence.json`` (one that does says its own).
+        options: passed to :func:`~torchproj.calib.calibrate_projector` (thresholds, hole size,
+            plane tolerance).
 
     The response of each projector comes from the first state whose folder holds the ramps.
     """
     from tqdm import tqdm
 
     root = Path(root)
-    layout = _projector_folders(root, sizes, states)
+    layout = _projector_folders(root, sizes, states, bits)
     first = next(iter(layout.values()))
-    projectors = [(n, s[0], s[1]) for n, _, s in first]
-    maps, black, decoded = {}, {}, {}
+    projectors = [(n, s[0], s[1]) for n, _, s, _ in first]
+    shown = [b for _, _, _, b in first]
+    maps, black, decoded, homographies = {}, {}, {}, {}
     responses: list[ResponseCurve | None] = [None] * len(projectors)
     ramps: list = [None] * len(projectors)
     shape = None
     jobs = [(state, j, entry) for state, entries in layout.items() for j, entry in enumerate(entries)]
-    for state, j, (name, folder, size) in tqdm(jobs, desc="calibrating states x projectors", leave=False,
-                                               delay=1.0, disable=None if progress is None else not progress):
-        capture = read_graycode_folder(folder, size)
+    for state, j, (name, folder, size, k) in tqdm(jobs, desc="calibrating states x projectors", leave=False,
+                                                  delay=1.0, disable=None if progress is None else not progress):
+        capture = read_graycode_folder(folder, size, bits=k)
         if shape is None:
             shape = tuple(capture.white.shape)
         elif tuple(capture.white.shape) != shape:
             raise CaptureError(f"{folder}: images of size {tuple(capture.white.shape)} (C, H, W), but earlier "
                                f"folders hold {shape}; all captures must come from one camera setting")
         try:
-            cal = calibrate_projector(capture, size, **options)
-        except InputError as exc:  # e.g. a ramp with no usable levels: name the folder it came from
+            cal = calibrate_projector(capture, size, bits=k, **options)
+        except InputError as exc:  # e.g. a ramp with no usable levels or a block map off the plane: name the folder
             raise CaptureError(f"{folder}: {exc}") from None
+        if cal.homography is not None:
+            homographies.setdefault(state, {})[name] = cal.homography.as_dict()
         fraction = cal.decoding.valid_fraction
         if fraction < _MIN_DECODED:
             raise CaptureError(f"{folder}: only {fraction:.3%} of the camera decoded; is the projector aimed at the "
@@ -193,7 +231,8 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
             responses[j], ramps[j] = cal.response, cal.ramp
     return CalibrationBundle(camera_size=(shape[2], shape[1]), channels=shape[0], projectors=projectors,
                              states=maps, black={s: torch.stack(b).mean(0) for s, b in black.items()},
-                             responses=responses, decoded=decoded, ramps=ramps)
+                             responses=responses, decoded=decoded, ramps=ramps, bits=shown,
+                             homographies=homographies)
 
 
 def _maps(cal: ProjectorCalibration) -> dict:
@@ -221,6 +260,11 @@ def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_ca
                   for r in (bundle.ramps or [None] * len(bundle.projectors))],
         "decoded_fraction": bundle.decoded, "files": files,
     }
+    full = [graycode_bits(w, h) for _, w, h in bundle.projectors]
+    if bundle.bits and [tuple(b) for b in bundle.bits] != full:
+        meta["graycode_bits"] = {n: list(b) for (n, _, _), b in zip(bundle.projectors, bundle.bits)}
+    if bundle.homographies:
+        meta["homographies"] = bundle.homographies
     if procam_calibration is not None:
         shutil.copyfile(procam_calibration, folder / "procam_calibration.xml")
         meta["procam_calibration"] = "procam_calibration.xml"
@@ -252,7 +296,10 @@ def load_bundle(folder: str | os.PathLike) -> CalibrationBundle:
     ramps = [None if r is None else (torch.tensor(r["levels"]), torch.tensor(r["measured"]))
              for r in meta.get("ramps", [None] * len(projectors))]
     xml = meta.get("procam_calibration")
+    shown = meta.get("graycode_bits", {})
     return CalibrationBundle(camera_size=tuple(meta["camera"]["size"]), channels=meta["camera"]["channels"],
                              projectors=projectors, states=states, black=black, responses=responses,
                              decoded=meta.get("decoded_fraction", {}), ramps=ramps,
-                             procam_calibration=None if xml is None else folder / xml)
+                             procam_calibration=None if xml is None else folder / xml,
+                             bits=[tuple(shown.get(n, graycode_bits(w, h))) for n, w, h in projectors],
+                             homographies=meta.get("homographies", {}))

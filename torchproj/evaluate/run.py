@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..calib import ResponseCurve, calibrate_projector, simulate_calibration
+from ..calib import ResponseCurve, calibrate_projector, sequence_bits, simulate_calibration
 from ..core.checks import check
+from ..core.errors import InputError
 from ..core.imageio import read_image
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
@@ -85,12 +86,20 @@ class VirtualCalibration:
     responses: list  # per projector, its fitted ResponseCurve
     seconds: float
     oracle: bool = False
+    bits: list | None = None  # per projector, (kx, ky) of a shortened Gray-code sequence; None: the full one
+    homographies: dict | None = None  # per state, per projector, the HomographyFit a shortened sequence gave
 
 
-def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False) -> VirtualCalibration:
+def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False,
+                      bits: int | None = None, plane_tolerance: float = 1.0) -> VirtualCalibration:
     """Simulate and decode every state's calibration captures (Gray code, white, black, ramps).
 
     Args:
+        bits: show only the first ``bits`` Gray-code pattern pairs per axis, and read each capture
+            through one homography (:func:`~torchproj.calib.calibrate_projector`); for scenes
+            where every state is one plane. None: the full sequence.
+        plane_tolerance: with ``bits``, the largest 95th-percentile residual (projector pixels)
+            that counts as a plane.
         oracle: skip calibration and take the simulator's exact geometry (projector coordinates at
             pixel centres), expected white-minus-black weights (no noise, no quantisation) and true
             responses, on the pixels whose white minus black passes the decoder's shadow threshold
@@ -98,6 +107,8 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
             not available on a real rig.
     """
     if oracle:
+        check(bits is None, "oracle calibration takes the exact geometry: it shows no Gray code to shorten; drop "
+                            "--bits or --oracle")
         return _oracle_calibration(scene, device)
     from tqdm import tqdm
 
@@ -109,14 +120,22 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     per_state: dict[str, list] = {}
     for name, j in tqdm(jobs, desc="calibrating states x projectors", leave=False, delay=1.0,
                         disable=None if progress is None else not progress):
-        cap = simulate_calibration(rig, name, j)
-        per_state.setdefault(name, []).append(calibrate_projector(cap, sizes[j]))
+        cap = simulate_calibration(rig, name, j, bits=bits)
+        try:
+            per_state.setdefault(name, []).append(calibrate_projector(cap, sizes[j], bits=bits,
+                                                                      plane_tolerance=plane_tolerance))
+        except InputError as exc:  # a block map off the plane: say which state and projector
+            raise InputError(f"state {name!r}, projector {scene.projectors[j].name!r}: {exc}") from None
         black[name] = cap.black.cpu()  # every projector shows black: the state's black level and ambient light
     for name, pcs in per_state.items():
         states[name] = StateCalibration.from_calibrations(pcs)
         responses = responses or [pc.response for pc in pcs]
+    shown = homographies = None
+    if bits is not None:
+        shown = [sequence_bits(*size, bits) for size in sizes]
+        homographies = {name: [pc.homography for pc in pcs] for name, pcs in per_state.items()}
     return VirtualCalibration(rig=rig, states=states, black=black, responses=responses,
-                              seconds=time.perf_counter() - t0)
+                              seconds=time.perf_counter() - t0, bits=shown, homographies=homographies)
 
 
 def _oracle_calibration(scene: Scene, device, black_threshold: float = 40) -> VirtualCalibration:
@@ -157,7 +176,7 @@ class RunResult:
 def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
                 device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
                 oracle: bool = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
-                maps: str = "decoded", plane_tolerance: float = 1.0) -> RunResult:
+                maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -179,8 +198,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         maps: ``"decoded"`` (default: the per-pixel Gray-code maps) or ``"homography"`` (one fitted
             homography per state and projector, :func:`~torchproj.transport.planar_calibration`;
             for scenes where each state is one plane; refused otherwise).
-        plane_tolerance: with ``maps="homography"``, the largest 95th-percentile distance
-            (projector pixels) between decoded and fitted coordinates that counts as a plane.
+        plane_tolerance: with ``maps="homography"`` or ``bits``, the largest 95th-percentile
+            residual (projector pixels) between decoded and fitted coordinates that counts as a plane.
+        bits: calibrate with the first ``bits`` Gray-code pattern pairs per axis only, read through
+            one homography per state and projector (:func:`calibrate_virtual`); planar scenes.
+            Ignored when ``calibration`` is given.
     """
     check(solver in SOLVER_NAMES, f"unknown solver {solver!r}; choose from {list(SOLVER_NAMES)}")
     check(gain_offset is None or solver == "fista", "gain_offset works with the fista solver; drop --solver or "
@@ -192,10 +214,13 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
     t_total = time.perf_counter()
     check(maps in ("decoded", "homography"), f"maps must be 'decoded' or 'homography', got {maps!r}")
-    cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle)
+    cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle, bits=bits,
+                                           plane_tolerance=plane_tolerance)
     timings = {"calibrate": cal.seconds if calibration is None else 0.0}
-    states, fits = cal.states, None
-    if maps == "homography":
+    states, fits = cal.states, cal.homographies
+    if cal.homographies is not None:
+        maps = "homography"  # a shortened sequence is read through homographies already
+    elif maps == "homography":
         t0 = time.perf_counter()
         states, fits = planar_calibration(cal.states, plane_tolerance)
         timings["homography"] = time.perf_counter() - t0
@@ -256,6 +281,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         "bounds_8bit": list(bounds_8bit), "device": str(device),
         "calibration": "oracle (the simulator's exact geometry)" if cal.oracle else "Gray code on the virtual rig",
         "maps": maps,
+        "graycode": _graycode_report(scene, cal),
         "model": model if gain_offset is not None else op.size_report(), "objective": result.objective,
         "unexplained_fraction": round(op.unexplained(result.patterns), 5),
         "iterations": result.iterations, "scale": op.scale,
@@ -273,3 +299,13 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     if gain_offset is not None:
         report["gain_offset_limits"] = {"gain": list(gain_offset[0]), "offset": list(gain_offset[1])}
     return RunResult(report=report, patterns=patterns, captures=captures, targets=details, solution=result)
+
+
+def _graycode_report(scene: Scene, cal: VirtualCalibration) -> dict | None:
+    """Per projector, the Gray-code bits shown and the captures that took per state (None for the oracle)."""
+    if cal.oracle:
+        return None
+    sizes = [(p.width, p.height) for p in scene.projectors]
+    shown = cal.bits or [sequence_bits(*size) for size in sizes]
+    # Pattern/inverse pairs, white and black, and the two ramps.
+    return {p.name: {"bits": list(b), "captures_per_state": 2 * sum(b) + 4} for p, b in zip(scene.projectors, shown)}
