@@ -53,7 +53,7 @@ def test_simulate_a_shortened_sequence_checks_the_fitted_maps(tmp_path):
     path = tmp_path / "small.yaml"
     path.write_text(yaml.safe_dump(dict(small_config(camera=(240, 180), projector=(128, 96)), name="small")))
     out = tmp_path / "sim"
-    assert main(["simulate", str(path), "--out", str(out), "--bits", "3"]) == 0
+    assert main(["simulate", str(path), "--out", str(out), "--bits", "3", "--write-captures"]) == 0
     report = json.loads((out / "report.json").read_text())
     for row in report["calibrations"]:
         # 16-cell blocks decoded, a map within a tenth of a cell of the simulator's truth fitted to them.
@@ -61,6 +61,15 @@ def test_simulate_a_shortened_sequence_checks_the_fitted_maps(tmp_path):
         assert row["decoding_subpixel"]["rms_px"] < 0.1
         assert abs(row["response_fit"]["b"][0] - row["response_true_b"][0]) < 0.1
     assert "| 16x16 |" in (out / "report.md").read_text()
+    # The written 14-image folder decodes to the same fitted map; read as a full sequence it is refused.
+    folder = out / "captures" / "far" / "lower"
+    dec = tmp_path / "dec"
+    assert main(["decode", str(folder), "--projector", "128x96", "--bits", "3", "--out", str(dec)]) == 0
+    got = np.load(dec / "correspondence.npz")["prj_xy_refined"]
+    want = np.load(out / "calibration" / "far" / "lower" / "correspondence.npz")["prj_xy"]
+    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.allclose(got[~np.isnan(got)], want[~np.isnan(want)])
+    assert json.loads((dec / "report.json").read_text())["homography"]["block_cells"] == [16, 16]
+    assert main(["decode", str(folder), "--projector", "128x96", "--out", str(tmp_path / "full")]) == 2
 
 
 def test_failed_decode_writes_nothing(tmp_path, capsys):

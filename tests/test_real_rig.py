@@ -112,6 +112,8 @@ def test_a_shortened_sequence_from_folders_matches_the_virtual_run(scene, tmp_pa
     assert bundle.bits == [(3, 3), (3, 3)] and sorted(bundle.homographies) == ["far", "near"]
     assert main(["solve", str(calib), "--targets", "far=astronaut", "near=chelsea", "--out", str(solved)]) == 0
     report = json.loads((solved / "report.json").read_text())
+    assert report["maps"] == "homography" and report["graycode_bits"] == {"lower": [3, 3], "upper": [3, 3]}
+    assert all(f["block_cells"] == [32, 32] for per in report["homographies"].values() for f in per)
     run = run_virtual(scene, bits=3)
     assert report["objective"] == pytest.approx(run.report["objective"], rel=1e-4)
     # Read with the full sequence's count, the folder is refused with the fix named.

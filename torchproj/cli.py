@@ -467,9 +467,15 @@ def cmd_solve(args) -> int:
             r = ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1))
         responses.append(r)
     lo, hi = (b / 255 for b in args.bounds)
-    fits = None
-    if args.maps == "homography":
+    fits, maps = None, args.maps
+    if bundle.homographies:
+        # Calibrated from shortened sequences: the maps are fitted homographies already.
+        maps = "homography"
+        fits = {state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors]
+                for state in bundle.states}
+    elif args.maps == "homography":
         states, fits = planar_calibration(states, args.plane_tolerance)
+        fits = {state: [f.as_dict() for f in per] for state, per in fits.items()}
     op = build_transport(states, targets, device=args.device)
     result, light, patterns = make_patterns(op, args.solver, (lo, hi), responses, calibrations=states,
                                             max_iter=args.max_iter)
@@ -492,9 +498,10 @@ def cmd_solve(args) -> int:
                                                    "solve": round(result.time_s, 3)},
                   "predicted": "black capture plus each projector's weight times the light of the decoded cell "
                                "(the calibration's own model; project the patterns and capture to measure)",
-                  "targets": rows, "maps": args.maps}
+                  "targets": rows, "maps": maps,
+                  "graycode_bits": {name: list(b) for (name, _, _), b in zip(bundle.projectors, bundle.bits)}}
         if fits is not None:
-            report["homographies"] = {state: [f.as_dict() for f in per] for state, per in fits.items()}
+            report["homographies"] = fits
         write_json(stage / "report.json", report)
     print(f"solved {len(targets)} target(s) with {args.solver}: {op.shape[1]} variables, objective "
           f"{result.objective:.4g}; wrote {args.out}/patterns/, predicted/, report.json")
@@ -509,18 +516,20 @@ def cmd_decode(args) -> int:
 
     calib = read_opencv_calibration(args.calibration) if args.calibration else None
     t_read = time.perf_counter()
-    capture = read_graycode_folder(args.capture_dir, args.projector, names=args.names)
+    capture = read_graycode_folder(args.capture_dir, args.projector, names=args.names, bits=args.bits)
     t_read = time.perf_counter() - t_read
     cal = calibrate_projector(capture, args.projector, white_threshold=args.white_threshold,
                               black_threshold=args.black_threshold, subpixel=not args.no_subpixel,
-                              max_hole=args.fill_holes)
+                              max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
     dec = cal.decoding
     report = {"capture_dir": str(args.capture_dir), "projector": list(args.projector),
               "camera": [int(dec.valid.shape[1]), int(dec.valid.shape[0])],
               "valid_fraction": dec.valid_fraction, "read_s": round(t_read, 4),
               "decode_s": round(cal.timings_s["decode"], 4), "maps_s": round(cal.timings_s["maps"], 4),
               "white_threshold": args.white_threshold, "black_threshold": args.black_threshold,
-              "subpixel": not args.no_subpixel}
+              "subpixel": not args.no_subpixel, "block_cells": list(dec.block)}
+    if cal.homography is not None:
+        report["homography"] = cal.homography.as_dict()
     arrays = {"prj_xy": dec.prj_xy.numpy().astype(np.float32), "prj_xy_refined": cal.prj_xy.numpy(),
               "valid": dec.valid.numpy(), "contrast": dec.contrast.numpy().astype(np.float32),
               "cam_xy": cal.cam_xy.numpy(), "count": cal.count.numpy().astype(np.int32)}
@@ -673,6 +682,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--black-threshold", type=float, default=40, help="8-bit units (OpenCV default 40)")
     p.add_argument("--no-subpixel", action="store_true", help="triangulate integer cells, no sub-pixel fit")
     p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
+    p.add_argument("--bits", type=int, metavar="K", help="the folder holds a shortened sequence, the first K pattern "
+                                                         "pairs per axis: read it through one homography (a plane)")
+    _add_map_options(p, maps=False)
     p.set_defaults(func=cmd_decode)
     return parser
 
