@@ -48,3 +48,20 @@ def test_twenty_fista_iterations_are_nearly_optimal(calibrated):
     best = model_space_psnr(full, solve_fista(op, (0, 1), max_iter=3000, tol=1e-10).patterns)
     quick = model_space_psnr(full, solve_fista(op, (0, 1), max_iter=20, tol=0).patterns)
     assert all(b - q < 0.3 for b, q in zip(best, quick))
+
+
+def test_coarse_start_halves_the_full_resolution_iterations(calibrated):
+    # The smooth part of the patterns, where gradient steps crawl, is solved on tied cells first.
+    _, op, _ = calibrated
+    best = solve_fista(op, (0, 1), max_iter=5000, tol=1e-12, levels=0).objective
+
+    def iterations_to(gap, levels):
+        res = solve_fista(op, (0, 1), max_iter=300, tol=0, levels=levels)
+        values = [f for _, f in res.history][-res.iterations - 1:]  # the full-resolution part
+        return next(k for k, f in enumerate(values) if f - best <= gap * best), res
+
+    plain, _ = iterations_to(1e-3, 0)
+    tied, res = iterations_to(1e-3, 3)
+    assert len(res.info["coarse_iterations"]) == 3 and res.info["coarse_columns"][-1] < op.shape[1] / 3
+    assert tied <= 0.7 * plain
+    assert res.objective == pytest.approx(best, rel=1e-6)

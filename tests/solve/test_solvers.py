@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.optimize import lsq_linear
+from scipy.sparse import csr_matrix
 
 from torchproj.calib import ResponseCurve
 from torchproj.core import InputError
@@ -12,6 +13,7 @@ from torchproj.solve import (ClampedAdam, compensate, solve_adam, solve_fista, s
 from torchproj.transport import build_transport
 
 from ..transport.test_build import synthetic_calibration, targets
+from ..transport.test_operator import LARGE
 
 
 @pytest.fixture(scope="module")
@@ -41,6 +43,39 @@ def test_proximal_solvers_reach_the_bounded_optimum(problem, solver, bounds, pre
     assert res.objective == pytest.approx(f_ref, rel=1e-6, abs=1e-9)
     np.testing.assert_allclose(res.patterns.numpy(), ref, atol=2e-3)
     assert float(res.patterns.min()) >= bounds[0] and float(res.patterns.max()) <= bounds[1]
+
+
+@pytest.fixture(scope="module")
+def tied_problem():
+    """Large enough for two coarse levels (see ``tests/transport/test_operator.py``)."""
+    op = build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3), scale=0.8).double()
+    return op, op.dense().numpy(), op.rhs.numpy()
+
+
+@pytest.mark.parametrize("bounds", [(0.0, 1.0), (-100 / 255, 1.0)])
+def test_coarse_to_fine_fista_reaches_the_bounded_optimum(tied_problem, bounds):
+    op, A, b = tied_problem
+    # scipy's sparse path (LSMR inside): its dense one factorises A at every step, slow at this size.
+    ref = np.stack([lsq_linear(csr_matrix(A), b[:, c], bounds=bounds, tol=1e-12, lsmr_tol=1e-12, max_iter=5000).x
+                    for c in range(b.shape[1])], 1)
+    f_ref = objective(op, A, b, ref)
+    res = solve_fista(op, bounds, max_iter=20000, tol=1e-14, levels=3)
+    assert len(res.info["coarse_iterations"]) == 2 and all(k > 0 for k in res.info["coarse_iterations"])
+    assert res.objective == pytest.approx(f_ref, rel=1e-6, abs=1e-9)
+    assert float(res.patterns.min()) >= bounds[0] and float(res.patterns.max()) <= bounds[1]
+
+
+def test_history_runs_through_the_levels_and_never_rises(tied_problem):
+    op, A, b = tied_problem
+    res = solve_fista(op, (0, 1), max_iter=40, tol=0, levels=3)
+    values = [f for _, f in res.history]
+    assert len(values) == 1 + sum(res.info["coarse_iterations"]) + res.iterations
+    assert all(b <= a * (1 + 1e-12) + 1e-12 for a, b in zip(values, values[1:]))
+    # Its last value is the objective of what it returns, in dense float64.
+    assert values[-1] == pytest.approx(objective(op, A, b, res.patterns.numpy()), rel=1e-9)
+    # A given start is kept: no coarse levels.
+    warm = solve_fista(op, (0, 1), max_iter=5, tol=0, x0=res.patterns)
+    assert warm.info["coarse_iterations"] == [] and warm.objective <= res.objective * (1 + 1e-12)
 
 
 def test_adam_gets_close(problem):

@@ -11,18 +11,18 @@ from torchproj.transport.build import target_on_camera
 SIZES = [(12, 9), (10, 8)]
 
 
-def synthetic_calibration(seed=0, shape=(15, 20)):
+def synthetic_calibration(seed=0, shape=(15, 20), sizes=SIZES):
     """Two projectors, two states: random sub-pixel correspondences with holes, random weights."""
     g = torch.Generator().manual_seed(seed)
     cals = {}
     for state in ("near", "far"):
         prj, wts = [], []
-        for w, h in SIZES:
+        for w, h in sizes:
             xy = torch.rand(*shape, 2, generator=g) * torch.tensor([w - 1.0, h - 1.0])
             xy[torch.rand(shape, generator=g) < 0.15] = float("nan")
             prj.append(xy)
             wts.append(0.2 + torch.rand(shape, generator=g))
-        cals[state] = StateCalibration(prj, wts, SIZES)
+        cals[state] = StateCalibration(prj, wts, sizes)
     return cals
 
 

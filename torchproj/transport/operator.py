@@ -20,7 +20,10 @@ from torch import nn
 from ..core.checks import check, check_finite, check_shape
 from ..core.sparse import csr_tensor, spmm
 
-__all__ = ["TransportOperator", "NormalEquations", "csr_from_coo"]
+__all__ = ["TransportOperator", "NormalEquations", "csr_from_coo", "cell_blocks"]
+
+# Below this many columns a coarser level saves nothing worth its setup.
+_MIN_COARSE_COLUMNS = 64
 
 
 def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
@@ -33,6 +36,29 @@ def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, sha
     crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=vals.device)
     crow[1:] = torch.cumsum(torch.bincount(r, minlength=n_rows), 0)
     return csr_tensor(crow, c, merged, shape)
+
+
+def cell_blocks(column_projector: torch.Tensor, column_cell: torch.Tensor, projector_sizes: list[tuple[int, int]]):
+    """Group columns by 2x2 blocks of projector cells: the same projectors at half the resolution.
+
+    Args:
+        column_projector: :math:`(N_{cols},)` projector index of each column.
+        column_cell: :math:`(N_{cols},)` flat cell index ``y * W_j + x`` (see :class:`TransportOperator`).
+        projector_sizes: ``(width, height)`` of each projector.
+
+    Returns:
+        ``(block, block_projector, block_cell, block_sizes)``: :math:`(N_{cols},)` the block of
+        each column (blocks numbered by projector, then cell), and for each block its projector,
+        its flat cell index on the half-resolution grid and those grids' ``(width, height)``
+        (odd sizes round up).
+    """
+    widths = torch.tensor([w for w, _ in projector_sizes], device=column_cell.device)[column_projector]
+    block_sizes = [((w + 1) // 2, (h + 1) // 2) for w, h in projector_sizes]
+    block_widths = torch.tensor([w for w, _ in block_sizes], device=column_cell.device)[column_projector]
+    cell = (column_cell // widths // 2) * block_widths + (column_cell % widths) // 2
+    cells_per_projector = max(w * h for w, h in block_sizes)
+    blocks, block = torch.unique(column_projector.long() * cells_per_projector + cell, return_inverse=True)
+    return block, blocks // cells_per_projector, blocks % cells_per_projector, block_sizes
 
 
 class _Apply(torch.autograd.Function):
@@ -195,6 +221,42 @@ class TransportOperator(nn.Module):
             self._normal = NormalEquations.from_operator(self)
         return self._normal
 
+    def coarse_levels(self, levels: int) -> list[tuple["NormalEquations", torch.Tensor]]:
+        """The normal equations of the same rig with projector cells tied in 2x2, 4x4, ... blocks.
+
+        Tying the cells of a block to one value ``p_c`` is ``p = P p_c`` with ``P`` the 0/1 matrix of
+        :func:`cell_blocks`; the tied problem's normal equations are ``P^T Q P`` and ``P^T q`` with the
+        same constant, so its objective *is* the full objective of the pattern ``P p_c``, and a
+        ``p_c`` inside the box gives a ``p`` inside it. Such a problem is four times smaller
+        and solves the smooth part of the patterns, the part gradient methods are slowest on (two
+        projectors' smooth patterns look alike on every target): a start for the full one.
+
+        Coarsening stops early where a level would keep more than half the columns (scattered lit
+        cells) or fewer than 64. Built once per operator and cached (``Q`` does not
+        depend on the targets; :meth:`with_rhs` shares it).
+
+        Returns:
+            Up to ``levels`` pairs ``(normal_equations, block)``, finest first: ``block`` maps the
+            columns of the level above (the operator's own columns for the first) to this level's.
+        """
+        check(levels >= 0, f"levels must be >= 0, got {levels}")
+        device = self.column_cell.device
+        if getattr(self, "_blocks_device", None) != device:
+            self._blocks, self._blocks_complete, self._blocks_device = [], False, device
+        while len(self._blocks) < levels and not self._blocks_complete:
+            cp, cc, sizes = (self._blocks[-1][1:] if self._blocks
+                             else (self.column_projector, self.column_cell, self.projector_sizes))
+            block, *coarse = cell_blocks(cp, cc, sizes)
+            if len(coarse[0]) > len(cp) // 2 or len(coarse[0]) < _MIN_COARSE_COLUMNS:
+                self._blocks_complete = True
+            else:
+                self._blocks.append((block, *coarse))
+        ne, out = self.normal_equations(), []
+        for block, *_ in self._blocks[:levels]:
+            ne = ne.coarsened(block)
+            out.append((ne, block))
+        return out
+
     def with_rhs(self, rhs: torch.Tensor, constant: torch.Tensor | None = None) -> "TransportOperator":
         """The same ``A`` with other targets (rows in the same order): shares the matrices and ``Q``.
 
@@ -239,6 +301,11 @@ class TransportOperator(nn.Module):
         return images
 
 
+def _sum_blocks(values: torch.Tensor, block: torch.Tensor, n: int) -> torch.Tensor:
+    """``P^T values``: the rows of :math:`(N, C)` values summed per block."""
+    return torch.zeros(n, values.shape[1], dtype=values.dtype, device=values.device).index_add_(0, block, values)
+
+
 class NormalEquations:
     """The objective ``||A p - i||^2 + const`` written as ``p^T Q p - 2 q^T p + c`` (per channel).
 
@@ -255,6 +322,7 @@ class NormalEquations:
         self._two_q = 2 * q
         self._lipschitz = None
         self._jacobi = None
+        self._coarse = None
 
     @classmethod
     def from_operator(cls, op: TransportOperator) -> "NormalEquations":
@@ -276,7 +344,31 @@ class NormalEquations:
             s = self._jacobi.scale
             new._jacobi = NormalEquations(self._jacobi.Q, q * s, c, s)
             new._jacobi._lipschitz = self._jacobi._lipschitz
+        if self._coarse is not None:
+            block, coarse = self._coarse
+            new._coarse = (block, coarse.with_targets(_sum_blocks(q, block, coarse.Q.shape[0]), c))
         return new
+
+    def coarsened(self, block: torch.Tensor) -> "NormalEquations":
+        """``P^T Q P``, ``P^T q`` and ``c`` for the 0/1 matrix ``P`` that ties columns by ``block``.
+
+        ``block`` is :math:`(N_{cols},)` (see :func:`cell_blocks`); the result is cached for that
+        tensor, and :meth:`with_targets` carries it over with the new targets.
+        """
+        if self._coarse is None or self._coarse[0] is not block:
+            from scipy.sparse import csr_matrix
+
+            n = int(block.max()) + 1
+            q_mat = csr_matrix((self.Q.values().detach().cpu().double().numpy(), self.Q.col_indices().cpu().numpy(),
+                                self.Q.crow_indices().cpu().numpy()), shape=self.Q.shape)
+            tie = csr_matrix((torch.ones(len(block), dtype=torch.float64).numpy(),
+                              (torch.arange(len(block)).numpy(), block.cpu().numpy())), shape=(len(block), n))
+            coarse = (tie.T @ q_mat @ tie).tocsr()
+            coarse.sort_indices()
+            Q = csr_tensor(torch.from_numpy(coarse.indptr), torch.from_numpy(coarse.indices),
+                           torch.from_numpy(coarse.data).to(self.q.dtype), coarse.shape).to(self.q.device)
+            self._coarse = (block, NormalEquations(Q, _sum_blocks(self.q, block, n), self.c))
+        return self._coarse[1]
 
     def jacobi(self) -> "NormalEquations":
         """The system in the variables ``z = p / scale`` with ``scale = diag(Q)^-1/2`` (cached).

@@ -1,0 +1,95 @@
+"""The operator's coarse levels (cells tied in blocks) against dense float64 algebra."""
+
+import pytest
+import torch
+
+from torchproj.transport import StateCalibration, build_transport, cell_blocks
+
+from .test_build import synthetic_calibration, targets
+
+LARGE = [(40, 32), (36, 28)]
+
+
+@pytest.fixture(scope="module")
+def op():
+    return build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3), scale=0.8).double()
+
+
+def tie_matrix(block: torch.Tensor) -> torch.Tensor:
+    """The dense 0/1 matrix P with p = P p_c."""
+    return torch.nn.functional.one_hot(block, int(block.max()) + 1).double()
+
+
+def test_cell_blocks_tie_two_by_two_cells_of_one_projector():
+    sizes = [(7, 5), (6, 4)]
+    g = torch.Generator().manual_seed(0)
+    cells = [(j, c) for j, (w, h) in enumerate(sizes) for c in range(w * h)]
+    keep = torch.randperm(len(cells), generator=g)[:40]
+    projector = torch.tensor([cells[i][0] for i in keep])
+    cell = torch.tensor([cells[i][1] for i in keep])
+    block, block_projector, block_cell, block_sizes = cell_blocks(projector, cell, sizes)
+    assert block_sizes == [(4, 3), (3, 2)]  # odd sizes round up
+    for a in range(len(keep)):
+        w = sizes[projector[a]][0]
+        x, y = int(cell[a]) % w, int(cell[a]) // w
+        b = int(block[a])
+        assert int(block_projector[b]) == int(projector[a])
+        assert int(block_cell[b]) == (y // 2) * block_sizes[projector[a]][0] + x // 2
+        for other in range(len(keep)):
+            wo = sizes[projector[other]][0]
+            same = (int(projector[other]) == int(projector[a]) and int(cell[other]) % wo // 2 == x // 2
+                    and int(cell[other]) // wo // 2 == y // 2)
+            assert (int(block[other]) == b) == same
+    assert sorted(set(block.tolist())) == list(range(len(block_cell)))  # every block has a column
+
+
+def test_coarse_levels_are_the_tied_problem(op):
+    levels = op.coarse_levels(3)
+    assert len(levels) == 2  # a third level would fall under 64 columns
+    assert levels[1][0].Q.shape[0] < levels[0][0].Q.shape[0] / 3 < op.shape[1] / 9
+    A = op.dense()
+    Q_full, q_full = A.T @ A, A.T @ op.rhs
+    tie = torch.eye(op.shape[1], dtype=torch.float64)
+    g = torch.Generator().manual_seed(3)
+    for ne, block in levels:
+        tie = tie @ tie_matrix(block)
+        torch.testing.assert_close(ne.Q.to_dense(), tie.T @ Q_full @ tie, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(ne.q, tie.T @ q_full, rtol=1e-12, atol=1e-12)
+        # The tied problem's objective is the full objective of the pattern it stands for.
+        pc = torch.rand(ne.Q.shape[0], 3, generator=g, dtype=torch.float64)
+        assert ne.objective(pc, ne.product(pc)) == pytest.approx(float(op.objective(tie @ pc)), rel=1e-12)
+    assert op.coarse_levels(3)[0][0] is levels[0][0]  # cached
+
+
+def test_with_rhs_carries_the_coarse_levels(op):
+    levels = op.coarse_levels(2)
+    for ne, _ in levels:
+        ne.jacobi().lipschitz()
+    cals = synthetic_calibration(shape=(40, 50), sizes=LARGE)
+    fresh = build_transport(cals, targets(channels=3, seed=7), scale=0.8).double()
+    swapped = op.with_rhs(fresh.rhs, fresh.constant)
+    for (ne, block), (ref, ref_block), (old, _) in zip(swapped.coarse_levels(2), fresh.coarse_levels(2), levels):
+        assert torch.equal(block, ref_block)
+        assert ne.Q is old.Q and ne.jacobi().Q is old.jacobi().Q  # shared, not rebuilt
+        torch.testing.assert_close(ne.q, ref.q, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(ne.jacobi().q, ref.jacobi().q, rtol=1e-12, atol=1e-12)
+
+
+def test_coarsening_stops_where_blocks_hold_one_lit_cell():
+    # Every correspondence on a cell with even x and y: each 2x2 block holds one column, so tying
+    # saves nothing.
+    g = torch.Generator().manual_seed(1)
+    sizes = [(40, 30), (40, 30)]
+    prj = [2 * torch.randint(0, 15, (30, 40, 2), generator=g).double() for _ in sizes]
+    wts = [torch.ones(30, 40) for _ in sizes]
+    cal = {"near": StateCalibration(prj, wts, sizes), "far": StateCalibration(prj, wts, sizes)}
+    scattered = build_transport(cal, targets(), scale=1.0)
+    assert scattered.coarse_levels(3) == []
+
+
+def test_coarse_levels_follow_dtype_changes():
+    single = build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(), scale=0.8)
+    assert single.coarse_levels(1)[0][0].Q.dtype == torch.float32
+    single.double()  # in place, as nn.Module does
+    ne, block = single.coarse_levels(1)[0]
+    assert ne.Q.dtype == torch.float64 and ne.q.dtype == torch.float64 and block.device == single.column_cell.device
