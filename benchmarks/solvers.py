@@ -38,7 +38,7 @@ from scipy.optimize import lsq_linear  # noqa: E402
 from scipy.sparse import csr_matrix  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from model_space import image, timed_product  # noqa: E402
+from model_space import floor_time, image, product_floor, timed_product  # noqa: E402
 from stability import small  # noqa: E402
 
 from torchproj.evaluate import calibrate_virtual, masked_ssim, model_space_psnr, psnr  # noqa: E402
@@ -105,14 +105,7 @@ def run_size(label: str, projector, camera, log=print) -> dict:
     setup = {"normal_equations_s": round(t_normal, 3), "coarse_levels_s": round(time.perf_counter() - t0, 3),
              "coarse_columns": [level.Q.shape[0] for level in levels]}
     x = torch.rand(op.shape[1], 3)
-    floor = {"A_p_s": timed_product(op.A, x), "At_r_s": timed_product(op.A_adjoint, torch.rand(op.shape[0], 3)),
-             "Q_p_s": timed_product(ne.jacobi().product, x), "Q_nnz": int(ne.Q._nnz()),
-             "Q_p_coarse_s": [timed_product(level.jacobi().product, torch.rand(level.Q.shape[0], 3)) for level in levels]}
-
-    def floor_time(iterations: int, coarse: list[int]) -> float:
-        """The products a proximal solve needed, each at its level's product time."""
-        per_level = floor["Q_p_coarse_s"][:len(coarse)][::-1]  # coarsest first, as the solver reports
-        return iterations * floor["Q_p_s"] + sum(k * t for k, t in zip(coarse, per_level))
+    floor = product_floor(op)
 
     best = {b: solve_fista(op, b, max_iter=3000, tol=1e-11).objective for b in ((0.0, 1.0), (NEG, 1.0))}
     rows = []
@@ -123,7 +116,8 @@ def run_size(label: str, projector, camera, log=print) -> dict:
         row = {"method": method, "bounds_8bit": [round(b * 255) for b in bounds], "time_s": round(res.time_s, 4),
                "iterations": res.iterations, "relative_gap": gap, "model_psnr_db": model_space_psnr(full, p)}
         if proximal:
-            row["time_over_floor"] = round(res.time_s / floor_time(res.iterations, res.info["coarse_iterations"]), 3)
+            row["time_over_floor"] = round(res.time_s / floor_time(floor, res.iterations, res.info["coarse_iterations"]),
+                                           3)
             row["coarse_iterations"] = res.info["coarse_iterations"]
         if with_capture:
             row["capture_psnr_db"], row["capture_ssim"] = captured(cal, op, targets, res.patterns, bounds)
@@ -164,7 +158,7 @@ def run_size(label: str, projector, camera, log=print) -> dict:
         fine = max(k - coarse, 0)
         out = {"time_s": float(hist[k, 0]), "iterations": fine, "coarse_iterations": res.info["coarse_iterations"]}
         if k >= coarse:
-            out["time_over_floor"] = round(out["time_s"] / floor_time(fine, res.info["coarse_iterations"]), 3)
+            out["time_over_floor"] = round(out["time_s"] / floor_time(floor, fine, res.info["coarse_iterations"]), 3)
         return out, hist
 
     def repeated_to_gap(solve, target_best, first=None, repeats=5):
