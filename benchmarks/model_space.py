@@ -69,10 +69,16 @@ def timed_product(fn, x, repeats=5):
 
 def product_floor(op) -> dict:
     """One product of each kind on 3 channels: ``A p``, ``A^T r``, ``Q p``, and ``Q p`` at each coarse level."""
-    ne = op.normal_equations()
     x = torch.rand(op.shape[1], 3)
     return {"A_p_s": timed_product(op.A, x), "At_r_s": timed_product(op.A_adjoint, torch.rand(op.shape[0], 3)),
-            "Q_p_s": timed_product(ne.jacobi().product, x), "Q_nnz": int(ne.Q._nnz()),
+            "Q_nnz": int(op.normal_equations().Q._nnz()), **q_products(op)}
+
+
+def q_products(op) -> dict:
+    """The time of one ``Q p`` (3 channels, Jacobi-scaled as the solvers use it) at full size and at each
+    coarse level FISTA starts on."""
+    ne = op.normal_equations()
+    return {"Q_p_s": timed_product(ne.jacobi().product, torch.rand(op.shape[1], 3)),
             "Q_p_coarse_s": [timed_product(level.jacobi().product, torch.rand(level.Q.shape[0], 3))
                              for level, _ in op.coarse_levels(3)]}
 

@@ -1,9 +1,12 @@
 """The operator's coarse levels (cells tied in blocks) against dense float64 algebra."""
 
+import math
+
 import pytest
 import torch
 
 from torchproj.transport import StateCalibration, build_transport, cell_blocks
+from torchproj.transport.operator import _blockwise_sum
 
 from .test_build import synthetic_calibration, targets
 
@@ -93,3 +96,14 @@ def test_coarse_levels_follow_dtype_changes():
     single.double()  # in place, as nn.Module does
     ne, block = single.coarse_levels(1)[0]
     assert ne.Q.dtype == torch.float64 and ne.q.dtype == torch.float64 and block.device == single.column_cell.device
+
+
+@pytest.mark.parametrize("n", [700, 5000, 2_782_953])  # under one run, a few runs, the full-size rig's p
+def test_blockwise_sum_is_as_good_as_float64_accumulation(n):
+    # Terms that nearly cancel, as the objective's do: a float32 running total would drift.
+    x = torch.rand(n, generator=torch.Generator().manual_seed(n)) * 2 - 1.0003
+    exact = math.fsum(x.double().tolist())
+    total = _blockwise_sum(x)
+    assert total.dtype == torch.float64
+    assert abs(float(total) - exact) <= 1e-8 * float(x.abs().sum())
+    assert float(_blockwise_sum(x.double())) == pytest.approx(exact, rel=1e-12, abs=1e-9)
