@@ -114,9 +114,10 @@ def solve_fista(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500
     relative change of 1e-4 (or ``tol`` if looser) and at most 100 iterations, and starts from the
     last of those patterns. Smooth patterns are what gradient steps are slowest on (two
     projectors' smooth patterns look alike on every target) and what the tied problems, a quarter
-    of the size and less, solve cheaply; on the paper's full-size rig this halves the time to a 1e-3
-    gap (``benchmarks/solvers.py``). Every tied pattern is a pattern of the full rig,
-    in the box, with the same objective, so ``history`` runs through all levels. ``iterations`` and
+    of the size and less, solve cheaply. On the paper's full-size rig this nearly halves the time
+    to a 1e-3 gap; at quarter size (58 k variables) it costs a few milliseconds instead
+    (``benchmarks/solvers.py``); ``levels=0`` turns it off. Every tied pattern is a pattern of the
+    full rig, in the box, with the same objective, so ``history`` runs through all levels. ``iterations`` and
     ``max_iter`` count the full-resolution iterations; ``info["coarse_iterations"]`` gives the
     others, coarsest first. With ``x0`` the solve starts there instead.
     """
