@@ -78,6 +78,20 @@ def test_with_rhs_carries_the_coarse_levels(op):
         torch.testing.assert_close(ne.jacobi().q, ref.jacobi().q, rtol=1e-12, atol=1e-12)
 
 
+def test_bounds_of_the_scaled_system_are_shared_by_every_set_of_targets(op):
+    ne = op.normal_equations()
+    assert ne.bound(0.7) == 0.7  # no scaling: a number
+    scaled = ne.jacobi()
+    assert scaled.bound(0.0) == 0.0  # zero scales to zero
+    hi = scaled.bound(1.0)
+    torch.testing.assert_close(hi * scaled.scale.expand_as(hi), torch.ones_like(hi), rtol=1e-12, atol=0)
+    assert hi.shape == scaled.q.shape and hi.is_contiguous()
+    assert scaled.bound(1.0) is hi
+    fresh = build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3, seed=7), scale=0.8)
+    swapped = op.with_rhs(fresh.rhs.double(), fresh.constant.double())
+    assert swapped.normal_equations().jacobi().bound(1.0) is hi
+
+
 def test_coarsening_stops_where_blocks_hold_one_lit_cell():
     # Every correspondence on a cell with even x and y: each 2x2 block holds one column, so tying
     # saves nothing.

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..core.checks import check, check_finite
-from ..transport.operator import TransportOperator
+from ..transport.operator import SUM_RUN, TransportOperator
 
 __all__ = ["SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "to_projectable",
            "check_bounds"]
@@ -159,8 +159,77 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
                              "coarse_columns": [level_ne.Q.shape[0] for level_ne, _ in reversed(coarse)]})
 
 
+# The element-wise part of an iteration (objective, extrapolation, gradient step, clamp) reads and
+# writes blocks of N x C floats, 11 MB each on the paper's full-size rig. Op by op, each block
+# went through main memory several times, and that cost as much as the sparse product. Done chunk
+# by chunk, the operations on one chunk find it in cache, and the extrapolated point is never
+# stored. A chunk is a whole number of the objective's summation runs, so the objective is summed
+# exactly as :meth:`NormalEquations.objective` sums it.
+_CHUNK = 256 * SUM_RUN
+
+
+class _Sweep:
+    """One chunked pass: the objective of the current iterate and the next gradient step.
+
+    Blocks are ``(tensor, its chunks)`` pairs (:meth:`block`), so that a solve splits each of its
+    blocks once.
+    """
+
+    def __init__(self, ne, step: float, lo: float, hi: float):
+        self.ne, self.step, self.half_step = ne, step, 0.5 * step
+        self.two_q = self.split(ne.two_q)
+        self.lo, self.hi = (self.split(b) if torch.is_tensor(b) else [b] * len(self.two_q)
+                            for b in (ne.bound(lo), ne.bound(hi)))
+        scratch = torch.empty(3, min(_CHUNK, ne.q.numel()), dtype=ne.q.dtype, device=ne.q.device)
+        self.work, self.y, self.qy = scratch.unbind(0)
+        self.runs = torch.empty(ne.q.numel() // SUM_RUN, dtype=ne.q.dtype, device=ne.q.device)
+        self.run_chunks = self.runs.split(_CHUNK // SUM_RUN)
+
+    @staticmethod
+    def split(t: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return t.view(-1).split(_CHUNK)
+
+    def block(self, t: torch.Tensor | None = None):
+        t = torch.empty_like(self.ne.q) if t is None else t
+        return t, self.split(t)
+
+    def __call__(self, z, qz, z_prev, qz_prev, weight: float, out) -> float:
+        """``f(z)``, and into ``out`` the step ``clamp(y - step (Q y - q))`` from
+        ``y = z_prev + weight (z - z_prev)`` (``y = z`` for weight 1; Q y from the products likewise).
+        """
+        tail = 0.0
+        for i, (zc, qc, oc) in enumerate(zip(z[1], qz[1], out[1])):
+            m = zc.numel()
+            w = torch.sub(qc, self.two_q[i], out=self.work[:m]).mul_(zc)
+            full = m // SUM_RUN * SUM_RUN
+            if full:
+                torch.sum(w[:full].view(-1, SUM_RUN), 1, out=self.run_chunks[i])
+            if full < m:
+                tail = w[full:].double().sum()
+            if weight == 1.0:
+                y, qy = zc, qc
+            else:
+                y = torch.lerp(z_prev[1][i], zc, weight, out=self.y[:m])
+                qy = torch.lerp(qz_prev[1][i], qc, weight, out=self.qy[:m])
+            # clamp(y - step (Q y - q)) = clamp(y - step Q y + (step / 2) 2q)
+            torch.add(y, qy, alpha=-self.step, out=oc).add_(self.two_q[i], alpha=self.half_step)
+            _clamp_(oc, self.lo[i], self.hi[i])
+        return float(self.runs.double().sum() + tail + self.ne.c.sum())
+
+
+def _clamp_(x: torch.Tensor, lo, hi) -> torch.Tensor:
+    """``x`` clamped in place to ``[lo, hi]``, each a number or a block shaped like ``x``."""
+    if torch.is_tensor(lo) == torch.is_tensor(hi):
+        return x.clamp_(lo, hi)
+    if torch.is_tensor(hi):
+        return x.clamp_min_(lo).clamp_(None, hi)
+    return x.clamp_max_(hi).clamp_(lo, None)
+
+
 def _iterate(ne, p, lo, hi, max_iter, tol, accelerate, t0, history, bar):
     """Projected gradient steps (accelerated or not) on ``ne`` from ``p``; appends to ``history``.
+
+    ``p`` is overwritten: the callers' starts are theirs to give.
 
     Returns the patterns (in ``p``'s units, inside the box), the objective, the iterations and
     whether the stopping rule fired.
@@ -169,64 +238,45 @@ def _iterate(ne, p, lo, hi, max_iter, tol, accelerate, t0, history, bar):
     # linear, so Q y follows from Q z by the same extrapolation as y.
     L = ne.lipschitz()
     check(L > 0, "the operator is zero: nothing to solve")
-    step, q = 1.0 / L, ne.q
-    if ne.scale is None:
-        z_lo, z_hi, unscale = lo, hi, 1.0
-    else:
-        # Bounds per variable, as full blocks: torch's clamp is five times slower when it has
-        # to broadcast an (N, 1) bound across the channels.
-        unscale = ne.scale
-        z_lo, z_hi = (torch.div(b, ne.scale).expand_as(q).contiguous() for b in (lo, hi))
-
-    step_q = step * q
-
-    # Every iteration works in six preallocated blocks (iterates and their products) plus one
-    # scratch block: at full size an (N, C) block is 11 MB, and fresh ones cost page faults.
-    def gradient_step(v, qv, out):
-        # clamp(v - step (Q v - q)) = clamp(v - step Q v + step q), in place.
-        return torch.add(v, qv, alpha=-step, out=out).add_(step_q).clamp_(z_lo, z_hi)
-
-    z = p / unscale
-    qz = ne.product(z)
-    work = torch.empty_like(z)
-    z_new, qz_new = torch.empty_like(z), torch.empty_like(z)
-    y, qy = (torch.empty_like(z), torch.empty_like(z)) if accelerate else (z, qz)
-    if accelerate:
-        y.copy_(z)
-        qy.copy_(qz)
-    t_k = 1.0
-    f = ne.objective(z, qz, work)
+    sweep = _Sweep(ne, 1.0 / L, lo, hi)
+    unscale = 1.0 if ne.scale is None else ne.scale
+    p = p if ne.scale is None else p.div_(unscale)
+    # Three iterate blocks rotate: the current one, the candidate (the step from the extrapolated
+    # point, whose product is taken next) and the one the next step is written into. The first
+    # is p itself, which the callers hand over.
+    z, candidate, spare = sweep.block(p), sweep.block(), sweep.block()
+    qz, q_candidate = sweep.block(ne.product(z[0])), sweep.block()
+    f = sweep(z, qz, None, None, 1.0, candidate)
     if not history:
         history.append((time.perf_counter() - t0, f))
+    t_k = 1.0
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
-        ne.product(gradient_step(y, qy, z_new), qz_new)
-        f_new = ne.objective(z_new, qz_new, work)
+        ne.product(candidate[0], q_candidate[0])
+        t_next = 0.5 * (1 + math.sqrt(1 + 4 * t_k * t_k)) if accelerate else 1.0
+        # The step after this candidate is taken on the guess that the candidate is kept.
+        weight = 1 + (t_k - 1) / t_next
+        f_new = sweep(candidate, q_candidate, z, qz, weight, spare)
         if accelerate and f_new > f and t_k > 1.0:
             # Restart: drop the momentum and take a plain projected step from z (monotone).
-            ne.product(gradient_step(z, qz, z_new), qz_new)
-            f_new = ne.objective(z_new, qz_new, work)
+            sweep(z, qz, None, None, 1.0, candidate)
+            ne.product(candidate[0], q_candidate[0])
             t_k = 1.0
-        if accelerate:
-            t_next = 0.5 * (1 + math.sqrt(1 + 4 * t_k * t_k))
-            beta = (t_k - 1) / t_next
-            # y = z_new + beta (z_new - z), and Q y likewise (Q is linear), as one interpolation each.
-            torch.lerp(z, z_new, 1 + beta, out=y)
-            torch.lerp(qz, qz_new, 1 + beta, out=qy)
-            t_k = t_next
+            t_next = 0.5 * (1 + math.sqrt(5))
+            f_new = sweep(candidate, q_candidate, None, None, 1.0, spare)
+        t_k = t_next
         done = _stop(f, f_new, tol)
-        # The new iterate becomes the current one; the old one's blocks take the next step.
-        z, z_new, qz, qz_new, f = z_new, z, qz_new, qz, f_new
-        if not accelerate:
-            y, qy = z, qz
+        z, candidate, spare = candidate, spare, z
+        qz, q_candidate = q_candidate, qz
+        f = f_new
         history.append((time.perf_counter() - t0, f))
         if bar is not None:
             bar.update(1)
         if done:
             converged = True
             break
-    return (z * unscale).clamp_(lo, hi), f, it, converged  # the clamp only removes the scaling's round-off
+    return (z[0] * unscale).clamp_(lo, hi), f, it, converged  # the clamp only removes the scaling's round-off
 
 
 class ClampedAdam(torch.optim.Adam):

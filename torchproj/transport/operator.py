@@ -301,7 +301,11 @@ class TransportOperator(nn.Module):
         return images
 
 
-def _blockwise_sum(values: torch.Tensor, block: int = 1024) -> torch.Tensor:
+# Entries per run of :func:`_blockwise_sum`, summed in float32 before the runs are added in float64.
+SUM_RUN = 1024
+
+
+def _blockwise_sum(values: torch.Tensor, block: int = SUM_RUN) -> torch.Tensor:
     """The sum of all entries, as float64, at the speed of a float32 sum.
 
     Runs of ``block`` entries are summed in their own dtype (torch sums a contiguous row pairwise,
@@ -328,14 +332,16 @@ class NormalEquations:
         c: :math:`(C,)` float64: ``||i||^2`` plus the operator's merged-away constant.
         scale: :math:`(N_{cols}, 1)` or None: for the Jacobi-scaled system (:meth:`jacobi`), the
             variables are ``p = scale * z``.
+        two_q: ``2 q``, kept for the objective ``p^T (Q p - 2 q) + c``.
     """
 
     def __init__(self, Q: torch.Tensor, q: torch.Tensor, c: torch.Tensor, scale: torch.Tensor | None = None):
         self.Q, self.q, self.c, self.scale = Q, q, c, scale
-        self._two_q = 2 * q
+        self.two_q = 2 * q
         self._lipschitz = None
         self._jacobi = None
         self._coarse = None
+        self._bounds = {}
 
     @classmethod
     def from_operator(cls, op: TransportOperator) -> "NormalEquations":
@@ -357,6 +363,7 @@ class NormalEquations:
             s = self._jacobi.scale
             new._jacobi = NormalEquations(self._jacobi.Q, q * s, c, s)
             new._jacobi._lipschitz = self._jacobi._lipschitz
+            new._jacobi._bounds = self._jacobi._bounds
         if self._coarse is not None:
             block, coarse = self._coarse
             new._coarse = (block, coarse.with_targets(_sum_blocks(q, block, coarse.Q.shape[0]), c))
@@ -400,6 +407,20 @@ class NormalEquations:
             self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
         return self._jacobi
 
+    def bound(self, value: float) -> torch.Tensor | float:
+        """A bound on ``p`` as a bound on this system's variables, ``value / scale`` (cached).
+
+        A number where it is the same for every variable (no scaling, or 0); otherwise an
+        :math:`(N_{cols}, C)` block, stored whole because torch's clamp is five times slower when it
+        broadcasts an (N, 1) bound across the channels. Every set of targets shares it.
+        """
+        if self.scale is None or value == 0:
+            return value
+        key = (value, self.q.shape[1])
+        if key not in self._bounds:
+            self._bounds[key] = torch.div(value, self.scale).expand_as(self.q).contiguous()
+        return self._bounds[key]
+
     def product(self, p: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
         """``Q p`` for :math:`(N_{cols}, C)` p, into ``out`` when given (its contents are ignored)."""
         return spmm(self.Q, p, out)
@@ -412,7 +433,7 @@ class NormalEquations:
         tolerance, and then rounding decides when FISTA restarts and stops. ``work`` (shaped like p)
         is scratch space, so an iterative solver allocates nothing per call.
         """
-        work = torch.sub(qp, self._two_q, out=work).mul_(p)
+        work = torch.sub(qp, self.two_q, out=work).mul_(p)
         return float(_blockwise_sum(work) + self.c.sum())
 
     def lipschitz(self, iterations: int = 30) -> float:
