@@ -161,7 +161,7 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
 
 # The element-wise part of an iteration (objective, extrapolation, gradient step, clamp) reads and
 # writes blocks of N x C floats, 11 MB each on the paper's full-size rig. Op by op, each block
-# went through main memory several times, and that cost as much as the sparse product. Done chunk
+# went through main memory several times, and that cost more than the sparse product. Done chunk
 # by chunk, the operations on one chunk find it in cache, and the extrapolated point is never
 # stored. A chunk is a whole number of the objective's summation runs, so the objective is summed
 # exactly as :meth:`NormalEquations.objective` sums it.
@@ -263,8 +263,8 @@ def _iterate(ne, p, lo, hi, max_iter, tol, accelerate, t0, history, bar):
             sweep(z, qz, None, None, 1.0, candidate)
             ne.product(candidate[0], q_candidate[0])
             t_k = 1.0
-            t_next = 0.5 * (1 + math.sqrt(5))
-            f_new = sweep(candidate, q_candidate, None, None, 1.0, spare)
+            t_next = 0.5 * (1 + math.sqrt(1 + 4 * t_k * t_k))
+            f_new = sweep(candidate, q_candidate, None, None, 1.0, spare)  # weight 1: no momentum yet
         t_k = t_next
         done = _stop(f, f_new, tol)
         z, candidate, spare = candidate, spare, z
