@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from torchproj.evaluate import calibrate_virtual, depth_sweep, run_virtual
+from torchproj.pipeline import calibrate_virtual, run_virtual
+from torchproj.experiments import depth_sweep
 from torchproj.figures import depth_selectivity, run_overview
 from torchproj.scene import load_scene
 
@@ -60,7 +61,7 @@ def main(argv=None) -> int:
                 for t in rep["targets"]) + f"  solve {rep['timings_s']['solve']:.1f} s", flush=True)
             if label == "FISTA":
                 run_overview(args.out / f"{scene.name}.png", res.patterns, [p.name for p in scene.projectors],
-                             res.targets, rep["targets"])
+                             res.targets)
             if scene.name == args.sweep_scene and args.depths and label != "FISTA oracle":
                 depths = np.linspace(0.65, 1.15, args.depths)
                 sweeps[label] = depth_sweep(scene, "near_plane", depths, res.patterns, res.targets, res.report["scale"])

@@ -9,7 +9,7 @@ the camera-to-projector map in four ways:
 2. **homography**: one homography fitted to that map (:func:`torchproj.transport.planar_calibration`);
 3. **homography, k bits**: a shortened sequence, the first k Gray-code pattern pairs per axis,
    captured on the virtual rig and calibrated as ``torchproj run --bits k`` does
-   (:func:`torchproj.evaluate.calibrate_virtual`): the captures decode to blocks of ``2^(n-k)``
+   (:func:`torchproj.pipeline.calibrate_virtual`): the captures decode to blocks of ``2^(n-k)``
    cells, and one homography is fitted to the block edges. That is ``2 (k_x + k_y) + 2`` images
    instead of ``2 (n_x + n_y) + 2``. Fewer captures is what the model saves. On scenes that are
    not one plane the fit is forced through (the tolerance lifted) to show what it would cost;
@@ -53,8 +53,8 @@ import torch  # noqa: E402
 
 from torchproj.calib import fit_homography, graycode_bits, homography_map  # noqa: E402
 from torchproj.core import InputError  # noqa: E402
-from torchproj.evaluate import calibrate_virtual, run_virtual  # noqa: E402
-from torchproj.evaluate.run import VirtualCalibration  # noqa: E402
+from torchproj.pipeline import calibrate_virtual, run_virtual  # noqa: E402
+from torchproj.pipeline import VirtualCalibration  # noqa: E402
 from torchproj.scene import load_scene  # noqa: E402
 from torchproj.transport import StateCalibration  # noqa: E402
 

@@ -21,8 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from torchproj.evaluate import calibrate_virtual, run_virtual
-from torchproj.evaluate.run import default_images
+from torchproj.pipeline import calibrate_virtual, run_virtual, target_image
 from torchproj.scene import load_scene
 
 PAIRS = [("astronaut", "chelsea"), ("astronaut", "coffee"), ("coffee", "rocket"), ("coffee", "astronaut")]
@@ -45,13 +44,6 @@ PAPER = {
 }
 
 
-def image(name: str, channels: int):
-    import torchproj.evaluate.run as run
-
-    index = run.DEFAULT_IMAGES.index(name)
-    return default_images(index + 1, channels)[index]
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/image_quality"))
@@ -65,7 +57,7 @@ def main(argv=None) -> int:
     oracle = calibrate_virtual(scene, oracle=True)
     rows = []
     for pair in PAIRS:
-        images = [image(n, scene.camera.channels) for n in pair]
+        images = [target_image(n, scene.camera.channels) for n in pair]
         for label, solver, bounds, extra in METHODS:
             iters = 300 if solver in ("fista", "pgd", "adam", "lf") else args.max_iter
             extra = dict(extra)

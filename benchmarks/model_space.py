@@ -30,31 +30,24 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from scipy.optimize import lsq_linear  # noqa: E402
 from scipy.sparse import csr_matrix  # noqa: E402
-from skimage import data  # noqa: E402
 
-from torchproj.calib import calibrate_projector, simulate_calibration  # noqa: E402
-from torchproj.evaluate import model_space_psnr  # noqa: E402
+from torchproj.pipeline import calibrate_virtual, target_image  # noqa: E402
+from torchproj.metrics import model_space_psnr  # noqa: E402
 from torchproj.scene import load_scene  # noqa: E402
-from torchproj.sim import VirtualRig  # noqa: E402
 from torchproj.solve import solve_adam, solve_eo, solve_fista, solve_lf, solve_pgd, to_projectable  # noqa: E402
-from torchproj.transport import StateCalibration, Target, build_transport  # noqa: E402
+from torchproj.transport import Target, build_transport  # noqa: E402
 
 NEG = -100 / 255
 
 
 def calibrate(scene_name: str):
     scene = load_scene(scene_name)
-    rig = VirtualRig(scene)
-    sizes = [(p.width, p.height) for p in scene.projectors]
-    cals = {}
-    for st in scene.states:
-        pcs = [calibrate_projector(simulate_calibration(rig, st.name, j), sizes[j]) for j in range(len(sizes))]
-        cals[st.name] = StateCalibration([c.prj_xy for c in pcs], [c.decoding.contrast for c in pcs], sizes)
-    return scene, cals
+    return scene, calibrate_virtual(scene).states
 
 
 def image(name: str) -> torch.Tensor:
-    return torch.from_numpy(getattr(data, name)()).permute(2, 0, 1).float() / 255
+    """A scikit-image test image in RGB, as the benchmarks' targets."""
+    return target_image(name, 3)
 
 
 def timed_product(fn, x, repeats=5):

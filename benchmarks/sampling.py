@@ -21,7 +21,8 @@ from pathlib import Path
 
 import torch
 
-from torchproj.evaluate import calibrate_virtual, psnr, run_virtual
+from torchproj.pipeline import calibrate_virtual, run_virtual
+from torchproj.metrics import psnr
 from torchproj.scene import load_scene
 from torchproj.sim import VirtualRig
 
@@ -38,7 +39,7 @@ def _score(scene, state_surfaces, patterns, run, black, supersampling, offset_mm
     shown = {j: (p.float() / 255)[None] for j, p in enumerate(patterns)}
     out = []
     for k, spec in enumerate(scene.target_specs()):
-        region = run.targets[k]["covered"]
+        region = run.targets[k].covered
         pixels = torch.nonzero(region.reshape(-1))[:, 0]
         surfaces = []
         for name in state_surfaces[spec.state]:
@@ -48,7 +49,7 @@ def _score(scene, state_surfaces, patterns, run, black, supersampling, offset_mm
             surfaces.append(dataclasses.replace(surf, world_from_local=pose))
         shot = rig.capture_surfaces(surfaces, shown, pixels, noise=False)
         estimate = ((shot - black[spec.state][:, region]) / run.report["scale"]).clamp(0, 1)
-        out.append(round(psnr(estimate, run.targets[k]["values"][:, region]), 3))
+        out.append(round(psnr(estimate, run.targets[k].values[:, region]), 3))
     return out
 
 

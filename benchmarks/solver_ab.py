@@ -32,7 +32,7 @@ from model_space import image  # noqa: E402
 from solvers import SIZES  # noqa: E402
 from stability import small  # noqa: E402
 
-from torchproj.evaluate import calibrate_virtual  # noqa: E402
+from torchproj.pipeline import calibrate_virtual  # noqa: E402
 from torchproj.scene import parse_scene  # noqa: E402
 from torchproj.solve import solvers as current  # noqa: E402
 from torchproj.transport import Target, build_transport  # noqa: E402

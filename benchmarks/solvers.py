@@ -44,7 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from model_space import floor_time, image, product_floor, q_products, timed_product  # noqa: E402
 from stability import small  # noqa: E402
 
-from torchproj.evaluate import calibrate_virtual, masked_ssim, model_space_psnr, psnr  # noqa: E402
+from torchproj.pipeline import calibrate_virtual  # noqa: E402
+from torchproj.metrics import model_space_psnr, psnr, ssim  # noqa: E402
 from torchproj.scene import parse_scene  # noqa: E402
 from torchproj.solve import (compensate, solve_adam, solve_eo, solve_fista, solve_lf, solve_pgd,  # noqa: E402
                              to_projectable)
@@ -80,7 +81,7 @@ def captured(cal, op, targets, p, bounds) -> tuple[list[float], list[float]]:
         values, covered = target_on_camera(t, region)
         est = ((shot - cal.black[t.state]) / op.scale).clamp(0, 1)
         ps.append(round(psnr(est[:, covered], values[:, covered]), 3))
-        ss.append(round(masked_ssim(est, values, covered), 4))
+        ss.append(round(float(ssim(est.double(), values.double(), covered)), 4))
     return ps, ss
 
 

@@ -24,7 +24,6 @@ objective above the starting one), quality collapse (a target under 10 dB). Writ
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 import time
@@ -39,8 +38,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import yaml  # noqa: E402
 
-from torchproj.evaluate import calibrate_virtual, depth_sweep, run_virtual  # noqa: E402
-from torchproj.scene import builtin_config, parse_scene  # noqa: E402
+from torchproj.pipeline import calibrate_virtual, run_virtual  # noqa: E402
+from torchproj.experiments import depth_sweep  # noqa: E402
+from torchproj.scene import builtin_config, parse_scene, scale_config  # noqa: E402
 from torchproj.solve import solve_adam  # noqa: E402
 from torchproj.transport import Target, build_transport  # noqa: E402
 
@@ -50,12 +50,8 @@ COLLAPSE_DB = 10.0
 
 
 def small(name: str = "paper_two_planes", camera=(400, 300), projector=(256, 192)) -> dict:
-    """A built-in scene's YAML data at a smaller resolution (focal lengths scaled with the width)."""
-    data = copy.deepcopy(yaml.safe_load(builtin_config(name).read_text()))
-    for dev, (w, h) in [(data["camera"], camera)] + [(p, projector) for p in data["projectors"]]:
-        dev["focal"] = dev["focal"] * w / dev["resolution"][0]
-        dev["resolution"] = [w, h]
-    return data
+    """A built-in scene's YAML data at a smaller resolution (:func:`torchproj.scene.scale_config`)."""
+    return scale_config(yaml.safe_load(builtin_config(name).read_text()), camera=camera, projector=projector)
 
 
 def failures(sol, bounds_8bit, psnrs) -> list[str]:
@@ -151,7 +147,7 @@ def offset_sweep(offsets_mm, log=print) -> dict:
 def adam_sweep(rates, log=print) -> dict:
     scene = parse_scene(small(), name="adam")
     cal = calibrate_virtual(scene)
-    from torchproj.evaluate import scene_images
+    from torchproj.pipeline import scene_images
 
     targets = [Target(st.name, img) for st, img in zip(scene.states, scene_images(scene))]
     op = build_transport(cal.states, targets, merge=False)

@@ -1,33 +1,51 @@
-"""Test helpers: small versions of the built-in scenes, and the real captures' location."""
+"""Test helpers: small versions of the built-in scenes, a synthetic calibration, the real captures' location."""
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
+import torch
 import yaml
 
-from torchproj.scene import builtin_config, parse_scene
+from torchproj.scene import builtin_config, parse_scene, scale_config
+from torchproj.transport import StateCalibration, Target
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CHESSBOARD = SHARED_DATA / "procam_chessboard"
 
 
 def small_config(name: str = "paper_two_planes", camera=(400, 300), projector=(256, 192), **camera_overrides) -> dict:
-    """A built-in scene's YAML data with every device scaled to a smaller resolution.
-
-    Focal lengths scale with the width, so fields of view and the geometry stay those of the
-    shipped scene.
-    """
-    data = yaml.safe_load(builtin_config(name).read_text())
-    data = copy.deepcopy(data)
-    for dev, (w, h) in [(data["camera"], camera)] + [(p, projector) for p in data["projectors"]]:
-        scale = w / dev["resolution"][0]
-        dev["focal"] = dev["focal"] * scale
-        dev["resolution"] = [w, h]
+    """A built-in scene's YAML data with smaller devices (:func:`torchproj.scene.scale_config`) and
+    camera settings overridden."""
+    data = scale_config(yaml.safe_load(builtin_config(name).read_text()), camera=camera, projector=projector)
     data["camera"].update(camera_overrides)
     return data
 
 
 def small_scene(name: str = "paper_two_planes", camera=(400, 300), projector=(256, 192), **camera_overrides):
     return parse_scene(small_config(name, camera, projector, **camera_overrides), name=name)
+
+
+SIZES = [(12, 9), (10, 8)]
+LARGE = [(40, 32), (36, 28)]  # large enough for two coarse levels (tests/transport/test_operator.py)
+
+
+def synthetic_calibration(seed=0, shape=(15, 20), sizes=SIZES):
+    """Two projectors, two states: random sub-pixel correspondences with holes, random weights."""
+    g = torch.Generator().manual_seed(seed)
+    cals = {}
+    for state in ("near", "far"):
+        prj, wts = [], []
+        for w, h in sizes:
+            xy = torch.rand(*shape, 2, generator=g) * torch.tensor([w - 1.0, h - 1.0])
+            xy[torch.rand(shape, generator=g) < 0.15] = float("nan")
+            prj.append(xy)
+            wts.append(0.2 + torch.rand(shape, generator=g))
+        cals[state] = StateCalibration(prj, wts, sizes)
+    return cals
+
+
+def targets(channels=1, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return [Target("near", torch.rand(channels, 6, 8, generator=g), name="a"),
+            Target("far", torch.rand(channels, 7, 5, generator=g), name="b")]

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (calibrate_folders, graycode_patterns, load_bundle, read_graycode_folder,
-                             simulate_calibration, write_graycode_folder)
+from torchproj.calib import calibrate_folders, graycode_patterns, load_bundle, read_graycode_folder, write_graycode_folder
+from torchproj.pipeline import simulate_calibration
 from torchproj.cli import main
 from torchproj.core import CaptureError, read_image, write_image
-from torchproj.evaluate import run_virtual
+from torchproj.pipeline import run_virtual
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
 
@@ -71,8 +71,8 @@ def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_r
         shot = rig.capture(row["state"], shown)[0]
         black = rig.capture(row["state"], {})[0]
         est = ((shot - black) / run.report["scale"]).clamp(0, 1)
-        cov = t["covered"]
-        got = 10 * np.log10(1 / float(((est[:, cov] - t["values"][:, cov]) ** 2).mean()))
+        cov = t.covered
+        got = 10 * np.log10(1 / float(((est[:, cov] - t.values[:, cov]) ** 2).mean()))
         assert got == pytest.approx(row["psnr_db"], abs=0.3)
     assert (solved / "predicted" / "near.png").is_file()
     for row in report["targets"]:

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from . import __version__
-from .core.errors import InputError, TorchprojError
+from .core.errors import TorchprojError
 from .core.output import atomic_output, write_json
 
 __all__ = ["main", "build_parser"]
@@ -26,12 +26,6 @@ def _size(text: str) -> tuple[int, int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 1024x768, got {text!r}") from None
     return w, h
-
-
-def _progress(iterable, **kw):
-    from tqdm import tqdm
-
-    return tqdm(iterable, file=sys.stderr, leave=False, **kw)
 
 
 def _write_report(stage: Path, report: dict, markdown) -> str:
@@ -63,9 +57,9 @@ def cmd_scene(args) -> int:
 
 # ---------------------------------------------------------------------------------- simulate
 def cmd_simulate(args) -> int:
-    from .calib import (calibrate_projector, decoding_error, ramp_pattern, read_graycode_folder,
-                        simulate_calibration, write_graycode_folder)
+    from .calib import read_graycode_folder, write_graycode_folder
     from .figures import calibration_summary
+    from .pipeline import calibrate_rig, check_calibration
     from .scene import load_scene
     from .sim import VirtualRig
 
@@ -75,53 +69,23 @@ def cmd_simulate(args) -> int:
     timings = {"cast": 0.0, "capture": 0.0, "calibrate": 0.0}
     results, rows = [], []
     with atomic_output(args.out) as stage:
-        jobs = [(st.name, j) for st in scene.states for j in range(len(scene.projectors))]
-        for state, j in _progress(jobs, desc="calibrating states x projectors"):
+        def through_files(state, j, capture):
             proj = scene.projectors[j]
-            t0 = time.perf_counter()
-            geo = rig.geometry(state)
-            timings["cast"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            capture = simulate_calibration(rig, state, j, noise=not args.no_noise, bits=args.bits)
-            timings["capture"] += time.perf_counter() - t0
-            if args.write_captures:
-                folder = stage / "captures" / state / proj.name
-                write_graycode_folder(folder, capture, bits=scene.camera.bit_depth)
-                capture = read_graycode_folder(folder, (proj.width, proj.height), bits=args.bits)
-            t0 = time.perf_counter()
-            try:
-                cal = calibrate_projector(capture, (proj.width, proj.height), bits=args.bits,
-                                          plane_tolerance=args.plane_tolerance)
-            except InputError as exc:
-                raise InputError(f"state {state!r}, projector {proj.name!r}: {exc}") from None
-            timings["calibrate"] += time.perf_counter() - t0
-            truth = geo.prj_xy[j]
-            err_int = decoding_error(cal.decoding.prj_xy, truth)
-            err_sub = decoding_error(cal.prj_xy, truth)
-            # Compensation check (paper fig. 4c): the linearised ramp plus its mirror should be flat.
-            ramps = torch.cat([ramp_pattern(proj.width, proj.height), ramp_pattern(proj.width, proj.height, mirrored=True)])
-            shot = rig.capture(state, {j: cal.response.to_pattern(ramps)}, noise=not args.no_noise)
-            lit = cal.decoding.valid & ((capture.white - capture.black).mean(0) > 0.1)
-            norm = ((shot - capture.black) / (capture.white - capture.black).clamp_min(1e-3)).mean(1)
-            flat = (norm[0] + norm[1])[lit]
-            out_dir = stage / "calibration" / state / proj.name
+            folder = stage / "captures" / state / proj.name
+            write_graycode_folder(folder, capture, bits=scene.camera.bit_depth)
+            return read_graycode_folder(folder, (proj.width, proj.height), bits=args.bits)
+
+        for state, j, capture, cal in calibrate_rig(rig, bits=args.bits, plane_tolerance=args.plane_tolerance,
+                                                    noise=not args.no_noise, timings=timings,
+                                                    through=through_files if args.write_captures else None):
+            result, row = check_calibration(rig, state, j, capture, cal, noise=not args.no_noise)
+            out_dir = stage / "calibration" / state / scene.projectors[j].name
             out_dir.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(out_dir / "correspondence.npz", prj_xy=cal.prj_xy.numpy(),
                                 prj_xy_integer=cal.decoding.prj_xy.numpy(), cam_xy=cal.cam_xy.numpy(),
                                 count=cal.count.numpy(), contrast=cal.decoding.contrast.numpy())
-            results.append({
-                "state": state, "projector": proj.name, "block_cells": list(cal.decoding.block),
-                "decoding_integer": err_int.as_dict(), "decoding_subpixel": err_sub.as_dict(),
-                "response_fit": cal.response.as_dict(), "response_true_b": list(proj.response_b),
-                "compensated_ramp_sum": {"mean": float(flat.mean()), "std": float(flat.std())},
-            })
-            levels, measured = cal.ramp
-            rows.append({"label": f"{state}/{proj.name}", "prj_xy": cal.prj_xy,
-                         "error": (cal.prj_xy - truth).norm(dim=-1), "levels": levels.numpy(),
-                         "measured": measured.numpy(),
-                         "fitted": lambda x, a=float(cal.response.a[0]), b=float(cal.response.b[0]),
-                         c=float(cal.response.c[0]): a * x**b + c,
-                         "fit_b": float(cal.response.b[0]), "true_b": proj.response_b[0]})
+            results.append(result)
+            rows.append(row)
         calibration_summary(stage / "calibration.png", rows)
         timings["total"] = time.perf_counter() - t_start
         report = {"scene": scene.name, "config": str(scene.source), "torchproj": __version__,
@@ -177,7 +141,7 @@ def _limits(text: str) -> tuple[float, float]:
 
 def cmd_run(args) -> int:
     from .core.imageio import write_image
-    from .evaluate import run_virtual
+    from .pipeline import run_virtual
     from .figures import run_overview
     from .scene import load_scene
 
@@ -187,7 +151,8 @@ def cmd_run(args) -> int:
         gain_offset = (args.gain or (1.0, 1.0), args.offset or (0.0, 0.0))
     result = run_virtual(scene, solver=args.solver, bounds_8bit=args.bounds, device=args.device,
                          max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
-                         plane_tolerance=args.plane_tolerance, bits=args.bits)
+                         plane_tolerance=args.plane_tolerance, bits=args.bits, objective=args.objective,
+                         l2_weight=args.l2_weight, ssim_iter=args.ssim_iter)
     report = result.report
     with atomic_output(args.out) as stage:
         (stage / "patterns").mkdir()
@@ -196,12 +161,32 @@ def cmd_run(args) -> int:
         (stage / "captures").mkdir()
         for state, shot in result.captures.items():
             write_image(stage / "captures" / f"{state}.png", shot, bits=scene.camera.bit_depth)
-        run_overview(stage / "overview.png", result.patterns, [p.name for p in scene.projectors], result.targets,
-                     report["targets"])
+        run_overview(stage / "overview.png", result.patterns, [p.name for p in scene.projectors], result.targets)
         text = _write_report(stage, report, _run_markdown)
     print(text)
     print(f"wrote {args.out}/report.json, report.md, overview.png, patterns/, captures/")
     return 0
+
+
+def _add_solve_options(p) -> None:
+    """The options of every command that solves patterns (``run``, ``solve``)."""
+    from .solve import OBJECTIVES, SOLVERS
+
+    p.add_argument("--solver", default="fista", choices=list(SOLVERS),
+                   help="pattern solver (default: fista, the best measured)")
+    p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI",
+                   help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
+    p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
+                   help="what the patterns optimise: l2 (least squares, default), ssim (SSIM of the predicted camera "
+                        "images with a small weight on their squared error) or mixed (a larger weight); the image "
+                        "objectives start from the solver's patterns")
+    p.add_argument("--l2-weight", type=float, metavar="W",
+                   help=f"with --objective ssim or mixed: the weight of the squared error, relative to the start's "
+                        f"(defaults: ssim {OBJECTIVES['ssim']:g}, mixed {OBJECTIVES['mixed']:g})")
+    p.add_argument("--ssim-iter", type=int, default=30, metavar="N",
+                   help="with --objective ssim or mixed: its iterations (default 30)")
+    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
+    p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
 
 
 def _add_map_options(p, maps: bool = True, bits: bool = False) -> None:
@@ -221,6 +206,15 @@ _BITS_HELP = ("show only the first K Gray-code pattern pairs per axis (at least 
               "and state with white, black and the two ramps, instead of 44 for a 1024x768 projector")
 
 
+def _image_objective_lines(image: dict | None) -> list[str]:
+    if image is None:
+        return []
+    return [f"Image objective: {image['name']}, 1 - SSIM plus {image['l2_weight']:g} x the relative squared error, "
+            f"{image['iterations']} iterations from {image['start']['solver']}'s least-squares patterns; the model "
+            f"predicts SSIM " + " / ".join(f"{v:.3f}" for v in image["model_ssim"]) + " (the captures below are what "
+            "counts).", ""]
+
+
 def _run_markdown(report: dict) -> str:
     m, t = report["model"], report["timings_s"]
     adjusted = "gain_offset_limits" in report
@@ -232,6 +226,7 @@ def _run_markdown(report: dict) -> str:
                  for name, g in report["graycode"].items())) + ".", "",
              f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
+             *_image_objective_lines(report.get("image_objective")),
              f"Evaluation: {report['evaluation']}.", "",
              "| target | state | PSNR (dB) | SSIM | crosstalk | pixels |"
              + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else ""),
@@ -256,7 +251,7 @@ def _run_markdown(report: dict) -> str:
 # ------------------------------------------------------------------------------- position
 def cmd_position(args) -> int:
     from .core.imageio import write_image
-    from .evaluate import evaluate_positioning
+    from .experiments import evaluate_positioning
     from .figures import positioning_feedback
     from .scene import load_scene
 
@@ -333,7 +328,7 @@ def _scan_points(folder: Path, mask: np.ndarray | None) -> np.ndarray:
 
 def cmd_placement_error(args) -> int:
     from .core.imageio import read_image
-    from .evaluate import scan_distance
+    from .experiments import scan_distance
 
     if args.distance <= 0:
         raise TorchprojError(f"--distance must be the object-projector distance (> 0), got {args.distance:g}")
@@ -413,8 +408,7 @@ def cmd_calibrate(args) -> int:
         for (name, _, _), m, resp, ramp in zip(bundle.projectors, maps, bundle.responses, bundle.ramps):
             row = {"label": f"{state}/{name}", "prj_xy": m["prj_xy"], "error": None, "valid": m["valid"]}
             if ramp is not None:
-                row.update(levels=ramp[0].numpy(), measured=ramp[1].numpy(), fit_b=float(resp.b[0]),
-                           fitted=lambda x, r=resp: float(r.a[0]) * x ** float(r.b[0]) + float(r.c[0]))
+                row.update(levels=ramp[0].numpy(), measured=ramp[1].numpy(), response=resp)
             rows.append(row)
     with atomic_output(args.out) as stage:
         write_bundle(stage, bundle, args.calibration)
@@ -440,15 +434,14 @@ def _targets(values: list[str]) -> list[tuple[str, str]]:
 
 
 def cmd_solve(args) -> int:
-    import warnings
-
-    from .calib import ResponseCurve, load_bundle
+    from .calib import load_bundle
     from .core.imageio import write_image
-    from .evaluate import psnr, target_image
-    from .solve import make_patterns
-    from .transport import StateCalibration, Target, build_transport, planar_calibration, target_on_camera
+    from .pipeline import score_image, target_image
+    from .solve import image_objective, make_patterns
+    from .transport import StateCalibration, Target, build_transport, select_maps, target_on_camera
 
     t0 = time.perf_counter()
+    weight = image_objective(args.objective, args.l2_weight)
     bundle = load_bundle(args.bundle)
     states = StateCalibration.from_bundle(bundle)
     targets = []
@@ -459,26 +452,15 @@ def cmd_solve(args) -> int:
         if any(t.state == state for t in targets):
             raise TorchprojError(f"--targets {state}={image}: state {state!r} already has a target; give one per state")
         targets.append(Target(state, target_image(image, bundle.channels), name=f"{state}"))
-    responses = []
-    for (name, _, _), r in zip(bundle.projectors, bundle.responses):
-        if r is None:
-            warnings.warn(f"projector {name}: the bundle holds no response curve (no ramp captured); assuming "
-                          "a linear response", stacklevel=1)
-            r = ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1))
-        responses.append(r)
+    responses = bundle.response_curves()
     lo, hi = (b / 255 for b in args.bounds)
-    fits, maps = None, args.maps
-    if bundle.homographies:
-        # Calibrated from shortened sequences: the maps are fitted homographies already.
-        maps = "homography"
-        fits = {state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors]
-                for state in bundle.states}
-    elif args.maps == "homography":
-        states, fits = planar_calibration(states, args.plane_tolerance)
-        fits = {state: [f.as_dict() for f in per] for state, per in fits.items()}
-    op = build_transport(states, targets, device=args.device)
+    fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
+              if bundle.homographies else None)
+    states, maps, fits = select_maps(states, args.maps, args.plane_tolerance, fitted)
+    op = build_transport(states, targets, merge=weight is None, device=args.device)
     result, light, patterns = make_patterns(op, args.solver, (lo, hi), responses, calibrations=states,
-                                            max_iter=args.max_iter)
+                                            max_iter=args.max_iter, objective=args.objective, l2_weight=weight,
+                                            ssim_iter=args.ssim_iter)
     rows = []
     with atomic_output(args.out) as stage:
         (stage / "patterns").mkdir()
@@ -489,29 +471,32 @@ def cmd_solve(args) -> int:
             view = states[t.state].predict(light, bundle.black[t.state])
             write_image(stage / "predicted" / f"{t.name}.png", view.clamp(0, 1))
             values, covered = target_on_camera(t, states[t.state].lit())
-            estimate = ((view - bundle.black[t.state]) / op.scale).clamp(0, 1)
+            scores = score_image(((view - bundle.black[t.state]) / op.scale).clamp(0, 1), values, covered)
             rows.append({"name": t.name, "state": t.state, "pixels": int(covered.sum()),
-                         "predicted_psnr_db": psnr(estimate[:, covered], values[:, covered])})
-        report = {"bundle": str(args.bundle), "solver": args.solver, "bounds_8bit": list(args.bounds),
-                  "model": op.size_report(), "objective": result.objective, "iterations": result.iterations,
+                         "predicted_psnr_db": scores["psnr_db"], "predicted_ssim": scores["ssim"]})
+        report = {"bundle": str(args.bundle), "solver": args.solver, "objective_name": args.objective,
+                  "bounds_8bit": list(args.bounds), "model": op.size_report(),
+                  "objective": result.info.get("l2_objective", result.objective), "iterations": result.iterations,
                   "scale": op.scale, "timings_s": {"total": round(time.perf_counter() - t0, 3),
                                                    "solve": round(result.time_s, 3)},
                   "predicted": "black capture plus each projector's weight times the light of the decoded cell "
                                "(the calibration's own model; project the patterns and capture to measure)",
                   "targets": rows, "maps": maps,
                   "graycode_bits": {name: list(b) for (name, _, _), b in zip(bundle.projectors, bundle.bits)}}
+        if weight is not None:
+            report["image_objective"] = {"name": args.objective, "l2_weight": weight, "value": result.objective,
+                                         "model_ssim": result.info["model_ssim"]}
         if fits is not None:
             report["homographies"] = fits
         write_json(stage / "report.json", report)
-    print(f"solved {len(targets)} target(s) with {args.solver}: {op.shape[1]} variables, objective "
-          f"{result.objective:.4g}; wrote {args.out}/patterns/, predicted/, report.json")
+    print(f"solved {len(targets)} target(s) with {args.solver} ({args.objective}): {op.shape[1]} variables, "
+          f"least-squares objective {report['objective']:.4g}; wrote {args.out}/patterns/, predicted/, report.json")
     return 0
 
 
 # ------------------------------------------------------------------------------------ decode
 def cmd_decode(args) -> int:
-    from .calib import (calibrate_projector, read_graycode_folder, read_opencv_calibration, triangulate,
-                        write_ply)
+    from .calib import calibrate_projector, read_graycode_folder, read_opencv_calibration, triangulate, write_ply
     from .figures import decode_summary
 
     calib = read_opencv_calibration(args.calibration) if args.calibration else None
@@ -572,12 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="the main job on the virtual rig: calibrate, solve, project, capture, evaluate")
     p.add_argument("config", nargs="?", help="YAML file or built-in name (default: paper_two_planes)")
     p.add_argument("--out", default="out/run", help="output folder (default: out/run)")
-    p.add_argument("--solver", default="fista", choices=["fista", "pgd", "adam", "lf", "eo"],
-                   help="pattern solver (default: fista, the best measured)")
-    p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI",
-                   help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
-    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
-    p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+    _add_solve_options(p)
     p.add_argument("--oracle", action="store_true",
                    help="build the operator from the simulator's exact geometry instead of calibration "
                         "(shows what calibration costs)")
@@ -664,11 +644,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--targets", nargs="+", required=True, metavar="STATE=IMAGE",
                    help="the image to show in each state (a file, or a scikit-image name such as astronaut)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--solver", default="fista", choices=["fista", "pgd", "adam", "lf", "eo"],
-                   help="pattern solver (default: fista)")
-    p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI", help="solver bounds, 8-bit units")
-    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
-    p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+    _add_solve_options(p)
     _add_map_options(p)
     p.set_defaults(func=cmd_solve)
 

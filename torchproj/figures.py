@@ -1,15 +1,17 @@
-"""PNG summaries a person can check at a glance (matplotlib, off-screen)."""
+"""PNG summaries a person can check at a glance (matplotlib, off-screen).
+
+Figures are matplotlib ``Figure`` objects written straight to files, never pyplot's: importing this
+module leaves the user's backend (a notebook's, a window's) as it was.
+"""
 
 from __future__ import annotations
 
 import os
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import matplotlib as mpl
+import numpy as np
+import torch
+from matplotlib.figure import Figure
 
 __all__ = ["decode_summary", "calibration_summary", "run_overview", "depth_selectivity", "positioning_feedback"]
 
@@ -19,7 +21,7 @@ def _map_panel(ax, data, title, cmap="viridis", label=None, **kw):
     ax.set_title(title, fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
-    cb = plt.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    cb = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
     if label:
         cb.set_label(label, fontsize=8)
 
@@ -28,7 +30,8 @@ def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torc
                    points: torch.Tensor | None = None, title: str = "") -> None:
     """Decoded projector x and y per camera pixel, the contrast (white - black), and depth."""
     n = 4 if points is not None else 3
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6))
+    fig = Figure(figsize=(4.2 * n, 3.6))
+    axes = fig.subplots(1, n)
     _map_panel(axes[0], prj_xy[..., 0].numpy(), "projector x (column)", label="px")
     _map_panel(axes[1], prj_xy[..., 1].numpy(), "projector y (row)", label="px")
     _map_panel(axes[2], contrast.numpy(), "white - black (decoding confidence)", cmap="gray")
@@ -38,17 +41,18 @@ def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torc
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
     """One row per (state, projector): decoded x, decoded y, error against the truth, response fit.
 
     Each row dict holds ``label``, ``prj_xy`` (H, W, 2), ``error`` (H, W) pixels or None (then
-    ``valid`` (H, W), the decoded mask, is shown if given),
-    ``levels``, ``measured`` (L, C), ``fitted`` (callable on x in [0, 1]) and ``true_b``.
+    ``valid`` (H, W), the decoded mask, is shown if given), and for the response ``levels``,
+    ``measured`` (L, C), ``response`` (the fitted :class:`~torchproj.calib.ResponseCurve`) and
+    optionally ``true_b``.
     """
-    fig, axes = plt.subplots(len(rows), 4, figsize=(17, 3.4 * len(rows)), squeeze=False)
+    fig = Figure(figsize=(17, 3.4 * len(rows)))
+    axes = fig.subplots(len(rows), 4, squeeze=False)
     for ax_row, row in zip(axes, rows):
         _map_panel(ax_row[0], row["prj_xy"][..., 0].numpy(), f"{row['label']}: projector x", label="px")
         _map_panel(ax_row[1], row["prj_xy"][..., 1].numpy(), f"{row['label']}: projector y", label="px")
@@ -63,11 +67,13 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
             ax_row[2].axis("off")
         ax = ax_row[3]
         if row.get("levels") is not None:
-            x = np.linspace(0, 1, 200)
+            x = torch.linspace(0, 1, 200)
+            response = row["response"]
             ax.plot(row["levels"], row["measured"][:, 0], "o", ms=3, label="measured (median)")
-            ax.plot(x, row["fitted"](x), "-", label=f"fit a x^b + c, b={row['fit_b']:.3f}")
+            ax.plot(x.numpy(), response(x[None, None])[0, 0].numpy(), "-",
+                    label=f"fit a x^b + c, b={float(response.b[0]):.3f}")
             if row.get("true_b") is not None:
-                ax.plot(x, x ** row["true_b"], "--", label=f"true x^{row['true_b']:.2f}")
+                ax.plot(x.numpy(), x.numpy() ** row["true_b"], "--", label=f"true x^{row['true_b']:.2f}")
             ax.set_xlabel("pattern value x")
             ax.set_ylabel("relative light")
             ax.legend(fontsize=7)
@@ -76,29 +82,28 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
             ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=80)
-    plt.close(fig)
 
 
 def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projector_names: list[str],
-                 targets: list[dict], report_rows: list[dict]) -> None:
+                 targets: list) -> None:
     """Projector patterns on top; one row per target: the target on the camera, the capture, the error.
 
-    ``targets`` items hold ``name``, ``values`` (C, H, W), ``covered`` (H, W) and ``estimate``
-    (C, H, W); all three panels are cropped to the target's pixels.
+    ``targets``: :class:`~torchproj.pipeline.TargetScore` per target; all three panels are cropped
+    to the target's pixels.
     """
     n_cols = max(3, len(patterns))
-    fig, axes = plt.subplots(1 + len(targets), n_cols, figsize=(4.2 * n_cols, 3.4 * (1 + len(targets))),
-                             squeeze=False)
+    fig = Figure(figsize=(4.2 * n_cols, 3.4 * (1 + len(targets))))
+    axes = fig.subplots(1 + len(targets), n_cols, squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
     for j, (pat, name) in enumerate(zip(patterns, projector_names)):
         img = pat.permute(1, 2, 0).numpy()
         axes[0, j].imshow(img[..., 0] if img.shape[2] == 1 else img, cmap="gray", vmin=0, vmax=255)
         axes[0, j].set_title(f"pattern for projector {name} (8-bit)", fontsize=9)
-    for row, (t, r) in enumerate(zip(targets, report_rows), start=1):
-        ys, xs = torch.nonzero(t["covered"], as_tuple=True)
+    for row, t in enumerate(targets, start=1):
+        ys, xs = torch.nonzero(t.covered, as_tuple=True)
         y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
-        mask = t["covered"][y0:y1, x0:x1]
+        mask = t.covered[y0:y1, x0:x1]
 
         def crop(img):
             c = img[:, y0:y1, x0:x1].clone()
@@ -106,16 +111,15 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
             c = c.permute(1, 2, 0).numpy()
             return c[..., 0] if c.shape[2] == 1 else np.nan_to_num(c)
 
-        err = (t["estimate"] - t["values"]).abs().mean(0, keepdim=True)
+        err = (t.estimate - t.values).abs().mean(0, keepdim=True)
         for col, (img, title, kw) in enumerate([
-                (t["values"], f"target {t['name']}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
-                (t["estimate"], f"captured: {r['psnr_db']:.1f} dB, SSIM {r['ssim']:.2f}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
-                (err, f"|captured - target| (crosstalk {r['crosstalk']:.2f})", {"cmap": "magma", "vmin": 0, "vmax": 0.5})]):
+                (t.values, f"target {t.name}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
+                (t.estimate, f"captured: {t.psnr_db:.1f} dB, SSIM {t.ssim:.2f}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
+                (err, f"|captured - target| (crosstalk {t.crosstalk:.2f})", {"cmap": "magma", "vmin": 0, "vmax": 0.5})]):
             axes[row, col].imshow(crop(img), interpolation="nearest", **kw)
             axes[row, col].set_title(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
-    plt.close(fig)
 
 
 def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict[str, float] | None = None) -> None:
@@ -123,12 +127,13 @@ def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict
     (method, target); dotted verticals at the depths where the targets belong.
 
     Args:
-        sweeps: method label -> :class:`~torchproj.evaluate.DepthSweep`.
+        sweeps: method label -> :class:`~torchproj.pipeline.DepthSweep`.
         target_depths: target name -> its depth in metres.
     """
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    fig = Figure(figsize=(12, 4.2))
+    axes = fig.subplots(1, 2)
     styles = ["-", "--", ":", "-."]
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colours = mpl.rcParams["axes.prop_cycle"].by_key()["color"]
     for m, (label, sweep) in enumerate(sweeps.items()):
         for k, name in enumerate(sweep.names):
             for ax, values in zip(axes, (sweep.psnr_db, sweep.ssim)):
@@ -145,7 +150,6 @@ def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], trials: list[dict]) -> None:
@@ -154,12 +158,13 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
     each trial.
 
     Args:
-        profiles: position name -> :func:`~torchproj.evaluate.feedback_profile` output.
+        profiles: position name -> :func:`~torchproj.pipeline.feedback_profile` output.
         trials: per trial, ``{"position", "trial", "history" (feedback per look), "rmse_mm"}``.
     """
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    fig = Figure(figsize=(12, 8))
+    axes = fig.subplots(2, 2)
     axes = axes.ravel()
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colours = mpl.rcParams["axes.prop_cycle"].by_key()["color"]
     names = list(profiles)
     keys = ("depth", "across", "vertical")
     for k, name in enumerate(names):
@@ -192,4 +197,3 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
     fig.suptitle("Guidance by the projected image: how sharply the feedback peaks at the goal pose", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -24,7 +24,7 @@ from _common import finish, frustum  # noqa: E402
 
 from torchproj.calib import triangulate  # noqa: E402
 from torchproj.core.conventions import pixel_grid  # noqa: E402
-from torchproj.evaluate import rig_procam  # noqa: E402
+from torchproj.experiments import rig_procam  # noqa: E402
 from torchproj.scene import Scene, load_scene  # noqa: E402
 
 PROJECTOR_COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd"]

@@ -19,7 +19,7 @@ import pyvista as pv
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import box_wireframe, finish  # noqa: E402
 
-from torchproj.evaluate import box_surface_distance  # noqa: E402
+from torchproj.experiments import box_surface_distance  # noqa: E402
 
 
 def draw_scan(scan: dict, out: Path | None, max_mm: float | None = None, show: bool = False, title: str = "",

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (decode_gray, decoding_error, graycode_bits, graycode_patterns, read_graycode_folder,
-                             refine_subpixel, simulate_calibration, write_graycode_folder)
+from torchproj.calib import decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder
+from torchproj.pipeline import decoding_accuracy, simulate_calibration
 from torchproj.core import InputError
 from torchproj.sim import VirtualRig
 
@@ -71,7 +71,7 @@ def test_noise_free_round_trip_is_exact():
         for j in range(2):
             cap = simulate_calibration(rig, state, j, noise=False)
             dec = decode_gray(cap.patterns, cap.white, cap.black, (256, 192))
-            err = decoding_error(dec.prj_xy, rig.geometry(state).prj_xy[j])
+            err = decoding_accuracy(dec.prj_xy, rig.geometry(state).prj_xy[j])
             assert err.lit > 20000
             assert err.decoded == 1.0 and err.exact == 1.0
 
@@ -91,7 +91,7 @@ def test_shadowed_pixels_are_masked_not_guessed():
         # Faces at grazing angles are too dim for OpenCV's black threshold (40/255) and stay
         # undecoded, as on a real bench; every clearly lit pixel must decode, and correctly.
         bright = (cap.white - cap.black)[0] > 50 / 255
-        err = decoding_error(torch.where(bright[..., None], dec.prj_xy, float("nan")),
+        err = decoding_accuracy(torch.where(bright[..., None], dec.prj_xy, float("nan")),
                              torch.where(bright[..., None], truth[j], float("nan")))
         assert err.lit > 15000 and err.decoded > 0.98 and err.exact > 0.995
         assert not dec.valid[(cap.white - cap.black)[0] <= 40 / 255].any()
@@ -105,8 +105,8 @@ def test_noisy_round_trip_and_subpixel_refinement():
     cap = simulate_calibration(rig, "near", 1)
     dec = decode_gray(cap.patterns, cap.white, cap.black, (256, 192))
     truth = rig.geometry("near").prj_xy[1]
-    integer = decoding_error(dec.prj_xy, truth)
-    refined = decoding_error(refine_subpixel(dec.prj_xy, dec.valid), truth)
+    integer = decoding_accuracy(dec.prj_xy, truth)
+    refined = decoding_accuracy(refine_subpixel(dec.prj_xy, dec.valid), truth)
     assert integer.decoded > 0.995 and integer.exact > 0.999
     assert integer.rms_px == pytest.approx(np.sqrt(2 / 12), rel=0.05)  # uniform quantisation in x and y
     assert refined.rms_px < integer.rms_px / 3

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (calibrate_projector, decode_gray, fit_homography, graycode_patterns, read_graycode_folder,
-                             sequence_bits, simulate_calibration)
+from torchproj.calib import calibrate_projector, decode_gray, fit_homography, graycode_patterns, read_graycode_folder, sequence_bits
+from torchproj.pipeline import simulate_calibration
 from torchproj.core import InputError
 from torchproj.core.conventions import pixel_grid
-from torchproj.evaluate import calibrate_virtual
+from torchproj.pipeline import calibrate_virtual
 from torchproj.sim import VirtualRig
 
 from ..helpers import CHESSBOARD, small_scene

@@ -1,6 +1,7 @@
 import torch
 
-from torchproj.calib import (calibrate_projector, fit_response, measure_ramp, ramp_pattern, simulate_calibration)
+from torchproj.calib import calibrate_projector, fit_response, measure_ramp, ramp_pattern
+from torchproj.pipeline import simulate_calibration
 from torchproj.sim import VirtualRig
 
 from ..helpers import small_scene

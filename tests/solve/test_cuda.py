@@ -6,8 +6,7 @@ import torch
 from torchproj.solve import solve_fista, solve_pgd
 from torchproj.transport import build_transport
 
-from ..transport.test_build import synthetic_calibration, targets
-from ..transport.test_operator import LARGE
+from ..helpers import LARGE, synthetic_calibration, targets
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(),
                                 reason="no CUDA device: the GPU path is checked on machines that have one")
@@ -43,3 +42,42 @@ def test_solvers_on_cuda_reach_the_cpu_optimum(solver, levels, bounds):
     # round-off may settle on different patterns of the same objective. Bounds as float32 holds
     # them (-100/255 rounds down there).
     assert bool((gpu.patterns >= bounds[0]).all()) and bool((gpu.patterns <= bounds[1]).all())
+
+
+def test_model_forward_and_backward_run_on_the_gpu_without_host_copies():
+    from torchproj.metrics import SSIMLoss
+    from torchproj.solve import ProjectionModel
+
+    cpu = ProjectionModel(build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3),
+                                          merge=False, scale=0.8))
+    gpu = ProjectionModel(build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3),
+                                          merge=False, scale=0.8)).to("cuda")
+    with torch.no_grad():
+        p = torch.rand(cpu.patterns.shape, generator=torch.Generator().manual_seed(4))
+        cpu.patterns.copy_(p)
+        gpu.patterns.copy_(p.cuda())
+    losses = [SSIMLoss(m.targets, m.mask) for m in (cpu, gpu)]
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")  # any host synchronisation (a hidden copy, .item()) raises
+    try:
+        gpu_loss = (losses[1](gpu()) + (gpu() - gpu.targets).pow(2).mean()).sum()
+        gpu_loss.backward()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    cpu_loss = (losses[0](cpu()) + (cpu() - cpu.targets).pow(2).mean()).sum()
+    cpu_loss.backward()
+    assert gpu.patterns.grad.device.type == "cuda"
+    assert float(gpu_loss) == pytest.approx(float(cpu_loss), rel=1e-5)
+    torch.testing.assert_close(gpu.patterns.grad.cpu(), cpu.patterns.grad, rtol=1e-4, atol=1e-6)
+
+
+def test_ssim_solve_on_the_gpu_matches_the_cpu():
+    from torchproj.solve import solve_ssim
+
+    ops = [build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3), merge=False,
+                           scale=0.8) for _ in range(2)]
+    cpu = solve_ssim(ops[0], (0.0, 1.0), max_iter=20)
+    gpu = solve_ssim(ops[1].to("cuda"), (0.0, 1.0), max_iter=20)
+    assert gpu.patterns.device.type == "cuda" and gpu.iterations == cpu.iterations
+    assert gpu.objective == pytest.approx(cpu.objective, rel=1e-3)
+    assert gpu.info["model_ssim"] == pytest.approx(cpu.info["model_ssim"], abs=1e-3)

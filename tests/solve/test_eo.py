@@ -5,7 +5,8 @@ import pytest
 import torch
 from scipy.optimize import lsq_linear
 
-from torchproj.calib import calibrate_projector, simulate_calibration
+from torchproj.calib import calibrate_projector
+from torchproj.pipeline import simulate_calibration
 from torchproj.core import InputError
 from torchproj.sim import VirtualRig
 from torchproj.solve import (component_chains, epipolar_chains, fundamental_between_projectors, solve_eo,
@@ -13,7 +14,7 @@ from torchproj.solve import (component_chains, epipolar_chains, fundamental_betw
 from torchproj.transport import StateCalibration, Target, TransportOperator, build_transport, csr_from_coo
 
 from ..helpers import small_scene
-from ..transport.test_build import synthetic_calibration, targets
+from ..helpers import synthetic_calibration, targets
 
 
 @pytest.fixture(scope="module")

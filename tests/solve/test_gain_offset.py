@@ -9,7 +9,7 @@ from torchproj.core import InputError
 from torchproj.solve import solve_fista, solve_gain_offset
 from torchproj.transport import Target, build_transport
 
-from ..transport.test_build import synthetic_calibration, targets
+from ..helpers import synthetic_calibration, targets
 
 GAIN, OFFSET = (0.5, 1.5), (-0.2, 0.2)
 

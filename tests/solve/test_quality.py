@@ -4,8 +4,9 @@ import pytest
 import torch
 from skimage import data
 
-from torchproj.calib import calibrate_projector, simulate_calibration
-from torchproj.evaluate import model_space_psnr
+from torchproj.calib import calibrate_projector
+from torchproj.pipeline import simulate_calibration
+from torchproj.metrics import model_space_psnr
 from torchproj.sim import VirtualRig
 from torchproj.solve import solve_eo, solve_fista, solve_lf, to_projectable
 from torchproj.transport import StateCalibration, Target, build_transport

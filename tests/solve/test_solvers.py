@@ -14,8 +14,7 @@ from torchproj.solve import solvers
 from torchproj.transport import build_transport
 from torchproj.transport.operator import SUM_RUN
 
-from ..transport.test_build import synthetic_calibration, targets
-from ..transport.test_operator import LARGE
+from ..helpers import LARGE, synthetic_calibration, targets
 
 
 @pytest.fixture(scope="module")

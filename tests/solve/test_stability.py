@@ -6,7 +6,7 @@ import warnings
 import pytest
 import torch
 
-from torchproj.evaluate import calibrate_virtual, scene_images
+from torchproj.pipeline import calibrate_virtual, scene_images
 from torchproj.scene import parse_scene
 from torchproj.solve import make_patterns, solve_adam, solve_eo, solve_fista, solve_lf, solve_pgd
 from torchproj.transport import Target, build_transport

@@ -5,32 +5,10 @@ import pytest
 import torch
 
 from torchproj.core import InputError
-from torchproj.transport import StateCalibration, Target, TransportOperator, build_transport, csr_from_coo, group_rows
+from torchproj.transport import Target, TransportOperator, build_transport, csr_from_coo, group_rows
 from torchproj.transport.build import target_on_camera
 
-SIZES = [(12, 9), (10, 8)]
-
-
-def synthetic_calibration(seed=0, shape=(15, 20), sizes=SIZES):
-    """Two projectors, two states: random sub-pixel correspondences with holes, random weights."""
-    g = torch.Generator().manual_seed(seed)
-    cals = {}
-    for state in ("near", "far"):
-        prj, wts = [], []
-        for w, h in sizes:
-            xy = torch.rand(*shape, 2, generator=g) * torch.tensor([w - 1.0, h - 1.0])
-            xy[torch.rand(shape, generator=g) < 0.15] = float("nan")
-            prj.append(xy)
-            wts.append(0.2 + torch.rand(shape, generator=g))
-        cals[state] = StateCalibration(prj, wts, sizes)
-    return cals
-
-
-def targets(channels=1, seed=1):
-    g = torch.Generator().manual_seed(seed)
-    return [Target("near", torch.rand(channels, 6, 8, generator=g), name="a"),
-            Target("far", torch.rand(channels, 7, 5, generator=g), name="b")]
-
+from ..helpers import SIZES, synthetic_calibration, targets
 
 def dense_reference(cals, tgts, scale, bilinear=False):
     """Rows, columns and values by plain loops (independent of the vectorised builder)."""

@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from torchproj.calib import calibrate_projector, simulate_calibration
+from torchproj.calib import calibrate_projector
+from torchproj.pipeline import simulate_calibration
 from torchproj.core import InputError
 from torchproj.sim import VirtualRig
 from torchproj.transport import StateCalibration, Target, build_transport, geometric_weights, point_map

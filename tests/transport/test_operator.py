@@ -8,9 +8,7 @@ import torch
 from torchproj.transport import StateCalibration, build_transport, cell_blocks
 from torchproj.transport.operator import _blockwise_sum
 
-from .test_build import synthetic_calibration, targets
-
-LARGE = [(40, 32), (36, 28)]
+from ..helpers import LARGE, synthetic_calibration, targets
 
 
 @pytest.fixture(scope="module")

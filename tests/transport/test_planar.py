@@ -7,7 +7,7 @@ import torch
 
 from torchproj.core import InputError
 from torchproj.core.conventions import pixel_grid
-from torchproj.evaluate import calibrate_virtual, run_virtual
+from torchproj.pipeline import calibrate_virtual, run_virtual
 from torchproj.transport import StateCalibration, fit_homography, homography_map, planar_calibration
 
 from ..helpers import small_scene
@@ -114,7 +114,7 @@ def test_a_box_is_not_a_plane():
 
 
 def test_maps_must_be_known():
-    with pytest.raises(InputError, match="maps must be 'decoded' or 'homography'"):
+    with pytest.raises(InputError, match=r"maps must be one of \['decoded', 'homography'\], got 'mesh'"):
         run_virtual(small_scene(), maps="mesh", progress=False)
 
 

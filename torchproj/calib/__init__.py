@@ -9,13 +9,11 @@ from .maps import fill_holes, inverse_map
 from .pipeline import ProjectorCalibration, calibrate_projector
 from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
 from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, write_ply
-from .virtual import DecodingError, decoding_error, simulate_calibration
 
 __all__ = [
     "BUNDLE_VERSION",
     "CalibrationBundle",
     "DEFAULT_NAMES",
-    "DecodingError",
     "GrayDecoding",
     "GraycodeCapture",
     "HomographyFit",
@@ -29,7 +27,6 @@ __all__ = [
     "calibrate_projector",
     "check_plane",
     "decode_gray",
-    "decoding_error",
     "fill_holes",
     "fit_homography",
     "fit_plane",
@@ -45,7 +42,6 @@ __all__ = [
     "read_opencv_calibration",
     "refine_subpixel",
     "sequence_bits",
-    "simulate_calibration",
     "triangulate",
     "write_bundle",
     "write_graycode_folder",

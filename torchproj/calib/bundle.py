@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from ..core.errors import CaptureError, InputError
+from ..core.progress import progress_bar
 from ..core.imageio import write_image
 from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
 from .graycode import graycode_bits, graycode_patterns, sequence_bits
@@ -120,6 +121,17 @@ class CalibrationBundle:
     bits: list = field(default_factory=list)
     homographies: dict = field(default_factory=dict)
 
+    def response_curves(self) -> list[ResponseCurve]:
+        """Per projector, its response curve; a linear one, with a warning, where no ramp was captured."""
+        curves = []
+        for (name, _, _), r in zip(self.projectors, self.responses):
+            if r is None:
+                warnings.warn(f"projector {name}: the bundle holds no response curve (no ramp captured); assuming "
+                              "a linear response", stacklevel=2)
+                r = ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1))
+            curves.append(r)
+        return curves
+
 
 def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, only: list[str] | None = None,
                        bits: int | None = None):
@@ -191,8 +203,6 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
 
     The response of each projector comes from the first state whose folder holds the ramps.
     """
-    from tqdm import tqdm
-
     root = Path(root)
     layout = _projector_folders(root, sizes, states, bits)
     first = next(iter(layout.values()))
@@ -203,8 +213,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     ramps: list = [None] * len(projectors)
     shape = None
     jobs = [(state, j, entry) for state, entries in layout.items() for j, entry in enumerate(entries)]
-    for state, j, (name, folder, size, k) in tqdm(jobs, desc="calibrating states x projectors", leave=False,
-                                                  delay=1.0, disable=None if progress is None else not progress):
+    for state, j, (name, folder, size, k) in progress_bar(jobs, "calibrating states x projectors", progress):
         capture = read_graycode_folder(folder, size, bits=k)
         if shape is None:
             shape = tuple(capture.white.shape)

@@ -9,8 +9,10 @@ from .config import (
     Surface,
     TargetSpec,
     builtin_config,
+    config_dir,
     load_scene,
     parse_scene,
+    scale_config,
 )
 from .pose import look_at, rotation_from_euler_deg, rotation_from_rotvec
 
@@ -23,9 +25,11 @@ __all__ = [
     "Surface",
     "TargetSpec",
     "builtin_config",
+    "config_dir",
     "load_scene",
     "look_at",
     "parse_scene",
     "rotation_from_euler_deg",
     "rotation_from_rotvec",
+    "scale_config",
 ]

@@ -12,6 +12,7 @@ is one target covering everything the projectors light there.
 
 from __future__ import annotations
 
+import copy
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,13 +35,29 @@ __all__ = [
     "load_scene",
     "parse_scene",
     "builtin_config",
+    "config_dir",
+    "scale_config",
     "BUILTIN_SCENES",
 ]
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
                   "two_screens", "box_positions")
+
+
+def config_dir() -> Path:
+    """The folder of the built-in scenes: ``configs/`` in a checkout, ``torchproj/configs`` when installed.
+
+    Found through the package (``importlib.resources``), so a wheel or plain install finds it from
+    any working directory; a source tree used without installing (``PYTHONPATH``) has it beside
+    the package.
+    """
+    from importlib.resources import files
+    from importlib.util import find_spec
+
+    if find_spec("torchproj.configs") is None:
+        return Path(__file__).resolve().parents[2] / "configs"
+    return Path(str(files("torchproj.configs")))
 
 
 @dataclass
@@ -394,20 +411,62 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
 
 
 def builtin_config(name: str = "paper_two_planes") -> Path:
-    """Path of a config shipped in ``configs/`` (by file stem)."""
-    path = CONFIG_DIR / f"{name}.yaml"
+    """Path of a config shipped with torchproj (by file stem; :data:`BUILTIN_SCENES`)."""
+    path = config_dir() / f"{name}.yaml"
     if not path.is_file():
         raise ConfigError("scene", f"no built-in scene named {name!r}", f"choose from {list(BUILTIN_SCENES)}")
     return path
 
 
-def load_scene(path: str | os.PathLike | None = None) -> Scene:
-    """Load a scene YAML file (or a built-in scene by name; None gives the paper's two-plane rig)."""
+def scale_config(data: dict, scale: float | None = None, *, camera: tuple[int, int] | None = None,
+                 projector: tuple[int, int] | None = None) -> dict:
+    """A scene's YAML data with its camera and projectors at another resolution, the rig unchanged.
+
+    Focal lengths and principal points scale with the width and height, so fields of view, lens
+    shifts, poses and surfaces stay those of the original: the same rig seen with fewer pixels
+    (for quick runs, tests and benchmarks at several sizes).
+
+    Args:
+        data: the YAML data (not modified).
+        scale: factor for every device's resolution (rounded to whole pixels, at least 8).
+        camera, projector: ``(width, height)`` to give the camera or every projector instead.
+    """
+    if scale is not None and not (isinstance(scale, (int, float)) and 0 < scale <= 4):
+        raise ConfigError("scale", f"must be a number in (0, 4], got {scale!r}")
+    data = copy.deepcopy(data)
+    projectors = data.get("projectors") if isinstance(data.get("projectors"), list) else []
+    devices = [("camera", data.get("camera"), camera)] + [(f"projectors[{i}]", p, projector)
+                                                          for i, p in enumerate(projectors)]
+    for where, device, size in devices:
+        if not isinstance(device, dict) or "resolution" not in device:
+            continue  # parse_scene reports what is missing
+        w0, h0 = _resolution(Fields(device, where))
+        w, h = size if size is not None else (w0, h0) if scale is None else (max(8, round(w0 * scale)),
+                                                                               max(8, round(h0 * scale)))
+        sx, sy = w / w0, h / h0
+        focal = device.get("focal")
+        device["focal"] = [focal[0] * sx, focal[1] * sy] if isinstance(focal, list) else focal * sx
+        if "principal_point" in device:  # pixel centres at integers: the centre of a pixel scales about -0.5
+            cx, cy = device["principal_point"]
+            device["principal_point"] = [(cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5]
+        device["resolution"] = [w, h]
+    return data
+
+
+def load_scene(path: str | os.PathLike | None = None, scale: float | None = None) -> Scene:
+    """Load a scene YAML file, or a built-in scene by name (None: the paper's two-plane rig).
+
+    Args:
+        path: a YAML file, or a name of :data:`BUILTIN_SCENES`.
+        scale: give every camera and projector ``scale`` times the resolution (:func:`scale_config`):
+            ``load_scene("paper_two_planes", scale=0.25)`` is the paper's rig with 256x192
+            projectors and a 400x300 camera, a quick stand-in for the full one.
+    """
     if path is None:
         path = builtin_config()
     path = Path(path)
-    if not path.exists() and path.suffix == "" and (CONFIG_DIR / f"{path}.yaml").is_file():
-        path = CONFIG_DIR / f"{path}.yaml"
+    if not path.exists() and path.suffix == "" and path.name in BUILTIN_SCENES:
+        path = builtin_config(path.name)
     if not path.is_file():
         raise ConfigError("config", f"file {str(path)!r} not found",
                           f"give a YAML path or a built-in name: {list(BUILTIN_SCENES)}")
@@ -415,6 +474,8 @@ def load_scene(path: str | os.PathLike | None = None) -> Scene:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(str(path), f"is not valid YAML: {exc}") from None
+    if scale is not None and isinstance(data, dict):
+        data = scale_config(data, scale)
     scene = parse_scene(data, base_dir=path.parent, name=path.stem)
     scene.source = path
     return scene

@@ -9,7 +9,7 @@ import torch
 from ..calib.response import ResponseCurve
 from ..core.checks import check, check_shape
 
-__all__ = ["compensate", "make_patterns"]
+__all__ = ["compensate", "make_patterns", "projectable_patterns"]
 
 
 def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> list[torch.Tensor]:
@@ -55,27 +55,54 @@ def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WAR
 
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
-                  max_iter: int = 300, progress: bool | None = None):
+                  max_iter: int = 300, progress: bool | None = None, objective: str = "l2",
+                  l2_weight: float | None = None, ssim_iter: int = 30):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
     Args:
-        op: the transport operator.
+        op: the transport operator (rows on camera pixels, ``merge=False``, for an image-space objective).
         solver: a name of :data:`~torchproj.solve.SOLVERS`; ``eo`` needs ``calibrations``.
         bounds: the solver's box, linear light (the paper's 8-bit bounds over 255).
         responses: per projector, its response curve.
+        objective: ``l2`` (the solver's least squares), or ``ssim`` / ``mixed``: then the solver's
+            patterns start :func:`~torchproj.solve.solve_ssim` (``ssim_iter`` iterations, weight
+            ``l2_weight`` or the objective's; :data:`~torchproj.solve.OBJECTIVES`).
 
     Returns:
-        ``(result, light, patterns)``: the :class:`SolveResult`, per projector the linear light
+        ``(result, light, patterns)``: the :class:`SolveResult` (for an image-space objective, its
+        ``info["start"]`` is the solver's own result), per projector the linear light
         :math:`(C, H_j, W_j)` in [0, 1] it should emit, and the uint8 patterns to send it.
     """
     from . import solve_patterns
     from .eo import solve_eo
-    from .solvers import to_projectable
+    from .objectives import image_objective, solve_ssim
 
+    weight = image_objective(objective, l2_weight)
     if solver == "eo":
         result = solve_eo(op, bounds, calibrations=calibrations, max_iter=max_iter, progress=progress)
     else:
         result = solve_patterns(op, solver, bounds, max_iter=max_iter, progress=progress)
+    if weight is not None:
+        start = result
+        result = solve_ssim(op, bounds, l2_weight=weight, x0=start.patterns, max_iter=ssim_iter, progress=progress)
+        result.info["start"] = start
+        result.time_s += start.time_s
     warn_if_ill_posed(op, result.patterns)
-    light = [img.cpu() for img in op.to_images(to_projectable(result.patterns, bounds).clamp(0, 1))]
-    return result, light, compensate(light, responses)
+    return (result, *projectable_patterns(op, result.patterns, bounds, responses))
+
+
+def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], responses: list[ResponseCurve]):
+    """Solved values -> what each projector should emit, and the 8-bit images that make it emit that.
+
+    Args:
+        op: the operator whose columns ``p`` holds.
+        p: :math:`(N_{cols}, C)` values solved within ``bounds``.
+
+    Returns:
+        ``(light, patterns)``: per projector :math:`(C, H_j, W_j)` linear light in [0, 1] (on the
+        CPU; cells that are not variables stay black), and the uint8 images (:func:`compensate`).
+    """
+    from .solvers import to_projectable
+
+    light = [img.cpu() for img in op.to_images(to_projectable(p.detach(), bounds).clamp(0, 1))]
+    return light, compensate(light, responses)

@@ -33,7 +33,8 @@ from scipy.sparse.csgraph import connected_components
 from ..core.checks import check
 from ..transport.build import StateCalibration
 from ..transport.operator import TransportOperator, csr_from_coo
-from .solvers import SolveResult, progress_bar, check_bounds
+from ..core.progress import progress_bar
+from .solvers import SolveResult, check_bounds
 
 __all__ = ["fundamental_between_projectors", "epipolar_chains", "component_chains", "solve_eo"]
 
@@ -192,11 +193,10 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     f = chain_objective(x, qx)
     active = torch.ones(n, dtype=torch.bool, device=op.val.device)
     history = [(time.perf_counter() - t0, float(op.objective(x)))]
-    bar = progress_bar(max_iter, "eo", progress)
+    bar = progress_bar(desc="eo", enabled=progress, total=max_iter)
     it = 0
     for it in range(1, max_iter + 1):
-        if bar is not None:
-            bar.update(1)
+        bar.update(1)
         x_new = (y - step * (qy - q)).clamp_(lo, hi)
         qx_new = ne.product(x_new)
         f_new = chain_objective(x_new, qx_new)
@@ -218,8 +218,7 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
             history.append((time.perf_counter() - t0, float(op.objective(x))))
         if not bool(active.any()):
             break
-    if bar is not None:
-        bar.close()
+    bar.close()
     objective = float(op.objective(x))
     history.append((time.perf_counter() - t0, objective))
     sizes = torch.bincount(chain)

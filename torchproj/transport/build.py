@@ -239,7 +239,9 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         calibrations: state name -> :class:`StateCalibration` (from Gray-code calibration).
         targets: at least one :class:`Target`; each names a calibrated state.
         footprint: ``"nearest"`` (one cell per projector and row, as the paper) or ``"bilinear"``.
-        merge: merge rows with the same columns (exact; smaller model).
+        merge: merge rows with the same columns (exact; smaller model). Unmerged rows are camera
+            pixels, and the operator keeps their map (:meth:`TransportOperator.to_camera`), which
+            an image-space model needs (:class:`~torchproj.solve.ProjectionModel`).
         scale: camera value asked for a target value of 1; None picks half the median, over the
             target pixels, of the light all projectors together can put there.
         device: where the operator lives.
@@ -252,8 +254,8 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     channels = {t.image.shape[0] for t in targets}
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
     n_ch = channels.pop()
-    sizes = None
-    row_cols, row_vals, row_rhs, row_tgt = [], [], [], []
+    sizes = camera = None
+    row_cols, row_vals, row_rhs, row_tgt, row_pix = [], [], [], [], []
     for ti, target in enumerate(targets):
         check(target.state in calibrations, f"target {target.name or ti!r} names state {target.state!r}, which was "
                                             f"not calibrated; calibrated states: {sorted(calibrations)}")
@@ -261,6 +263,9 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         sizes = sizes or cal.projector_sizes
         check(cal.projector_sizes == sizes, "every state must be calibrated with the same projectors")
         lit = cal.lit()
+        camera = camera or lit.shape
+        check(lit.shape == camera, f"state {target.state!r} is calibrated with a {lit.shape[1]}x{lit.shape[0]} camera, "
+                                   f"another state with {camera[1]}x{camera[0]}: calibrate every state with one camera")
         mask = lit if target.mask is None else target.mask.to(torch.bool)
         check_shape(mask, f"target {target.name!r} mask", list(lit.shape))
         check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
@@ -281,15 +286,17 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         row_vals.append(vals[lit_rows])
         row_rhs.append(values.reshape(n_ch, -1)[:, rows[lit_rows]].T)
         row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64))
+        row_pix.append(rows[lit_rows])
     cols, vals = torch.cat(row_cols), torch.cat(row_vals).float()
     targets_rhs, tgt = torch.cat(row_rhs).float(), torch.cat(row_tgt)
     if scale is None:
         scale = 0.5 * float(vals.sum(1).median())
     check(scale > 0, f"scale must be positive, got {scale}")
     rhs = targets_rhs * scale
-    constant = None
+    constant, pixels = None, {"row_pixel": torch.cat(row_pix), "camera_size": (camera[1], camera[0])}
     if merge:
         cols, vals, rhs, tgt, constant = _merge(cols, vals, rhs, tgt)
+        pixels = {}  # merged rows mix pixels
     # Variables only for the cells that light at least one row.
     used = cols >= 0
     global_cols, compact = torch.unique(cols[used], return_inverse=True)
@@ -298,4 +305,4 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
     projector = torch.searchsorted(starts, global_cols, right=True) - 1
     return TransportOperator(matrix, rhs, projector, global_cols - starts[projector], sizes, constant, tgt,
-                             scale).to(device)
+                             scale, target_count=len(targets), **pixels).to(device)

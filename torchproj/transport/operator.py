@@ -62,14 +62,18 @@ def cell_blocks(column_projector: torch.Tensor, column_cell: torch.Tensor, proje
 
 
 class _Apply(torch.autograd.Function):
+    """``M x`` with backward ``M^T g``, itself a product of this function, so that derivatives of
+    any order flow (a Hessian-vector product of an image-space loss is a double backward)."""
+
     @staticmethod
     def forward(ctx, x, forward_matrix, adjoint_matrix):
-        ctx.adjoint = adjoint_matrix
+        ctx.matrices = (forward_matrix, adjoint_matrix)
         return spmm(forward_matrix, x)
 
     @staticmethod
     def backward(ctx, grad):
-        return spmm(ctx.adjoint, grad), None, None
+        forward_matrix, adjoint_matrix = ctx.matrices
+        return _Apply.apply(grad, adjoint_matrix, forward_matrix), None, None
 
 
 class TransportOperator(nn.Module):
@@ -85,11 +89,23 @@ class TransportOperator(nn.Module):
             (0 without merging), so that :meth:`objective` equals the unmerged ``||A p - i||^2``.
         row_target: :math:`(N_{rows},)` index of the target each row belongs to (for reports).
         scale: camera value that a target value of 1 asks for (``rhs = scale * target``).
+        row_pixel: :math:`(N_{rows},)` flat camera pixel ``y * W + x`` of each row, for operators
+            whose rows are camera pixels (built with ``merge=False``); None for merged rows, which
+            mix pixels. It is what :meth:`to_camera` places rows by.
+        camera_size: ``(width, height)`` of the camera, with ``row_pixel``.
+        target_count: number of targets (default: the largest ``row_target`` plus one).
+
+    Convention: pixel and cell indices follow :mod:`torchproj.core.conventions` (``(x, y)`` order,
+    flat index ``y * W + x``).
+
+    ``state_dict`` holds the buffers and, as extra state, the shape, scale, projector sizes, camera
+    size and target count; loading it into an operator of another rig is refused.
     """
 
     def __init__(self, matrix: torch.Tensor, rhs: torch.Tensor, column_projector: torch.Tensor,
                  column_cell: torch.Tensor, projector_sizes: list[tuple[int, int]], constant: torch.Tensor | None = None,
-                 row_target: torch.Tensor | None = None, scale: float = 1.0):
+                 row_target: torch.Tensor | None = None, scale: float = 1.0, row_pixel: torch.Tensor | None = None,
+                 camera_size: tuple[int, int] | None = None, target_count: int | None = None):
         super().__init__()
         check(matrix.layout == torch.sparse_csr, "matrix must be a CSR tensor (torch.sparse_csr)")
         matrix = csr_tensor(matrix.crow_indices(), matrix.col_indices(), matrix.values(), matrix.shape)
@@ -117,9 +133,39 @@ class TransportOperator(nn.Module):
                              if constant is None else constant)
         self.register_buffer("row_target", torch.zeros(n_rows, dtype=torch.int64, device=rhs.device)
                              if row_target is None else row_target)
+        check((row_pixel is None) == (camera_size is None), "row_pixel and camera_size come together")
+        if row_pixel is not None:
+            check_shape(row_pixel, "row_pixel", [n_rows])
+            check(bool((row_pixel >= 0).all()) and bool((row_pixel < camera_size[0] * camera_size[1]).all()),
+                  f"row_pixel must index pixels of the {camera_size[0]}x{camera_size[1]} camera")
+        self.register_buffer("row_pixel", row_pixel)
+        self.camera_size = None if camera_size is None else tuple(int(v) for v in camera_size)
+        self.target_count = int(self.row_target.max()) + 1 if target_count is None and n_rows else int(target_count or 0)
         self.projector_sizes = [tuple(s) for s in projector_sizes]
         self.shape = (n_rows, n_cols)
         self.scale = float(scale)
+
+    # ----------------------------------------------------------------------------- state dict
+    def get_extra_state(self) -> dict:
+        """What the buffers do not say: shape, scale, projector and camera sizes, target count."""
+        return {"shape": list(self.shape), "scale": self.scale, "projector_sizes": [list(s) for s in self.projector_sizes],
+                "camera_size": None if self.camera_size is None else list(self.camera_size),
+                "target_count": self.target_count}
+
+    def set_extra_state(self, state: dict) -> None:
+        self.scale = float(state["scale"])
+        self._normal = None  # caches of the old values
+        self._blocks_device = None
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        extra = state_dict.get(prefix + "_extra_state")
+        if extra is not None:
+            mine = self.get_extra_state()
+            for key in ("shape", "projector_sizes", "camera_size", "target_count"):
+                check(extra.get(key) == mine[key],
+                      f"this state_dict belongs to an operator with {key} {extra.get(key)}, not {mine[key]}: build "
+                      "the operator from the same calibration and targets before loading it")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------------------- matrices
     def _csr(self, transpose: bool = False) -> torch.Tensor:
@@ -284,6 +330,36 @@ class TransportOperator(nn.Module):
     def dense(self) -> torch.Tensor:
         """The matrix as a dense tensor (small problems and tests only)."""
         return self._csr().to_dense()
+
+    # ------------------------------------------------------------------------------ camera view
+    def _check_pixel_map(self) -> None:
+        check(self.row_pixel is not None, "this operator's rows are merged and mix camera pixels: build it with "
+                                          "merge=False to place rows on the camera")
+
+    def to_camera(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
+        """Place row values on the camera, one image per target (differentiable in ``values``).
+
+        Args:
+            values: :math:`(N_{rows}, C)` (or :math:`(N_{rows},)`) per-row values, e.g. ``A p`` or ``rhs``.
+            fill: value of the pixels that are not rows of a target.
+
+        Returns:
+            :math:`(K, C, H, W)`: image k holds the values of target k's rows at their pixels.
+        """
+        self._check_pixel_map()
+        values = self._check_vector(values, "values", self.shape[0])
+        w, h = self.camera_size
+        index = self.row_target * (h * w) + self.row_pixel
+        out = values.new_full((values.shape[1], self.target_count * h * w), fill)
+        return out.index_copy(1, index, values.T).view(-1, self.target_count, h, w).transpose(0, 1)
+
+    def camera_masks(self) -> torch.Tensor:
+        """:math:`(K, H, W)` bool: the camera pixels that are rows of each target."""
+        self._check_pixel_map()
+        w, h = self.camera_size
+        mask = torch.zeros(self.target_count * h * w, dtype=torch.bool, device=self.row_pixel.device)
+        mask[self.row_target * (h * w) + self.row_pixel] = True
+        return mask.view(self.target_count, h, w)
 
     # ------------------------------------------------------------------------------- patterns
     def to_images(self, p: torch.Tensor, fill: float = 0.0) -> list[torch.Tensor]:

@@ -12,7 +12,9 @@ import torch
 from ..calib.homography import HomographyFit, check_plane, fit_homography, homography_map
 from .build import StateCalibration
 
-__all__ = ["HomographyFit", "fit_homography", "homography_map", "planar_calibration"]
+__all__ = ["HomographyFit", "MAPS", "fit_homography", "homography_map", "planar_calibration", "select_maps"]
+
+MAPS = ("decoded", "homography")
 
 
 def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> tuple[dict, dict]:
@@ -41,3 +43,30 @@ def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> t
                 for fit, xy, size in zip(fits[name], state.prj_xy, state.projector_sizes)]
         planar[name] = StateCalibration(maps, state.weight, state.projector_sizes)
     return planar, fits
+
+
+def select_maps(states: dict, maps: str = "decoded", tolerance: float = 1.0, fitted: dict | None = None):
+    """The maps an operator is built on: decoded per pixel, or one homography per state and projector.
+
+    Args:
+        states: state name -> :class:`~torchproj.transport.StateCalibration` as calibrated.
+        maps: ``"decoded"`` or ``"homography"`` (:func:`planar_calibration`; planar scenes only).
+        tolerance: see :func:`planar_calibration`.
+        fitted: state name -> per projector, the fits (:class:`HomographyFit` or its ``as_dict``) a
+            calibration from shortened Gray-code sequences was read through: its maps are
+            homographies already, whatever ``maps`` asks.
+
+    Returns:
+        ``(states, maps, fits)``: the states to build on, the maps they are, and state name -> per
+        projector the fit as a dict (None for decoded maps).
+    """
+    from ..core.checks import check
+
+    check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
+    if fitted:
+        return states, "homography", {name: [f if isinstance(f, dict) else f.as_dict() for f in per]
+                                      for name, per in fitted.items()}
+    if maps == "decoded":
+        return states, maps, None
+    planar, fits = planar_calibration(states, tolerance)
+    return planar, maps, {name: [f.as_dict() for f in per] for name, per in fits.items()}

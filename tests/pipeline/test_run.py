@@ -9,7 +9,8 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import InputError
-from torchproj.evaluate import calibrate_virtual, crosstalk, depth_sweep, masked_ssim, run_virtual, target_image
+from torchproj.pipeline import calibrate_virtual, run_virtual, target_image
+from torchproj.experiments import depth_sweep
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
 
@@ -81,18 +82,6 @@ def test_bad_bounds_are_refused_before_any_work(config, tmp_path, capsys):
     assert "LO < HI" in capsys.readouterr().err and not out.exists()
 
 
-def test_ssim_and_crosstalk_measure_what_they_say():
-    g = torch.Generator().manual_seed(0)
-    a, b = torch.rand(1, 40, 40, generator=g), torch.rand(1, 40, 40, generator=g)
-    mask = torch.zeros(40, 40, dtype=torch.bool)
-    mask[5:35, 5:35] = True
-    assert masked_ssim(a, a, mask) == pytest.approx(1.0)
-    assert masked_ssim(b, a, mask) < 0.2
-    mix = 0.7 * a + 0.3 * b
-    assert crosstalk(mix, [b], mask) > crosstalk(a, [b], mask) + 0.2
-    assert crosstalk(a, [], mask) == 0.0
-
-
 def _small(name, tmp_path_factory, **camera):
     path = tmp_path_factory.mktemp(name) / f"{name}.yaml"
     path.write_text(yaml.safe_dump(dict(small_config(name, **camera), name=name)))
@@ -110,7 +99,7 @@ def test_targets_on_surfaces_of_one_state(box):
     result = run_virtual(scene)
     rows = {r["name"]: r for r in result.report["targets"]}
     assert set(rows) == {"cylinders", "box"} and {r["state"] for r in rows.values()} == {"together"}
-    masks = {d["name"]: d["covered"] for d in result.targets}
+    masks = {d.name: d.covered for d in result.targets}
     rig = VirtualRig(scene)
     rig_masks = {"cylinders": rig.surface_mask("together", ["cylinder_left", "cylinder_right"]),
                  "box": rig.surface_mask("together", ["box"])}
@@ -161,9 +150,9 @@ def test_colour_targets_end_to_end(tmp_path_factory):
     for t, d in zip(result.report["targets"], result.targets):
         assert t["psnr_db"] > 15 and t["ssim"] > 0.4
         # Colour, not grey: the target's channels differ, and the capture follows them.
-        assert float((d["values"][0] - d["values"][2]).abs().mean()) > 0.05
-        cov = d["covered"]
-        corr = torch.corrcoef(torch.stack([(d["values"][0] - d["values"][2])[cov], (d["estimate"][0] - d["estimate"][2])[cov]]))
+        assert float((d.values[0] - d.values[2]).abs().mean()) > 0.05
+        cov = d.covered
+        corr = torch.corrcoef(torch.stack([(d.values[0] - d.values[2])[cov], (d.estimate[0] - d.estimate[2])[cov]]))
         assert float(corr[0, 1]) > 0.5
 
 

@@ -1,4 +1,4 @@
-"""Metrics that say what they compare."""
+"""PSNR and crosstalk: scores that say what they compare (SSIM: :mod:`torchproj.metrics.ssim`)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,8 @@ import math
 import torch
 
 from ..core.checks import check
-from ..transport.operator import TransportOperator
 
-__all__ = ["psnr", "model_space_psnr", "masked_ssim", "crosstalk"]
+__all__ = ["psnr", "model_space_psnr", "crosstalk"]
 
 
 def psnr(estimate: torch.Tensor, reference: torch.Tensor, data_range: float = 1.0) -> float:
@@ -19,8 +18,8 @@ def psnr(estimate: torch.Tensor, reference: torch.Tensor, data_range: float = 1.
     return math.inf if mse == 0 else 10 * math.log10(data_range**2 / mse)
 
 
-def model_space_psnr(op: TransportOperator, p: torch.Tensor) -> list[float]:
-    """PSNR per target of what the operator predicts, ``A p / scale``, against the target values.
+def model_space_psnr(op, p: torch.Tensor) -> list[float]:
+    """PSNR per target of what a :class:`~torchproj.transport.TransportOperator` predicts, ``A p / scale``, against the target values.
 
     Compares, over each target's rows (its camera pixels), the predicted image in target units
     (1 = white) with the target image warped onto those pixels; data range 1. Needs an operator
@@ -31,27 +30,6 @@ def model_space_psnr(op: TransportOperator, p: torch.Tensor) -> list[float]:
     want = op.rhs / op.scale
     return [psnr(pred[op.row_target == k].clamp(0, 1), want[op.row_target == k])
             for k in range(int(op.row_target.max()) + 1)]
-
-
-def masked_ssim(estimate: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor, data_range: float = 1.0) -> float:
-    """SSIM (scikit-image, 7x7 windows) averaged over the pixels of ``mask``.
-
-    Args:
-        estimate, reference: :math:`(C, H, W)` images.
-        mask: :math:`(H, W)` bool; the images are cropped to its bounding box before the SSIM map is
-            computed, and the map is averaged over the mask.
-    """
-    from skimage.metrics import structural_similarity
-
-    ys, xs = torch.nonzero(mask, as_tuple=True)
-    check(len(ys) > 0, "mask is empty")
-    y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
-    check(y1 - y0 >= 7 and x1 - x0 >= 7, "the mask's bounding box must be at least 7x7 pixels for SSIM")
-    est = estimate[:, y0:y1, x0:x1].double().numpy()
-    ref = reference[:, y0:y1, x0:x1].double().numpy()
-    m = mask[y0:y1, x0:x1].numpy()
-    maps = [structural_similarity(e, r, data_range=data_range, full=True)[1] for e, r in zip(est, ref)]
-    return float(sum(mp[m].mean() for mp in maps) / len(maps))
 
 
 def crosstalk(captured: torch.Tensor, others: list[torch.Tensor], mask: torch.Tensor) -> float:

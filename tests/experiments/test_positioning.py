@@ -9,8 +9,7 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import ConfigError, InputError
-from torchproj.evaluate import (box_surface_distance, evaluate_positioning, place_by_feedback, pose_error,
-                                random_pose_near, scan_distance, scan_surface)
+from torchproj.experiments import box_surface_distance, evaluate_positioning, place_by_feedback, pose_error, random_pose_near, scan_distance, scan_surface
 from torchproj.scene import parse_scene, rotation_from_euler_deg
 from torchproj.sim import VirtualRig
 

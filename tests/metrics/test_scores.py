@@ -5,10 +5,10 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio
 
 from torchproj.core import InputError
-from torchproj.evaluate import model_space_psnr, psnr
+from torchproj.metrics import model_space_psnr, psnr
 from torchproj.transport import build_transport
 
-from ..transport.test_build import synthetic_calibration, targets
+from ..helpers import synthetic_calibration, targets
 
 
 def test_psnr_matches_scikit_image():
@@ -35,7 +35,7 @@ def test_model_space_psnr_per_target():
 
 def test_crosstalk_ignores_colour_balance():
     """Two unrelated colour images with the same channel means (a warm tint): no trace of one in the other."""
-    from torchproj.evaluate import crosstalk
+    from torchproj.metrics import crosstalk
 
     g = torch.Generator().manual_seed(3)
     tint = torch.tensor([0.7, 0.4, 0.1])[:, None, None]

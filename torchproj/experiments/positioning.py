@@ -27,16 +27,18 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..calib import calibrate_projector, simulate_calibration
+from ..calib import calibrate_projector
+from ..pipeline import simulate_calibration
 from ..calib.triangulate import ProCamCalibration, triangulate
 from ..core.checks import check
+from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid
 from ..core.errors import ConfigError
 from ..scene.config import Scene, State, Surface
 from ..scene.pose import rotation_from_rotvec
 from ..sim.rig import VirtualRig
-from .metrics import psnr
-from .run import VirtualCalibration, calibrate_virtual, run_virtual
+from ..metrics import psnr
+from ..pipeline import VirtualCalibration, calibrate_virtual, run_virtual
 
 __all__ = ["PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance", "evaluate_positioning",
            "feedback_profile", "place_by_feedback", "pose_error", "random_pose_near", "rig_procam", "scan_distance",
@@ -280,8 +282,6 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
         max_iter: iteration limit of the pattern solver.
     """
-    from tqdm import tqdm
-
     check(trials >= 1, f"trials must be at least 1, got {trials}")
     check(spread_mm >= 0 and spread_deg >= 0, "spread_mm and spread_deg must not be negative")
     check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
@@ -295,13 +295,12 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     rng = np.random.default_rng(seed)
     rows, trial_rows, placed_trials, profiles = [], [], [], {}
     jobs = [(k, t) for k in range(len(positions)) for t in range(trials)]
-    bar = tqdm(total=len(jobs) + len(positions), desc="placing and scanning", leave=False, delay=1.0,
-               disable=None if progress is None else not progress)
+    bar = progress_bar(desc="placing and scanning", enabled=progress, total=len(jobs) + len(positions))
     for k, (name, state, surface) in enumerate(positions):
         detail = run.targets[k]
         goal = surface.world_from_local
         distance_mm = float(np.linalg.norm(goal[:3, 3] - prj_mid) * 1000)
-        feedback = _Feedback(cal.rig, surface, shown, detail["covered"], detail["values"], cal.black[state], scale,
+        feedback = _Feedback(cal.rig, surface, shown, detail.covered, detail.values, cal.black[state], scale,
                              seed=1000 * (seed + 1) * (k + 1), stride=feedback_stride)
         # Finer near the goal, where the image comes together.
         side = np.geomspace(0.25, profile_mm, profile_steps)

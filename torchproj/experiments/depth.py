@@ -13,9 +13,10 @@ import numpy as np
 import torch
 
 from ..core.checks import check
+from ..core.progress import progress_bar
 from ..scene.config import Scene, State
 from ..sim.rig import VirtualRig
-from .metrics import masked_ssim, psnr
+from ..pipeline.scoring import score_image
 
 __all__ = ["DepthSweep", "depth_sweep"]
 
@@ -57,13 +58,11 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
         surface: name of the surface to move (along the world z axis, orientation kept).
         depths: world z positions of its centre.
         patterns: per projector, :math:`(C, H_j, W_j)` uint8 patterns (as from ``run_virtual``).
-        targets: per target, ``{"name", "values" (C, H, W), "covered" (H, W)}`` on the camera
-            (``RunResult.targets``).
+        targets: per target, its image on the camera (``values`` (C, H, W), ``covered`` (H, W)):
+            :class:`~torchproj.pipeline.TargetScore` (``RunResult.targets``).
         scale: camera value of target value 1 (the operator's ``scale``).
         min_pixels: fewer scored pixels than this give NaN.
     """
-    from tqdm import tqdm
-
     check(surface in scene.surfaces, f"unknown surface {surface!r}; known: {sorted(scene.surfaces)}")
     depths = np.asarray(list(depths), dtype=np.float64)
     check(depths.ndim == 1 and len(depths) >= 1, "depths must be a non-empty list of numbers")
@@ -80,18 +79,17 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
     K = len(targets)
     out = {key: np.full((len(depths), K), np.nan) for key in ("psnr", "ssim")}
     pixels = np.zeros((len(depths), K), dtype=np.int64)
-    for i in tqdm(range(len(depths)), desc="depth sweep", leave=False, delay=1.0,
-                  disable=None if progress is None else not progress):
+    for i in progress_bar(range(len(depths)), "depth sweep", progress):
         state = states[i].name
         black = rig.capture(state, {})[0].cpu()
         estimate = ((rig.capture(state, shown)[0].cpu() - black) / scale).clamp(0, 1)
         seen = rig.surface_mask(state).cpu()
         for k, t in enumerate(targets):
-            region = t["covered"] & seen
+            region = t.covered & seen
             pixels[i, k] = int(region.sum())
             if pixels[i, k] >= min_pixels:
-                out["psnr"][i, k] = psnr(estimate[:, region], t["values"][:, region])
-                out["ssim"][i, k] = masked_ssim(estimate, t["values"], region)
+                scores = score_image(estimate, t.values, region)
+                out["psnr"][i, k], out["ssim"][i, k] = scores["psnr_db"], scores["ssim"]
         rig.release(state)  # one state at a time: each cast holds a full transport matrix
     return DepthSweep(depths=depths, psnr_db=out["psnr"], ssim=out["ssim"], pixels=pixels,
-                      names=[t["name"] for t in targets])
+                      names=[t.name for t in targets])

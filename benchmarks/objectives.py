@@ -1,0 +1,167 @@
+"""Objectives against time: least squares, SSIM and mixed, scored on the virtual rig's captures.
+
+    python benchmarks/objectives.py --out benchmarks/results/objectives
+
+Cases: the paper's two-plane rig with its four image pairs (as ``benchmarks/image_quality.py``:
+Lena/Mandrill, Lena/Peppers, Peppers/House, Peppers/Lena with scikit-image's images), and every other
+shipped scene with its own targets. Each scene is calibrated once from simulated captures. For each
+case, the patterns of each objective are solved (FISTA for ``l2``; ``ssim`` and ``mixed`` start
+from FISTA's patterns, :func:`torchproj.solve.solve_ssim`, at several iteration counts), projected
+on the virtual rig and the simulated captures scored as ``torchproj run`` scores them (PSNR, SSIM,
+crosstalk per target). Time is the whole solve (FISTA's included), on this machine's CPU threads.
+
+The issue's goal: captured SSIM >= 0.80 on both targets of all four pairs, PSNR within 1 dB of the
+l2 solution, the full-size SSIM solve within 10 s on 2 cores. ``results.md`` says where it is met.
+
+Writes ``results.json``, ``results.md`` and ``objectives.png`` (captured SSIM and PSNR against
+solve time, one panel per case).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+
+from torchproj.core import write_json
+from torchproj.pipeline import calibrate_virtual, run_virtual, target_image
+from torchproj.scene import BUILTIN_SCENES, load_scene
+from torchproj.solve import OBJECTIVES
+
+PAIRS = [("astronaut", "chelsea"), ("astronaut", "coffee"), ("coffee", "rocket"), ("coffee", "astronaut")]
+PAPER_PAIRS = ["Lena/Mandrill", "Lena/Peppers", "Peppers/House", "Peppers/Lena"]
+# label, objective, SSIM iterations
+RUNS = [("l2", "l2", 0), ("ssim 10 it", "ssim", 10), ("ssim 30 it", "ssim", 30), ("ssim 60 it", "ssim", 60),
+        ("mixed 30 it", "mixed", 30)]
+SSIM_GOAL, PSNR_SLACK_DB, TIME_GOAL_S = 0.80, 1.0, 10.0
+
+
+def run_case(scene, cal, images, label: str, log=print) -> dict:
+    rows = []
+    for name, objective, iters in RUNS:
+        res = run_virtual(scene, calibration=cal, images=images, objective=objective, ssim_iter=max(iters, 1),
+                          progress=False)
+        t = res.report["targets"]
+        row = {"run": name, "objective": objective, "ssim_iterations": iters,
+               "l2_weight": OBJECTIVES[objective], "solve_s": res.report["timings_s"]["solve"],
+               "psnr_db": [round(x["psnr_db"], 3) for x in t], "ssim": [round(x["ssim"], 4) for x in t],
+               "crosstalk": [round(x["crosstalk"], 4) for x in t]}
+        if "image_objective" in res.report:
+            row["model_ssim"] = [round(v, 4) for v in res.report["image_objective"]["model_ssim"]]
+            row["iterations_run"] = res.report["image_objective"]["iterations"]
+        rows.append(row)
+        log(f"{label:28s} {name:12s} {row['solve_s']:7.2f} s  PSNR " + " / ".join(f"{v:.2f}" for v in row["psnr_db"])
+            + "  SSIM " + " / ".join(f"{v:.3f}" for v in row["ssim"]))
+    return {"case": label, "scene": scene.name, "targets": [s.name for s in scene.target_specs()], "runs": rows}
+
+
+def verdict(case: dict, paper_pair: bool) -> dict:
+    """The issue's goals for the 30-iteration SSIM run against l2."""
+    runs = {r["run"]: r for r in case["runs"]}
+    l2, ssim = runs["l2"], runs["ssim 30 it"]
+    out = {"ssim_gain": [round(b - a, 4) for a, b in zip(l2["ssim"], ssim["ssim"])],
+           "psnr_change_db": [round(b - a, 3) for a, b in zip(l2["psnr_db"], ssim["psnr_db"])],
+           "psnr_within_1db": all(b >= a - PSNR_SLACK_DB for a, b in zip(l2["psnr_db"], ssim["psnr_db"])),
+           "solve_within_10s": ssim["solve_s"] <= TIME_GOAL_S}
+    if paper_pair:
+        out["ssim_at_least_0.80"] = all(v >= SSIM_GOAL for v in ssim["ssim"])
+    return out
+
+
+def chart(cases: list[dict], path: Path) -> None:
+    n = len(cases)
+    cols = min(4, n)
+    rows = 2 * ((n + cols - 1) // cols)
+    fig = Figure(figsize=(4.4 * cols, 3.3 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for i, case in enumerate(cases):
+        r, c = 2 * (i // cols), i % cols
+        for ax, key, unit in ((axes[r, c], "ssim", "captured SSIM"), (axes[r + 1, c], "psnr_db", "captured PSNR (dB)")):
+            ax.axis("on")
+            for k in range(len(case["targets"])):
+                ssim_runs = [q for q in case["runs"] if q["objective"] == "ssim"]
+                line, = ax.plot([q["solve_s"] for q in ssim_runs], [q[key][k] for q in ssim_runs], "o-", ms=3,
+                                label=f"{case['targets'][k]}: ssim 10/30/60 it")
+                for q, marker in ((case["runs"][0], "s"), (next(q for q in case["runs"] if q["objective"] == "mixed"),
+                                                            "^")):
+                    ax.plot(q["solve_s"], q[key][k], marker, color=line.get_color(), ms=6,
+                            label=f"{case['targets'][k]}: {q['run']}")
+            ax.set_xscale("log")
+            ax.set_title(case["case"], fontsize=9)
+            ax.set_ylabel(unit, fontsize=8)
+            ax.set_xlabel("solve time (s, log)", fontsize=8)
+            if key == "ssim":
+                ax.axhline(SSIM_GOAL, color="grey", lw=0.6, ls="--")
+            ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
+def markdown(result: dict) -> str:
+    lines = ["# Objectives: least squares, SSIM and mixed, on the virtual rig's captures", "",
+             f"`{result['command']}` on {result['machine']}, torch {result['torch']}. Solve time includes FISTA's "
+             "start; `ssim` weighs the squared error by "
+             f"{OBJECTIVES['ssim']:g} and `mixed` by {OBJECTIVES['mixed']:g} (relative to the start's). "
+             "Scores are of the simulated captures (PSNR dB / SSIM / crosstalk, per target).", "",
+             "| case | run | solve (s) | PSNR | SSIM | crosstalk | model SSIM |", "|---|---|---|---|---|---|---|"]
+    for case in result["cases"]:
+        for q in case["runs"]:
+            lines.append(f"| {case['case']} | {q['run']} | {q['solve_s']:.2f} | "
+                         + " / ".join(f"{v:.2f}" for v in q["psnr_db"]) + " | "
+                         + " / ".join(f"{v:.3f}" for v in q["ssim"]) + " | "
+                         + " / ".join(f"{v:.3f}" for v in q["crosstalk"]) + " | "
+                         + " / ".join(f"{v:.3f}" for v in q.get("model_ssim", [])) + " |")
+    lines += ["", "## Against the goals (ssim, 30 iterations, against l2)", "",
+              "| case | SSIM gain | PSNR change (dB) | PSNR within 1 dB | SSIM >= 0.80 (paper pairs) | solve <= 10 s |",
+              "|---|---|---|---|---|---|"]
+    for case in result["cases"]:
+        v = case["verdict"]
+        lines.append(f"| {case['case']} | " + " / ".join(f"{x:+.3f}" for x in v["ssim_gain"]) + " | "
+                     + " / ".join(f"{x:+.2f}" for x in v["psnr_change_db"]) + f" | {v['psnr_within_1db']} | "
+                     + f"{v.get('ssim_at_least_0.80', '')} | {v['solve_within_10s']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/objectives"))
+    parser.add_argument("--scenes", nargs="+", default=[s for s in BUILTIN_SCENES if s != "paper_two_planes"],
+                        help="shipped scenes besides the paper pairs (default: all)")
+    parser.add_argument("--scale", type=float, help="run every scene at this resolution scale (quick checks)")
+    args = parser.parse_args(argv)
+    command = " ".join(["python benchmarks/objectives.py", *(argv if argv is not None else sys.argv[1:])])
+    cases = []
+    scene = load_scene("paper_two_planes", scale=args.scale)
+    cal = calibrate_virtual(scene, progress=False)
+    for pair, paper in zip(PAIRS, PAPER_PAIRS):
+        images = [target_image(n, scene.camera.channels) for n in pair]
+        case = run_case(scene, cal, images, f"{'/'.join(pair)} ({paper})")
+        case["verdict"] = verdict(case, paper_pair=True)
+        cases.append(case)
+    for name in args.scenes:
+        scene = load_scene(name, scale=args.scale)
+        cal = calibrate_virtual(scene, progress=False)
+        case = run_case(scene, cal, None, name)
+        case["verdict"] = verdict(case, paper_pair=False)
+        cases.append(case)
+        del cal
+    result = {"command": command, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads",
+              "torch": torch.__version__, "weights": {k: v for k, v in OBJECTIVES.items() if v is not None},
+              "cases": cases}
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(args.out / "results.json", result)
+    (args.out / "results.md").write_text(markdown(result))
+    chart(cases, args.out / "objectives.png")
+    print(markdown(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

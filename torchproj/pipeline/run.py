@@ -1,0 +1,176 @@
+"""The main job on the virtual rig: calibrate, build, solve, compensate, project, capture, evaluate.
+
+The evaluation captures are rendered by the simulator from the physics, never computed as ``A p``:
+the solver only knows what calibration recovered, so calibration errors show in the numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from ..calib import sequence_bits
+from ..core.checks import check
+from ..scene.config import Scene
+from ..solve import SOLVERS, SolveResult, image_objective, make_patterns, projectable_patterns, solve_gain_offset
+from ..transport import MAPS, build_transport, select_maps
+from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
+from .targets import scene_targets
+from .virtual import VirtualCalibration, calibrate_virtual
+
+__all__ = ["RunResult", "run_virtual"]
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced. ``report`` is what ``report.json`` holds."""
+
+    report: dict
+    patterns: list[torch.Tensor]  # per projector, (C, H_j, W_j) uint8
+    captures: dict[str, torch.Tensor]  # per state, (C, H, W) float in [0, 1]
+    targets: list[TargetScore] = field(default_factory=list)  # per target, its score, capture and image on the camera
+    solution: SolveResult | None = None  # the solver's own result (values in its bounds, history)
+
+
+def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
+                device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
+                oracle: bool = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
+                maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None, objective: str = "l2",
+                l2_weight: float | None = None, ssim_iter: int = 30) -> RunResult:
+    """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
+
+    Args:
+        scene: the scene; its ``targets`` (or one per state) say which image goes where.
+        solver: ``fista`` (default, the best measured), ``pgd``, ``adam``, ``lf`` or ``eo``.
+        bounds_8bit: solver bounds in 8-bit units as in the paper (``(-100, 255)`` with ``eo`` is
+            ``EO_-100^255``); bounds outside [0, 255] are brought into range afterwards.
+        images: one :math:`(C, h, w)` image per target; default: the config's, else scikit-image's.
+        device: torch device for the rig and the solver.
+        max_iter: iteration limit of iterative solvers.
+        progress: progress bars (None: on a terminal, for steps longer than a second).
+        calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
+        oracle: build the operator from the simulator's exact geometry instead of calibration
+            (ignored when ``calibration`` is given; that one's own mode counts).
+        gain_offset: ``((gain_lo, gain_hi), (offset_lo, offset_hi))`` to optimise one gain and offset
+            per target with FISTA (:func:`~torchproj.solve.solve_gain_offset`); None asks for the
+            images as they are. Metrics then compare with the adjusted image ``g t + o``, and the
+            report also scores against the original.
+        maps: ``"decoded"`` (default: the per-pixel Gray-code maps) or ``"homography"`` (one fitted
+            homography per state and projector, :func:`~torchproj.transport.planar_calibration`;
+            for scenes where each state is one plane; refused otherwise).
+        plane_tolerance: with ``maps="homography"`` or ``bits``, the largest 95th-percentile
+            residual (projector pixels) between decoded and fitted coordinates that counts as a plane.
+        bits: calibrate with the first ``bits`` Gray-code pattern pairs per axis only, read through
+            one homography per state and projector (:func:`calibrate_virtual`); planar scenes.
+            Ignored when ``calibration`` is given.
+        objective: ``l2`` (least squares, the solver's own), ``ssim`` or ``mixed``: SSIM of the
+            predicted images with a small or a larger weight on their squared error, started from
+            the solver's patterns (:func:`~torchproj.solve.solve_ssim`).
+        l2_weight: that weight, instead of the objective's (:data:`~torchproj.solve.OBJECTIVES`).
+        ssim_iter: iterations of the SSIM objective.
+    """
+    check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    weight = image_objective(objective, l2_weight)
+    check(gain_offset is None or (solver == "fista" and weight is None),
+          "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
+          "gain/offset option")
+    lo, hi = (float(b) / 255 for b in bounds_8bit)
+    check(lo < hi, f"bounds must satisfy LO < HI, got {bounds_8bit}")
+    check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
+    t_total = time.perf_counter()
+    cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle, bits=bits,
+                                           plane_tolerance=plane_tolerance)
+    timings = {"calibrate": cal.seconds if calibration is None else 0.0}
+    t0 = time.perf_counter()
+    states, maps, fits = select_maps(cal.states, maps, plane_tolerance, cal.homographies)
+    if fits is not None and cal.homographies is None:
+        timings["homography"] = time.perf_counter() - t0
+    targets = scene_targets(scene, images, cal.rig)
+
+    t0 = time.perf_counter()
+    # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
+    # per-target g t + o is an exact right-hand side of the same A); merged otherwise (exact, smaller).
+    op = build_transport(states, targets, merge=gain_offset is None and weight is None, device=device)
+    timings["transport"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if gain_offset is not None:
+        model = op.size_report()
+        result, op, patterns = _solve_gain_offset(op, states, targets, (lo, hi), gain_offset, cal.responses,
+                                                  max_iter, progress, device)
+    else:
+        result, _, patterns = make_patterns(op, solver, (lo, hi), cal.responses, calibrations=states,
+                                            max_iter=max_iter, progress=progress, objective=objective,
+                                            l2_weight=weight, ssim_iter=ssim_iter)
+        model = op.size_report()
+    timings["solve"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    evaluation = evaluate_patterns(cal, patterns, targets, scale=op.scale, states=states)
+    scores, rows = evaluation.targets, []
+    for k, (spec, score) in enumerate(zip(scene.target_specs(), scores)):
+        row = {**score.as_dict(), "surfaces": spec.surfaces}
+        if gain_offset is not None:
+            g, o = result.info["gain"][k], result.info["offset"][k]
+            adjusted = (g * score.values + o).clamp(0, 1)
+            row.update(gain=round(g, 4), offset=round(o, 4), psnr_db_original=score.psnr_db,
+                       ssim_original=score.ssim, **score_image(score.estimate, adjusted, score.covered))
+            scores[k] = dataclasses.replace(score, values=adjusted, psnr_db=row["psnr_db"], ssim=row["ssim"])
+        rows.append(row)
+    timings["evaluate"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_total
+    report = _report(scene, cal, solver, objective, weight, bounds_8bit, device, maps, model, op, result, timings,
+                     rows, gain_offset)
+    if fits is not None:
+        report["homographies"] = fits
+    return RunResult(report=report, patterns=patterns, captures=evaluation.captures, targets=scores, solution=result)
+
+
+def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_iter, progress, device):
+    """FISTA with one gain and offset per target: the result, the operator it solved, the 8-bit patterns."""
+    flat = build_transport(states, [dataclasses.replace(t, image=torch.ones_like(t.image)) for t in targets],
+                           merge=False, scale=op.scale, device=device)
+    result = solve_gain_offset(op, flat.rhs, bounds, gain=gain_offset[0], offset=gain_offset[1], max_iter=max_iter,
+                               progress=progress)
+    op = result.info.pop("operator")
+    return result, op, projectable_patterns(op, result.patterns, bounds, responses)[1]
+
+
+def _report(scene, cal, solver, objective, weight, bounds_8bit, device, maps, model, op, result, timings, rows,
+            gain_offset) -> dict:
+    """What ``report.json`` holds (``objective`` is always the least-squares value of the patterns)."""
+    least_squares = result.info.get("l2_objective", result.objective) if weight is not None else result.objective
+    report = {
+        "scene": scene.name, "solver": solver if gain_offset is None else "fista+gain/offset",
+        "bounds_8bit": list(bounds_8bit), "device": str(device),
+        "calibration": "oracle (the simulator's exact geometry)" if cal.oracle else "Gray code on the virtual rig",
+        "maps": maps, "graycode": _graycode_report(scene, cal), "model": model, "objective": least_squares,
+        "unexplained_fraction": round(op.unexplained(result.patterns), 5),
+        "iterations": result.iterations, "scale": op.scale,
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "evaluation": EVALUATION + ("; with gain/offset, psnr_db and ssim compare with the adjusted image g t + o, "
+                                    "psnr_db_original and ssim_original with t" if gain_offset is not None else ""),
+        "targets": rows,
+    }
+    if weight is not None:
+        start = result.info["start"]
+        report["image_objective"] = {"name": objective, "l2_weight": weight, "value": result.objective,
+                                     "iterations": result.iterations, "model_ssim": result.info["model_ssim"],
+                                     "start": {"solver": start.method, "iterations": start.iterations,
+                                               "objective": start.objective}}
+        report["iterations"] = start.iterations
+    if gain_offset is not None:
+        report["gain_offset_limits"] = {"gain": list(gain_offset[0]), "offset": list(gain_offset[1])}
+    return report
+
+
+def _graycode_report(scene: Scene, cal: VirtualCalibration) -> dict | None:
+    """Per projector, the Gray-code bits shown and the captures that took per state (None for the oracle)."""
+    if cal.oracle:
+        return None
+    sizes = [(p.width, p.height) for p in scene.projectors]
+    shown = cal.bits or [sequence_bits(*size) for size in sizes]
+    # Pattern/inverse pairs, white and black, and the two ramps.
+    return {p.name: {"bits": list(b), "captures_per_state": 2 * sum(b) + 4} for p, b in zip(scene.projectors, shown)}

@@ -1,0 +1,89 @@
+"""Target images and the targets of a scene: what to show where.
+
+Images are :math:`(C, h, w)` float in [0, 1] (the library's convention); a target places one on the
+camera pixels of its surfaces (:class:`~torchproj.transport.Target`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..core.checks import check
+from ..core.imageio import read_image
+from ..scene.config import Scene
+from ..transport import Target
+
+__all__ = ["DEFAULT_IMAGES", "default_images", "scene_images", "scene_targets", "target_image"]
+
+DEFAULT_IMAGES = ("astronaut", "chelsea", "coffee", "rocket", "camera")
+
+
+def target_image(name: str, channels: int) -> torch.Tensor:
+    """A target image by scikit-image test-image name (``astronaut``, ``checkerboard``...) or file path.
+
+    Returns:
+        :math:`(C, h, w)` float in [0, 1] with the camera's channel count (RGB to grey by luminance,
+        grey repeated to RGB, alpha dropped).
+    """
+    from skimage import color, data
+
+    if Path(name).suffix:
+        img = read_image(name).permute(1, 2, 0).numpy()
+    else:
+        check(name in getattr(data, "__all__", dir(data)) and not name.startswith("_"),
+              f"unknown image {name!r}: give an image file (with its suffix) or a scikit-image test image "
+              "name such as astronaut, chelsea, coffee, rocket, camera, checkerboard, horse")
+        raw = np.asarray(getattr(data, name)())
+        img = raw.astype(np.float32) / (1.0 if raw.dtype == bool else float(np.iinfo(raw.dtype).max)
+                                        if raw.dtype.kind in "ui" else 1.0)
+    if img.ndim == 2:
+        img = img[..., None]
+    img = img[..., :3]
+    if img.shape[-1] == 1 and channels == 3:
+        img = np.repeat(img, 3, -1)
+    elif img.shape[-1] == 3 and channels == 1:
+        img = color.rgb2gray(img)[..., None]
+    return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)
+
+
+def default_images(count: int, channels: int) -> list[torch.Tensor]:
+    """Test images that ship with scikit-image, one per target: :math:`(C, h, w)` in [0, 1]."""
+    check(count <= len(DEFAULT_IMAGES), f"at most {len(DEFAULT_IMAGES)} default images; give your own targets")
+    return [target_image(name, channels) for name in DEFAULT_IMAGES[:count]]
+
+
+def scene_images(scene: Scene) -> list[torch.Tensor]:
+    """One image per target of the scene: the config's choice, else the next default image."""
+    specs = scene.target_specs()
+    defaults = iter(name for name in DEFAULT_IMAGES if name not in {t.image for t in specs})
+    images = []
+    for spec in specs:
+        name = spec.image or next(defaults, None)
+        check(name is not None, f"more targets than default images; give target {spec.name!r} an image")
+        images.append(target_image(name, scene.camera.channels))
+    return images
+
+
+def scene_targets(scene: Scene, images: list[torch.Tensor] | None = None, rig=None) -> list[Target]:
+    """The scene's targets (:meth:`~torchproj.scene.Scene.target_specs`) with their images and masks.
+
+    Args:
+        images: one :math:`(C, h, w)` image per target; None: :func:`scene_images`.
+        rig: the :class:`~torchproj.sim.VirtualRig` that gives a target's surfaces their camera mask
+            (the pixels that see them, standing in for the mask a user paints over a real capture);
+            None only for scenes whose targets name no surfaces (each covers everything lit).
+
+    Returns:
+        one :class:`~torchproj.transport.Target` per target, masks on the CPU.
+    """
+    specs = scene.target_specs()
+    images = scene_images(scene) if images is None else list(images)
+    check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
+    check(rig is not None or all(s.surfaces is None for s in specs),
+          "targets that name surfaces need the virtual rig for their camera masks: pass rig=")
+    return [Target(spec.state, img.to(torch.float32), name=spec.name,
+                   mask=None if spec.surfaces is None else rig.surface_mask(spec.state, spec.surfaces).cpu())
+            for spec, img in zip(specs, images)]

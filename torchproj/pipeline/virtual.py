@@ -1,0 +1,230 @@
+"""The virtual rig as a calibrated rig: its calibration captures, decoded, and their check against the truth.
+
+:func:`calibrate_virtual` is what ``torchproj run`` and every benchmark calibrate with: the solver
+then knows only what the captures recovered (the physics contract of ``DESIGN.md``), or, in oracle
+mode, the simulator's exact geometry.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import torch
+
+from ..calib import GraycodeCapture, ResponseCurve, calibrate_projector, graycode_patterns, ramp_pattern, sequence_bits
+from ..core.checks import check
+from ..core.errors import InputError
+from ..scene.config import Scene
+from ..sim.rig import VirtualRig
+from ..transport import StateCalibration
+
+__all__ = ["DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "decoding_accuracy", "simulate_calibration"]
+
+
+def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp_steps: int = 32,
+                         noise: bool = True, bits: int | tuple[int, int] | None = None) -> GraycodeCapture:
+    """Capture the calibration sequence of one projector in one state on the virtual rig.
+
+    The projector shows its Gray code (the first ``bits`` pairs per axis of it, if given), white,
+    black and the ramp and mirrored ramp; the other projectors stay on showing black, as on a real
+    bench.
+    """
+    index = projector if isinstance(projector, int) else [p.name for p in rig.scene.projectors].index(projector)
+    proj = rig.scene.projectors[index]
+    gray = graycode_patterns(proj.width, proj.height, bits)
+    ramps = torch.cat([ramp_pattern(proj.width, proj.height, ramp_steps),
+                       ramp_pattern(proj.width, proj.height, ramp_steps, mirrored=True)])
+    images = rig.capture(state, {index: torch.cat([gray, ramps])}, noise=noise)
+    return GraycodeCapture(patterns=images[:-4], white=images[-4], black=images[-3], ramp=images[-2:])
+
+
+@dataclass
+class DecodingAccuracy:
+    """How decoded coordinates compare with the simulator's truth for one projector and state.
+
+    Fractions are over the camera pixels the projector truly lights (``lit``).
+    """
+
+    lit: int  # pixels truly lit
+    decoded: float  # fraction of lit pixels decoded
+    exact: float  # fraction of decoded pixels whose cell equals the true cell
+    within_one: float  # ... within one cell in x and y
+    false_valid: float  # fraction of unlit pixels (shadow, background) reported valid
+    rms_px: float  # RMS distance to the continuous true coordinate, over decoded lit pixels
+
+    def as_dict(self) -> dict:
+        return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+def decoding_accuracy(decoded: torch.Tensor, truth: torch.Tensor) -> DecodingAccuracy:
+    """Compare decoded :math:`(H, W, 2)` projector coordinates with the true ones (NaN = unlit)."""
+    lit = torch.isfinite(truth).all(-1)
+    valid = torch.isfinite(decoded).all(-1)
+    both = lit & valid
+    cell_true = torch.floor(truth[both] + 0.5)
+    cell_dec = torch.floor(decoded[both] + 0.5)
+    diff = (cell_dec - cell_true).abs().max(-1).values
+    n_lit, n_both = int(lit.sum()), int(both.sum())
+    err = (decoded[both] - truth[both]).norm(dim=-1)
+    return DecodingAccuracy(
+        lit=n_lit,
+        decoded=n_both / max(n_lit, 1),
+        exact=float((diff == 0).float().mean()) if n_both else 0.0,
+        within_one=float((diff <= 1).float().mean()) if n_both else 0.0,
+        false_valid=float((valid & ~lit).sum()) / max(int((~lit).sum()), 1),
+        rms_px=float(err.pow(2).mean().sqrt()) if n_both else float("nan"),
+    )
+
+
+@dataclass
+class VirtualCalibration:
+    """A scene calibrated on the virtual rig: what the solver may know, plus the rig to evaluate on."""
+
+    rig: VirtualRig
+    states: dict[str, StateCalibration]
+    black: dict[str, torch.Tensor]  # per state, (C, H, W) capture with every projector showing black
+    responses: list  # per projector, its fitted ResponseCurve
+    seconds: float
+    oracle: bool = False
+    bits: list | None = None  # per projector, (kx, ky) of a shortened Gray-code sequence; None: the full one
+    homographies: dict | None = None  # per state, per projector, the HomographyFit a shortened sequence gave
+
+
+def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False,
+                      bits: int | None = None, plane_tolerance: float = 1.0) -> VirtualCalibration:
+    """Simulate and decode every state's calibration captures (Gray code, white, black, ramps).
+
+    Args:
+        bits: show only the first ``bits`` Gray-code pattern pairs per axis, and read each capture
+            through one homography (:func:`~torchproj.calib.calibrate_projector`); for scenes
+            where every state is one plane. None: the full sequence.
+        plane_tolerance: with ``bits``, the largest 95th-percentile residual (projector pixels)
+            that counts as a plane.
+        oracle: skip calibration and take the simulator's exact geometry (projector coordinates at
+            pixel centres), expected white-minus-black weights (no noise, no quantisation) and true
+            responses, on the pixels whose white minus black passes the decoder's shadow threshold
+            (40/255, as ``calibrate_projector``). It shows how much quality calibration costs; it is
+            not available on a real rig.
+    """
+    if oracle:
+        check(bits is None, "oracle calibration takes the exact geometry: it shows no Gray code to shorten; drop "
+                            "--bits or --oracle")
+        return _oracle_calibration(scene, device)
+    t0 = time.perf_counter()
+    rig = VirtualRig(scene, device=device)
+    per_state: dict[str, list] = {}
+    black = {}
+    for name, _, capture, calibration in calibrate_rig(rig, bits=bits, plane_tolerance=plane_tolerance,
+                                                        progress=progress):
+        per_state.setdefault(name, []).append(calibration)
+        black[name] = capture.black.cpu()  # every projector shows black: the state's black level and ambient light
+    states = {name: StateCalibration.from_calibrations(pcs) for name, pcs in per_state.items()}
+    shown = homographies = None
+    if bits is not None:
+        shown = [sequence_bits(p.width, p.height, bits) for p in scene.projectors]
+        homographies = {name: [pc.homography for pc in pcs] for name, pcs in per_state.items()}
+    return VirtualCalibration(rig=rig, states=states, black=black,
+                              responses=[pc.response for pc in next(iter(per_state.values()))],
+                              seconds=time.perf_counter() - t0, bits=shown, homographies=homographies)
+
+
+def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: float = 1.0, noise: bool = True,
+                  progress=None, through=None, timings: dict | None = None):
+    """Simulate and decode the calibration captures of every state and projector, one at a time.
+
+    The one loop behind :func:`calibrate_virtual` and ``torchproj simulate``.
+
+    Args:
+        bits, plane_tolerance: as :func:`calibrate_virtual`.
+        noise: camera noise in the captures.
+        progress: a progress bar (None: on a terminal, for loops longer than a second).
+        through: optional ``(state, projector_index, capture) -> capture``, applied before decoding
+            (``torchproj simulate --write-captures`` writes the capture as files and reads it back).
+        timings: if given, seconds spent casting rays (``cast``), capturing (``capture``) and
+            decoding (``calibrate``) are added to it.
+
+    Yields:
+        ``(state, projector_index, capture, calibration)``: the
+        :class:`~torchproj.calib.GraycodeCapture` and its
+        :class:`~torchproj.calib.ProjectorCalibration`, states in the scene's order, projectors
+        within each.
+    """
+    from ..core.progress import progress_bar
+
+    scene = rig.scene
+    timings = {} if timings is None else timings
+    jobs = [(st.name, j) for st in scene.states for j in range(len(scene.projectors))]
+    for name, j in progress_bar(jobs, "calibrating states x projectors", progress):
+        proj = scene.projectors[j]
+        t0 = time.perf_counter()
+        rig.geometry(name)
+        t1 = time.perf_counter()
+        capture = simulate_calibration(rig, name, j, noise=noise, bits=bits)
+        if through is not None:
+            capture = through(name, j, capture)
+        t2 = time.perf_counter()
+        try:
+            calibration = calibrate_projector(capture, (proj.width, proj.height), bits=bits,
+                                              plane_tolerance=plane_tolerance)
+        except InputError as exc:  # a block map off the plane, or nothing decoded: say which state and projector
+            raise InputError(f"state {name!r}, projector {proj.name!r}: {exc}") from None
+        for key, seconds in (("cast", t1 - t0), ("capture", t2 - t1), ("calibrate", time.perf_counter() - t2)):
+            timings[key] = timings.get(key, 0.0) + seconds
+        yield name, j, capture, calibration
+
+
+def _oracle_calibration(scene: Scene, device, black_threshold: float = 40) -> VirtualCalibration:
+    t0 = time.perf_counter()
+    rig = VirtualRig(scene, device=device)
+    states, black = {}, {}
+    for st in scene.states:
+        geo = rig.geometry(st.name)
+        dark = rig.capture(st.name, {}, noise=False, quantise=False)[0]
+        weight, prj_xy = [], []
+        for j, proj in enumerate(scene.projectors):
+            white = rig.capture(st.name, {j: torch.ones(1, 1, proj.height, proj.width)}, noise=False, quantise=False)[0]
+            weight.append((white - dark).mean(0).cpu())
+            # Exact coordinates where a decoder could see the projector at all (the shadow mask's
+            # threshold), so that oracle and calibration solve for the same pixels.
+            xy = geo.prj_xy[j].cpu().clone()
+            xy[weight[-1] <= black_threshold / 255] = float("nan")
+            prj_xy.append(xy)
+        states[st.name] = StateCalibration(prj_xy, weight, [(p.width, p.height) for p in scene.projectors])
+        black[st.name] = dark.cpu()
+    responses = [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
+                 for p in scene.projectors]
+    return VirtualCalibration(rig=rig, states=states, black=black, responses=responses,
+                              seconds=time.perf_counter() - t0, oracle=True)
+
+
+def check_calibration(rig: VirtualRig, state: str, projector: int, capture: GraycodeCapture, calibration,
+                      noise: bool = True) -> tuple[dict, dict]:
+    """One projector's calibration in one state against the simulator's truth (``torchproj simulate``).
+
+    Compares the decoded coordinates, integer and sub-pixel, with the true ones
+    (:func:`decoding_accuracy`), and projects the response-compensated ramp and its mirror: their
+    sum, normalised by white minus black, should be flat at 1 (the paper's check of the
+    compensation, its fig. 4c).
+
+    Returns:
+        ``(report, figure_row)``: the ``report.json`` entry, and the row of
+        :func:`torchproj.figures.calibration_summary`.
+    """
+    proj = rig.scene.projectors[projector]
+    truth = rig.geometry(state).prj_xy[projector]
+    ramps = torch.cat([ramp_pattern(proj.width, proj.height), ramp_pattern(proj.width, proj.height, mirrored=True)])
+    shot = rig.capture(state, {projector: calibration.response.to_pattern(ramps)}, noise=noise)
+    span = capture.white - capture.black
+    lit = calibration.decoding.valid & (span.mean(0) > 0.1)
+    flat = (((shot - capture.black) / span.clamp_min(1e-3)).mean(1).sum(0))[lit]
+    report = {"state": state, "projector": proj.name, "block_cells": list(calibration.decoding.block),
+              "decoding_integer": decoding_accuracy(calibration.decoding.prj_xy, truth).as_dict(),
+              "decoding_subpixel": decoding_accuracy(calibration.prj_xy, truth).as_dict(),
+              "response_fit": calibration.response.as_dict(), "response_true_b": list(proj.response_b),
+              "compensated_ramp_sum": {"mean": float(flat.mean()), "std": float(flat.std())}}
+    levels, measured = calibration.ramp
+    row = {"label": f"{state}/{proj.name}", "prj_xy": calibration.prj_xy,
+           "error": (calibration.prj_xy - truth).norm(dim=-1), "levels": levels.numpy(), "measured": measured.numpy(),
+           "response": calibration.response, "true_b": proj.response_b[0]}
+    return report, row

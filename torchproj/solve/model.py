@@ -1,0 +1,154 @@
+"""The image-space model: patterns as parameters, and the camera image each target will show.
+
+Solvers see the transport operator's rows; people and losses see images. :class:`ProjectionModel`
+holds the patterns as an ``nn.Parameter`` and predicts, differentiably, what the camera captures of
+each target, so that any torch loss (SSIM, gradients, a perceptual metric, a crosstalk penalty) can
+drive them in a training-style loop. :func:`solve_ssim` is such a loop.
+
+Units (the evaluation's): a predicted image is in *target units*, the camera value minus the
+state's black capture, over the operator's ``scale``, so 1 asks for a target's white and 0 for the
+state's black; compare it with the target image directly.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..core.checks import check, check_finite
+from ..transport.build import StateCalibration, Target, build_transport
+from ..transport.operator import TransportOperator
+from .compensate import projectable_patterns
+from .solvers import check_bounds
+
+__all__ = ["ProjectionModel", "calibration_parts"]
+
+
+def calibration_parts(calibration) -> tuple[dict[str, StateCalibration], list | None]:
+    """Per-state calibrations and per-projector response curves, from any calibration torchproj makes.
+
+    Args:
+        calibration: a :class:`~torchproj.calib.CalibrationBundle` (``torchproj calibrate``,
+            :func:`~torchproj.calib.load_bundle`), a virtual-rig calibration
+            (:func:`~torchproj.calibrate_virtual`), or a dict of state name ->
+            :class:`~torchproj.transport.StateCalibration` (then no responses).
+
+    Returns:
+        ``(states, responses)``; ``responses`` None where the calibration holds none.
+    """
+    from ..calib.bundle import CalibrationBundle
+
+    if isinstance(calibration, CalibrationBundle):
+        return StateCalibration.from_bundle(calibration), calibration.response_curves()
+    states = getattr(calibration, "states", calibration)
+    check(isinstance(states, dict) and len(states) > 0
+          and all(isinstance(s, StateCalibration) for s in states.values()),
+          f"calibration must be a CalibrationBundle (torchproj calibrate), a virtual calibration "
+          f"(calibrate_virtual) or a dict of StateCalibration, got {type(calibration).__name__}")
+    return states, getattr(calibration, "responses", None)
+
+
+class ProjectionModel(nn.Module):
+    """Patterns as parameters; ``forward()`` predicts the camera image of every target.
+
+    Args:
+        operator: a :class:`~torchproj.transport.TransportOperator` whose rows are camera pixels
+            (``build_transport(..., merge=False)``): the prediction is ``A p`` placed on them.
+        bounds: the box ``(lo, hi)`` in linear light the patterns must stay in (the paper's 8-bit
+            bounds over 255). A plain optimiser steps out of it: use
+            :class:`~torchproj.solve.ClampedAdam` with ``bounds=model.bounds``, or :meth:`clamp_`
+            after each step.
+        responses: per projector, its :class:`~torchproj.calib.ResponseCurve` (for :meth:`to_patterns`).
+        start: :math:`(N_{cols}, C)` initial patterns inside ``bounds``; None: the middle of the box.
+
+    Attributes:
+        patterns: ``nn.Parameter`` :math:`(N_{cols}, C)`: each lit projector cell's linear light
+            (columns of the operator; :meth:`TransportOperator.to_images` shows them per projector).
+        targets: :math:`(K, C, H, W)` buffer: each target image on the camera, target units, 0
+            outside its mask.
+        mask: :math:`(K, H, W)` bool buffer: the camera pixels that show target k.
+
+    Shape:
+        ``forward()``: :math:`(K, C, H, W)`, target units (see the module), 0 outside ``mask``.
+
+    Example:
+        >>> model = ProjectionModel.from_calibration(calibration, targets)
+        >>> opt = ClampedAdam(model.parameters(), lr=1e-3, bounds=model.bounds)
+        >>> loss = SSIMLoss(model.targets, model.mask)(model()).mean()
+    """
+
+    def __init__(self, operator: TransportOperator, bounds=(0.0, 1.0), responses: list | None = None,
+                 start: torch.Tensor | None = None):
+        super().__init__()
+        check(isinstance(operator, TransportOperator), f"operator must be a TransportOperator, got "
+                                                       f"{type(operator).__name__}")
+        check(operator.row_pixel is not None, "the operator's rows are merged and mix camera pixels: build it with "
+                                              "build_transport(..., merge=False) for an image-space model")
+        self.bounds = check_bounds(bounds)
+        check(responses is None or len(responses) == len(operator.projector_sizes),
+              f"give one response curve per projector ({len(operator.projector_sizes)}), got "
+              f"{None if responses is None else len(responses)}")
+        self.operator = operator
+        self.responses = responses
+        lo, hi = self.bounds
+        shape = (operator.shape[1], operator.channels)
+        if start is None:
+            start = torch.full(shape, 0.5 * (lo + hi), dtype=operator.val.dtype, device=operator.val.device)
+        else:
+            check(tuple(start.shape) == shape, f"start must have shape {shape} (columns, channels), got "
+                                               f"{tuple(start.shape)}")
+            check_finite(start, "start")
+            low, high = float(start.min()), float(start.max())
+            check(low >= lo - 1e-6 and high <= hi + 1e-6, f"start must lie in the bounds [{lo:g}, {hi:g}], got values "
+                                                           f"in [{low:.4g}, {high:.4g}]; clamp it or widen the bounds")
+            start = start.detach().to(operator.val.device, operator.val.dtype).clamp(lo, hi)
+        self.patterns = nn.Parameter(start.clone())
+        self.register_buffer("targets", operator.to_camera(operator.rhs / operator.scale))
+        self.register_buffer("mask", operator.camera_masks())
+
+    @classmethod
+    def from_calibration(cls, calibration, targets: list[Target], *, bounds=(0.0, 1.0), footprint: str = "nearest",
+                         scale: float | None = None, start: str | torch.Tensor | None = "l2",
+                         device="cpu") -> "ProjectionModel":
+        """Build the operator (rows on camera pixels) and the model from a calibration and targets.
+
+        Args:
+            calibration: see :func:`calibration_parts`.
+            targets: one :class:`~torchproj.transport.Target` per image to show.
+            footprint, scale: as in :func:`~torchproj.transport.build_transport`.
+            start: ``"l2"``: the least-squares optimum in the box (FISTA to a 1e-6 relative
+                change; about a second at full size), the best start for any image loss measured
+                (``benchmarks/objectives.py``); None: the middle of the box; or a tensor.
+        """
+        states, responses = calibration_parts(calibration)
+        op = build_transport(states, targets, footprint=footprint, merge=False, scale=scale, device=device)
+        if isinstance(start, str):
+            check(start == "l2", f"start must be 'l2', None or a tensor, got {start!r}")
+            from .solvers import solve_fista
+
+            start = solve_fista(op, bounds, progress=False).patterns
+        return cls(op, bounds, responses, start)
+
+    @property
+    def scale(self) -> float:
+        """Camera value of a target value of 1 (:attr:`TransportOperator.scale`)."""
+        return self.operator.scale
+
+    def forward(self) -> torch.Tensor:
+        return self.operator.to_camera(self.operator.A(self.patterns) / self.operator.scale)
+
+    @torch.no_grad()
+    def clamp_(self) -> "ProjectionModel":
+        """Project the patterns into the bounds (after a step of an optimiser that does not)."""
+        self.patterns.clamp_(*self.bounds)
+        return self
+
+    def to_patterns(self) -> list[torch.Tensor]:
+        """The 8-bit images to send to each projector, :math:`(C, H_j, W_j)` uint8, on the CPU.
+
+        The same steps as :func:`~torchproj.solve.make_patterns`: values outside [0, 1] brought into
+        range (:func:`~torchproj.solve.to_projectable`), then each projector's inverse response.
+        """
+        check(self.responses is not None, "this model holds no response curves: give responses=... (or build it with "
+                                          "from_calibration from a calibration that has them)")
+        return projectable_patterns(self.operator, self.patterns, self.bounds, self.responses)[1]
