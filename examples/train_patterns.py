@@ -13,7 +13,7 @@ trained patterns), ``overview.png``, ``patterns/`` and ``checkpoint.pt`` into ``
 
 ``--loss torchproj`` (default) optimises the SSIM the evaluation reports (scikit-image's definition,
 :func:`torchproj.metrics.ssim`); ``--loss kornia`` optimises kornia's, a different window and
-border, which the captures then score lower (README's "Training patterns like a network").
+border (README's "Training patterns like a network" compares the two).
 """
 
 from __future__ import annotations
@@ -43,8 +43,10 @@ def kornia_ssim_loss(targets: torch.Tensor, masks: torch.Tensor):
     return loss
 
 
-def train(model, loss_name: str, steps: int, lr: float, l2_weight: float, checkpoint: Path, log=print) -> list:
-    """Clamped Adam with cosine learning-rate decay on (1 - SSIM) + w * relative squared error."""
+def train(model, loss_name: str, steps: int, lr: float, l2_weight: float, checkpoint: Path, log=print,
+          psnr_drop: float = 1.0) -> list:
+    """Clamped Adam with cosine learning-rate decay on (1 - SSIM) + w * relative squared error, each
+    target held within ``psnr_drop`` dB of its starting PSNR (the loss of ``torchproj.solve_ssim``)."""
     ssim_loss = (torchproj.SSIMLoss(model.targets, model.mask) if loss_name == "torchproj"
                  else kornia_ssim_loss(model.targets, model.mask))
     weight = model.mask[:, None].to(model.targets.dtype)
@@ -61,7 +63,8 @@ def train(model, loss_name: str, steps: int, lr: float, l2_weight: float, checkp
     for step in range(1, steps + 1):
         optimizer.zero_grad()
         prediction = model()
-        loss = (ssim_loss(prediction) + l2_weight * squared_error(prediction) / start_error).mean()
+        ratio = squared_error(prediction) / start_error
+        loss = (ssim_loss(prediction) + l2_weight * ratio + torch.relu(10 * torch.log10(ratio) - psnr_drop) ** 2).mean()
         loss.backward()
         optimizer.step()
         scheduler.step()

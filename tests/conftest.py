@@ -18,3 +18,13 @@ def chessboard():
     if not (CHESSBOARD / "capture_0" / "graycode_41.png").is_file():
         pytest.skip(f"real captures not found at {CHESSBOARD} (they live in ../shared/data beside the checkout)")
     return CHESSBOARD
+
+
+@pytest.fixture(scope="session")
+def quarter_rig():
+    """The paper's rig at a quarter of its resolution (``load_scene(scale=0.25)``), calibrated once per session."""
+    from torchproj.pipeline import calibrate_virtual
+    from torchproj.scene import load_scene
+
+    scene = load_scene("paper_two_planes", scale=0.25)
+    return scene, calibrate_virtual(scene, progress=False)

@@ -23,13 +23,13 @@ SURFACE = {
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
-        "BUNDLE_VERSION", "CalibrationBundle", "DEFAULT_NAMES", "GrayDecoding", "GraycodeCapture", "HomographyFit",
-        "OpenCVCamera", "OpenCVDisplay", "ProCamCalibration", "ProjectorCalibration", "ResponseCurve",
-        "calibrate_folders", "calibrate_projector", "capture_sequence", "check_plane", "decode_gray", "fill_holes",
-        "fit_homography", "fit_plane", "fit_response", "graycode_bits", "graycode_patterns", "homography_map",
-        "inverse_map", "load_bundle", "measure_ramp", "ramp_pattern", "read_graycode_folder",
-        "read_opencv_calibration", "refine_subpixel", "sequence_bits", "triangulate", "write_bundle",
-        "write_graycode_folder", "write_ply", "write_sequence"],
+        "BUNDLE_VERSION", "CalibrationBundle", "DEFAULT_NAMES", "DecodedFolder", "GrayDecoding", "GraycodeCapture",
+        "HomographyFit", "OpenCVCamera", "OpenCVDisplay", "ProCamCalibration", "ProjectorCalibration",
+        "ResponseCurve", "calibrate_folders", "calibrate_projector", "capture_sequence", "check_plane",
+        "decode_folder", "decode_gray", "fill_holes", "fit_homography", "fit_plane", "fit_response",
+        "graycode_bits", "graycode_patterns", "homography_map", "inverse_map", "load_bundle", "measure_ramp",
+        "ramp_pattern", "read_graycode_folder", "read_opencv_calibration", "refine_subpixel", "sequence_bits",
+        "triangulate", "triangulate_map", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [
         "HomographyFit", "MAPS", "StateCalibration", "Target", "TransportOperator", "build_transport",
         "cell_blocks", "csr_from_coo", "fit_homography", "geometric_weights", "group_rows", "homography_map",
@@ -37,18 +37,21 @@ SURFACE = {
     "metrics": [
         "SSIMLoss", "crosstalk", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [
-        "ClampedAdam", "OBJECTIVES", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts",
-        "check_bounds", "compensate", "component_chains", "epipolar_chains", "fundamental_between_projectors",
-        "image_objective", "make_patterns", "projectable_patterns", "solve_adam", "solve_eo", "solve_fista",
-        "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "to_projectable"],
+        "ClampedAdam", "ImageObjective", "OBJECTIVES", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult",
+        "calibration_parts", "check_bounds", "compensate", "component_chains", "epipolar_chains",
+        "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns", "solve_adam",
+        "solve_eo", "solve_fista", "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim",
+        "to_projectable"],
     "pipeline": [
-        "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "PatternEvaluation", "RunResult", "TargetScore",
-        "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "decoding_accuracy", "default_images", "evaluate_patterns",
-        "run_virtual", "scene_images", "scene_targets", "score_image", "simulate_calibration", "target_image"],
+        "BundleSolution", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "PatternEvaluation", "RunResult",
+        "TargetScore", "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration",
+        "decoding_accuracy", "default_images", "evaluate_patterns", "run_markdown", "run_virtual", "scene_images",
+        "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene",
+        "solve_bundle", "target_image"],
     "experiments": [
         "DepthSweep", "PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance",
-        "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "pose_error",
-        "random_pose_near", "rig_procam", "scan_distance", "scan_surface"],
+        "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "placement_error",
+        "pose_error", "position_markdown", "random_pose_near", "rig_procam", "scan_distance", "scan_surface"],
 }
 
 

@@ -1,11 +1,13 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+import torchproj
 from torchproj.cli import main
 from torchproj.scene import BUILTIN_SCENES
 
@@ -87,9 +89,31 @@ def test_projector_size_is_checked(capsys):
     assert "expected WIDTHxHEIGHT" in capsys.readouterr().err
 
 
-def test_console_script_is_installed():
-    out = subprocess.run([sys.executable, "-m", "torchproj.cli", "--version"], capture_output=True, text=True)
-    assert out.returncode == 0 and out.stdout.startswith("torchproj ")
+def test_console_script_is_installed(tmp_path):
+    """The ``torchproj`` command beside this interpreter (what ``pip install`` puts on the PATH), run
+    from a folder outside the checkout."""
+    script = Path(sys.executable).parent / "torchproj"
+    assert script.is_file(), f"no torchproj command beside {sys.executable}: pip install -e . first"
+    out = subprocess.run([str(script), "--version"], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0 and out.stdout.strip() == f"torchproj {torchproj.__version__}"
+    out = subprocess.run([str(script), "scene", "three_planes"], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0 and "state c: plane_c" in out.stdout, out.stderr
+
+
+def test_ssim_objective_from_the_command_line(tmp_path, capsys):
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(dict(small_config(camera=(240, 180), projector=(128, 96)), name="small")))
+    out = tmp_path / "run"
+    assert main(["run", str(path), "--out", str(out), "--objective", "mixed", "--ssim-iter", "8",
+                 "--psnr-drop", "0.5"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    image = report["image_objective"]
+    assert image["name"] == "mixed" and image["l2_weight"] == 1.0 and image["psnr_drop_db"] == 0.5
+    assert image["iterations"] <= 8 and min(image["model_psnr_change_db"]) > -0.6
+    assert "Image objective: mixed" in (out / "report.md").read_text()
+    capsys.readouterr()
+    assert main(["run", str(path), "--out", str(tmp_path / "bad"), "--l2-weight", "0.3"]) == 2
+    assert "give it with objective 'ssim' or 'mixed'" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
 @pytest.mark.slow

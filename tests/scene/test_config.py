@@ -177,3 +177,28 @@ def test_target_image_paths_are_relative_to_the_config(tmp_path):
     path = tmp_path / "scene.yaml"
     path.write_text(yaml.safe_dump(_with_targets([{"name": "a", "state": "together", "image": "logo.png"}])))
     assert load_scene(path).targets[0].image == str(tmp_path / "logo.png")
+
+
+def test_a_scaled_scene_is_the_same_rig_with_fewer_pixels():
+    full, quarter = load_scene("paper_two_planes"), load_scene("paper_two_planes", scale=0.25)
+    assert (quarter.camera.width, quarter.camera.height) == (400, 300)
+    assert [(p.width, p.height) for p in quarter.projectors] == [(256, 192), (256, 192)]
+    # A world point lands on the same place of each image, in fractions of its size (pixel centres at integers).
+    point = np.array([0.05, -0.02, 0.8, 1.0])
+
+    def fraction(device, world_from_device):
+        local = np.linalg.inv(world_from_device) @ point
+        u = device.K @ (local[:3] / local[2])
+        return (u[0] + 0.5) / device.width, (u[1] + 0.5) / device.height
+
+    assert np.allclose(fraction(full.camera, full.camera.world_from_cam),
+                       fraction(quarter.camera, quarter.camera.world_from_cam), atol=1e-12)
+    for a, b in zip(full.projectors, quarter.projectors):
+        assert np.allclose(fraction(a, a.world_from_prj), fraction(b, b.world_from_prj), atol=1e-12)
+    assert quarter.surfaces.keys() == full.surfaces.keys()
+
+
+@pytest.mark.parametrize("scale", [0, -1, 10, "half"])
+def test_a_scale_out_of_range_is_refused(scale):
+    with pytest.raises(ConfigError, match="scale: must be a number in"):
+        load_scene("paper_two_planes", scale=scale)

@@ -114,7 +114,7 @@ def test_a_training_loop_with_clamped_adam_stays_in_the_box_and_descends():
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0]
-    assert float(model.patterns.min()) >= 0 and float(model.patterns.max()) <= 1
+    assert float(model.patterns.detach().min()) >= 0 and float(model.patterns.detach().max()) <= 1
 
 
 def test_clamped_adam_bounds_are_a_default_for_groups_added_later_and_may_be_tensors():

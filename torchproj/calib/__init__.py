@@ -6,14 +6,15 @@ from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write
 from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel, sequence_bits
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
-from .pipeline import ProjectorCalibration, calibrate_projector
+from .pipeline import DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder
 from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
-from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, write_ply
+from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, triangulate_map, write_ply
 
 __all__ = [
     "BUNDLE_VERSION",
     "CalibrationBundle",
     "DEFAULT_NAMES",
+    "DecodedFolder",
     "GrayDecoding",
     "GraycodeCapture",
     "HomographyFit",
@@ -26,6 +27,7 @@ __all__ = [
     "capture_sequence",
     "calibrate_projector",
     "check_plane",
+    "decode_folder",
     "decode_gray",
     "fill_holes",
     "fit_homography",
@@ -43,6 +45,7 @@ __all__ = [
     "refine_subpixel",
     "sequence_bits",
     "triangulate",
+    "triangulate_map",
     "write_bundle",
     "write_graycode_folder",
     "write_ply",

@@ -70,18 +70,33 @@ class OpenCVCamera:
         self.cap.release()
 
 
-def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike, display, camera, *,
-                     settle_s: float = 0.2) -> Path:
+def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike, display=None, camera=None, *,
+                     settle_s: float = 0.2, screen: tuple[int, int] = (0, 0), camera_index: int = 0) -> Path:
     """Show every image of a sequence (``torchproj sequence``) in order and save each capture under the
     same file name, plus ``sequence.json``, in ``out_dir`` (a ``CAPTURE_ROOT/STATE/PROJECTOR`` folder).
 
     Args:
+        display, camera: see the module; None opens (and afterwards closes) an :class:`OpenCVDisplay`
+            at ``screen`` and an :class:`OpenCVCamera` with ``camera_index``.
         settle_s: seconds to wait after showing an image before grabbing (projector and camera lag).
     """
     sequence_dir, out_dir = Path(sequence_dir), Path(out_dir)
     manifest_path = sequence_dir / SEQUENCE_FILE
     if not manifest_path.is_file():
         raise CaptureError(f"{sequence_dir}: no {SEQUENCE_FILE}; write the sequence with torchproj sequence")
+    if display is None or camera is None:
+        opened = []  # close what this call opened, and only that
+        try:
+            if display is None:
+                display = OpenCVDisplay(*screen)
+                opened.append(display)
+            if camera is None:
+                camera = OpenCVCamera(camera_index)
+                opened.append(camera)
+            return capture_sequence(sequence_dir, out_dir, display, camera, settle_s=settle_s)
+        finally:
+            for device in opened:
+                device.close()
     manifest = json.loads(manifest_path.read_text())
     out_dir.mkdir(parents=True, exist_ok=True)
     for entry in manifest["images"]:

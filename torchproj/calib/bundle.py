@@ -121,6 +121,22 @@ class CalibrationBundle:
     bits: list = field(default_factory=list)
     homographies: dict = field(default_factory=dict)
 
+    def summary(self) -> str:
+        """One line: states, projectors and the fraction of the camera decoded in each."""
+        return (f"{len(self.states)} state(s) x {len(self.projectors)} projector(s); decoded: "
+                + ", ".join(f"{s}/{p} {f:.1%}" for s, d in self.decoded.items() for p, f in d.items()))
+
+    def figure_rows(self) -> list[dict]:
+        """Per state and projector, a row of :func:`torchproj.figures.calibration_summary`."""
+        rows = []
+        for state, maps in self.states.items():
+            for (name, _, _), m, response, ramp in zip(self.projectors, maps, self.responses, self.ramps):
+                row = {"label": f"{state}/{name}", "prj_xy": m["prj_xy"], "error": None, "valid": m["valid"]}
+                if ramp is not None:
+                    row.update(levels=ramp[0].numpy(), measured=ramp[1].numpy(), response=response)
+                rows.append(row)
+        return rows
+
     def response_curves(self) -> list[ResponseCurve]:
         """Per projector, its response curve; a linear one, with a warning, where no ramp was captured."""
         curves = []

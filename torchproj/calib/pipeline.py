@@ -14,7 +14,7 @@ from .homography import HomographyFit, check_plane, fit_homography, homography_m
 from .maps import fill_holes, inverse_map
 from .response import ResponseCurve, fit_response, measure_ramp
 
-__all__ = ["ProjectorCalibration", "calibrate_projector"]
+__all__ = ["DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder"]
 
 
 @dataclass
@@ -104,3 +104,91 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         timings["response"] = time.perf_counter() - t0
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit)
+
+
+@dataclass
+class DecodedFolder:
+    """A folder of Gray-code captures decoded (``torchproj decode``): what it found and how fast.
+
+    Attributes:
+        calibration: the :class:`ProjectorCalibration` of the folder.
+        report: what ``report.json`` holds (decoded fraction, timings, thresholds, ...).
+        points: :math:`(H, W, 3)` triangulated points in the camera frame (NaN where not decoded),
+            with a camera-projector calibration; else None.
+        white: :math:`(C, H, W)` the all-white capture (colours the point cloud).
+    """
+
+    calibration: ProjectorCalibration
+    report: dict
+    points: torch.Tensor | None
+    white: torch.Tensor
+
+    def write(self, folder) -> None:
+        """``correspondence.npz``, ``report.json``, ``decoded.png`` and (with points) ``points.ply``.
+
+        ``correspondence.npz``: ``prj_xy`` (integer cells, OpenCV's semantics, NaN where invalid),
+        ``prj_xy_refined`` (sub-pixel, holes filled), ``valid``, ``contrast``, ``cam_xy``, ``count``
+        and, with points, ``points``.
+        """
+        from pathlib import Path
+
+        import numpy as np
+
+        from ..core.output import write_json
+        from ..figures import decode_summary
+        from .triangulate import write_ply
+
+        folder, cal = Path(folder), self.calibration
+        dec = cal.decoding
+        arrays = {"prj_xy": dec.prj_xy.numpy().astype(np.float32), "prj_xy_refined": cal.prj_xy.numpy(),
+                  "valid": dec.valid.numpy(), "contrast": dec.contrast.numpy().astype(np.float32),
+                  "cam_xy": cal.cam_xy.numpy(), "count": cal.count.numpy().astype(np.int32)}
+        if self.points is not None:
+            ok = torch.isfinite(self.points).all(-1)
+            arrays["points"] = self.points.numpy()
+            grey = (self.white.mean(0)[ok] * 255).clamp(0, 255).to(torch.uint8).numpy()
+            write_ply(folder / "points.ply", self.points[ok].numpy(), np.repeat(grey[:, None], 3, 1))
+        np.savez_compressed(folder / "correspondence.npz", **arrays)
+        write_json(folder / "report.json", self.report)
+        decode_summary(folder / "decoded.png", dec.prj_xy, dec.contrast, self.points,
+                       title=f"{self.report['capture_dir']}: {dec.valid_fraction:.1%} of the camera decoded")
+
+
+def decode_folder(capture_dir, projector: tuple[int, int], *, calibration=None, names: str | None = None,
+                  white_threshold: float = 5, black_threshold: float = 40, subpixel: bool = True,
+                  fill_holes: int = 16, bits: int | None = None, plane_tolerance: float = 1.0) -> DecodedFolder:
+    """Decode a folder of Gray-code captures and, with a camera-projector calibration, triangulate it.
+
+    Args:
+        capture_dir: the folder (:func:`~torchproj.calib.read_graycode_folder`'s layout).
+        projector: ``(width, height)`` of the projector that showed the sequence.
+        calibration: an OpenCV camera-projector calibration file (XML/YAML) to triangulate with.
+        names: file name template (default ``graycode_{:02d}.png``).
+        white_threshold, black_threshold, subpixel, fill_holes, bits, plane_tolerance: as
+            :func:`calibrate_projector` (``fill_holes`` is its ``max_hole``).
+    """
+    from .capture import DEFAULT_NAMES, read_graycode_folder
+    from .triangulate import read_opencv_calibration, triangulate_map
+
+    procam = read_opencv_calibration(calibration) if calibration is not None else None
+    t0 = time.perf_counter()
+    capture = read_graycode_folder(capture_dir, projector, names=names or DEFAULT_NAMES, bits=bits)
+    t_read = time.perf_counter() - t0
+    cal = calibrate_projector(capture, projector, white_threshold=white_threshold, black_threshold=black_threshold,
+                              subpixel=subpixel, max_hole=fill_holes, bits=bits, plane_tolerance=plane_tolerance)
+    dec = cal.decoding
+    report = {"capture_dir": str(capture_dir), "projector": list(projector),
+              "camera": [int(dec.valid.shape[1]), int(dec.valid.shape[0])],
+              "valid_fraction": dec.valid_fraction, "read_s": round(t_read, 4),
+              "decode_s": round(cal.timings_s["decode"], 4), "maps_s": round(cal.timings_s["maps"], 4),
+              "white_threshold": white_threshold, "black_threshold": black_threshold,
+              "subpixel": subpixel, "block_cells": list(dec.block)}
+    if cal.homography is not None:
+        report["homography"] = cal.homography.as_dict()
+    points = None
+    if procam is not None:
+        t0 = time.perf_counter()
+        points = triangulate_map(cal.prj_xy, procam)
+        report["triangulate_s"] = round(time.perf_counter() - t0, 4)
+        report["points"] = int(torch.isfinite(points).all(-1).sum())
+    return DecodedFolder(calibration=cal, report=report, points=points, white=capture.white)

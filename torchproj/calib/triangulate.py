@@ -22,7 +22,7 @@ from kornia.geometry.epipolar import triangulate_points
 from ..core.checks import check_shape
 from ..core.errors import CaptureError
 
-__all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "fit_plane", "write_ply"]
+__all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "triangulate_map", "fit_plane", "write_ply"]
 
 
 @dataclass
@@ -87,6 +87,17 @@ def triangulate(cam_xy: torch.Tensor, prj_xy: torch.Tensor, calib: ProCamCalibra
     P1 = torch.cat([torch.eye(3, dtype=torch.float64), torch.zeros(3, 1, dtype=torch.float64)], 1)
     P2 = calib.prj_from_cam
     return triangulate_points(P1[None], P2[None], cam_n[None], prj_n[None])[0]
+
+
+def triangulate_map(prj_xy: torch.Tensor, calib: ProCamCalibration) -> torch.Tensor:
+    """Triangulate every decoded camera pixel: :math:`(H, W, 2)` projector coordinates (NaN where not
+    decoded) -> :math:`(H, W, 3)` float32 points in the camera frame, NaN where not decoded."""
+    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    ok = torch.isfinite(prj_xy).all(-1)
+    ys, xs = torch.nonzero(ok, as_tuple=True)
+    points = torch.full(ok.shape + (3,), float("nan"))
+    points[ok] = triangulate(torch.stack([xs, ys], -1).double(), prj_xy[ok].double(), calib).float()
+    return points
 
 
 def fit_plane(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -18,13 +18,15 @@ def csr_tensor(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: 
     indices and torch converts 64-bit ones on every product; on the paper's full-size rig that
     conversion cost as much as the product itself (``benchmarks/solvers.py`` measures the product).
 
-    torch flags CSR support as beta on every construction; the products torchproj uses are stable,
-    so that warning is silenced here rather than everywhere.
+    torch flags CSR support as beta on every construction, and (2.11 with CUDA) that invariant checks
+    are off, which is what ``check_invariants=False`` asks; the products torchproj uses are stable and
+    the callers build sorted arrays, so both warnings are silenced here rather than everywhere.
     """
     if max(shape) <= _INT32_LIMIT and col.numel() <= _INT32_LIMIT:
         crow, col = crow.to(torch.int32), col.to(torch.int32)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
         return torch.sparse_csr_tensor(crow, col, val, shape, check_invariants=False)
 
 

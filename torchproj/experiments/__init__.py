@@ -2,9 +2,11 @@
 
 from .depth import DepthSweep, depth_sweep
 from .positioning import (PAPER_RMSE_PERCENT, PlacementTrial, PositioningResult, box_surface_distance,
-                          evaluate_positioning, feedback_profile, place_by_feedback, pose_error, random_pose_near,
+                          evaluate_positioning, feedback_profile, place_by_feedback, placement_error, pose_error,
+                          position_markdown, random_pose_near,
                           rig_procam, scan_distance, scan_surface)
 
 __all__ = ["DepthSweep", "PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance",
-           "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "pose_error",
+           "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "placement_error",
+           "pose_error", "position_markdown",
            "random_pose_near", "rig_procam", "scan_distance", "scan_surface"]

@@ -23,6 +23,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -33,7 +34,7 @@ from ..calib.triangulate import ProCamCalibration, triangulate
 from ..core.checks import check
 from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, InputError
 from ..scene.config import Scene, State, Surface
 from ..scene.pose import rotation_from_rotvec
 from ..sim.rig import VirtualRig
@@ -41,7 +42,7 @@ from ..metrics import psnr
 from ..pipeline import VirtualCalibration, calibrate_virtual, run_virtual
 
 __all__ = ["PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance", "evaluate_positioning",
-           "feedback_profile", "place_by_feedback", "pose_error", "random_pose_near", "rig_procam", "scan_distance",
+           "feedback_profile", "place_by_feedback", "placement_error", "position_markdown", "pose_error", "random_pose_near", "rig_procam", "scan_distance",
            "scan_surface"]
 
 # Paper section 5.2: average RMSE as a percentage of the box-projector distance, and that distance.
@@ -243,6 +244,32 @@ class PositioningResult:
     patterns: list[torch.Tensor]  # per projector, (C, H_j, W_j) uint8
     profiles: dict[str, dict] = field(default_factory=dict)  # per position: feedback_profile
 
+    def write(self, folder, scene: Scene) -> str:
+        """``report.json``, ``report.md``, ``feedback.png``, ``patterns/`` and ``scans/`` into ``folder``;
+        returns the markdown."""
+        from ..core.imageio import write_image
+        from ..core.output import write_json
+        from ..figures import positioning_feedback
+
+        folder = Path(folder)
+        (folder / "patterns").mkdir(parents=True, exist_ok=True)
+        for proj, pat in zip(scene.projectors, self.patterns):
+            write_image(folder / "patterns" / f"{proj.name}.png", pat.float() / 255)
+        (folder / "scans").mkdir(exist_ok=True)
+        goals = {p["name"]: scene.surfaces[p["surface"]] for p in self.report["positions"]}
+        for t in self.trials:
+            box = goals[t.position]
+            np.savez_compressed(folder / "scans" / f"{t.position}_{t.trial}.npz", points=t.scan["points"],
+                                projector=t.scan["projector"], goal_pose=box.world_from_local, placed_pose=t.placed,
+                                start_pose=t.start, box_size=np.array(box.size))
+        positioning_feedback(folder / "feedback.png", self.profiles,
+                             [{"position": t.position, "trial": t.trial, "history": t.history, "rmse_mm": t.rmse_mm}
+                              for t in self.trials])
+        text = position_markdown(self.report)
+        write_json(folder / "report.json", self.report)
+        (folder / "report.md").write_text(text)
+        return text
+
 
 def _positions(scene: Scene) -> list[tuple[str, str, Surface]]:
     """(target name, state, surface) of each target; each must sit on exactly one box."""
@@ -315,27 +342,10 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
                "scanner_rmse_mm": round(_rmse(floor["points"], goal, surface.size), 3)}
         if name in PAPER_RMSE_PERCENT:
             row["paper_rmse_percent"] = PAPER_RMSE_PERCENT[name]["percent"]
-        errors = []
-        for t in range(trials):
-            t0 = time.perf_counter()
-            start = random_pose_near(goal, spread_mm / 1000, spread_deg, rng)
-            placed, history = place_by_feedback(feedback, start, step_m=max(spread_mm, 1.0) / 1000,
-                                                step_deg=max(spread_deg, 1.0), max_evaluations=max_evaluations)
-            scan = scan_surface(scene, surface, placed, seed=seed + 104729 * (k + 1) + t, device=device)
-            rmse = _rmse(scan["points"], goal, surface.size)
-            trial = PlacementTrial(position=name, trial=t, start=start, placed=placed, history=history, scan=scan,
-                                   rmse_mm=rmse, rmse_percent=100 * rmse / distance_mm,
-                                   seconds=time.perf_counter() - t0)
-            placed_trials.append(trial)
-            errors.append(trial)
-            trial_rows.append({
-                "position": name, "trial": t, "rmse_mm": round(rmse, 3), "rmse_percent": round(trial.rmse_percent, 4),
-                "pose_error": pose_error(placed, goal), "start_pose_error": pose_error(start, goal),
-                "scan_to_placed_box_rmse_mm": round(_rmse(scan["points"], placed, surface.size), 3),
-                "scan_points": int(len(scan["points"])), "evaluations": len(history),
-                "feedback_start_db": round(history[0], 3), "feedback_final_db": round(max(history), 3),
-                "seconds": round(trial.seconds, 2)})
-            bar.update()
+        errors, new_rows = _place_trials(scene, feedback, name, surface, distance_mm, trials, spread_mm, spread_deg,
+                                         max_evaluations, rng, seed + 104729 * (k + 1), device, bar)
+        placed_trials += errors
+        trial_rows += new_rows
         row["rmse_mm_mean"] = round(float(np.mean([e.rmse_mm for e in errors])), 3)
         row["rmse_percent_mean"] = round(float(np.mean([e.rmse_percent for e in errors])), 4)
         rows.append(row)
@@ -359,3 +369,110 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
                       "total": round(time.perf_counter() - t_start, 3)},
     }
     return PositioningResult(report=report, trials=placed_trials, patterns=run.patterns, profiles=profiles)
+
+
+def _place_trials(scene, feedback, name, surface, distance_mm, trials, spread_mm, spread_deg, max_evaluations, rng,
+                  scan_seed, device, bar) -> tuple[list[PlacementTrial], list[dict]]:
+    """``trials`` placements of one box from random starts near its goal, each scanned and scored."""
+    goal = surface.world_from_local
+    placed_trials, rows = [], []
+    for t in range(trials):
+        t0 = time.perf_counter()
+        start = random_pose_near(goal, spread_mm / 1000, spread_deg, rng)
+        placed, history = place_by_feedback(feedback, start, step_m=max(spread_mm, 1.0) / 1000,
+                                            step_deg=max(spread_deg, 1.0), max_evaluations=max_evaluations)
+        scan = scan_surface(scene, surface, placed, seed=scan_seed + t, device=device)
+        rmse = _rmse(scan["points"], goal, surface.size)
+        trial = PlacementTrial(position=name, trial=t, start=start, placed=placed, history=history, scan=scan,
+                               rmse_mm=rmse, rmse_percent=100 * rmse / distance_mm, seconds=time.perf_counter() - t0)
+        placed_trials.append(trial)
+        rows.append({
+            "position": name, "trial": t, "rmse_mm": round(rmse, 3), "rmse_percent": round(trial.rmse_percent, 4),
+            "pose_error": pose_error(placed, goal), "start_pose_error": pose_error(start, goal),
+            "scan_to_placed_box_rmse_mm": round(_rmse(scan["points"], placed, surface.size), 3),
+            "scan_points": int(len(scan["points"])), "evaluations": len(history),
+            "feedback_start_db": round(history[0], 3), "feedback_final_db": round(max(history), 3),
+            "seconds": round(trial.seconds, 2)})
+        bar.update()
+    return placed_trials, rows
+
+
+def _scan_points(folder: Path, mask: np.ndarray | None) -> np.ndarray:
+    """The triangulated points of a ``torchproj decode --calibration`` folder, inside ``mask``."""
+    path = folder / "correspondence.npz"
+    if not path.is_file():
+        raise InputError(f"{path}: not found; give the --out folder of torchproj decode")
+    data = np.load(path)
+    if "points" not in data:
+        raise InputError(f"{path}: holds no points; run torchproj decode with --calibration FILE.xml")
+    points = data["points"]
+    keep = np.isfinite(points).all(-1)
+    if mask is not None:
+        if mask.shape != keep.shape:
+            raise InputError(f"--mask is {mask.shape[1]}x{mask.shape[0]} but the camera of {folder} is "
+                                 f"{keep.shape[1]}x{keep.shape[0]}; paint the mask over a capture of that camera")
+        keep &= mask
+    return points[keep].astype(np.float64)
+
+
+def placement_error(placed, reference, distance: float, mask=None) -> dict:
+    """Score a real placement: a scan of the placed object against a scan of it at its goal pose.
+
+    Args:
+        placed, reference: folders written by ``torchproj decode --calibration`` (``points`` in
+            ``correspondence.npz``).
+        distance: object-projector distance, in the calibration's units, for the percentage.
+        mask: optional image file of the camera's size, white on the object: only those pixels count.
+
+    Returns:
+        the ``report.json`` of ``torchproj placement-error``: RMS, median and 95th percentile of the
+        distance from each placed point to the nearest reference point, and the RMS as a
+        percentage of ``distance``.
+    """
+    from ..core.imageio import read_image
+
+    if not distance > 0:
+        raise InputError(f"--distance must be the object-projector distance (> 0), got {distance:g}")
+    keep = None if mask is None else read_image(mask).mean(0).numpy() > 0.5
+    placed_points = _scan_points(Path(placed), keep)
+    reference_points = _scan_points(Path(reference), keep)
+    if len(placed_points) == 0 or len(reference_points) == 0:
+        raise InputError("no scanned points" + (" inside --mask" if mask is not None else "") + " in "
+                         + str(placed if len(placed_points) == 0 else reference))
+    dist = scan_distance(placed_points, reference_points)
+    rmse = float(np.sqrt(np.mean(dist**2)))
+    return {"placed": str(placed), "reference": str(reference), "mask": None if mask is None else str(mask),
+            "points": int(len(placed_points)), "reference_points": int(len(reference_points)),
+            "rmse": round(rmse, 4), "median": round(float(np.median(dist)), 4),
+            "p95": round(float(np.percentile(dist, 95)), 4), "distance": distance,
+            "rmse_percent": round(100 * rmse / distance, 4), "units": "the calibration's (usually mm)",
+            "method": "distance from each point of the placed scan to the nearest point of the reference scan "
+                      "(the object scanned at its goal pose); percent of --distance"}
+
+
+def position_markdown(report: dict) -> str:
+    """``report.md`` of a positioning test."""
+    lines = [f"# torchproj position: {report['scene']}", "",
+             f"{report['trials_per_position']} placements per position from starts within "
+             f"{report['start_spread']['position_mm']:g} mm and {report['start_spread']['rotation_deg']:g} degrees "
+             f"of the goal, at most {report['max_evaluations']} camera looks each.", "",
+             f"Method: {report['method']}.", "",
+             "| position | box-projector distance (mm) | PSNR at goal (dB) | scanner alone (mm) | RMSE (mm) | "
+             "RMSE (% of distance) | paper (%) |",
+             "|---|---|---|---|---|---|---|"]
+    for p in report["positions"]:
+        paper = p.get("paper_rmse_percent")
+        lines.append(f"| {p['name']} | {p['projector_distance_mm']:.0f} | {p['psnr_db_at_goal']:.2f} | "
+                     f"{p['scanner_rmse_mm']:.2f} | {p['rmse_mm_mean']:.2f} | {p['rmse_percent_mean']:.2f} | "
+                     f"{'' if paper is None else f'{paper:.2f}'} |")
+    lines += ["", "| position | trial | RMSE (mm) | RMSE (%) | centre off by (mm) | turned by (deg) | "
+              "started off by (mm, deg) | feedback start -> end (dB) | looks |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for t in report["trials"]:
+        e, s = t["pose_error"], t["start_pose_error"]
+        lines.append(f"| {t['position']} | {t['trial']} | {t['rmse_mm']:.2f} | {t['rmse_percent']:.3f} | "
+                     f"{e['distance_mm']:.1f} | {e['rotation_deg']:.2f} | {s['distance_mm']:.1f}, "
+                     f"{s['rotation_deg']:.1f} | {t['feedback_start_db']:.1f} -> {t['feedback_final_db']:.1f} | "
+                     f"{t['evaluations']} |")
+    lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in report["timings_s"].items()), ""]
+    return "\n".join(lines)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 
@@ -21,7 +22,7 @@ from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
 from .virtual import VirtualCalibration, calibrate_virtual
 
-__all__ = ["RunResult", "run_virtual"]
+__all__ = ["RunResult", "image_objective_report", "run_markdown", "run_virtual"]
 
 
 @dataclass
@@ -33,13 +34,37 @@ class RunResult:
     captures: dict[str, torch.Tensor]  # per state, (C, H, W) float in [0, 1]
     targets: list[TargetScore] = field(default_factory=list)  # per target, its score, capture and image on the camera
     solution: SolveResult | None = None  # the solver's own result (values in its bounds, history)
+    scene: Scene | None = None
+
+    def write(self, folder) -> str:
+        """``report.json``, ``report.md``, ``overview.png``, ``patterns/`` and ``captures/`` into ``folder``.
+
+        Returns the markdown report.
+        """
+        from ..core.imageio import write_image
+        from ..core.output import write_json
+        from ..figures import run_overview
+
+        folder = Path(folder)
+        names = [p.name for p in self.scene.projectors]
+        (folder / "patterns").mkdir(parents=True, exist_ok=True)
+        for name, pattern in zip(names, self.patterns):
+            write_image(folder / "patterns" / f"{name}.png", pattern.float() / 255)
+        (folder / "captures").mkdir(exist_ok=True)
+        for state, shot in self.captures.items():
+            write_image(folder / "captures" / f"{state}.png", shot, bits=self.scene.camera.bit_depth)
+        run_overview(folder / "overview.png", self.patterns, names, self.targets)
+        text = run_markdown(self.report)
+        write_json(folder / "report.json", self.report)
+        (folder / "report.md").write_text(text)
+        return text
 
 
 def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
                 device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
                 oracle: bool = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
-                maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None, objective: str = "l2",
-                l2_weight: float | None = None, ssim_iter: int = 30) -> RunResult:
+                maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
+                objective="l2") -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -66,15 +91,14 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         bits: calibrate with the first ``bits`` Gray-code pattern pairs per axis only, read through
             one homography per state and projector (:func:`calibrate_virtual`); planar scenes.
             Ignored when ``calibration`` is given.
-        objective: ``l2`` (least squares, the solver's own), ``ssim`` or ``mixed``: SSIM of the
-            predicted images with a small or a larger weight on their squared error, started from
-            the solver's patterns (:func:`~torchproj.solve.solve_ssim`).
-        l2_weight: that weight, instead of the objective's (:data:`~torchproj.solve.OBJECTIVES`).
-        ssim_iter: iterations of the SSIM objective.
+        objective: ``l2`` (least squares, the solver's own), ``ssim`` or ``mixed`` (SSIM of the
+            predicted images with a small or a larger weight on their squared error, each target
+            within 1 dB of least squares), or an :class:`~torchproj.solve.ImageObjective`; the
+            image objectives start from the solver's patterns (:func:`~torchproj.solve.solve_ssim`).
     """
     check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
-    weight = image_objective(objective, l2_weight)
-    check(gain_offset is None or (solver == "fista" and weight is None),
+    image = image_objective(objective)
+    check(gain_offset is None or (solver == "fista" and image is None),
           "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
           "gain/offset option")
     lo, hi = (float(b) / 255 for b in bounds_8bit)
@@ -93,7 +117,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A); merged otherwise (exact, smaller).
-    op = build_transport(states, targets, merge=gain_offset is None and weight is None, device=device)
+    op = build_transport(states, targets, merge=gain_offset is None and image is None, device=device)
     timings["transport"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if gain_offset is not None:
@@ -102,30 +126,37 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                                                   max_iter, progress, device)
     else:
         result, _, patterns = make_patterns(op, solver, (lo, hi), cal.responses, calibrations=states,
-                                            max_iter=max_iter, progress=progress, objective=objective,
-                                            l2_weight=weight, ssim_iter=ssim_iter)
+                                            max_iter=max_iter, progress=progress, objective=image)
         model = op.size_report()
     timings["solve"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     evaluation = evaluate_patterns(cal, patterns, targets, scale=op.scale, states=states)
-    scores, rows = evaluation.targets, []
+    scores, rows = _target_rows(scene, evaluation.targets, result.info if gain_offset is not None else None)
+    timings["evaluate"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_total
+    report = _report(scene, cal, solver, image, bounds_8bit, device, maps, model, op, result, timings,
+                     rows, gain_offset)
+    if fits is not None:
+        report["homographies"] = fits
+    return RunResult(report=report, patterns=patterns, captures=evaluation.captures, targets=scores, solution=result,
+                     scene=scene)
+
+
+def _target_rows(scene, scores: list[TargetScore], gain_offset: dict | None):
+    """Per target, its report row; with a gain and offset (``SolveResult.info``) its scores are against
+    the adjusted image ``g t + o``, and against ``t`` as ``psnr_db_original`` / ``ssim_original``."""
+    scores, rows = list(scores), []
     for k, (spec, score) in enumerate(zip(scene.target_specs(), scores)):
         row = {**score.as_dict(), "surfaces": spec.surfaces}
         if gain_offset is not None:
-            g, o = result.info["gain"][k], result.info["offset"][k]
+            g, o = gain_offset["gain"][k], gain_offset["offset"][k]
             adjusted = (g * score.values + o).clamp(0, 1)
             row.update(gain=round(g, 4), offset=round(o, 4), psnr_db_original=score.psnr_db,
                        ssim_original=score.ssim, **score_image(score.estimate, adjusted, score.covered))
             scores[k] = dataclasses.replace(score, values=adjusted, psnr_db=row["psnr_db"], ssim=row["ssim"])
         rows.append(row)
-    timings["evaluate"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_total
-    report = _report(scene, cal, solver, objective, weight, bounds_8bit, device, maps, model, op, result, timings,
-                     rows, gain_offset)
-    if fits is not None:
-        report["homographies"] = fits
-    return RunResult(report=report, patterns=patterns, captures=evaluation.captures, targets=scores, solution=result)
+    return scores, rows
 
 
 def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_iter, progress, device):
@@ -138,10 +169,10 @@ def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_
     return result, op, projectable_patterns(op, result.patterns, bounds, responses)[1]
 
 
-def _report(scene, cal, solver, objective, weight, bounds_8bit, device, maps, model, op, result, timings, rows,
+def _report(scene, cal, solver, image, bounds_8bit, device, maps, model, op, result, timings, rows,
             gain_offset) -> dict:
     """What ``report.json`` holds (``objective`` is always the least-squares value of the patterns)."""
-    least_squares = result.info.get("l2_objective", result.objective) if weight is not None else result.objective
+    least_squares = result.info["l2_objective"] if image is not None else result.objective
     report = {
         "scene": scene.name, "solver": solver if gain_offset is None else "fista+gain/offset",
         "bounds_8bit": list(bounds_8bit), "device": str(device),
@@ -154,13 +185,9 @@ def _report(scene, cal, solver, objective, weight, bounds_8bit, device, maps, mo
                                     "psnr_db_original and ssim_original with t" if gain_offset is not None else ""),
         "targets": rows,
     }
-    if weight is not None:
-        start = result.info["start"]
-        report["image_objective"] = {"name": objective, "l2_weight": weight, "value": result.objective,
-                                     "iterations": result.iterations, "model_ssim": result.info["model_ssim"],
-                                     "start": {"solver": start.method, "iterations": start.iterations,
-                                               "objective": start.objective}}
-        report["iterations"] = start.iterations
+    if image is not None:
+        report["image_objective"] = image_objective_report(result)
+        report["iterations"] = result.info["start"].iterations
     if gain_offset is not None:
         report["gain_offset_limits"] = {"gain": list(gain_offset[0]), "offset": list(gain_offset[1])}
     return report
@@ -174,3 +201,57 @@ def _graycode_report(scene: Scene, cal: VirtualCalibration) -> dict | None:
     shown = cal.bits or [sequence_bits(*size) for size in sizes]
     # Pattern/inverse pairs, white and black, and the two ramps.
     return {p.name: {"bits": list(b), "captures_per_state": 2 * sum(b) + 4} for p, b in zip(scene.projectors, shown)}
+
+
+def image_objective_report(result: SolveResult) -> dict:
+    """The ``image_objective`` entry of a report, from :func:`~torchproj.solve.make_patterns`' result."""
+    image, start = result.info["objective"], result.info["start"]
+    return {"name": image.name, "l2_weight": image.l2_weight, "psnr_drop_db": image.psnr_drop,
+            "value": result.objective, "iterations": result.iterations, "model_ssim": result.info["model_ssim"],
+            "model_psnr_change_db": result.info["model_psnr_change_db"],
+            "start": {"solver": start.method, "iterations": start.iterations, "objective": start.objective}}
+
+
+def _image_objective_lines(image: dict | None) -> list[str]:
+    if image is None:
+        return []
+    budget = "" if image["psnr_drop_db"] is None else f", each target within {image['psnr_drop_db']:g} dB of it"
+    return [f"Image objective: {image['name']}, 1 - SSIM plus {image['l2_weight']:g} x the relative squared error"
+            f"{budget}; {image['iterations']} iterations from {image['start']['solver']}'s least-squares patterns. "
+            "The model predicts SSIM " + " / ".join(f"{v:.3f}" for v in image["model_ssim"]) + " and PSNR changes of "
+            + " / ".join(f"{v:+.2f}" for v in image["model_psnr_change_db"]) + " dB (the captures below are what "
+            "counts).", ""]
+
+
+def run_markdown(report: dict) -> str:
+    """``report.md`` of a run: what ``report.json`` holds, as tables."""
+    m, t = report["model"], report["timings_s"]
+    adjusted = "gain_offset_limits" in report
+    lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
+             f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}", "",
+             f"Calibration: {report['calibration']}; maps: {report['maps']}"
+             + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
+                 f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"
+                 for name, g in report["graycode"].items())) + ".", "",
+             f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
+             f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
+             *_image_objective_lines(report.get("image_objective")),
+             f"Evaluation: {report['evaluation']}.", "",
+             "| target | state | PSNR (dB) | SSIM | crosstalk | pixels |"
+             + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else ""),
+             "|---|---|---|---|---|---|" + ("---|---|---|---|" if adjusted else "")]
+    for r in report["targets"]:
+        line = (f"| {r['name']} | {r['state']} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['crosstalk']:.3f} | "
+                f"{r['pixels']} |")
+        if adjusted:
+            line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
+        lines.append(line)
+    if "homographies" in report:
+        lines += ["", "Homographies (residual from decoded to fitted coordinates, projector pixels; for Gray-code "
+                      "blocks, the distance outside the block over the pixels at block edges):", "",
+                  "| state | projector | block (cells) | median | 95th percentile | pixels |", "|---|---|---|---|---|---|"]
+        for state, fits in report["homographies"].items():
+            lines += [f"| {state} | {j} | {'x'.join(map(str, f['block_cells']))} | {f['median_px']:.3f} | "
+                      f"{f['p95_px']:.3f} | {f['points']} |" for j, f in enumerate(fits)]
+    lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()), ""]
+    return "\n".join(lines)

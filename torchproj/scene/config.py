@@ -187,6 +187,21 @@ class Scene:
     targets: list[TargetSpec] = field(default_factory=list)
     source: Path | None = field(default=None, compare=False)
 
+    def describe(self) -> str:
+        """What the scene holds, one line per device, surface and state (``torchproj scene``)."""
+        cam = self.camera
+        lines = [f"scene {self.name} ({self.source})"]
+        for p in self.projectors:
+            lines.append(f"  projector {p.name}: {p.width}x{p.height}, f={p.fx:g}px, at "
+                         f"{np.round(p.centre, 3).tolist()} m, response x^{'/'.join(f'{b:g}' for b in p.response_b)}, "
+                         f"black {p.black_level:g}")
+        lines.append(f"  camera: {cam.width}x{cam.height}, f={cam.fx:g}px, {cam.channels} channel(s), "
+                     f"{cam.bit_depth}-bit, {cam.supersampling}x{cam.supersampling} samples per pixel")
+        lines += [f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m"
+                  for s in self.surfaces.values()]
+        lines += [f"  state {st.name}: {', '.join(st.surfaces)}" for st in self.states]
+        return "\n".join(lines)
+
     def target_specs(self) -> list[TargetSpec]:
         """The scene's targets, or one per state (all its surfaces) when the config names none."""
         return self.targets or [TargetSpec(name=st.name, state=st.name) for st in self.states]

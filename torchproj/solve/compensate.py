@@ -55,8 +55,7 @@ def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WAR
 
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
-                  max_iter: int = 300, progress: bool | None = None, objective: str = "l2",
-                  l2_weight: float | None = None, ssim_iter: int = 30):
+                  max_iter: int = 300, progress: bool | None = None, objective="l2"):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
     Args:
@@ -64,9 +63,9 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         solver: a name of :data:`~torchproj.solve.SOLVERS`; ``eo`` needs ``calibrations``.
         bounds: the solver's box, linear light (the paper's 8-bit bounds over 255).
         responses: per projector, its response curve.
-        objective: ``l2`` (the solver's least squares), or ``ssim`` / ``mixed``: then the solver's
-            patterns start :func:`~torchproj.solve.solve_ssim` (``ssim_iter`` iterations, weight
-            ``l2_weight`` or the objective's; :data:`~torchproj.solve.OBJECTIVES`).
+        objective: ``l2`` (the solver's least squares), or an image-space objective (``ssim``,
+            ``mixed`` or an :class:`~torchproj.solve.ImageObjective`) started from the solver's
+            patterns (:func:`~torchproj.solve.solve_ssim`).
 
     Returns:
         ``(result, light, patterns)``: the :class:`SolveResult` (for an image-space objective, its
@@ -77,17 +76,21 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     from .eo import solve_eo
     from .objectives import image_objective, solve_ssim
 
-    weight = image_objective(objective, l2_weight)
+    image = image_objective(objective)
     if solver == "eo":
         result = solve_eo(op, bounds, calibrations=calibrations, max_iter=max_iter, progress=progress)
     else:
         result = solve_patterns(op, solver, bounds, max_iter=max_iter, progress=progress)
-    if weight is not None:
-        start = result
-        result = solve_ssim(op, bounds, l2_weight=weight, x0=start.patterns, max_iter=ssim_iter, progress=progress)
-        result.info["start"] = start
-        result.time_s += start.time_s
+    # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
+    # threshold is calibrated on it); an image objective departs from it on purpose.
     warn_if_ill_posed(op, result.patterns)
+    if image is not None:
+        start = result
+        result = solve_ssim(op, bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=start.patterns,
+                            max_iter=image.iterations, progress=progress)
+        result.info["start"] = start
+        result.info["objective"] = image
+        result.time_s += start.time_s
     return (result, *projectable_patterns(op, result.patterns, bounds, responses))
 
 

@@ -136,6 +136,32 @@ def _per_chain(values: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tenso
     return torch.zeros(n, dtype=values.dtype, device=values.device).index_add_(0, index, values.sum(1))
 
 
+def _chain_index(op, chains, calibrations, band) -> torch.Tensor:
+    """:math:`(N_{cols},)` chain of each column, by name (``epipolar``, ``components``) or as given."""
+    if isinstance(chains, torch.Tensor):
+        chain = chains.to(op.col.device)
+    elif chains == "epipolar":
+        check(calibrations is not None, "chains='epipolar' needs the calibrations (for the fundamental matrix)")
+        chain = epipolar_chains(op, fundamental_between_projectors(calibrations), band)
+    else:
+        check(chains == "components", f"chains must be 'epipolar', 'components' or a tensor, got {chains!r}")
+        chain = component_chains(op)
+    check(chain.shape == (op.shape[1],), f"chain index must have shape ({op.shape[1]},)")
+    return chain
+
+
+def _chain_steps(ne, chain: torch.Tensor, n: int) -> torch.Tensor:
+    """Per-chain step sizes, :math:`(N_{cols}, 1)`: power iteration on the block-diagonal Q, normalised
+    chain by chain; max over a chain of (Q x)_i / x_i bounds its largest eigenvalue from above (Q >= 0)."""
+    x = torch.ones(ne.q.shape[0], 1, dtype=ne.q.dtype, device=ne.q.device)
+    for _ in range(30):
+        y = ne.product(x)
+        x = y / _per_chain(y * y, chain, n).sqrt().clamp_min(1e-30)[chain][:, None]
+    ratio = (ne.product(x) / x.clamp_min(1e-30))[:, 0]
+    lam = torch.zeros(n, dtype=ne.q.dtype, device=ne.q.device).scatter_reduce_(0, chain, ratio, reduce="amax")
+    return (1.0 / lam.clamp_min(1e-30))[chain][:, None]
+
+
 def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Tensor = "epipolar",
              calibrations: dict[str, StateCalibration] | None = None, band: float = 1.0, max_iter: int = 2000,
              tol: float = 1e-8, progress: bool | None = None) -> SolveResult:
@@ -158,29 +184,12 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     """
     lo, hi = check_bounds(bounds)
     t0 = time.perf_counter()
-    if isinstance(chains, torch.Tensor):
-        chain = chains.to(op.col.device)
-    elif chains == "epipolar":
-        check(calibrations is not None, "chains='epipolar' needs the calibrations (for the fundamental matrix)")
-        chain = epipolar_chains(op, fundamental_between_projectors(calibrations), band)
-    else:
-        check(chains == "components", f"chains must be 'epipolar', 'components' or a tensor, got {chains!r}")
-        chain = component_chains(op)
-    check(chain.shape == (op.shape[1],), f"chain index must have shape ({op.shape[1]},)")
+    chain = _chain_index(op, chains, calibrations, band)
     n = int(chain.max()) + 1
     block, row_chain, kept = _split(op, chain)
     ne = block.normal_equations()  # block diagonal: Q couples columns of one chain only
     q = ne.q
-
-    # Per-chain step sizes: power iteration on the block-diagonal Q, normalised chain by chain;
-    # max over a chain of (Q x)_i / x_i bounds its largest eigenvalue from above (Q >= 0).
-    x = torch.ones(op.shape[1], 1, dtype=op.val.dtype, device=op.val.device)
-    for _ in range(30):
-        y = ne.product(x)
-        x = y / _per_chain(y * y, chain, n).sqrt().clamp_min(1e-30)[chain][:, None]
-    ratio = (ne.product(x) / x.clamp_min(1e-30))[:, 0]
-    lam = torch.zeros(n, dtype=op.val.dtype, device=op.val.device).scatter_reduce_(0, chain, ratio, reduce="amax")
-    step = (1.0 / lam.clamp_min(1e-30))[chain][:, None]
+    step = _chain_steps(ne, chain, n)
     rows_const = _per_chain(block.rhs.double().pow(2), row_chain, n)
 
     def chain_objective(p, qp):

@@ -1,0 +1,51 @@
+"""Scoring patterns on the virtual rig against an independent computation of the same scores."""
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from torchproj.core import InputError
+from torchproj.pipeline import evaluate_patterns, scene_targets, target_image
+from torchproj.solve import ProjectionModel
+from torchproj.transport import target_on_camera
+
+
+def test_scores_are_psnr_and_scikit_image_ssim_of_the_capture(quarter_rig):
+    scene, cal = quarter_rig
+    targets = scene_targets(scene, rig=cal.rig)
+    model = ProjectionModel.from_calibration(cal, targets)
+    patterns = model.to_patterns()
+    ev = evaluate_patterns(cal, patterns, targets, scale=model.scale, noise=False)
+    shown = {j: (p.float() / 255)[None] for j, p in enumerate(patterns)}
+    for t, score in zip(targets, ev.targets):
+        shot = cal.rig.capture(t.state, shown, noise=False)[0]
+        torch.testing.assert_close(ev.captures[t.state], shot)
+        values, covered = target_on_camera(t, cal.states[t.state].lit())
+        est = ((shot - cal.black[t.state]) / model.scale).clamp(0, 1)
+        mse = float(((est[:, covered].double() - values[:, covered].double()) ** 2).mean())
+        assert score.psnr_db == pytest.approx(10 * np.log10(1 / mse), abs=1e-9)
+        ys, xs = torch.nonzero(covered, as_tuple=True)
+        box = (slice(int(ys.min()), int(ys.max()) + 1), slice(int(xs.min()), int(xs.max()) + 1))
+        _, ssim_map = structural_similarity(est[0][box].double().numpy(), values[0][box].double().numpy(),
+                                            data_range=1.0, full=True)
+        assert score.ssim == pytest.approx(float(ssim_map[covered[box].numpy()].mean()), abs=1e-9)
+        assert score.pixels == int(covered.sum()) and 0 <= score.crosstalk <= 1
+
+
+def test_other_images_score_worse_on_the_same_patterns(quarter_rig):
+    scene, cal = quarter_rig
+    targets = scene_targets(scene, rig=cal.rig)
+    model = ProjectionModel.from_calibration(cal, targets)
+    swapped = scene_targets(scene, [target_image("coffee", 1), target_image("rocket", 1)], rig=cal.rig)
+    right = evaluate_patterns(cal, model.to_patterns(), targets, scale=model.scale, noise=False).targets
+    wrong = evaluate_patterns(cal, model.to_patterns(), swapped, scale=model.scale, noise=False).targets
+    for a, b in zip(right, wrong):
+        assert a.ssim > b.ssim + 0.2 and a.psnr_db > b.psnr_db + 3
+
+
+def test_patterns_for_another_rig_are_refused(quarter_rig):
+    scene, cal = quarter_rig
+    with pytest.raises(InputError, match="one pattern per projector"):
+        evaluate_patterns(cal, [torch.zeros(1, 192, 256, dtype=torch.uint8)], scene_targets(scene, rig=cal.rig),
+                          scale=0.5)

@@ -1,0 +1,110 @@
+"""Patterns for a real rig, from a calibration bundle and target images (``torchproj solve``).
+
+The same solve as on the virtual rig (:func:`~torchproj.solve.make_patterns`); without a rig to
+capture on, each target's view is predicted by the calibration's own model, and the bench's camera
+is what measures.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from ..calib import CalibrationBundle, load_bundle
+from ..core.checks import check
+from ..solve import SolveResult, image_objective, make_patterns
+from ..transport import StateCalibration, Target, build_transport, select_maps, target_on_camera
+from .run import image_objective_report
+from .scoring import score_image
+from .targets import target_image
+
+__all__ = ["BundleSolution", "solve_bundle"]
+
+PREDICTED = ("black capture plus each projector's weight times the light of the decoded cell (the calibration's own "
+             "model; project the patterns and capture to measure)")
+
+
+@dataclass
+class BundleSolution:
+    """What :func:`solve_bundle` made: the 8-bit patterns, each target's predicted view, the report."""
+
+    report: dict
+    patterns: dict[str, torch.Tensor]  # projector name -> (C, H_j, W_j) uint8
+    predicted: dict[str, torch.Tensor] = field(default_factory=dict)  # target name -> (C, H, W) in [0, 1]
+    solution: SolveResult | None = None
+
+    def write(self, folder) -> None:
+        """``patterns/PROJECTOR.png``, ``predicted/TARGET.png`` and ``report.json`` into ``folder``."""
+        from ..core.imageio import write_image
+        from ..core.output import write_json
+
+        folder = Path(folder)
+        (folder / "patterns").mkdir(parents=True, exist_ok=True)
+        for name, pattern in self.patterns.items():
+            write_image(folder / "patterns" / f"{name}.png", pattern.float() / 255)
+        (folder / "predicted").mkdir(exist_ok=True)
+        for name, view in self.predicted.items():
+            write_image(folder / "predicted" / f"{name}.png", view.clamp(0, 1))
+        write_json(folder / "report.json", self.report)
+
+
+def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
+    states = set(bundle.states)
+    targets = []
+    for item in wanted:
+        state, sep, image = item.partition("=") if isinstance(item, str) else (item[0], "=", item[1])
+        check(bool(sep and state and image), f"target {item!r}: expected STATE=IMAGE (an image file or a "
+                                             "scikit-image name)")
+        check(state in states, f"target {state}={image}: the bundle has no state {state!r}; its states: {sorted(states)}")
+        check(all(t.state != state for t in targets),
+              f"target {state}={image}: state {state!r} already has a target; give one per state")
+        targets.append(Target(state, target_image(image, bundle.channels), name=state))
+    return targets
+
+
+def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
+                 objective="l2", maps: str = "decoded",
+                 plane_tolerance: float = 1.0, max_iter: int = 300, device="cpu", progress=None) -> BundleSolution:
+    """Solve the patterns that show each image in its state, from a bench's calibration.
+
+    Args:
+        bundle: a :class:`~torchproj.calib.CalibrationBundle` or its folder (``torchproj calibrate``).
+        targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
+            scikit-image test-image name per state.
+        solver, bounds_8bit, objective, maps, plane_tolerance, max_iter,
+        device: as :func:`~torchproj.pipeline.run_virtual`.
+    """
+    t0 = time.perf_counter()
+    image = image_objective(objective)
+    bundle = bundle if isinstance(bundle, CalibrationBundle) else load_bundle(bundle)
+    wanted = _bundle_targets(bundle, targets)
+    lo, hi = (b / 255 for b in bounds_8bit)
+    fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
+              if bundle.homographies else None)
+    states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
+    op = build_transport(states, wanted, merge=image is None, device=device)
+    result, light, patterns = make_patterns(op, solver, (lo, hi), bundle.response_curves(), calibrations=states,
+                                            max_iter=max_iter, progress=progress, objective=image)
+    rows, predicted = [], {}
+    for t in wanted:
+        view = states[t.state].predict(light, bundle.black[t.state])
+        predicted[t.name] = view
+        values, covered = target_on_camera(t, states[t.state].lit())
+        scores = score_image(((view - bundle.black[t.state]) / op.scale).clamp(0, 1), values, covered)
+        rows.append({"name": t.name, "state": t.state, "pixels": int(covered.sum()),
+                     "predicted_psnr_db": scores["psnr_db"], "predicted_ssim": scores["ssim"]})
+    report = {"solver": solver, "bounds_8bit": list(bounds_8bit),
+              "model": op.size_report(), "objective": result.info.get("l2_objective", result.objective),
+              "iterations": result.iterations, "scale": op.scale,
+              "timings_s": {"total": round(time.perf_counter() - t0, 3), "solve": round(result.time_s, 3)},
+              "predicted": PREDICTED, "targets": rows, "maps": maps,
+              "graycode_bits": {name: list(b) for (name, _, _), b in zip(bundle.projectors, bundle.bits)}}
+    if image is not None:
+        report["image_objective"] = image_objective_report(result)
+    if fits is not None:
+        report["homographies"] = fits
+    return BundleSolution(report=report, patterns={name: p for (name, _, _), p in zip(bundle.projectors, patterns)},
+                          predicted=predicted, solution=result)
