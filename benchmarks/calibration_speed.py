@@ -14,9 +14,7 @@ sequence.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -29,6 +27,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from common import median_time, write_results  # noqa: E402
 from torchproj.calib import (decode_gray, fill_holes, graycode_patterns, inverse_map,  # noqa: E402
                              read_graycode_folder, refine_subpixel)
 from torchproj.scene import load_scene  # noqa: E402
@@ -37,23 +36,13 @@ from torchproj.sim import VirtualRig  # noqa: E402
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam_chessboard" / "capture_0"
 
 
-def timed(fn, repeats=5):
-    fn()  # warm-up: first calls pay for allocation and thread start-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def bench_decode(results: dict, opencv_pixels: int | None) -> None:
-    results["read_42_pngs_s"] = timed(lambda: read_graycode_folder(DATA, (1024, 768)), repeats=3)
+    results["read_42_pngs_s"] = median_time(read_graycode_folder, DATA, (1024, 768), repeats=3)
     cap = read_graycode_folder(DATA, (1024, 768))
     dec = decode_gray(cap.patterns, cap.white, cap.black, (1024, 768))
-    results["torchproj_decode_s"] = timed(lambda: decode_gray(cap.patterns, cap.white, cap.black, (1024, 768)))
-    results["torchproj_refine_s"] = timed(lambda: refine_subpixel(dec.prj_xy, dec.valid))
-    results["torchproj_fill_and_inverse_s"] = timed(lambda: inverse_map(fill_holes(dec.prj_xy), (1024, 768)))
+    results["torchproj_decode_s"] = median_time(decode_gray, cap.patterns, cap.white, cap.black, (1024, 768))
+    results["torchproj_refine_s"] = median_time(refine_subpixel, dec.prj_xy, dec.valid)
+    results["torchproj_fill_and_inverse_s"] = median_time(lambda: inverse_map(fill_holes(dec.prj_xy), (1024, 768)))
     results["valid_fraction"] = dec.valid_fraction
 
     raw = [cv2.imread(str(DATA / f"graycode_{i:02d}.png"), cv2.IMREAD_GRAYSCALE) for i in range(42)]
@@ -127,8 +116,7 @@ def main(argv=None) -> int:
     bench_decode(results, args.opencv_pixels)
     bench_virtual_rig(results)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
-    (args.out / "results.md").write_text(markdown(results))
+    write_results(args.out, results, markdown(results))
     fig, ax = plt.subplots(figsize=(7, 3))
     labels = ["OpenCV getProjPixel loop", "torchproj decode", "read 42 PNGs"]
     values = [results["opencv_getprojpixel_s"], results["torchproj_decode_s"], results["read_42_pngs_s"]]

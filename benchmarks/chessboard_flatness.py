@@ -12,7 +12,6 @@ reference with OpenCV and checks torchproj against it.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from common import write_results
 from torchproj.calib import (decode_gray, fill_holes, fit_plane, read_graycode_folder, read_opencv_calibration,
                              refine_subpixel, triangulate)
 
@@ -54,7 +54,7 @@ def main(argv=None) -> int:
             row[f"{label}_points"] = int(sel.sum())
         rows.append(row)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
+    write_results(args.out, rows)
     lines = ["# Chessboard flatness (plane-fit RMS, mm, inside the board's corner hull)", "",
              f"Command: `python benchmarks/chessboard_flatness.py {' '.join(argv if argv is not None else sys.argv[1:])}`", "",
              "| capture | OpenCV pipeline (data README) | torchproj integer | torchproj sub-pixel | sub-pixel + hole filling |",

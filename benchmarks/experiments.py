@@ -17,13 +17,13 @@ per scene (targets, patterns, captures side by side).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from common import write_results
 from torchproj.pipeline import calibrate_virtual, run_virtual
 from torchproj.experiments import depth_sweep
 from torchproj.figures import depth_selectivity, run_overview
@@ -69,8 +69,7 @@ def main(argv=None) -> int:
               "depth_sweep": {k: v.as_dict() for k, v in sweeps.items()}}
     if sweeps:
         depth_selectivity(args.out / "depth_selectivity.png", sweeps, {"near": 0.8, "far": 1.0})
-    (args.out / "results.json").write_text(json.dumps(result, indent=2) + "\n")
-    (args.out / "results.md").write_text(markdown(result))
+    write_results(args.out, result, markdown(result))
     print(markdown(result))
     return 0
 

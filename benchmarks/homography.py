@@ -37,9 +37,7 @@ Writes ``results.json``, ``results.md`` and ``homography.png``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import platform
 import sys
 import time
 from pathlib import Path
@@ -51,6 +49,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from common import machine, write_results  # noqa: E402
 from torchproj.calib import fit_homography, graycode_bits, homography_map  # noqa: E402
 from torchproj.core import InputError  # noqa: E402
 from torchproj.pipeline import calibrate_virtual, run_virtual  # noqa: E402
@@ -268,12 +267,11 @@ def main(argv=None) -> int:
     command = " ".join(["python benchmarks/homography.py", *(argv if argv is not None else sys.argv[1:])])
     results = [run_scene(name, args.bits) for name in args.scenes]
     board_root = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam_chessboard"
-    result = {"command": command, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads",
+    result = {"command": command, "machine": machine(),
               "torch": torch.__version__, "scenes": results,
               "real_board": real_board(board_root, args.bits) if (board_root / "capture_0").is_dir() else None}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
-    (args.out / "results.md").write_text(markdown(result))
+    write_results(args.out, result, markdown(result))
     chart(results, args.out / "homography.png")
     print(markdown(result))
     return 0

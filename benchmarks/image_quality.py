@@ -16,11 +16,11 @@ Writes ``results.json`` and ``results.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+from common import write_results
 from torchproj.pipeline import calibrate_virtual, run_virtual, target_image
 from torchproj.scene import load_scene
 
@@ -77,8 +77,7 @@ def main(argv=None) -> int:
     result = {"command": command, "scene": args.scene, "calibrate_s": cal.seconds, "total_s": time.perf_counter() - t0,
               "gain_offset_limits": {"gain": GAIN_OFFSET[0], "offset": GAIN_OFFSET[1]}, "rows": rows, "paper": PAPER}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(result, indent=2) + "\n")
-    (args.out / "results.md").write_text(markdown(result))
+    write_results(args.out, result, markdown(result))
     print(markdown(result))
     return 0
 

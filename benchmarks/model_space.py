@@ -15,9 +15,6 @@ Writes ``results.json``, ``results.md`` and ``psnr_vs_time.png``.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -31,6 +28,7 @@ import torch  # noqa: E402
 from scipy.optimize import lsq_linear  # noqa: E402
 from scipy.sparse import csr_matrix  # noqa: E402
 
+from common import machine, median_time, write_results  # noqa: E402
 from torchproj.pipeline import calibrate_virtual, target_image  # noqa: E402
 from torchproj.metrics import model_space_psnr  # noqa: E402
 from torchproj.scene import load_scene  # noqa: E402
@@ -50,20 +48,10 @@ def image(name: str) -> torch.Tensor:
     return target_image(name, 3)
 
 
-def timed_product(fn, x, repeats=5):
-    fn(x)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn(x)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def product_floor(op) -> dict:
     """One product of each kind on 3 channels: ``A p``, ``A^T r``, ``Q p``, and ``Q p`` at each coarse level."""
     x = torch.rand(op.shape[1], 3)
-    return {"A_p_s": timed_product(op.A, x), "At_r_s": timed_product(op.A_adjoint, torch.rand(op.shape[0], 3)),
+    return {"A_p_s": median_time(op.A, x), "At_r_s": median_time(op.A_adjoint, torch.rand(op.shape[0], 3)),
             "Q_nnz": int(op.normal_equations().Q._nnz()), **q_products(op)}
 
 
@@ -71,8 +59,8 @@ def q_products(op) -> dict:
     """The time of one ``Q p`` (3 channels, Jacobi-scaled as the solvers use it) at full size and at each
     coarse level FISTA starts on."""
     ne = op.normal_equations()
-    return {"Q_p_s": timed_product(ne.jacobi().product, torch.rand(op.shape[1], 3)),
-            "Q_p_coarse_s": [timed_product(level.jacobi().product, torch.rand(level.Q.shape[0], 3))
+    return {"Q_p_s": median_time(ne.jacobi().product, torch.rand(op.shape[1], 3)),
+            "Q_p_coarse_s": [median_time(level.jacobi().product, torch.rand(level.Q.shape[0], 3))
                              for level, _ in op.coarse_levels(3)]}
 
 
@@ -158,14 +146,13 @@ def main(argv=None) -> int:
                "objective_channel0": f_lsq, "relative_gap_channel0": (f_lsq - f_best0) / f_best0}
         print(f"lsq_linear (channel 0)       {t_lsq:7.2f} s  it {sol.nit}  gap {lsq['relative_gap_channel0']:.2e}")
 
-    result = {"command": command, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads",
+    result = {"command": command, "machine": machine(),
               "torch": torch.__version__, "scene": args.scene, "calibrate_s": t_cal, "build_s": t_build,
               "model": op.size_report(), "model_unmerged": full.size_report(), "scale": op.scale,
               "product_floor_s": floor, "best_objective": {str(k): v for k, v in best.items()},
               "methods": rows, "lsq_linear": lsq}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(result, indent=2) + "\n")
-    (args.out / "results.md").write_text(markdown(result))
+    write_results(args.out, result, markdown(result))
     chart(rows, args.out / "psnr_vs_time.png")
     print(markdown(result))
     return 0

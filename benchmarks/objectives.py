@@ -20,14 +20,13 @@ solve time, one panel per case).
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 from pathlib import Path
 
 import torch
+from common import machine, write_results
 from matplotlib.figure import Figure
 
-from torchproj.core import write_json
 from torchproj.pipeline import calibrate_virtual, run_virtual, target_image
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import OBJECTIVES, PSNR_DROP_DB, image_objective
@@ -153,12 +152,10 @@ def main(argv=None) -> int:
         case["verdict"] = verdict(case, paper_pair=False)
         cases.append(case)
         del cal
-    result = {"command": command, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads",
+    result = {"command": command, "machine": machine(),
               "torch": torch.__version__, "weights": {k: v for k, v in OBJECTIVES.items() if v is not None},
               "cases": cases}
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json(args.out / "results.json", result)
-    (args.out / "results.md").write_text(markdown(result))
+    write_results(args.out, result, markdown(result))
     chart(cases, args.out / "objectives.png")
     print(markdown(result))
     return 0

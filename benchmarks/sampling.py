@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
 
 import torch
 
+from common import write_results
 from torchproj.pipeline import calibrate_virtual, run_virtual
 from torchproj.metrics import psnr
 from torchproj.scene import load_scene
@@ -73,7 +73,7 @@ def main(argv=None) -> int:
                 print(rows[-1], flush=True)
         rows[-1]["seconds_case"] = round(time.perf_counter() - t0, 1)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
+    write_results(args.out, rows)
     lines = ["# Supersampling: patterns solved at s x s samples per pixel, scored at s and 2s", "",
              f"Command: `python benchmarks/sampling.py {' '.join(argv if argv is not None else sys.argv[1:])}`", "",
              "PSNR (dB) of the noise-free capture per target; offset: every target surface moved along z.", "",

@@ -17,7 +17,6 @@ resolution, astronaut near and chelsea far, RGB). Writes ``results.json`` and ``
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import subprocess
@@ -28,6 +27,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import write_results  # noqa: E402
 from model_space import image  # noqa: E402
 from solvers import SIZES  # noqa: E402
 from stability import small  # noqa: E402
@@ -115,10 +115,7 @@ def main(argv=None) -> int:
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                           text=True).stdout.strip() or "HEAD"
     results = {label: compare(label, other, args.runs) for label in args.sizes}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps({"against": args.against, "head": head, "runs": args.runs,
-                                                       "sizes": results}, indent=1))
-    (args.out / "results.md").write_text(markdown(args.against, head, results, args.runs))
+    write_results(args.out, {"against": args.against, "head": head, "runs": args.runs, "sizes": results}, markdown(args.against, head, results, args.runs))
     print(f"wrote {args.out / 'results.md'}")
     return 0
 

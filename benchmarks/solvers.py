@@ -24,8 +24,6 @@ and ``scaling.png`` (time and memory against problem size).
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import re
 import sys
 import time
@@ -41,7 +39,8 @@ from scipy.optimize import lsq_linear  # noqa: E402
 from scipy.sparse import csr_matrix  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from model_space import floor_time, image, product_floor, q_products, timed_product  # noqa: E402
+from common import machine, median_time, write_results  # noqa: E402
+from model_space import floor_time, image, product_floor, q_products  # noqa: E402
 from stability import small  # noqa: E402
 
 from torchproj.pipeline import calibrate_virtual  # noqa: E402
@@ -263,14 +262,7 @@ def cuda_timings(op, best: float, log, device: str = "cuda") -> dict:
     synchronize(device)
     setup = time.perf_counter() - t0
 
-    def synced(fn):
-        def run(v):
-            out = fn(v)
-            synchronize(device)
-            return out
-        return run
-
-    q_p = timed_product(synced(ne.jacobi().product), torch.rand(op.shape[1], 3, device=device))
+    q_p = median_time(ne.jacobi().product, torch.rand(op.shape[1], 3, device=device))
     times = {}
     for name, levels in (("fista", 3), ("fista_without_coarse_start", 0)):
         runs = []
@@ -412,11 +404,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     command = " ".join(["python benchmarks/solvers.py", *(argv if argv is not None else sys.argv[1:])])
     results = [run_size(s, *SIZES[s]) for s in args.sizes]
-    result = {"command": command, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads",
+    result = {"command": command, "machine": machine(),
               "torch": torch.__version__, "cuda": torch.cuda.is_available(), "sizes": results}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
-    (args.out / "results.md").write_text(markdown(result))
+    write_results(args.out, result, markdown(result))
     pareto(results, args.out / "pareto.png")
     scaling(results, args.out / "scaling.png")
     print(markdown(result))

@@ -24,7 +24,6 @@ objective above the starting one), quality collapse (a target under 10 dB). Writ
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import warnings
@@ -38,6 +37,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import yaml  # noqa: E402
 
+from common import write_results  # noqa: E402
 from torchproj.pipeline import calibrate_virtual, run_virtual  # noqa: E402
 from torchproj.experiments import depth_sweep  # noqa: E402
 from torchproj.scene import builtin_config, parse_scene, scale_config  # noqa: E402
@@ -296,7 +296,7 @@ def main(argv=None) -> int:
     result = {"command": command, "seconds": round(time.perf_counter() - t0, 1), "sweeps": sweeps}
     result["findings"] = findings(result)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_results(args.out, result)
     (args.out / "summary.md").write_text(summary(result))
     for s, log_x in zip(sweeps, (True, True, True, False, False, False, True)):
         chart(s, args.out / f"{s['name'].replace(' ', '_')}.png", log_x)

@@ -64,7 +64,8 @@ def train(model, loss_name: str, steps: int, lr: float, l2_weight: float, checkp
         optimizer.zero_grad()
         prediction = model()
         ratio = squared_error(prediction) / start_error
-        loss = (ssim_loss(prediction) + l2_weight * ratio + torch.relu(10 * torch.log10(ratio) - psnr_drop) ** 2).mean()
+        hinge = torch.relu(10 * torch.log10(ratio.clamp_min(1e-12)) - psnr_drop) ** 2
+        loss = (ssim_loss(prediction) + l2_weight * ratio + hinge).mean()
         loss.backward()
         optimizer.step()
         scheduler.step()

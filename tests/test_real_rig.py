@@ -203,7 +203,7 @@ class _RigCamera:
 
 
 def test_capture_helper_with_a_fake_display_and_camera(scene, tmp_path):
-    from torchproj.calib import capture_sequence
+    from torchproj.pipeline import capture_sequence
 
     assert main(["sequence", "--projector", "256x192", "--out", str(tmp_path / "seq")]) == 0
     rig = VirtualRig(scene)

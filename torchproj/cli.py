@@ -140,7 +140,7 @@ def cmd_sequence(args) -> int:
 
 
 def cmd_capture(args) -> int:
-    from .calib import capture_sequence
+    from .pipeline import capture_sequence
 
     with atomic_output(args.out) as stage:
         capture_sequence(args.sequence_dir, stage, settle_s=args.settle, camera_index=args.camera,

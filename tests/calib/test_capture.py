@@ -7,17 +7,24 @@ from torchproj.calib import GraycodeCapture, graycode_patterns, read_graycode_fo
 from torchproj.core import CaptureError, write_image
 
 
+def written():
+    pats = graycode_patterns(64, 48)
+    return GraycodeCapture(patterns=pats[:-2] * 0.8 + 0.1, white=pats[-2] * 0.9, black=pats[-1] + 0.05)
+
+
 @pytest.fixture
 def folder(tmp_path):
-    pats = graycode_patterns(64, 48)
-    cap = GraycodeCapture(patterns=pats[:-2] * 0.8 + 0.1, white=pats[-2] * 0.9, black=pats[-1] + 0.05)
-    write_graycode_folder(tmp_path / "cap", cap)
+    write_graycode_folder(tmp_path / "cap", written())
     return tmp_path / "cap"
 
 
 def test_reads_a_complete_folder(folder):
-    cap = read_graycode_folder(folder, (64, 48))
+    cap, want = read_graycode_folder(folder, (64, 48)), written()
     assert cap.patterns.shape == (24, 1, 48, 64) and cap.ramp is None
+    # Each image comes back as written, to the 8-bit step of the files, in the sequence's order.
+    for got, expected in ((cap.patterns, want.patterns), (cap.white, want.white), (cap.black, want.black)):
+        assert float((got - expected).abs().max()) <= 0.5 / 255 + 1e-6
+    assert not torch.equal(cap.patterns[0], cap.patterns[2])  # not one image repeated
 
 
 def test_missing_image(folder):

@@ -202,3 +202,12 @@ def test_a_scaled_scene_is_the_same_rig_with_fewer_pixels():
 def test_a_scale_out_of_range_is_refused(scale):
     with pytest.raises(ConfigError, match="scale: must be a number in"):
         load_scene("paper_two_planes", scale=scale)
+
+
+def test_a_built_in_name_is_found_whatever_the_working_folder_holds(tmp_path, monkeypatch):
+    (tmp_path / "paper_two_planes").mkdir()  # a folder of the same name where the user stands
+    monkeypatch.chdir(tmp_path)
+    assert load_scene("paper_two_planes").name == "paper_two_planes"
+    with pytest.raises(ConfigError) as err:
+        load_scene("paper_two_plane")
+    assert "'paper_two_plane' not found" in str(err.value) and "'paper_two_plane'," not in str(err.value)

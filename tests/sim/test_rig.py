@@ -54,9 +54,21 @@ def test_radiance_matches_the_physics_contract():
     assert np.all(got[~on_surface] == 0)  # the background reflects nothing
 
 
-def test_geometry_is_cast_once_per_state():
-    rig = VirtualRig(small_scene())
-    assert rig.geometry("near") is rig.geometry("near")
+def test_geometry_is_cast_once_per_state(monkeypatch):
+    rig = VirtualRig(small_scene(supersampling=1))
+    casts = []
+    cast = rig._cast
+    monkeypatch.setattr(rig, "_cast", lambda state: casts.append(state) or cast(state))
+    first, again = rig.geometry("near"), rig.geometry("near")
+    rig.geometry("far")
+    assert casts == ["near", "far"]  # one cast per state, the cache serves the rest
+    fresh = VirtualRig(small_scene(supersampling=1)).geometry("near")  # the cache holds the cast's values
+    for cached, recast in zip(again.prj_xy, fresh.prj_xy):
+        torch.testing.assert_close(cached, recast, equal_nan=True)
+    torch.testing.assert_close(again.points, fresh.points, equal_nan=True)
+    rig.release("near")
+    rig.geometry("near")
+    assert casts == ["near", "far", "near"]  # released states are cast again
 
 
 def test_primitive_scenes_use_no_mesh_machinery():

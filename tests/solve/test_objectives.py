@@ -1,5 +1,7 @@
 """Image-space objectives: SSIM of the predicted images, judged on the virtual rig's captures."""
 
+import math
+
 import pytest
 import torch
 
@@ -93,3 +95,16 @@ class TestBadInput:
         scene, cal = quarter
         with pytest.raises(InputError, match="l2 objective"):
             run_virtual(scene, calibration=cal, objective="ssim", gain_offset=((0.5, 1.5), (0.0, 0.0)))
+
+
+def test_a_start_nothing_beats_is_returned_unchanged():
+    """A start the model fits exactly: Adam's first steps can only add noise, and the solver must
+    hand the start back rather than its last, worse iterate."""
+    op = build_transport(synthetic_calibration(shape=(40, 50)), targets(), merge=False, scale=0.8).double()
+    exact = torch.rand(op.shape[1], 1, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    op = op.with_rhs(op.A(exact))  # targets these patterns show exactly: SSIM 1, squared error 0
+    res = solve_ssim(op, (0.0, 1.0), x0=exact, max_iter=10, lr=0.5)
+    assert all(math.isfinite(f) for _, f in res.history)
+    assert res.history[1][1] > res.history[0][1]  # the first step made it worse
+    torch.testing.assert_close(res.patterns, exact)
+    assert res.objective == pytest.approx(res.history[0][1])

@@ -1,6 +1,18 @@
-"""Calibration: Gray code and its decoding, correspondence maps, response fit, triangulation."""
+"""Calibration: Gray code and its decoding, correspondence maps, response fit, triangulation, bundles.
 
-from .acquire import OpenCVCamera, OpenCVDisplay, capture_sequence
+The calibration types, and how they relate:
+
+- :class:`ProjectorCalibration`: what one projector's capture folder in one state decodes to
+  (:func:`calibrate_projector`): maps, inverse map, response curve.
+- :class:`CalibrationBundle`: all of them for a real rig, as files (:func:`calibrate_folders`,
+  :func:`write_bundle`, :func:`load_bundle`).
+- :class:`~torchproj.pipeline.VirtualCalibration`: the same for the virtual rig, with the rig kept to
+  evaluate on (:func:`~torchproj.pipeline.calibrate_virtual`).
+- :class:`~torchproj.transport.StateCalibration`: what the transport operator needs of one state
+  (a map and a weight per projector), made from either.
+- :class:`ProCamCalibration`: OpenCV's camera-projector stereo calibration, for triangulation.
+"""
+
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
 from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel, sequence_bits
@@ -18,13 +30,10 @@ __all__ = [
     "GrayDecoding",
     "GraycodeCapture",
     "HomographyFit",
-    "OpenCVCamera",
-    "OpenCVDisplay",
     "ProCamCalibration",
     "ProjectorCalibration",
     "ResponseCurve",
     "calibrate_folders",
-    "capture_sequence",
     "calibrate_projector",
     "check_plane",
     "decode_folder",

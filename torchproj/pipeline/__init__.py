@@ -2,9 +2,12 @@
 
 Calibrate (:func:`calibrate_virtual`), place the targets (:func:`scene_targets`), solve and score
 the patterns on the rig's captures (:func:`evaluate_patterns`), or all of it in one call
-(:func:`run_virtual`, which is ``torchproj run``).
+(:func:`run_virtual`, which is ``torchproj run``). For a real bench: capture a sequence with a
+camera and a projector (:func:`capture_sequence`), and solve from its calibration bundle
+(:func:`solve_bundle`).
 """
 
+from .acquire import OpenCVCamera, OpenCVDisplay, capture_sequence
 from .real_rig import BundleSolution, solve_bundle
 from .run import RunResult, run_markdown, run_virtual
 from .scoring import EVALUATION, PatternEvaluation, TargetScore, evaluate_patterns, score_image
@@ -12,7 +15,10 @@ from .targets import DEFAULT_IMAGES, default_images, scene_images, scene_targets
 from .virtual import (DecodingAccuracy, VirtualCalibration, calibrate_rig, calibrate_virtual, check_calibration,
                       decoding_accuracy, simulate_calibration, simulate_markdown, simulate_scene)
 
-__all__ = ["BundleSolution", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "PatternEvaluation", "RunResult", "TargetScore",
-           "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "decoding_accuracy", "default_images", "evaluate_patterns",
-           "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene",
-           "solve_bundle", "target_image"]
+__all__ = [
+    "BundleSolution", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "OpenCVCamera", "OpenCVDisplay",
+    "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration", "calibrate_rig", "calibrate_virtual",
+    "capture_sequence", "check_calibration", "decoding_accuracy", "default_images", "evaluate_patterns",
+    "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image", "simulate_calibration",
+    "simulate_markdown", "simulate_scene", "solve_bundle", "target_image",
+]

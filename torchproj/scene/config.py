@@ -480,7 +480,7 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
     if path is None:
         path = builtin_config()
     path = Path(path)
-    if not path.exists() and path.suffix == "" and path.name in BUILTIN_SCENES:
+    if not path.is_file() and path.suffix == "" and path.name in BUILTIN_SCENES:
         path = builtin_config(path.name)
     if not path.is_file():
         raise ConfigError("config", f"file {str(path)!r} not found",

@@ -22,7 +22,7 @@ import torch
 
 from ..core.errors import CaptureError
 from ..core.imageio import read_image, write_image
-from .bundle import SEQUENCE_FILE
+from ..calib.bundle import SEQUENCE_FILE
 
 __all__ = ["OpenCVCamera", "OpenCVDisplay", "capture_sequence"]
 

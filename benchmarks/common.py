@@ -1,0 +1,39 @@
+"""What every benchmark shares: one timer and one way to write its results."""
+
+from __future__ import annotations
+
+import platform
+from pathlib import Path
+
+import torch
+from torch.utils.benchmark import Timer
+
+from torchproj.core import write_json
+
+__all__ = ["machine", "median_time", "write_results"]
+
+
+def median_time(fn, *args, repeats: int = 5) -> float:
+    """Median seconds of ``fn(*args)`` over ``repeats`` runs after one warm-up (first calls pay for
+    allocation and thread start-up). torch's Timer, on this process's threads, synchronises CUDA."""
+    fn(*args)
+    timer = Timer(stmt="fn(*args)", globals={"fn": fn, "args": args}, num_threads=torch.get_num_threads())
+    return timer.timeit(1).median if repeats == 1 else _median(timer, repeats)
+
+
+def _median(timer: Timer, repeats: int) -> float:
+    times = sorted(timer.timeit(1).median for _ in range(repeats))
+    return times[len(times) // 2] if repeats % 2 else 0.5 * (times[repeats // 2 - 1] + times[repeats // 2])
+
+
+def machine() -> str:
+    """What ran a benchmark: the processor's architecture and the threads torch uses."""
+    return f"{platform.machine()}, {torch.get_num_threads()} threads"
+
+
+def write_results(folder: Path, result, markdown: str | None = None) -> None:
+    """``results.json`` (NaN written as null, so the file stays valid JSON) and, given, ``results.md``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / "results.json", result)
+    if markdown is not None:
+        (folder / "results.md").write_text(markdown)
