@@ -43,12 +43,12 @@ from common import machine, median_time, write_results  # noqa: E402
 from model_space import floor_time, image, product_floor, q_products  # noqa: E402
 from stability import small  # noqa: E402
 
-from torchproj.pipeline import calibrate_virtual  # noqa: E402
-from torchproj.metrics import model_space_psnr, psnr, ssim  # noqa: E402
+from torchproj.pipeline import calibrate_virtual, evaluate_patterns  # noqa: E402
+from torchproj.metrics import model_space_psnr  # noqa: E402
 from torchproj.scene import parse_scene  # noqa: E402
-from torchproj.solve import (compensate, solve_adam, solve_eo, solve_fista, solve_lf, solve_pgd,  # noqa: E402
-                             to_projectable)
-from torchproj.transport import Target, build_transport, target_on_camera  # noqa: E402
+from torchproj.solve import (projectable_patterns, solve_adam, solve_eo, solve_fista, solve_lf,  # noqa: E402
+                             solve_pgd, to_projectable)
+from torchproj.transport import Target, build_transport  # noqa: E402
 
 SIZES = {"quarter": ((256, 192), (400, 300)), "half": ((512, 384), (800, 600)), "full": ((1024, 768), (1600, 1200))}
 NEG = -100 / 255
@@ -71,17 +71,9 @@ def peak_rss_gb() -> float:
 
 def captured(cal, op, targets, p, bounds) -> tuple[list[float], list[float]]:
     """PSNR and SSIM per target of the virtual rig's capture of the compensated patterns."""
-    light = [img.cpu() for img in op.to_images(to_projectable(p, bounds).clamp(0, 1))]
-    shown = {j: (pat.float() / 255)[None] for j, pat in enumerate(compensate(light, cal.responses))}
-    ps, ss = [], []
-    for t in targets:
-        shot = cal.rig.capture(t.state, shown)[0]
-        region = cal.states[t.state].lit()
-        values, covered = target_on_camera(t, region)
-        est = ((shot - cal.black[t.state]) / op.scale).clamp(0, 1)
-        ps.append(round(psnr(est[:, covered], values[:, covered]), 3))
-        ss.append(round(float(ssim(est.double(), values.double(), covered)), 4))
-    return ps, ss
+    scores = evaluate_patterns(cal, projectable_patterns(op, p, bounds, cal.responses)[1], targets,
+                               scale=op.scale).targets
+    return [round(t.psnr_db, 3) for t in scores], [round(t.ssim, 4) for t in scores]
 
 
 def run_size(label: str, projector, camera, log=print) -> dict:

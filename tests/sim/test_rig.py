@@ -60,6 +60,7 @@ def test_geometry_is_cast_once_per_state(monkeypatch):
     cast = rig._cast
     monkeypatch.setattr(rig, "_cast", lambda state: casts.append(state) or cast(state))
     first, again = rig.geometry("near"), rig.geometry("near")
+    assert again is first
     rig.geometry("far")
     assert casts == ["near", "far"]  # one cast per state, the cache serves the rest
     fresh = VirtualRig(small_scene(supersampling=1)).geometry("near")  # the cache holds the cast's values

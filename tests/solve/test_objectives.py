@@ -8,7 +8,7 @@ import torch
 from torchproj.core import InputError
 from torchproj.metrics import SSIMLoss
 from torchproj.pipeline import run_virtual, scene_targets
-from torchproj.solve import OBJECTIVES, ProjectionModel, image_objective, solve_fista, solve_ssim
+from torchproj.solve import OBJECTIVES, ImageLoss, ProjectionModel, image_objective, solve_fista, solve_ssim
 from torchproj.transport import build_transport
 
 from ..helpers import synthetic_calibration, targets
@@ -108,3 +108,17 @@ def test_a_start_nothing_beats_is_returned_unchanged():
     assert res.history[1][1] > res.history[0][1]  # the first step made it worse
     torch.testing.assert_close(res.patterns, exact)
     assert res.objective == pytest.approx(res.history[0][1])
+
+
+def test_the_image_loss_at_its_start_and_its_gradient():
+    op = build_transport(synthetic_calibration(shape=(40, 50)), targets(), merge=False, scale=0.8).double()
+    start = torch.rand(op.shape[1], 1, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    loss = ImageLoss(op, start, l2_weight=0.3, psnr_drop=1.0)
+    model = ProjectionModel(op, start=start)
+    with torch.no_grad():
+        ssim_at_start = 1 - SSIMLoss(model.targets, model.mask)(model())
+    # At the start the relative squared error is 1 and the hinge 0: the loss is mean(1 - SSIM) + w.
+    assert float(loss(start)) == pytest.approx(float((1 - ssim_at_start).mean()) + 0.3, rel=1e-12)
+    assert loss.report(start)["model_psnr_change_db"] == pytest.approx([0.0, 0.0], abs=1e-9)
+    small = start.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: loss(p), (small,), atol=1e-6)

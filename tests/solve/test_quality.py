@@ -1,28 +1,18 @@
 """Solver quality on an operator calibrated on the virtual rig (the paper's two planes, small)."""
 
 import pytest
-import torch
-from skimage import data
 
-from torchproj.calib import calibrate_projector
-from torchproj.pipeline import simulate_calibration
 from torchproj.metrics import model_space_psnr
-from torchproj.sim import VirtualRig
+from torchproj.pipeline import target_image
 from torchproj.solve import solve_eo, solve_fista, solve_lf, to_projectable
-from torchproj.transport import StateCalibration, Target, build_transport
-
-from ..helpers import small_scene
+from torchproj.transport import Target, build_transport
 
 
 @pytest.fixture(scope="module")
-def calibrated():
-    scene = small_scene(camera=(400, 300), projector=(256, 192))
-    rig = VirtualRig(scene)
-    cals = {st.name: StateCalibration.from_calibrations(
-        [calibrate_projector(simulate_calibration(rig, st.name, j), (256, 192)) for j in range(2)])
-        for st in scene.states}
-    rgb = [torch.from_numpy(getattr(data, n)()).permute(2, 0, 1).float() / 255 for n in ("astronaut", "chelsea")]
-    targets = [Target("near", rgb[0], name="astronaut"), Target("far", rgb[1], name="chelsea")]
+def calibrated(quarter_rig):
+    cals = quarter_rig[1].states
+    targets = [Target("near", target_image("astronaut", 3), name="astronaut"),
+               Target("far", target_image("chelsea", 3), name="chelsea")]
     op = build_transport(cals, targets)
     full = build_transport(cals, targets, merge=False, scale=op.scale)
     return cals, op, full

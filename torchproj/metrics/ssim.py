@@ -15,9 +15,10 @@ over the mask's pixels and the channels.
 Kornia's ``ssim`` uses an 11x11 Gaussian window and zero padding: a different number. Optimising
 it would optimise something other than the score reported, so torchproj's objective is this one.
 
-Window sums are separable and built by doubling (four additions per axis; 2.5x faster than
-running sums on 2 cores, and exact to the rounding of seven terms), which is what makes the score
-cheap enough for an optimisation loop. The evaluation computes in float64 (agreement with
+Window sums are separable and built by doubling (four additions per axis, exact to the rounding
+of seven terms, where running sums would round with the length of a row), which with the
+closed-form gradient of :class:`SSIMLoss` makes the score cheap enough for an optimisation loop
+(``benchmarks/ssim_speed.py``). The evaluation computes in float64 (agreement with
 scikit-image: ~1e-12), a loss in float32 (a masked mean within ~1e-6 of it).
 """
 
@@ -112,7 +113,8 @@ class _MeanSSIM(torch.autograd.Function):
     ``uxy = mean(x y)`` the local means of the estimate, ``dS = dS/dux dux + dS/duxx duxx +
     dS/duxy duxy``, and each local mean is linear in x, so the gradient is three adjoint window
     means: ``M^T a + 2 x M^T b + y M^T c``. Three window means forward and three back, against
-    five and five (plus the saved intermediates) through autograd: half the time.
+    five and five (plus the saved intermediates) through autograd: a third of the time on the
+    full-size rig (``benchmarks/ssim_speed.py``).
 
     ``reference`` holds the reference's ``(y, uy, uy^2 + C1, vy + C2)``, computed once.
     """
@@ -217,7 +219,7 @@ class SSIMLoss(nn.Module):
             reference = [getattr(self, f"{name}_{b}") for name in ("reference", "mean", "b1", "b2")]
             weight = getattr(self, f"weight_{b}")
             # One channel at a time: an RGB crop's maps (tens of MB each) overflow the cache, and the
-            # window sums then run at memory speed, four times slower per pixel (measured, 2 cores).
+            # window sums then run at memory speed.
             scores.append(sum(_MeanSSIM.apply(batch[b, c:c + 1, y0:y1, x0:x1], [r[c:c + 1] for r in reference],
                                               weight[c:c + 1], self.c1, self.c2) for c in range(weight.shape[0])))
         loss = 1 - torch.stack(scores)

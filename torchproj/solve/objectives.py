@@ -11,10 +11,10 @@ mean squared error, relative to the start's (the least-squares optimum), so that
 on the scene's brightness. ``w`` anchors the squared error (``w`` SSIM buys a target's doubled
 error); the hinge keeps each target's PSNR within ``d`` dB of the start (``mu`` = 1 per dB^2 holds
 it to ~0.05 dB in the model). Without the hinge the loss trades one target's PSNR for another's
-SSIM: on the paper's rig the near image gains up to 2.7 dB while the far one loses up to 1.6 dB;
-pure SSIM (``w = 0``) gives the near image away (-7 dB). The weights, the start and the optimiser
-(clamped Adam) are torchproj's choices, measured in ``benchmarks/objectives.py``; the paper
-optimises least squares only.
+SSIM: on the paper's rig at half size the near image gained up to 2.7 dB while the far one lost up
+to 1.6 dB; pure SSIM (``w = 0``) gave the near image away (-1.6 to -3.9 dB). The weights, the start
+and the optimiser (clamped Adam at lr 1e-2) are torchproj's choices, measured against the
+alternatives in ``benchmarks/objectives.py --study``; the paper optimises least squares only.
 """
 
 from __future__ import annotations
@@ -24,15 +24,16 @@ import time
 from dataclasses import dataclass
 
 import torch
+from torch import nn
 
 from ..core.checks import check
+from ..core.progress import progress_bar
 from ..metrics import SSIMLoss
 from ..transport.operator import TransportOperator
 from .model import ProjectionModel
-from ..core.progress import progress_bar
 from .solvers import ClampedAdam, SolveResult, check_bounds, solve_fista
 
-__all__ = ["ImageObjective", "OBJECTIVES", "PSNR_DROP_DB", "image_objective", "solve_ssim"]
+__all__ = ["ImageLoss", "ImageObjective", "OBJECTIVES", "PSNR_DROP_DB", "image_objective", "solve_ssim"]
 
 # Objective name -> weight w of the relative squared error (None: least squares itself).
 OBJECTIVES = {"l2": None, "ssim": 0.1, "mixed": 1.0}
@@ -104,16 +105,65 @@ def _squared_error(op: TransportOperator):
     return error
 
 
+class ImageLoss(nn.Module):
+    """The loss :func:`solve_ssim` minimises, as a function of the patterns (module docs).
+
+    For an optimiser of your own: ``loss = ImageLoss(op, start); loss(p).backward()``.
+
+    Args:
+        op: an operator whose rows are camera pixels (``build_transport(..., merge=False)``).
+        start: :math:`(N_{cols}, C)` the patterns whose squared error the terms are relative to
+            (the least-squares optimum).
+        l2_weight, psnr_drop: ``w`` and ``d`` of the module docs (``d`` None: no limit).
+
+    Shape:
+        ``forward(p)``: :math:`(N_{cols}, C)` -> a 0-dim tensor, the mean over targets.
+    """
+
+    def __init__(self, op: TransportOperator, start: torch.Tensor, l2_weight: float = OBJECTIVES["ssim"],
+                 psnr_drop: float | None = PSNR_DROP_DB):
+        super().__init__()
+        check(l2_weight >= 0, f"l2_weight must be >= 0, got {l2_weight}")
+        check(psnr_drop is None or psnr_drop >= 0, f"psnr_drop must be >= 0 dB (or None), got {psnr_drop}")
+        model = ProjectionModel(op, start=start.detach())  # checks the operator's pixel map and the start's shape
+        self.op, self.l2_weight, self.psnr_drop = op, float(l2_weight), psnr_drop
+        self.ssim_loss = SSIMLoss(model.targets, model.mask)
+        self.squared_error = _squared_error(op)
+        with torch.no_grad():
+            self.register_buffer("reference", self.squared_error(op.A(start.detach()) / op.scale).clamp_min(1e-12))
+
+    def terms(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per target, ``1 - SSIM`` and the squared error relative to the start's: two :math:`(K,)`."""
+        rows = self.op.A(p) / self.op.scale
+        return self.ssim_loss(self.op.to_camera(rows)), self.squared_error(rows) / self.reference
+
+    def forward(self, p: torch.Tensor) -> torch.Tensor:
+        dissimilarity, ratio = self.terms(p)
+        per_target = dissimilarity + self.l2_weight * ratio
+        if self.psnr_drop is not None:
+            # Clamped inside the logarithm: at an error of exactly 0 its slope is infinite, and times
+            # the hinge's zero that would be NaN.
+            per_target = per_target + _HINGE * torch.relu(10 * torch.log10(ratio.clamp_min(1e-12)) - self.psnr_drop) ** 2
+        return per_target.mean()
+
+    @torch.no_grad()
+    def report(self, p: torch.Tensor) -> dict:
+        """The model's SSIM per target, and its PSNR change against the start (dB)."""
+        dissimilarity, ratio = self.terms(p)
+        return {"model_ssim": (1 - dissimilarity).tolist(),
+                "model_psnr_change_db": (-10 * torch.log10(ratio.clamp_min(1e-12))).tolist()}
+
+
 def solve_ssim(op: TransportOperator, bounds=(0.0, 1.0), *, l2_weight: float = OBJECTIVES["ssim"],
                psnr_drop: float | None = PSNR_DROP_DB, x0: torch.Tensor | None = None, max_iter: int = 30,
                lr: float = 1e-2, tol: float = 1e-4, progress: bool | None = None) -> SolveResult:
-    """Patterns that maximise the targets' SSIM within a PSNR budget (module docs).
+    """Patterns that maximise the targets' SSIM within a PSNR budget (module docs; :class:`ImageLoss`).
 
     Clamped Adam from ``x0`` (default: the bounded least-squares optimum, FISTA), one prediction
     and its gradient per iteration; the best iterate seen is returned (the start where nothing
-    beats it). On the paper's full-size rig an iteration takes ~0.16 s on 2
-    cores (grey; ~0.5 s in RGB), and 30 of them lift captured SSIM by about 0.1
-    (``benchmarks/objectives.py``).
+    beats it). On the paper's full-size rig an iteration takes ~0.16 s on 2 cores (grey; ~0.6 s in
+    RGB), and 30 of them lift captured SSIM by 0.13-0.26 on the paper's image pairs
+    (``benchmarks/objectives.py``, which also compares other optimisers and weights).
 
     Args:
         op: an operator whose rows are camera pixels (``build_transport(..., merge=False)``).
@@ -134,29 +184,14 @@ def solve_ssim(op: TransportOperator, bounds=(0.0, 1.0), *, l2_weight: float = O
     lo, hi = check_bounds(bounds)
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     check(lr > 0, f"lr must be positive, got {lr}")
-    check(l2_weight >= 0, f"l2_weight must be >= 0, got {l2_weight}")
-    check(psnr_drop is None or psnr_drop >= 0, f"psnr_drop must be >= 0 dB (or None), got {psnr_drop}")
     t0 = time.perf_counter()
     if x0 is None:
         x0 = solve_fista(op, (lo, hi), progress=False).patterns
-    model = ProjectionModel(op, (lo, hi), start=x0.clamp(lo, hi))
-    ssim_loss = SSIMLoss(model.targets, model.mask)
-    squared_error = _squared_error(op)
-    with torch.no_grad():
-        reference = squared_error(op.A(model.patterns) / op.scale).clamp_min(1e-12)
-
-    def loss_of(p):
-        rows = op.A(p) / op.scale
-        ratio = squared_error(rows) / reference
-        per_target = ssim_loss(op.to_camera(rows)) + l2_weight * ratio
-        if psnr_drop is not None:
-            # Clamped inside the logarithm: at an error of exactly 0 its slope is infinite, and times the
-            # hinge's zero that would be NaN.
-            per_target = per_target + _HINGE * torch.relu(10 * torch.log10(ratio.clamp_min(1e-12)) - psnr_drop) ** 2
-        return per_target.mean()
-
+    x0 = x0.clamp(lo, hi)
+    loss_of = ImageLoss(op, x0, l2_weight, psnr_drop)
+    model = ProjectionModel(op, (lo, hi), start=x0)
     opt = ClampedAdam(model.parameters(), lr=lr, bounds=(lo, hi))
-    history, start_l2 = [], float(op.objective(model.patterns.detach()))
+    history, start_l2 = [], float(op.objective(x0))
     bar = progress_bar(desc="ssim", enabled=progress, total=max_iter)
     # Adam's first steps move every cell by about lr whatever its gradient: where the start already
     # fits the model well (box_cylinders: model SSIM 0.98), that is noise the loss may never win back
@@ -178,14 +213,10 @@ def solve_ssim(op: TransportOperator, bounds=(0.0, 1.0), *, l2_weight: float = O
     bar.close()
     with torch.no_grad():
         last = float(loss_of(model.patterns))
-        p = model.patterns.detach() if last < best else best_p
-        final = min(last, best)
-        rows = op.A(p) / op.scale
-        model_ssim = (1 - ssim_loss(op.to_camera(rows))).tolist()
-        psnr_change = (-10 * torch.log10((squared_error(rows) / reference).clamp_min(1e-12))).tolist()
+    p = model.patterns.detach() if last < best else best_p
+    final = min(last, best)
     history.append((time.perf_counter() - t0, final))
     return SolveResult(patterns=p, iterations=it, objective=final, history=history, time_s=time.perf_counter() - t0,
                        converged=converged, method="ssim",
-                       info={"l2_weight": l2_weight, "psnr_drop": psnr_drop, "lr": lr, "model_ssim": model_ssim,
-                             "model_psnr_change_db": psnr_change,
+                       info={"l2_weight": l2_weight, "psnr_drop": psnr_drop, "lr": lr, **loss_of.report(p),
                              "l2_objective": float(op.objective(p)), "start_l2_objective": start_l2})
