@@ -166,9 +166,11 @@ def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path,
 
 @pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD} (they live in "
                                                      "../shared/data beside the checkout)")
-def test_calibrate_real_captures_matches_decode(tmp_path):
+def test_calibrate_real_captures_matches_decode(tmp_path, capsys):
     assert main(["calibrate", str(CHESSBOARD), "--states", "capture_0", "capture_1", "--projector", "1024x768",
                  "--calibration", str(CHESSBOARD / "calibration_result.xml"), "--out", str(tmp_path / "calib")]) == 0
+    # These captures hold no ramps: the library's warning reaches the user in the command's voice.
+    assert "torchproj calibrate: warning: no ramp captures for ['projector']" in capsys.readouterr().err
     bundle = load_bundle(tmp_path / "calib")
     assert list(bundle.states) == ["capture_0", "capture_1"] and bundle.procam_calibration.is_file() and bundle.projectors == [("projector", 1024, 768)]
     assert main(["decode", str(CHESSBOARD / "capture_0"), "--projector", "1024x768", "--out", str(tmp_path / "dec")]) == 0

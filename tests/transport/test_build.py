@@ -8,46 +8,7 @@ from torchproj.core import InputError
 from torchproj.transport import Target, TransportOperator, build_transport, csr_from_coo, group_rows
 from torchproj.transport.build import target_on_camera
 
-from ..helpers import SIZES, synthetic_calibration, targets
-
-def dense_reference(cals, tgts, scale, bilinear=False):
-    """Rows, columns and values by plain loops (independent of the vectorised builder)."""
-    offsets = [0, SIZES[0][0] * SIZES[0][1]]
-    rows, rhs = [], []
-    for t in tgts:
-        cal = cals[t.state]
-        lit = cal.lit()
-        values, covered = target_on_camera(t, lit)
-        for y in range(lit.shape[0]):
-            for x in range(lit.shape[1]):
-                if not covered[y, x]:
-                    continue
-                entries = {}
-                for j, (w, h) in enumerate(SIZES):
-                    u = cal.prj_xy[j][y, x].double().numpy()
-                    if not np.isfinite(u).all():
-                        continue
-                    wt = float(cal.weight[j][y, x])
-                    if bilinear:
-                        bx, by = int(np.floor(u[0])), int(np.floor(u[1]))
-                        fx, fy = u[0] - bx, u[1] - by
-                        for dx, dy, f in [(0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
-                                          (1, 1, fx * fy)]:
-                            if 0 <= bx + dx < w and 0 <= by + dy < h and f > 0:
-                                entries[offsets[j] + (by + dy) * w + bx + dx] = wt * f
-                    else:
-                        cx, cy = int(np.floor(u[0] + 0.5)), int(np.floor(u[1] + 0.5))
-                        entries[offsets[j] + cy * w + cx] = wt
-                if entries:
-                    rows.append(entries)
-                    rhs.append(values[:, y, x].double().numpy() * scale)
-    cols = sorted({c for r in rows for c in r})
-    index = {c: i for i, c in enumerate(cols)}
-    A = np.zeros((len(rows), len(cols)))
-    for i, r in enumerate(rows):
-        for c, v in r.items():
-            A[i, index[c]] = v
-    return A, np.array(rhs), np.array(cols)
+from ..helpers import SIZES, dense_reference, synthetic_calibration, targets
 
 
 @pytest.mark.parametrize("footprint", ["nearest", "bilinear"])

@@ -254,6 +254,9 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         black.setdefault(state, []).append(capture.black)
         if responses[j] is None and cal.response is not None:
             responses[j], ramps[j] = cal.response, cal.ramp
+    missing = [n for (n, _, _), r in zip(projectors, responses) if r is None]
+    if missing:
+        warnings.warn(f"no ramp captures for {missing}: solving will assume a linear response there", stacklevel=2)
     return CalibrationBundle(camera_size=(shape[2], shape[1]), channels=shape[0], projectors=projectors,
                              states=maps, black={s: torch.stack(b).mean(0) for s, b in black.items()},
                              responses=responses, decoded=decoded, ramps=ramps, bits=shown,

@@ -123,6 +123,13 @@ class DecodedFolder:
     points: torch.Tensor | None
     white: torch.Tensor
 
+    def summary(self) -> str:
+        """One line: the fraction of the camera decoded, how fast, and the points triangulated."""
+        r = self.report
+        return (f"decoded {r['valid_fraction']:.1%} of {r['camera'][0]}x{r['camera'][1]} camera pixels in "
+                f"{r['decode_s']:.3f} s (reading {r['read_s']:.2f} s)" + (f"; {r['points']} points" if "points" in r
+                                                                          else ""))
+
     def write(self, folder) -> None:
         """``correspondence.npz``, ``report.json``, ``decoded.png`` and (with points) ``points.ply``.
 

@@ -16,7 +16,7 @@ from ..core.checks import check
 from ..core.progress import progress_bar
 from ..scene.config import Scene, State
 from ..sim.rig import VirtualRig
-from ..pipeline.scoring import score_image
+from ..pipeline.scoring import TargetScore, score_image
 
 __all__ = ["DepthSweep", "depth_sweep"]
 
@@ -49,7 +49,7 @@ class DepthSweep:
                 "psnr_db": table(self.psnr_db, 3), "ssim": table(self.ssim, 4), "pixels": self.pixels.tolist()}
 
 
-def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor], targets: list[dict], scale: float,
+def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor], targets: list[TargetScore], scale: float,
                 *, device="cpu", min_pixels: int = 500, progress=None) -> DepthSweep:
     """Capture fixed patterns on one surface placed at each depth, alone, and score every target.
 
