@@ -7,6 +7,7 @@ import os
 import re
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from . import __version__
@@ -43,6 +44,12 @@ def _bounds(text: str) -> tuple[float, float]:
 
 def _limits(text: str) -> tuple[float, float]:
     return _pair(text, "0.5,1.5", strict=False)
+
+
+def _existing_file(text: str) -> Path:
+    if not Path(text).is_file():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    return Path(text)
 
 
 def _projector_sizes(values: list[str] | None) -> dict[str, tuple[int, int]] | None:
@@ -94,12 +101,11 @@ def cmd_run(args) -> int:
     from .pipeline import run_virtual
     from .scene import load_scene
 
-    gain_offset = None
-    if args.gain is not None or args.offset is not None:
-        gain_offset = (args.gain or (1.0, 1.0), args.offset or (0.0, 0.0))
+    gain_offset = None if args.gain is None and args.offset is None else (args.gain or (1, 1), args.offset or (0, 0))
     result = run_virtual(load_scene(args.config), solver=args.solver, bounds_8bit=args.bounds, device=args.device,
                          max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
-                         plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args))
+                         plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
+                         ceiling=args.ceiling)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0
 
@@ -154,18 +160,13 @@ def cmd_calibrate(args) -> int:
     from .figures import calibration_summary
 
     t0 = time.perf_counter()
-    if args.calibration is not None and not args.calibration.is_file():
-        raise TorchprojError(f"{args.calibration}: calibration file not found")
     bundle = calibrate_folders(args.capture_root, _projector_sizes(args.projector), states=args.states,
                                white_threshold=args.white_threshold, black_threshold=args.black_threshold,
                                max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
     with atomic_output(args.out) as stage:
         write_bundle(stage, bundle, args.calibration)
         calibration_summary(stage / "calibration.png", bundle.figure_rows())
-    missing = [n for (n, _, _), r in zip(bundle.projectors, bundle.responses) if r is None]
     print(f"calibrated {args.capture_root} in {time.perf_counter() - t0:.1f} s: {bundle.summary()}")
-    if missing:
-        print(f"no ramp captures for {missing}: solve will assume a linear response there", file=sys.stderr)
     print(f"wrote {args.out}/bundle.json, STATE/PROJECTOR.npz, STATE/black.npz, calibration.png")
     return 0
 
@@ -192,11 +193,9 @@ def cmd_decode(args) -> int:
                             white_threshold=args.white_threshold, black_threshold=args.black_threshold,
                             subpixel=not args.no_subpixel, fill_holes=args.fill_holes, bits=args.bits,
                             plane_tolerance=args.plane_tolerance)
-    r = decoded.report
-    print(f"decoded {r['valid_fraction']:.1%} of {r['camera'][0]}x{r['camera'][1]} camera pixels in "
-          f"{r['decode_s']:.3f} s (reading {r['read_s']:.2f} s)" + (f"; {r['points']} points" if "points" in r else ""))
+    print(decoded.summary())
     _publish(args.out, decoded.write, "correspondence.npz, report.json, decoded.png"
-             + (", points.ply" if "points" in r else ""))
+             + (", points.ply" if decoded.points is not None else ""))
     return 0
 
 
@@ -205,36 +204,42 @@ _BITS_HELP = ("show only the first K Gray-code pattern pairs per axis (at least 
               "and state with white, black and the two ramps, instead of 44 for a 1024x768 projector")
 
 
+def _command(sub, name: str, func, help: str, out: str | None = None, out_help: str = "output folder"):
+    """A subcommand that runs ``func``, with its ``--out`` folder (required where ``out`` is None)."""
+    p = sub.add_parser(name, help=help)
+    p.set_defaults(func=func)
+    if out != "":
+        p.add_argument("--out", type=Path, default=out, required=out is None,
+                       help=out_help + (f" (default: {out})" if out else ""))
+    return p
+
+
 def _config_option(p, default: str = "paper_two_planes") -> None:
     p.add_argument("config", nargs="?", help=f"YAML file or built-in name (default: {default})")
 
 
-def _device_option(p) -> None:
+def _device_options(p, max_iter: bool = True) -> None:
     p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
+    if max_iter:
+        p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
 
 
 def _solve_options(p) -> None:
     """The options of every command that solves patterns (``run``, ``solve``)."""
     from .solve import OBJECTIVES, PSNR_DROP_DB, SOLVERS
 
-    p.add_argument("--solver", default="fista", choices=list(SOLVERS),
-                   help="pattern solver (default: fista, the best measured)")
+    p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
     p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI",
                    help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
     p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
-                   help="what the patterns optimise: l2 (least squares, default), ssim (SSIM of the predicted camera "
-                        "images with a small weight on their squared error) or mixed (a larger weight), each target "
-                        "within --psnr-drop of least squares; the image objectives start from the solver's patterns")
-    p.add_argument("--l2-weight", type=float, metavar="W",
-                   help=f"with --objective ssim or mixed: the weight of the squared error, relative to the start's "
-                        f"(defaults: ssim {OBJECTIVES['ssim']:g}, mixed {OBJECTIVES['mixed']:g})")
-    p.add_argument("--psnr-drop", type=float, default=PSNR_DROP_DB, metavar="DB",
-                   help=f"with --objective ssim or mixed: the PSNR each target may give up against least squares, "
-                        f"in the model (default {PSNR_DROP_DB:g} dB; -1: no limit)")
-    p.add_argument("--ssim-iter", type=int, default=30, metavar="N",
-                   help="with --objective ssim or mixed: its iterations (default 30)")
-    _device_option(p)
-    p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+                   help="l2: least squares (default); ssim or mixed: SSIM of the predicted camera images with a small "
+                        "or larger weight on their squared error, started from the solver's patterns")
+    p.add_argument("--l2-weight", type=float, metavar="W", help="ssim/mixed: the squared error's weight relative to "
+                   f"the start's (defaults: ssim {OBJECTIVES['ssim']:g}, mixed {OBJECTIVES['mixed']:g})")
+    p.add_argument("--psnr-drop", type=float, default=PSNR_DROP_DB, metavar="DB", help="ssim/mixed: the PSNR each "
+                   f"target may give up against least squares, in the model (default {PSNR_DROP_DB:g}; -1: no limit)")
+    p.add_argument("--ssim-iter", type=int, default=30, metavar="N", help="ssim/mixed: iterations (default 30)")
+    _device_options(p)
 
 
 def _map_options(p, maps: bool = True, bits: str | None = None) -> None:
@@ -258,115 +263,100 @@ def _decoding_options(p) -> None:
 
 # ------------------------------------------------------------------------------------ parser
 def _virtual_rig_commands(sub) -> None:
-    p = sub.add_parser("scene", help="check a scene config and print what it describes")
+    p = _command(sub, "scene", cmd_scene, "check a scene config and print what it describes", out="")
     _config_option(p)
-    p.set_defaults(func=cmd_scene)
 
-    p = sub.add_parser("run", help="the main job on the virtual rig: calibrate, solve, project, capture, evaluate")
+    p = _command(sub, "run", cmd_run, "the main job on the virtual rig: calibrate, solve, project, capture, "
+                 "evaluate", out="out/run")
     _config_option(p)
-    p.add_argument("--out", default="out/run", help="output folder (default: out/run)")
     _solve_options(p)
-    p.add_argument("--oracle", action="store_true",
-                   help="build the operator from the simulator's exact geometry instead of calibration "
-                        "(shows what calibration costs)")
-    p.add_argument("--gain", type=_limits, metavar="LO,HI",
-                   help="also optimise one gain per target within these limits (fista; e.g. 0.5,1.5)")
-    p.add_argument("--offset", type=_limits, metavar="LO,HI",
-                   help="also optimise one offset per target within these limits (fista; e.g. -0.2,0.2)")
+    p.add_argument("--oracle", nargs="?", const="geometry", choices=["geometry", "transport"],
+                   help="skip calibration: geometry (the default) takes the simulator's exact maps into calibration's "
+                        "model; transport solves on the simulator's own light transport (the best any calibration "
+                        "can reach)")
+    p.add_argument("--ceiling", action="store_true", help="also score the transport oracle on the same targets and "
+                   "rows, beside each target in the report")
+    p.add_argument("--gain", type=_limits, metavar="LO,HI", help="also optimise a gain per target (fista; e.g. 0.5,1.5)")
+    p.add_argument("--offset", type=_limits, metavar="LO,HI", help="... and an offset (fista; e.g. -0.2,0.2)")
     _map_options(p, bits=_BITS_HELP + "; each capture is then read through one homography (planar scenes only)")
-    p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("position", help="the paper's positioning test on the virtual rig: place a box guided only "
-                                        "by the projected image, scan it, report the error")
+    p = _command(sub, "position", cmd_position, "the paper's positioning test on the virtual rig: place a box guided "
+                 "only by the projected image, scan it, report the error", out="out/position")
     _config_option(p, "box_positions")
-    p.add_argument("--out", default="out/position", help="output folder (default: out/position)")
     p.add_argument("--trials", type=int, default=3, help="placements per position (default 3, as the paper's subjects)")
-    p.add_argument("--spread-mm", type=float, default=20.0,
-                   help="a trial starts with each coordinate of the box centre within this of the goal (default 20)")
-    p.add_argument("--spread-deg", type=float, default=5.0,
-                   help="... and turned by up to this about a random axis (default 5)")
+    p.add_argument("--spread-mm", type=float, default=20.0, help="a trial starts with each coordinate of the box "
+                   "centre within this of the goal (default 20)")
+    p.add_argument("--spread-deg", type=float, default=5.0, help="... turned by up to this (default 5)")
     p.add_argument("--seed", type=int, default=0, help="seeds the start poses and the camera noise (default 0)")
     p.add_argument("--max-evaluations", type=int, default=200, help="camera looks per placement (default 200)")
-    _device_option(p)
-    p.add_argument("--max-iter", type=int, default=300, help="iteration limit of the pattern solver (default 300)")
-    p.set_defaults(func=cmd_position)
+    _device_options(p)
 
-    p = sub.add_parser("simulate", help="calibrate every state and projector of a scene on the virtual rig, "
-                                        "and check the result against the simulator's truth")
+    p = _command(sub, "simulate", cmd_simulate, "calibrate every state and projector of a scene on the virtual rig, "
+                 "and check the result against the simulator's truth", out="out/simulate")
     _config_option(p)
-    p.add_argument("--out", default="out/simulate", help="output folder (default: out/simulate)")
-    _device_option(p)
+    _device_options(p, max_iter=False)
     p.add_argument("--no-noise", action="store_true", help="capture without camera noise")
     p.add_argument("--write-captures", action="store_true",
                    help="also write each capture as a folder of PNGs (the layout of a real capture) and "
                         "calibrate from those files")
     _map_options(p, maps=False, bits=_BITS_HELP + "; each capture is then read through one homography "
                                                   "(planar scenes only)")
-    p.set_defaults(func=cmd_simulate)
 
 
 def _real_rig_commands(sub) -> None:
-    p = sub.add_parser("placement-error", help="score a real placement: a scan of the placed object against a "
-                                               "scan of it at the goal (both from torchproj decode --calibration)")
+    p = _command(sub, "placement-error", cmd_placement_error, "score a real placement: a scan of the placed object "
+                 "against a scan of it at the goal (both from torchproj decode --calibration)",
+                 out="out/placement_error")
     p.add_argument("placed", type=Path, help="torchproj decode --calibration output of the placed object")
     p.add_argument("--reference", type=Path, required=True,
                    help="torchproj decode --calibration output of the object at its goal pose")
     p.add_argument("--distance", type=float, required=True,
                    help="object-projector distance, in the calibration's units, for the percentage")
     p.add_argument("--mask", type=Path, help="camera-sized image, white on the object: score only those pixels")
-    p.add_argument("--out", type=Path, default=Path("out/placement_error"), help="output folder")
-    p.set_defaults(func=cmd_placement_error)
 
-    p = sub.add_parser("sequence", help="write the images to show on a projector, in order, with sequence.json")
+    p = _command(sub, "sequence", cmd_sequence, "write the images to show on a projector, in order, with sequence.json")
     p.add_argument("--projector", type=_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--ramp-steps", type=int, default=32, help="bars in the photometric ramp (default 32)")
     p.add_argument("--bits", type=int, metavar="K", help=_BITS_HELP + "; for scenes where each state is one plane, "
                                                          "read through a homography")
-    p.set_defaults(func=cmd_sequence)
 
-    p = sub.add_parser("capture", help="show a sequence full-screen on a projector and grab a camera frame for each "
-                                       "image (needs an OpenCV build with a GUI)")
+    p = _command(sub, "capture", cmd_capture, "show a sequence full-screen on a projector and grab a camera frame for "
+                 "each image (needs an OpenCV build with a GUI)", out_help="CAPTURE_ROOT/STATE/PROJECTOR to write")
     p.add_argument("sequence_dir", type=Path, help="folder from torchproj sequence")
-    p.add_argument("--out", type=Path, required=True, help="CAPTURE_ROOT/STATE/PROJECTOR folder to write")
     p.add_argument("--camera", type=int, default=0, help="OpenCV camera index (default 0)")
-    p.add_argument("--screen", default="0,0", metavar="X,Y", help="top-left corner of the projector's screen in the "
-                                                                 "desktop (default 0,0; e.g. 1920,0 for a second screen)")
+    p.add_argument("--screen", default="0,0", metavar="X,Y", help="top-left corner of the projector's screen in "
+                   "the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
-    p.set_defaults(func=cmd_capture)
 
-    p = sub.add_parser("calibrate", help="decode every state and projector of a capture root into a calibration bundle")
+    p = _command(sub, "calibrate", cmd_calibrate, "decode every state and projector of a capture root into a "
+                 "calibration bundle", out_help="bundle folder")
     p.add_argument("capture_root", type=Path, help="CAPTURE_ROOT/STATE/PROJECTOR/ folders of captures")
-    p.add_argument("--out", type=Path, required=True, help="bundle folder")
     p.add_argument("--projector", action="append", metavar="[NAME=]WxH",
                    help="projector size where a folder holds no sequence.json (repeat per projector)")
     p.add_argument("--states", nargs="+", metavar="STATE", help="state folders to calibrate (default: all)")
-    p.add_argument("--calibration", type=Path, help="OpenCV camera-projector calibration to keep in the bundle")
+    p.add_argument("--calibration", type=_existing_file,
+                   help="OpenCV camera-projector calibration to keep in the bundle")
     _decoding_options(p)
     _map_options(p, maps=False, bits="Gray-code pattern pairs per axis of a shortened sequence, where folders hold "
                                      "no sequence.json (which says its own)")
-    p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("solve", help="patterns for real projectors from a calibration bundle and target images")
+    p = _command(sub, "solve", cmd_solve, "patterns for real projectors from a calibration bundle and target images")
     p.add_argument("bundle", type=Path, help="bundle folder from torchproj calibrate")
     p.add_argument("--targets", nargs="+", required=True, metavar="STATE=IMAGE",
                    help="the image to show in each state (a file, or a scikit-image name such as astronaut)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
     _solve_options(p)
     _map_options(p)
-    p.set_defaults(func=cmd_solve)
 
-    p = sub.add_parser("decode", help="decode a folder of real Gray-code captures (and triangulate)")
+    p = _command(sub, "decode", cmd_decode, "decode a folder of real Gray-code captures (and triangulate)")
     p.add_argument("capture_dir", type=Path, help="folder of captures: Gray code in order, then white, then black")
     p.add_argument("--projector", type=_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--calibration", type=Path, help="OpenCV camera-projector calibration (XML/YAML) to triangulate")
+    p.add_argument("--calibration", type=_existing_file,
+                   help="OpenCV camera-projector calibration (XML/YAML) to triangulate")
     p.add_argument("--names", default="graycode_{:02d}.png", help="file name template (default: graycode_{:02d}.png)")
     _decoding_options(p)
     p.add_argument("--no-subpixel", action="store_true", help="triangulate integer cells, no sub-pixel fit")
     _map_options(p, maps=False, bits="the folder holds a shortened sequence, the first K pattern pairs per axis: "
                                      "read it through one homography (a plane)")
-    p.set_defaults(func=cmd_decode)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -400,7 +390,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(_join_negative_pairs(argv))
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            # The library's warnings (a state that decoded little, a missing ramp) in the command's own voice.
+            warnings.showwarning = lambda message, *_: print(f"torchproj {args.command}: warning: {message}",
+                                                             file=sys.stderr)
+            return args.func(args)
     except TorchprojError as exc:
         print(f"torchproj {args.command}: error: {exc}", file=sys.stderr)
         return 2

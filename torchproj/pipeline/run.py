@@ -19,10 +19,14 @@ from ..scene.config import Scene
 from ..solve import SOLVERS, SolveResult, image_objective, make_patterns, projectable_patterns, solve_gain_offset
 from ..transport import MAPS, build_transport, select_maps
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
+from .ceiling import light_transport, solve_on_light_transport
 from .targets import scene_targets
 from .virtual import VirtualCalibration, calibrate_virtual
 
-__all__ = ["RunResult", "image_objective_report", "run_markdown", "run_virtual"]
+__all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
+
+ORACLES = ("geometry", "transport")  # what an oracle run takes from the simulator (run_virtual's ``oracle``)
+CEILING_ITERATIONS = 3000  # FISTA's limit for the ceiling: it stops on its gap long before on the shipped scenes
 
 
 @dataclass
@@ -62,9 +66,9 @@ class RunResult:
 
 def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
                 device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
-                oracle: bool = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
+                oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
-                objective="l2") -> RunResult:
+                objective="l2", ceiling: bool = False) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -77,8 +81,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         max_iter: iteration limit of iterative solvers.
         progress: progress bars (None: on a terminal, for steps longer than a second).
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
-        oracle: build the operator from the simulator's exact geometry instead of calibration
-            (ignored when ``calibration`` is given; that one's own mode counts).
+        oracle: ``"geometry"`` (or True): build the operator from the simulator's exact geometry
+            instead of calibration, with calibration's footprint model (what the maps cost);
+            ``"transport"``: solve on the simulator's own light transport (:mod:`.ceiling`: what the
+            whole model costs, the best any calibration can reach). The geometry oracle's own
+            calibration is then ignored when ``calibration`` is given.
         gain_offset: ``((gain_lo, gain_hi), (offset_lo, offset_hi))`` to optimise one gain and offset
             per target with FISTA (:func:`~torchproj.solve.solve_gain_offset`); None asks for the
             images as they are. Metrics then compare with the adjusted image ``g t + o``, and the
@@ -95,8 +102,17 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             predicted images with a small or a larger weight on their squared error, each target
             within 1 dB of least squares), or an :class:`~torchproj.solve.ImageObjective`; the
             image objectives start from the solver's patterns (:func:`~torchproj.solve.solve_ssim`).
+        ceiling: also solve the same targets, rows and bounds on the simulator's own light transport
+            (FISTA, least squares, to convergence) and score it the same way: each report row gets
+            ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
     """
     check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
+    check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
+    exact = oracle == "transport"
+    check(not exact or (gain_offset is None and solver != "eo"),
+          "the transport oracle solves the targets as they are, with a solver that needs no epipolar chains: drop "
+          "--gain/--offset, and use a solver other than eo")
     image = image_objective(objective)
     check(gain_offset is None or (solver == "fista" and image is None),
           "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
@@ -105,7 +121,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     check(lo < hi, f"bounds must satisfy LO < HI, got {bounds_8bit}")
     check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
     t_total = time.perf_counter()
-    cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle, bits=bits,
+    cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
     timings = {"calibrate": cal.seconds if calibration is None else 0.0}
     t0 = time.perf_counter()
@@ -117,10 +133,17 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A); merged otherwise (exact, smaller).
-    op = build_transport(states, targets, merge=gain_offset is None and image is None, device=device)
+    op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact, device=device)
+    if exact:
+        ops = light_transport(cal.rig, targets, op)
+        op = ops[0]
     timings["transport"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if gain_offset is not None:
+    if exact:
+        model = op.size_report()
+        result, _, patterns = solve_on_light_transport(ops, (lo, hi), cal.responses, solver=solver, max_iter=max_iter,
+                                                       progress=progress, objective=image)
+    elif gain_offset is not None:
         model = op.size_report()
         result, op, patterns = _solve_gain_offset(op, states, targets, (lo, hi), gain_offset, cal.responses,
                                                   max_iter, progress, device)
@@ -134,9 +157,14 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     evaluation = evaluate_patterns(cal, patterns, targets, scale=op.scale, states=states)
     scores, rows = _target_rows(scene, evaluation.targets, result.info if gain_offset is not None else None)
     timings["evaluate"] = time.perf_counter() - t0
+    if ceiling:
+        t0 = time.perf_counter()
+        for row, score in zip(rows, _ceiling(cal, states, targets, (lo, hi), progress, device)):
+            row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
+        timings["ceiling"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
-    report = _report(scene, cal, solver, image, bounds_8bit, device, maps, model, op, result, timings,
-                     rows, gain_offset)
+    report = _report(scene, cal, solver, image, bounds_8bit, device, maps, model, ops if exact else [op], result,
+                     timings, rows, gain_offset, oracle)
     if fits is not None:
         report["homographies"] = fits
     return RunResult(report=report, patterns=patterns, captures=evaluation.captures, targets=scores, solution=result,
@@ -169,16 +197,37 @@ def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_
     return result, op, projectable_patterns(op, result.patterns, bounds, responses)[1]
 
 
-def _report(scene, cal, solver, image, bounds_8bit, device, maps, model, op, result, timings, rows,
-            gain_offset) -> dict:
+def _ceiling(cal, states, targets, bounds, progress, device) -> list[TargetScore]:
+    """The targets' scores when solved on the simulator's own light transport, on the same rows."""
+    rows = build_transport(states, targets, merge=False, device=device)
+    _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds, cal.responses,
+                                              max_iter=CEILING_ITERATIONS, progress=progress)
+    return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states).targets
+
+
+def _unexplained(ops, p: torch.Tensor) -> float:
+    """:meth:`~torchproj.transport.TransportOperator.unexplained` over one operator or one per channel."""
+    if len(ops) == 1:
+        return ops[0].unexplained(p)
+    energy = sum(float(op.rhs.pow(2).sum() + op.constant.sum()) for op in ops)
+    return sum(float(op.objective(p[:, c:c + 1])) for c, op in enumerate(ops)) / energy if energy > 0 else 0.0
+
+
+_CALIBRATION = {None: "Gray code on the virtual rig", "geometry": "oracle (the simulator's exact geometry)",
+                "transport": "oracle (the simulator's own light transport)"}
+
+
+def _report(scene, cal, solver, image, bounds_8bit, device, maps, model, ops, result, timings, rows,
+            gain_offset, oracle) -> dict:
     """What ``report.json`` holds (``objective`` is always the least-squares value of the patterns)."""
     least_squares = result.info["l2_objective"] if image is not None else result.objective
+    op = ops[0]
     report = {
         "scene": scene.name, "solver": solver if gain_offset is None else "fista+gain/offset",
         "bounds_8bit": list(bounds_8bit), "device": str(device),
-        "calibration": "oracle (the simulator's exact geometry)" if cal.oracle else "Gray code on the virtual rig",
+        "calibration": _CALIBRATION["geometry" if oracle is None and cal.oracle else oracle],
         "maps": maps, "graycode": _graycode_report(scene, cal), "model": model, "objective": least_squares,
-        "unexplained_fraction": round(op.unexplained(result.patterns), 5),
+        "unexplained_fraction": round(_unexplained(ops, result.patterns), 5),
         "iterations": result.iterations, "scale": op.scale,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "evaluation": EVALUATION + ("; with gain/offset, psnr_db and ssim compare with the adjusted image g t + o, "
@@ -227,6 +276,7 @@ def run_markdown(report: dict) -> str:
     """``report.md`` of a run: what ``report.json`` holds, as tables."""
     m, t = report["model"], report["timings_s"]
     adjusted = "gain_offset_limits" in report
+    ceiling = all("ceiling" in r for r in report["targets"]) and bool(report["targets"])
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}", "",
              f"Calibration: {report['calibration']}; maps: {report['maps']}"
@@ -238,14 +288,20 @@ def run_markdown(report: dict) -> str:
              *_image_objective_lines(report.get("image_objective")),
              f"Evaluation: {report['evaluation']}.", "",
              "| target | state | PSNR (dB) | SSIM | crosstalk | pixels |"
-             + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else ""),
-             "|---|---|---|---|---|---|" + ("---|---|---|---|" if adjusted else "")]
+             + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else "")
+             + (" ceiling PSNR (dB) | ceiling SSIM |" if ceiling else ""),
+             "|---|---|---|---|---|---|" + ("---|---|---|---|" if adjusted else "") + ("---|---|" if ceiling else "")]
     for r in report["targets"]:
         line = (f"| {r['name']} | {r['state']} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['crosstalk']:.3f} | "
                 f"{r['pixels']} |")
         if adjusted:
             line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
+        if ceiling:
+            line += f" {r['ceiling']['psnr_db']:.2f} | {r['ceiling']['ssim']:.3f} |"
         lines.append(line)
+    if ceiling:
+        lines += ["", "Ceiling: the same targets, rows and bounds solved on the simulator's own light transport "
+                      "(FISTA, least squares) and scored the same way: the best any calibration could give."]
     if "homographies" in report:
         lines += ["", "Homographies (residual from decoded to fitted coordinates, projector pixels; for Gray-code "
                       "blocks, the distance outside the block over the pixels at block edges):", "",

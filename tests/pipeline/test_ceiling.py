@@ -1,0 +1,107 @@
+"""The exact-light reference against the simulator's own captures, and the ceiling in a run's report."""
+
+import json
+
+import pytest
+import torch
+import yaml
+
+from torchproj.cli import main
+from torchproj.core import InputError
+from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, light_transport, run_markdown, run_virtual,
+                                scene_targets, solve_on_light_transport)
+from torchproj.solve import solve_patterns
+from torchproj.transport import build_transport
+
+from ..helpers import small_config, small_scene
+
+
+def _exact(name):
+    scene = small_scene(name, camera=(200, 150), projector=(128, 96))
+    cal = calibrate_virtual(scene, oracle=True)
+    targets = scene_targets(scene, None, cal.rig)
+    rows = build_transport(cal.states, targets, merge=False)
+    return scene, cal, targets, rows, light_transport(cal.rig, targets, rows)
+
+
+@pytest.mark.parametrize("name", ["paper_two_planes", "colour_two_planes", "two_screens"])
+def test_prediction_is_the_noise_free_capture(name):
+    """``A l`` equals what the simulator captures (noise-free, unquantised) minus its black capture, for
+    any light, every row, every channel: grey surfaces share one operator, coloured ones get one per
+    channel; a semi-transparent screen's light passes through to the surface behind."""
+    scene, cal, targets, rows, ops = _exact(name)
+    assert len(ops) == (3 if name == "colour_two_planes" else 1)
+    light = torch.rand(ops[0].shape[1], 1, generator=torch.Generator().manual_seed(0)) * 0.6
+    images = ops[0].to_images(light)
+    for k, target in enumerate(targets):
+        shown = {j: images[j][None] ** (1 / torch.tensor(p.response_b).view(-1, 1, 1))
+                 for j, p in enumerate(scene.projectors)}
+        seen = cal.rig.capture(target.state, shown, noise=False, quantise=False)[0]
+        dark = cal.rig.capture(target.state, {}, noise=False, quantise=False)[0]
+        above_black = (seen - dark).flatten(1)
+        for c, op in enumerate(ops):
+            mine = op.row_target == k
+            predicted = op.A(light)[mine, 0]
+            captured = above_black[c, op.row_pixel[mine]]
+            assert mine.sum() > 1000 and float(captured.max()) > 0.2
+            torch.testing.assert_close(predicted, captured, rtol=1e-5, atol=1e-6)
+    # Same rows and right-hand side as the operator it was built on (its targets and scale).
+    assert all(torch.equal(op.row_pixel, rows.row_pixel) and op.scale == rows.scale for op in ops)
+    torch.testing.assert_close(torch.cat([op.rhs for op in ops], 1), rows.rhs)
+
+
+def test_each_rows_light_sums_to_the_calibration_weight():
+    """A row's entries over one projector's cells add up to that pixel's white minus black, which is
+    the single weight calibration's nearest-cell model puts on one cell."""
+    _, cal, _, rows, (op,) = _exact("paper_two_planes")
+    ones = torch.zeros(op.shape[1], 1)
+    for j in range(2):
+        ones.zero_()[op.column_projector == j] = 1
+        weight = cal.states["near"].weight[j].reshape(-1)[rows.row_pixel]
+        mine = rows.row_target == 0
+        torch.testing.assert_close(op.A(ones)[mine, 0], weight[mine], rtol=1e-4, atol=1e-6)
+    # The exact light spreads over more cells than calibration's one per projector.
+    assert op.nnz > 2 * rows.nnz
+
+
+def test_light_transport_refuses_merged_rows():
+    scene = small_scene(camera=(200, 150), projector=(128, 96))
+    cal = calibrate_virtual(scene, oracle=True)
+    targets = scene_targets(scene, None, cal.rig)
+    with pytest.raises(InputError, match="merge=False"):
+        light_transport(cal.rig, targets, build_transport(cal.states, targets))
+
+
+def test_ceiling_is_the_optimum_of_the_exact_light(quarter_rig):
+    """The ceiling's patterns are optimal for the exact light: the run's own patterns, put on the same
+    exact operator, explain no more; and every target's row of the report carries its ceiling."""
+    scene, cal = quarter_rig
+    result = run_virtual(scene, calibration=cal, ceiling=True, progress=False)
+    rows = result.report["targets"]
+    assert all(set(r["ceiling"]) == {"psnr_db", "ssim"} for r in rows)
+    assert "ceiling PSNR (dB)" in run_markdown(result.report)
+    # Near target: the exact light's optimum beats calibration's nearest-cell model (measured ~+1 dB).
+    assert rows[0]["ceiling"]["psnr_db"] > rows[0]["psnr_db"]
+    targets = scene_targets(scene, None, cal.rig)
+    calibrated = build_transport(cal.states, targets, merge=False)
+    (exact,) = light_transport(cal.rig, targets, calibrated)
+    best, _, _ = solve_on_light_transport([exact], (0.0, 1.0), cal.responses, max_iter=CEILING_ITERATIONS)
+    assert best.converged
+    run_light = calibrated.to_images(solve_patterns(calibrated, "fista", (0.0, 1.0)).patterns)
+    on_exact = torch.stack([run_light[j][0].reshape(-1)[c] for j, c in zip(exact.column_projector.tolist(),
+                                                                           exact.column_cell.tolist())])[:, None]
+    assert float(exact.objective(best.patterns)) <= float(exact.objective(on_exact)) * (1 + 1e-3)
+
+
+def test_transport_oracle_from_the_command_line(tmp_path, capsys):
+    config = tmp_path / "small.yaml"
+    config.write_text(yaml.safe_dump(dict(small_config(camera=(200, 150), projector=(128, 96)), name="small")))
+    out = tmp_path / "run"
+    assert main(["run", str(config), "--oracle", "transport", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["calibration"] == "oracle (the simulator's own light transport)" and report["graycode"] is None
+    assert main(["run", str(config), "--oracle", "transport", "--solver", "eo", "--out", str(tmp_path / "eo")]) == 2
+    assert "use a solver other than eo" in capsys.readouterr().err and not (tmp_path / "eo").exists()
+    with pytest.raises(SystemExit):
+        main(["run", str(config), "--oracle", "exact"])
+    assert "invalid choice: 'exact'" in capsys.readouterr().err
