@@ -31,9 +31,10 @@ SURFACE = {
         "refine_subpixel", "sequence_bits", "triangulate", "triangulate_map", "write_bundle",
         "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [
-        "HomographyFit", "MAPS", "StateCalibration", "Target", "TransportOperator", "build_transport",
-        "cell_blocks", "csr_from_coo", "fit_homography", "geometric_weights", "group_rows", "homography_map",
-        "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera", "triangulate_rays"],
+        "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target", "TransportOperator",
+        "build_transport", "cell_blocks", "csr_from_coo", "fit_homography", "geometric_weights", "group_rows",
+        "homography_map", "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera",
+        "triangulate_rays"],
     "metrics": [
         "SSIMLoss", "crosstalk", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [

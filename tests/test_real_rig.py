@@ -162,6 +162,14 @@ def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path,
     out = tmp_path / "solved"
     assert main(["solve", str(calib), "--targets", "middle=astronaut", "--out", str(out)]) == 2
     assert "no state 'middle'" in capsys.readouterr().err and not out.exists()
+    # The footprint reaches the bench's solve, and its prediction follows the same model.
+    reports = {}
+    for footprint in ("nearest", "bilinear"):
+        assert main(["solve", str(calib), "--targets", "near=astronaut", "far=camera", "--footprint", footprint,
+                     "--out", str(tmp_path / footprint)]) == 0
+        reports[footprint] = json.loads((tmp_path / footprint / "report.json").read_text())
+        assert reports[footprint]["footprint"] == footprint
+    assert reports["bilinear"]["model"]["nnz"] > 2 * reports["nearest"]["model"]["nnz"]
 
 
 @pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD} (they live in "

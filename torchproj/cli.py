@@ -105,7 +105,7 @@ def cmd_run(args) -> int:
     result = run_virtual(load_scene(args.config), solver=args.solver, bounds_8bit=args.bounds, device=args.device,
                          max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
                          plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
-                         ceiling=args.ceiling)
+                         footprint=args.footprint, ceiling=args.ceiling)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0
 
@@ -175,9 +175,8 @@ def cmd_solve(args) -> int:
     from .pipeline import solve_bundle
 
     solution = solve_bundle(args.bundle, args.targets, solver=args.solver, bounds_8bit=args.bounds,
-                            objective=_objective(args),
-                            maps=args.maps, plane_tolerance=args.plane_tolerance, max_iter=args.max_iter,
-                            device=args.device)
+                            objective=_objective(args), footprint=args.footprint, maps=args.maps,
+                            plane_tolerance=args.plane_tolerance, max_iter=args.max_iter, device=args.device)
     solution.report["bundle"] = str(args.bundle)
     print(f"solved {len(solution.predicted)} target(s) with {args.solver} ({args.objective}): "
           f"{solution.report['model']['variables']} variables, least-squares objective "
@@ -227,6 +226,7 @@ def _device_options(p, max_iter: bool = True) -> None:
 def _solve_options(p) -> None:
     """The options of every command that solves patterns (``run``, ``solve``)."""
     from .solve import OBJECTIVES, PSNR_DROP_DB, SOLVERS
+    from .transport import FOOTPRINTS
 
     p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
     p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI",
@@ -239,6 +239,8 @@ def _solve_options(p) -> None:
     p.add_argument("--psnr-drop", type=float, default=PSNR_DROP_DB, metavar="DB", help="ssim/mixed: the PSNR each "
                    f"target may give up against least squares, in the model (default {PSNR_DROP_DB:g}; -1: no limit)")
     p.add_argument("--ssim-iter", type=int, default=30, metavar="N", help="ssim/mixed: iterations (default 30)")
+    p.add_argument("--footprint", default="nearest", choices=list(FOOTPRINTS), help="the projector cells a camera "
+                   "pixel's light is modelled on: nearest (one per projector, as the paper; default) or bilinear")
     _device_options(p)
 
 

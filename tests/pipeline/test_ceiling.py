@@ -93,7 +93,7 @@ def test_ceiling_is_the_optimum_of_the_exact_light(quarter_rig):
     assert float(exact.objective(best.patterns)) <= float(exact.objective(on_exact)) * (1 + 1e-3)
 
 
-def test_transport_oracle_from_the_command_line(tmp_path, capsys):
+def test_oracles_and_footprint_from_the_command_line(tmp_path, capsys):
     config = tmp_path / "small.yaml"
     config.write_text(yaml.safe_dump(dict(small_config(camera=(200, 150), projector=(128, 96)), name="small")))
     out = tmp_path / "run"
@@ -105,3 +105,8 @@ def test_transport_oracle_from_the_command_line(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["run", str(config), "--oracle", "exact"])
     assert "invalid choice: 'exact'" in capsys.readouterr().err
+    # The footprint of calibration's model is the user's choice, and the report says which was used.
+    assert main(["run", str(config), "--oracle", "--footprint", "bilinear", "--out", str(tmp_path / "bilinear")]) == 0
+    report = json.loads((tmp_path / "bilinear" / "report.json").read_text())
+    assert report["footprint"] == "bilinear" and report["calibration"].startswith("oracle (the simulator's exact geo")
+    assert "footprint: bilinear" in (tmp_path / "bilinear" / "report.md").read_text()

@@ -154,3 +154,21 @@ def test_with_rhs_equals_a_fresh_build():
     assert torch.allclose(ne.q, ref.q) and torch.allclose(ne.c, ref.c)
     assert ne.Q is op.normal_equations().jacobi().Q  # shared, not rebuilt
     assert torch.equal(op.rhs, build_transport(cals, targets(channels=3), merge=False, scale=0.7).double().rhs)
+
+
+@pytest.mark.parametrize("footprint", ["nearest", "bilinear"])
+def test_prediction_is_the_operators_product(footprint):
+    """``StateCalibration.predict`` (what ``solve`` reports from a bundle) is black plus ``A p`` on
+    every row of the operator built with the same footprint."""
+    cals, tgts = synthetic_calibration(), targets(channels=3)
+    op = build_transport(cals, tgts, merge=False, footprint=footprint, scale=1.0)
+    p = torch.rand(op.shape[1], 3, generator=torch.Generator().manual_seed(3))
+    light = op.to_images(p)
+    for k, t in enumerate(tgts):
+        black = torch.rand(3, *cals[t.state].lit().shape, generator=torch.Generator().manual_seed(k))
+        view = cals[t.state].predict(light, black, footprint).reshape(3, -1)
+        mine = op.row_target == k
+        torch.testing.assert_close(view[:, op.row_pixel[mine]].T, black.reshape(3, -1)[:, op.row_pixel[mine]].T
+                                   + op.A(p)[mine], rtol=1e-5, atol=1e-6)
+    with pytest.raises(InputError, match="footprint must be one of"):
+        cals["near"].predict(light, black, "box")

@@ -23,8 +23,8 @@ from .targets import target_image
 
 __all__ = ["BundleSolution", "solve_bundle"]
 
-PREDICTED = ("black capture plus each projector's weight times the light of the decoded cell (the calibration's own "
-             "model; project the patterns and capture to measure)")
+PREDICTED = ("black capture plus each projector's weight times the light of the cells of the decoded coordinate's "
+             "footprint (the calibration's own model; project the patterns and capture to measure)")
 
 
 @dataclass
@@ -66,7 +66,7 @@ def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
 
 
 def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
-                 objective="l2", maps: str = "decoded",
+                 objective="l2", maps: str = "decoded", footprint: str = "nearest",
                  plane_tolerance: float = 1.0, max_iter: int = 300, device="cpu", progress=None) -> BundleSolution:
     """Solve the patterns that show each image in its state, from a bench's calibration.
 
@@ -74,7 +74,7 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
         bundle: a :class:`~torchproj.calib.CalibrationBundle` or its folder (``torchproj calibrate``).
         targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
             scikit-image test-image name per state.
-        solver, bounds_8bit, objective, maps, plane_tolerance, max_iter,
+        solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
         device: as :func:`~torchproj.pipeline.run_virtual`.
     """
     t0 = time.perf_counter()
@@ -85,12 +85,12 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
     states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
-    op = build_transport(states, wanted, merge=image is None, device=device)
+    op = build_transport(states, wanted, merge=image is None, footprint=footprint, device=device)
     result, light, patterns = make_patterns(op, solver, (lo, hi), bundle.response_curves(), calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image)
     rows, predicted = [], {}
     for t in wanted:
-        view = states[t.state].predict(light, bundle.black[t.state])
+        view = states[t.state].predict(light, bundle.black[t.state], footprint)
         predicted[t.name] = view
         values, covered = target_on_camera(t, states[t.state].lit())
         scores = score_image(((view - bundle.black[t.state]) / op.scale).clamp(0, 1), values, covered)
@@ -100,7 +100,7 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
               "model": op.size_report(), "objective": result.info.get("l2_objective", result.objective),
               "iterations": result.iterations, "scale": op.scale,
               "timings_s": {"total": round(time.perf_counter() - t0, 3), "solve": round(result.time_s, 3)},
-              "predicted": PREDICTED, "targets": rows, "maps": maps,
+              "predicted": PREDICTED, "targets": rows, "maps": maps, "footprint": footprint,
               "graycode_bits": {name: list(b) for (name, _, _), b in zip(bundle.projectors, bundle.bits)}}
     if image is not None:
         report["image_objective"] = image_objective_report(result)

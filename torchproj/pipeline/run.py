@@ -68,7 +68,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
                 oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
-                objective="l2", ceiling: bool = False) -> RunResult:
+                objective="l2", footprint: str = "nearest", ceiling: bool = False) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -102,6 +102,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             predicted images with a small or a larger weight on their squared error, each target
             within 1 dB of least squares), or an :class:`~torchproj.solve.ImageObjective`; the
             image objectives start from the solver's patterns (:func:`~torchproj.solve.solve_ssim`).
+        footprint: the projector cells each camera pixel's light is modelled on: ``"nearest"``
+            (one per projector, as the paper) or ``"bilinear"`` (the four around its sub-pixel
+            coordinate; :func:`~torchproj.transport.build_transport`).
         ceiling: also solve the same targets, rows and bounds on the simulator's own light transport
             (FISTA, least squares, to convergence) and score it the same way: each report row gets
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
@@ -133,7 +136,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A); merged otherwise (exact, smaller).
-    op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact, device=device)
+    op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact,
+                         footprint=footprint, device=device)
     if exact:
         ops = light_transport(cal.rig, targets, op)
         op = ops[0]
@@ -146,7 +150,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     elif gain_offset is not None:
         model = op.size_report()
         result, op, patterns = _solve_gain_offset(op, states, targets, (lo, hi), gain_offset, cal.responses,
-                                                  max_iter, progress, device)
+                                                  max_iter, progress, device, footprint)
     else:
         result, _, patterns = make_patterns(op, solver, (lo, hi), cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image)
@@ -159,12 +163,13 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     timings["evaluate"] = time.perf_counter() - t0
     if ceiling:
         t0 = time.perf_counter()
-        for row, score in zip(rows, _ceiling(cal, states, targets, (lo, hi), progress, device)):
+        for row, score in zip(rows, _ceiling(cal, states, targets, (lo, hi), footprint, progress, device)):
             row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
         timings["ceiling"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, model, ops if exact else [op], result,
                      timings, rows, gain_offset, oracle)
+    report["footprint"] = footprint
     if fits is not None:
         report["homographies"] = fits
     return RunResult(report=report, patterns=patterns, captures=evaluation.captures, targets=scores, solution=result,
@@ -187,19 +192,19 @@ def _target_rows(scene, scores: list[TargetScore], gain_offset: dict | None):
     return scores, rows
 
 
-def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_iter, progress, device):
+def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_iter, progress, device, footprint):
     """FISTA with one gain and offset per target: the result, the operator it solved, the 8-bit patterns."""
     flat = build_transport(states, [dataclasses.replace(t, image=torch.ones_like(t.image)) for t in targets],
-                           merge=False, scale=op.scale, device=device)
+                           merge=False, scale=op.scale, footprint=footprint, device=device)
     result = solve_gain_offset(op, flat.rhs, bounds, gain=gain_offset[0], offset=gain_offset[1], max_iter=max_iter,
                                progress=progress)
     op = result.info.pop("operator")
     return result, op, projectable_patterns(op, result.patterns, bounds, responses)[1]
 
 
-def _ceiling(cal, states, targets, bounds, progress, device) -> list[TargetScore]:
+def _ceiling(cal, states, targets, bounds, footprint, progress, device) -> list[TargetScore]:
     """The targets' scores when solved on the simulator's own light transport, on the same rows."""
-    rows = build_transport(states, targets, merge=False, device=device)
+    rows = build_transport(states, targets, merge=False, footprint=footprint, device=device)
     _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds, cal.responses,
                                               max_iter=CEILING_ITERATIONS, progress=progress)
     return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states).targets
@@ -276,10 +281,11 @@ def run_markdown(report: dict) -> str:
     """``report.md`` of a run: what ``report.json`` holds, as tables."""
     m, t = report["model"], report["timings_s"]
     adjusted = "gain_offset_limits" in report
+    footprint = report.get("footprint", "nearest")
     ceiling = all("ceiling" in r for r in report["targets"]) and bool(report["targets"])
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}", "",
-             f"Calibration: {report['calibration']}; maps: {report['maps']}"
+             f"Calibration: {report['calibration']}; maps: {report['maps']}; footprint: {footprint}"
              + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
                  f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"
                  for name, g in report["graycode"].items())) + ".", "",

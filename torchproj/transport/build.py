@@ -25,7 +25,9 @@ from ..core.checks import check, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
 from .operator import TransportOperator, csr_from_coo
 
-__all__ = ["Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows"]
+__all__ = ["FOOTPRINTS", "Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows"]
+
+FOOTPRINTS = ("nearest", "bilinear")  # the cells a camera pixel's light is modelled on (build_transport)
 
 
 @dataclass
@@ -76,26 +78,26 @@ class StateCalibration:
         return {name: cls([m["prj_xy"] for m in maps], [m["contrast"].clamp_min(0) for m in maps], sizes)
                 for name, maps in bundle.states.items()}
 
-    def predict(self, light: list[torch.Tensor], black: torch.Tensor) -> torch.Tensor:
+    def predict(self, light: list[torch.Tensor], black: torch.Tensor, footprint: str = "nearest") -> torch.Tensor:
         """What the camera should see when the projectors emit ``light``, by this calibration's model.
 
         Args:
             light: per projector, :math:`(C, H_j, W_j)` linear relative light (0 = black, 1 = white).
             black: :math:`(C, H, W)` the state's all-black capture.
+            footprint: the cells each pixel sees, as in :func:`build_transport`.
 
         Returns:
-            :math:`(C, H, W)`: black plus, per projector, its weight times the light of the cell each
-            pixel decoded to (the nearest footprint of :func:`build_transport`).
+            :math:`(C, H, W)`: black plus, per projector, its weight times the light of the cell(s)
+            each pixel decoded to.
         """
+        check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
         out = black.float().clone()
         for j, (xy, weight, img) in enumerate(zip(self.prj_xy, self.weight, light)):
             w, h = self.projector_sizes[j]
             check_shape(img, f"light[{j}]", ["C", h, w])
-            ok = torch.isfinite(xy).all(-1)
-            cell = round_to_pixel(torch.nan_to_num(xy, nan=-10.0))
-            ok &= (cell[..., 0] >= 0) & (cell[..., 0] < w) & (cell[..., 1] >= 0) & (cell[..., 1] < h)
-            flat = img.reshape(img.shape[0], -1)[:, (cell[..., 1] * w + cell[..., 0]).clamp(0, w * h - 1)]
-            out += torch.where(ok, weight, 0.0) * flat
+            cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint == "bilinear")
+            flat = img.reshape(img.shape[0], -1)[:, cells.clamp_min(0)]  # (C, N, s); unused slots weigh 0
+            out += (flat * weights).sum(-1).reshape(out.shape)
         return out
 
     def lit(self) -> torch.Tensor:
@@ -249,7 +251,7 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     Returns:
         a :class:`TransportOperator` with ``rhs`` = scale * targets.
     """
-    check(footprint in ("nearest", "bilinear"), f"footprint must be 'nearest' or 'bilinear', got {footprint!r}")
+    check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
     check(len(targets) >= 1, "targets must hold at least one Target")
     channels = {t.image.shape[0] for t in targets}
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
