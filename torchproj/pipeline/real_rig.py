@@ -85,7 +85,9 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
     states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
-    op = build_transport(states, wanted, merge=image is None, footprint=footprint, device=device)
+    # Bilinear rows almost never repeat: merging them costs time and saves nothing (run_virtual).
+    op = build_transport(states, wanted, merge=image is None and footprint == "nearest", footprint=footprint,
+                         device=device)
     result, light, patterns = make_patterns(op, solver, (lo, hi), bundle.response_curves(), calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image)
     rows, predicted = [], {}

@@ -135,9 +135,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
 
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
-    # per-target g t + o is an exact right-hand side of the same A); merged otherwise (exact, smaller).
-    op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact,
-                         footprint=footprint, device=device)
+    # per-target g t + o is an exact right-hand side of the same A), and with the bilinear footprint,
+    # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
+    # merged otherwise (exact, smaller).
+    op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact
+                         and footprint == "nearest", footprint=footprint, device=device)
     if exact:
         ops = light_transport(cal.rig, targets, op)
         op = ops[0]

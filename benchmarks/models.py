@@ -1,0 +1,105 @@
+"""Transport models against the exact-light ceiling: captured quality, model size and time.
+
+    python benchmarks/models.py --out benchmarks/results/models [--scenes paper_two_planes box_cylinders ...]
+
+Each scene is calibrated once from simulated captures. For each model of a camera pixel's light
+(the nearest cell, as the paper; the four cells around its sub-pixel coordinate, ``bilinear``) the
+operator is built on that calibration, solved with FISTA (least squares, bounds 0..255) and the
+patterns scored on the virtual rig's captures as ``torchproj run`` scores them. The top line is the
+ceiling: the same rows solved on the simulator's own light transport
+(:func:`torchproj.pipeline.light_transport`), the best any calibration could give. Times are this
+machine's, on its CPU threads; ``build`` includes merging rows where the run merges them.
+
+Writes ``results.json``, ``results.md`` and ``models.png`` (captured PSNR and SSIM per target
+against build + solve time, one panel per scene).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from common import machine, write_results
+from matplotlib.figure import Figure
+
+from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
+                                scene_targets, solve_on_light_transport)
+from torchproj.scene import load_scene
+from torchproj.solve import make_patterns
+from torchproj.transport import build_transport
+
+BOUNDS = (0.0, 1.0)
+
+
+def measure(name: str, scale: float, log=print) -> list[dict]:
+    scene = load_scene(name, scale=scale)
+    cal = calibrate_virtual(scene, progress=False)
+    targets = scene_targets(scene, None, cal.rig)
+    rows = []
+    for model in ("nearest", "bilinear", "ceiling"):
+        t0 = time.perf_counter()
+        op = build_transport(cal.states, targets, footprint="nearest" if model == "ceiling" else model,
+                             merge=model == "nearest")  # as run_virtual: bilinear rows do not repeat
+        ops = light_transport(cal.rig, targets, op) if model == "ceiling" else [op]
+        built = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if model == "ceiling":
+            result, _, patterns = solve_on_light_transport(ops, BOUNDS, cal.responses, max_iter=CEILING_ITERATIONS)
+        else:
+            result, _, patterns = make_patterns(op, "fista", BOUNDS, cal.responses, progress=False)
+        solved = time.perf_counter() - t0
+        scores = evaluate_patterns(cal, patterns, targets, scale=op.scale).targets
+        row = {"scene": name, "model": model, "variables": ops[0].shape[1], "rows": ops[0].shape[0],
+               "nnz": sum(o.nnz for o in ops), "build_s": round(built, 3), "solve_s": round(solved, 3),
+               "iterations": result.iterations, "converged": result.converged,
+               "targets": [{"name": s.name, "psnr_db": round(s.psnr_db, 3), "ssim": round(s.ssim, 4),
+                            "crosstalk": round(s.crosstalk, 4)} for s in scores]}
+        log(f"{name} {model}: build {built:.2f} s, solve {solved:.2f} s, "
+            + ", ".join(f"{t['name']} {t['psnr_db']:.2f} dB / {t['ssim']:.3f}" for t in row["targets"]))
+        rows.append(row)
+    return rows
+
+
+def markdown(rows: list[dict], scale: float) -> str:
+    lines = [f"# Transport models against the exact-light ceiling (scale {scale:g}, {machine()})", "",
+             "| scene | model | variables | rows | nnz | build (s) | solve (s) | per target: PSNR (dB) / SSIM / "
+             "crosstalk |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['model']} | {r['variables']} | {r['rows']} | {r['nnz']} | {r['build_s']:.2f} "
+                     f"| {r['solve_s']:.2f} | " + "; ".join(f"{t['name']} {t['psnr_db']:.2f} / {t['ssim']:.3f} / "
+                                                           f"{t['crosstalk']:.3f}" for t in r["targets"]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def chart(path: Path, rows: list[dict]) -> None:
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    fig = Figure(figsize=(5 * len(scenes), 4), layout="constrained")
+    for i, scene in enumerate(scenes):
+        ax = fig.add_subplot(1, len(scenes), i + 1)
+        mine = [r for r in rows if r["scene"] == scene]
+        for k, name in enumerate(t["name"] for t in mine[0]["targets"]):
+            xs = [r["build_s"] + r["solve_s"] for r in mine]
+            ax.plot(xs, [r["targets"][k]["ssim"] for r in mine], "o-", label=f"{name}: SSIM")
+            for x, r in zip(xs, mine):
+                ax.annotate(r["model"], (x, r["targets"][k]["ssim"]), fontsize=7)
+        ax.set(title=scene, xlabel="build + solve (s)", ylabel="captured SSIM")
+        ax.legend(fontsize=7)
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/models"))
+    ap.add_argument("--scenes", nargs="+", default=["paper_two_planes"])
+    ap.add_argument("--scale", type=float, default=1.0, help="resolution scale of every scene (default 1)")
+    args = ap.parse_args()
+    rows = [r for name in args.scenes for r in measure(name, args.scale)]
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_results(args.out, {"machine": machine(), "scale": args.scale, "rows": rows}, markdown(rows, args.scale))
+    chart(args.out / "models.png", rows)
+    print(f"wrote {args.out}/results.json, results.md, models.png")
+
+
+if __name__ == "__main__":
+    main()
