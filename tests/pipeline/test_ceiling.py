@@ -10,6 +10,7 @@ from torchproj.cli import main
 from torchproj.core import InputError
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, light_transport, run_markdown, run_virtual,
                                 scene_targets, solve_on_light_transport)
+from torchproj.scene import parse_scene
 from torchproj.solve import solve_patterns
 from torchproj.transport import build_transport
 
@@ -17,20 +18,25 @@ from ..helpers import small_config, small_scene
 
 
 def _exact(name):
-    scene = small_scene(name, camera=(200, 150), projector=(128, 96))
+    if name == "grey_and_colour":  # one state's surface coloured, the other's grey
+        config = small_config("colour_two_planes", camera=(200, 150), projector=(128, 96))
+        config["surfaces"]["far_plane"]["albedo"] = 0.8
+        scene = parse_scene(config, name=name)
+    else:
+        scene = small_scene(name, camera=(200, 150), projector=(128, 96))
     cal = calibrate_virtual(scene, oracle=True)
     targets = scene_targets(scene, None, cal.rig)
     rows = build_transport(cal.states, targets, merge=False)
     return scene, cal, targets, rows, light_transport(cal.rig, targets, rows)
 
 
-@pytest.mark.parametrize("name", ["paper_two_planes", "colour_two_planes", "two_screens"])
+@pytest.mark.parametrize("name", ["paper_two_planes", "colour_two_planes", "grey_and_colour", "two_screens"])
 def test_prediction_is_the_noise_free_capture(name):
     """``A l`` equals what the simulator captures (noise-free, unquantised) minus its black capture, for
     any light, every row, every channel: grey surfaces share one operator, coloured ones get one per
     channel; a semi-transparent screen's light passes through to the surface behind."""
     scene, cal, targets, rows, ops = _exact(name)
-    assert len(ops) == (3 if name == "colour_two_planes" else 1)
+    assert len(ops) == (3 if "colour" in name else 1)
     light = torch.rand(ops[0].shape[1], 1, generator=torch.Generator().manual_seed(0)) * 0.6
     images = ops[0].to_images(light)
     for k, target in enumerate(targets):

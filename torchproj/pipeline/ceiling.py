@@ -63,7 +63,13 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
     device = rows.rhs.device
     sizes = [(p.width, p.height) for p in scene.projectors]
     offsets = torch.tensor([0] + [w * h for w, h in sizes], device=device).cumsum(0)
-    entries = []  # per albedo channel: (row, global column, value) pieces
+    # A state of grey surfaces holds one matrix per projector, one with a coloured surface three;
+    # where any target's state has three, every state's rows are given per channel.
+    n_albedo = max(len(rig.geometry(t.state).transport[0]) for t in targets)
+    check(n_albedo == 1 or rows.rhs.shape[1] == n_albedo,
+          f"the surfaces' albedo differs per colour channel, so the exact light needs {n_albedo}-channel targets; "
+          f"got {rows.rhs.shape[1]}")
+    entries = [[] for _ in range(n_albedo)]  # per albedo channel: (row, global column, value) pieces
     for k, target in enumerate(targets):
         which = torch.nonzero(rows.row_target == k)[:, 0]
         pixels = rows.row_pixel[which].to(rig.device)
@@ -74,10 +80,8 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
             on, off = (rig.emitted(j, torch.full((1, 1, proj.height, proj.width), v, device=rig.device))[0, 0]
                        for v in (1.0, 0.0))
             unit = scene.camera.exposure * (on - off)
-            for channel, matrix in enumerate(geo.transport[j]):
-                r, c, v = _gather_rows(matrix, pixels)
-                while len(entries) <= channel:
-                    entries.append([])
+            for channel in range(n_albedo):
+                r, c, v = _gather_rows(geo.transport[j][min(channel, len(geo.transport[j]) - 1)], pixels)
                 entries[channel].append((which[r.to(device)], (c + offsets[j]).to(device), (v * unit[c]).to(device)))
     parts = [[torch.cat(piece) for piece in zip(*channel)] for channel in entries]
     used = torch.unique(parts[0][1])
