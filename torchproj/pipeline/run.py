@@ -18,8 +18,8 @@ from ..core.checks import check
 from ..scene.config import Scene
 from ..solve import SOLVERS, SolveResult, image_objective, make_patterns, projectable_patterns, solve_gain_offset
 from ..transport import MAPS, build_transport, select_maps
-from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .ceiling import light_transport, solve_on_light_transport
+from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
 from .virtual import VirtualCalibration, calibrate_virtual
 
@@ -84,8 +84,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         oracle: ``"geometry"`` (or True): build the operator from the simulator's exact geometry
             instead of calibration, with calibration's footprint model (what the maps cost);
             ``"transport"``: solve on the simulator's own light transport (:mod:`.ceiling`: what the
-            whole model costs, the best any calibration can reach). The geometry oracle's own
-            calibration is then ignored when ``calibration`` is given.
+            whole model costs, the best any calibration can reach). With ``calibration`` given,
+            ``"geometry"`` is ignored (that calibration's own mode counts) and ``"transport"``
+            solves on the exact light at that calibration's rows.
         gain_offset: ``((gain_lo, gain_hi), (offset_lo, offset_hi))`` to optimise one gain and offset
             per target with FISTA (:func:`~torchproj.solve.solve_gain_offset`); None asks for the
             images as they are. Metrics then compare with the adjusted image ``g t + o``, and the
