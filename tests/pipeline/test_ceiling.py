@@ -116,3 +116,15 @@ def test_oracles_and_footprint_from_the_command_line(tmp_path, capsys):
     report = json.loads((tmp_path / "bilinear" / "report.json").read_text())
     assert report["footprint"] == "bilinear" and report["calibration"].startswith("oracle (the simulator's exact geo")
     assert "footprint: bilinear" in (tmp_path / "bilinear" / "report.md").read_text()
+
+
+def test_a_bending_camera_is_refused_before_calibrating(tmp_path, capsys):
+    config = small_config(camera=(200, 150), projector=(128, 96))
+    config["camera"]["gamma"] = 2.2
+    path = tmp_path / "gamma.yaml"
+    path.write_text(yaml.safe_dump(dict(config, name="gamma")))
+    for option in (["--ceiling"], ["--oracle", "transport"]):
+        assert main(["run", str(path), *option, "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert "linear in the camera's values only with gamma 1" in err and "calibrat" not in err
+        assert not (tmp_path / "out").exists()

@@ -25,7 +25,13 @@ import torch
 from ..core.checks import check
 from ..transport import Target, TransportOperator, csr_from_coo
 
-__all__ = ["light_transport", "solve_on_light_transport"]
+__all__ = ["check_linear_camera", "light_transport", "solve_on_light_transport"]
+
+
+def check_linear_camera(scene) -> None:
+    """Refuse a scene whose camera bends its values (``gamma`` != 1): no linear operator is exact there."""
+    check(scene.camera.gamma == 1.0, f"the exact light transport is linear in the camera's values only with gamma 1; "
+                                     f"scene {scene.name!r} has camera.gamma {scene.camera.gamma:g}")
 
 
 def _gather_rows(matrix: torch.Tensor, pixels: torch.Tensor):
@@ -56,8 +62,7 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
     scene = rig.scene
     check(rows.row_pixel is not None, "the exact light transport needs an operator whose rows are camera pixels: "
                                       "build it with merge=False")
-    check(scene.camera.gamma == 1.0, f"the exact light transport is linear in the camera's values only with gamma 1; "
-                                     f"scene {scene.name!r} has camera.gamma {scene.camera.gamma:g}")
+    check_linear_camera(scene)
     check(len(targets) == rows.target_count, f"give the {rows.target_count} targets the operator was built for, "
                                              f"got {len(targets)}")
     device = rows.rhs.device

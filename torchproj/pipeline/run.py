@@ -18,7 +18,7 @@ from ..core.checks import check
 from ..scene.config import Scene
 from ..solve import SOLVERS, SolveResult, image_objective, make_patterns, projectable_patterns, solve_gain_offset
 from ..transport import MAPS, build_transport, select_maps
-from .ceiling import light_transport, solve_on_light_transport
+from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
 from .virtual import VirtualCalibration, calibrate_virtual
@@ -114,9 +114,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
     exact = oracle == "transport"
-    check(not exact or (gain_offset is None and solver != "eo"),
-          "the transport oracle solves the targets as they are, with a solver that needs no epipolar chains: drop "
-          "--gain/--offset, and use a solver other than eo")
+    check(not exact or gain_offset is None, "the transport oracle solves the targets as they are: drop --gain/--offset")
+    check(not exact or solver != "eo", "the exact light transport has no epipolar chains for eo to walk: use a "
+                                       "solver other than eo with --oracle transport")
+    if exact or ceiling:  # before calibrating, not after
+        check_linear_camera(scene)
     image = image_objective(objective)
     check(gain_offset is None or (solver == "fista" and image is None),
           "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
