@@ -110,22 +110,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             (FISTA, least squares, to convergence) and score it the same way: each report row gets
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
     """
-    check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
-    oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
-    check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
-    exact = oracle == "transport"
-    check(not exact or gain_offset is None, "the transport oracle solves the targets as they are: drop --gain/--offset")
-    check(not exact or solver != "eo", "the exact light transport has no epipolar chains for eo to walk: use a "
-                                       "solver other than eo with --oracle transport")
-    if exact or ceiling:  # before calibrating, not after
-        check_linear_camera(scene)
+    oracle = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling)
     image = image_objective(objective)
-    check(gain_offset is None or (solver == "fista" and image is None),
-          "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
-          "gain/offset option")
-    lo, hi = (float(b) / 255 for b in bounds_8bit)
-    check(lo < hi, f"bounds must satisfy LO < HI, got {bounds_8bit}")
-    check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
+    bounds = tuple(float(b) / 255 for b in bounds_8bit)
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
@@ -136,6 +123,60 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         timings["homography"] = time.perf_counter() - t0
     targets = scene_targets(scene, images, cal.rig)
 
+    solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=oracle == "transport",
+                              gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
+                              device=device, timings=timings)
+    t0 = time.perf_counter()
+    evaluation = evaluate_patterns(cal, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
+    scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
+    timings["evaluate"] = time.perf_counter() - t0
+    if ceiling:
+        t0 = time.perf_counter()
+        for row, score in zip(rows, _ceiling(cal, states, targets, bounds, footprint, progress, device)):
+            row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
+        timings["ceiling"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_total
+    report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
+    report["footprint"] = footprint
+    if fits is not None:
+        report["homographies"] = fits
+    return RunResult(report=report, patterns=solved.patterns, captures=evaluation.captures, targets=scores,
+                     solution=solved.result, scene=scene)
+
+
+def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling) -> str | None:
+    """:func:`run_virtual`'s options checked together, before any work; returns the oracle's name or None."""
+    check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
+    check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
+    exact = oracle == "transport"
+    check(not exact or gain_offset is None, "the transport oracle solves the targets as they are: drop --gain/--offset")
+    check(not exact or solver != "eo", "the exact light transport has no epipolar chains for eo to walk: use a "
+                                       "solver other than eo with --oracle transport")
+    if exact or ceiling:  # before calibrating, not after
+        check_linear_camera(scene)
+    check(gain_offset is None or (solver == "fista" and image_objective(objective) is None),
+          "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
+          "gain/offset option")
+    lo, hi = (float(b) / 255 for b in bounds_8bit)
+    check(lo < hi, f"bounds must satisfy LO < HI, got {bounds_8bit}")
+    check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
+    return oracle
+
+
+@dataclass
+class _Solved:
+    """What :func:`_build_and_solve` gives the rest of a run."""
+
+    result: SolveResult
+    ops: list  # the operator(s) the patterns were solved on: one, or one per colour channel (exact light)
+    patterns: list[torch.Tensor]  # per projector, 8-bit
+    model: dict  # the size report of the operator solved (before gain/offset's extra variables)
+
+
+def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
+                     progress, device, timings) -> _Solved:
+    """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A), and with the bilinear footprint,
@@ -143,42 +184,22 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     # merged otherwise (exact, smaller).
     op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact
                          and footprint == "nearest", footprint=footprint, device=device)
-    if exact:
-        ops = light_transport(cal.rig, targets, op)
-        op = ops[0]
+    ops = light_transport(cal.rig, targets, op) if exact else [op]
+    model = ops[0].size_report()
     timings["transport"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if exact:
-        model = op.size_report()
-        result, _, patterns = solve_on_light_transport(ops, (lo, hi), cal.responses, solver=solver, max_iter=max_iter,
+        result, _, patterns = solve_on_light_transport(ops, bounds, cal.responses, solver=solver, max_iter=max_iter,
                                                        progress=progress, objective=image)
     elif gain_offset is not None:
-        model = op.size_report()
-        result, op, patterns = _solve_gain_offset(op, states, targets, (lo, hi), gain_offset, cal.responses,
+        result, op, patterns = _solve_gain_offset(op, states, targets, bounds, gain_offset, cal.responses,
                                                   max_iter, progress, device, footprint)
+        ops = [op]
     else:
-        result, _, patterns = make_patterns(op, solver, (lo, hi), cal.responses, calibrations=states,
+        result, _, patterns = make_patterns(op, solver, bounds, cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image)
-        model = op.size_report()
     timings["solve"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    evaluation = evaluate_patterns(cal, patterns, targets, scale=op.scale, states=states)
-    scores, rows = _target_rows(scene, evaluation.targets, result.info if gain_offset is not None else None)
-    timings["evaluate"] = time.perf_counter() - t0
-    if ceiling:
-        t0 = time.perf_counter()
-        for row, score in zip(rows, _ceiling(cal, states, targets, (lo, hi), footprint, progress, device)):
-            row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
-        timings["ceiling"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_total
-    report = _report(scene, cal, solver, image, bounds_8bit, device, maps, model, ops if exact else [op], result,
-                     timings, rows, gain_offset, oracle)
-    report["footprint"] = footprint
-    if fits is not None:
-        report["homographies"] = fits
-    return RunResult(report=report, patterns=patterns, captures=evaluation.captures, targets=scores, solution=result,
-                     scene=scene)
+    return _Solved(result, ops, patterns, model)
 
 
 def _target_rows(scene, scores: list[TargetScore], gain_offset: dict | None):
@@ -227,9 +248,10 @@ _CALIBRATION = {None: "Gray code on the virtual rig", "geometry": "oracle (the s
                 "transport": "oracle (the simulator's own light transport)"}
 
 
-def _report(scene, cal, solver, image, bounds_8bit, device, maps, model, ops, result, timings, rows,
+def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solved, timings, rows,
             gain_offset, oracle) -> dict:
     """What ``report.json`` holds (``objective`` is always the least-squares value of the patterns)."""
+    result, ops, model = solved.result, solved.ops, solved.model
     least_squares = result.info["l2_objective"] if image is not None else result.objective
     op = ops[0]
     report = {
