@@ -4,60 +4,18 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import sys
 import time
 import warnings
 from pathlib import Path
 
 from . import __version__
+from .cli_options import (BITS_HELP, command, config_option, decoding_options, device_options, existing_file,
+                          join_negative_pairs, limits, map_options, projector_size, projector_sizes, solve_options)
 from .core.errors import TorchprojError
 from .core.output import atomic_output, write_json
 
 __all__ = ["main", "build_parser"]
-
-
-# ------------------------------------------------------------------------------ argument types
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w <= 0 or h <= 0:
-            raise ValueError
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 1024x768, got {text!r}") from None
-    return w, h
-
-
-def _pair(text: str, example: str, strict: bool) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LO,HI such as {example}, got {text!r}") from None
-    if not (lo < hi if strict else lo <= hi):
-        raise argparse.ArgumentTypeError(f"need LO {'<' if strict else '<='} HI, got {text!r}")
-    return lo, hi
-
-
-def _bounds(text: str) -> tuple[float, float]:
-    return _pair(text, "0,255 or -100,255 (8-bit units)", strict=True)
-
-
-def _limits(text: str) -> tuple[float, float]:
-    return _pair(text, "0.5,1.5", strict=False)
-
-
-def _existing_file(text: str) -> Path:
-    if not Path(text).is_file():
-        raise argparse.ArgumentTypeError(f"{text}: no such file")
-    return Path(text)
-
-
-def _projector_sizes(values: list[str] | None) -> dict[str, tuple[int, int]] | None:
-    sizes = {}
-    for v in values or []:
-        name, _, size = v.rpartition("=")
-        sizes[name or "*"] = _size(size)
-    return sizes or None
 
 
 def _publish(out, write, files: str) -> None:
@@ -160,7 +118,7 @@ def cmd_calibrate(args) -> int:
     from .figures import calibration_summary
 
     t0 = time.perf_counter()
-    bundle = calibrate_folders(args.capture_root, _projector_sizes(args.projector), states=args.states,
+    bundle = calibrate_folders(args.capture_root, projector_sizes(args.projector), states=args.states,
                                white_threshold=args.white_threshold, black_threshold=args.black_threshold,
                                max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
     with atomic_output(args.out) as stage:
@@ -198,115 +156,52 @@ def cmd_decode(args) -> int:
     return 0
 
 
-# ------------------------------------------------------------------------ shared options
-_BITS_HELP = ("show only the first K Gray-code pattern pairs per axis (at least 2): 4K + 4 images per projector "
-              "and state with white, black and the two ramps, instead of 44 for a 1024x768 projector")
-
-
-def _command(sub, name: str, func, help: str, out: str | None = None, out_help: str = "output folder"):
-    """A subcommand that runs ``func``, with its ``--out`` folder (required where ``out`` is None)."""
-    p = sub.add_parser(name, help=help)
-    p.set_defaults(func=func)
-    if out != "":
-        p.add_argument("--out", type=Path, default=out, required=out is None,
-                       help=out_help + (f" (default: {out})" if out else ""))
-    return p
-
-
-def _config_option(p, default: str = "paper_two_planes") -> None:
-    p.add_argument("config", nargs="?", help=f"YAML file or built-in name (default: {default})")
-
-
-def _device_options(p, max_iter: bool = True) -> None:
-    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
-    if max_iter:
-        p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
-
-
-def _solve_options(p) -> None:
-    """The options of every command that solves patterns (``run``, ``solve``)."""
-    from .solve import OBJECTIVES, PSNR_DROP_DB, SOLVERS
-    from .transport import FOOTPRINTS
-
-    p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
-    p.add_argument("--bounds", type=_bounds, default=(0.0, 255.0), metavar="LO,HI",
-                   help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
-    p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
-                   help="l2: least squares (default); ssim or mixed: SSIM of the predicted camera images with a small "
-                        "or larger weight on their squared error, started from the solver's patterns")
-    p.add_argument("--l2-weight", type=float, metavar="W", help="ssim/mixed: the squared error's weight relative to "
-                   f"the start's (defaults: ssim {OBJECTIVES['ssim']:g}, mixed {OBJECTIVES['mixed']:g})")
-    p.add_argument("--psnr-drop", type=float, default=PSNR_DROP_DB, metavar="DB", help="ssim/mixed: the PSNR each "
-                   f"target may give up against least squares, in the model (default {PSNR_DROP_DB:g}; -1: no limit)")
-    p.add_argument("--ssim-iter", type=int, default=30, metavar="N", help="ssim/mixed: iterations (default 30)")
-    p.add_argument("--footprint", default="nearest", choices=list(FOOTPRINTS), help="the projector cells a camera "
-                   "pixel's light is modelled on: nearest (one per projector, as the paper; default) or bilinear")
-    _device_options(p)
-
-
-def _map_options(p, maps: bool = True, bits: str | None = None) -> None:
-    if maps:
-        p.add_argument("--maps", default="decoded", choices=["decoded", "homography"],
-                       help="camera-to-projector maps: decoded per pixel (default), or one homography per state and "
-                            "projector fitted to them (scenes where each state is one plane)")
-    if bits is not None:
-        p.add_argument("--bits", type=int, metavar="K", help=bits)
-    p.add_argument("--plane-tolerance", type=float, default=1.0, metavar="PX",
-                   help="with --maps homography or --bits: the largest 95th-percentile residual (projector pixels) "
-                        "between decoded and fitted coordinates that counts as a plane (default 1)")
-
-
-def _decoding_options(p) -> None:
-    """Thresholds and hole filling of ``calibrate`` and ``decode`` (OpenCV's defaults)."""
-    p.add_argument("--white-threshold", type=float, default=5, help="8-bit units (OpenCV default 5)")
-    p.add_argument("--black-threshold", type=float, default=40, help="8-bit units (OpenCV default 40)")
-    p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
-
-
 # ------------------------------------------------------------------------------------ parser
 def _virtual_rig_commands(sub) -> None:
-    p = _command(sub, "scene", cmd_scene, "check a scene config and print what it describes", out="")
-    _config_option(p)
+    p = command(sub, "scene", cmd_scene, "check a scene config and print what it describes", out="")
+    config_option(p)
 
-    p = _command(sub, "run", cmd_run, "the main job on the virtual rig: calibrate, solve, project, capture, "
+    from .pipeline import ORACLES
+
+    p = command(sub, "run", cmd_run, "the main job on the virtual rig: calibrate, solve, project, capture, "
                  "evaluate", out="out/run")
-    _config_option(p)
-    _solve_options(p)
-    p.add_argument("--oracle", nargs="?", const="geometry", choices=["geometry", "transport"],
+    config_option(p)
+    solve_options(p)
+    p.add_argument("--oracle", nargs="?", const="geometry", choices=list(ORACLES),
                    help="skip calibration: geometry (the default) takes the simulator's exact maps into calibration's "
                         "model; transport solves on the simulator's own light transport (the best any calibration "
                         "can reach)")
     p.add_argument("--ceiling", action="store_true", help="also score the transport oracle on the same targets and "
                    "rows, beside each target in the report")
-    p.add_argument("--gain", type=_limits, metavar="LO,HI", help="also optimise a gain per target (fista; e.g. 0.5,1.5)")
-    p.add_argument("--offset", type=_limits, metavar="LO,HI", help="... and an offset (fista; e.g. -0.2,0.2)")
-    _map_options(p, bits=_BITS_HELP + "; each capture is then read through one homography (planar scenes only)")
+    p.add_argument("--gain", type=limits, metavar="LO,HI", help="also optimise a gain per target (fista; e.g. 0.5,1.5)")
+    p.add_argument("--offset", type=limits, metavar="LO,HI", help="... and an offset (fista; e.g. -0.2,0.2)")
+    map_options(p, bits=BITS_HELP + "; each capture is then read through one homography (planar scenes only)")
 
-    p = _command(sub, "position", cmd_position, "the paper's positioning test on the virtual rig: place a box guided "
+    p = command(sub, "position", cmd_position, "the paper's positioning test on the virtual rig: place a box guided "
                  "only by the projected image, scan it, report the error", out="out/position")
-    _config_option(p, "box_positions")
+    config_option(p, "box_positions")
     p.add_argument("--trials", type=int, default=3, help="placements per position (default 3, as the paper's subjects)")
     p.add_argument("--spread-mm", type=float, default=20.0, help="a trial starts with each coordinate of the box "
                    "centre within this of the goal (default 20)")
     p.add_argument("--spread-deg", type=float, default=5.0, help="... turned by up to this (default 5)")
     p.add_argument("--seed", type=int, default=0, help="seeds the start poses and the camera noise (default 0)")
     p.add_argument("--max-evaluations", type=int, default=200, help="camera looks per placement (default 200)")
-    _device_options(p)
+    device_options(p)
 
-    p = _command(sub, "simulate", cmd_simulate, "calibrate every state and projector of a scene on the virtual rig, "
+    p = command(sub, "simulate", cmd_simulate, "calibrate every state and projector of a scene on the virtual rig, "
                  "and check the result against the simulator's truth", out="out/simulate")
-    _config_option(p)
-    _device_options(p, max_iter=False)
+    config_option(p)
+    device_options(p, max_iter=False)
     p.add_argument("--no-noise", action="store_true", help="capture without camera noise")
     p.add_argument("--write-captures", action="store_true",
                    help="also write each capture as a folder of PNGs (the layout of a real capture) and "
                         "calibrate from those files")
-    _map_options(p, maps=False, bits=_BITS_HELP + "; each capture is then read through one homography "
+    map_options(p, maps=False, bits=BITS_HELP + "; each capture is then read through one homography "
                                                   "(planar scenes only)")
 
 
 def _real_rig_commands(sub) -> None:
-    p = _command(sub, "placement-error", cmd_placement_error, "score a real placement: a scan of the placed object "
+    p = command(sub, "placement-error", cmd_placement_error, "score a real placement: a scan of the placed object "
                  "against a scan of it at the goal (both from torchproj decode --calibration)",
                  out="out/placement_error")
     p.add_argument("placed", type=Path, help="torchproj decode --calibration output of the placed object")
@@ -316,13 +211,13 @@ def _real_rig_commands(sub) -> None:
                    help="object-projector distance, in the calibration's units, for the percentage")
     p.add_argument("--mask", type=Path, help="camera-sized image, white on the object: score only those pixels")
 
-    p = _command(sub, "sequence", cmd_sequence, "write the images to show on a projector, in order, with sequence.json")
-    p.add_argument("--projector", type=_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
+    p = command(sub, "sequence", cmd_sequence, "write the images to show on a projector, in order, with sequence.json")
+    p.add_argument("--projector", type=projector_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
     p.add_argument("--ramp-steps", type=int, default=32, help="bars in the photometric ramp (default 32)")
-    p.add_argument("--bits", type=int, metavar="K", help=_BITS_HELP + "; for scenes where each state is one plane, "
+    p.add_argument("--bits", type=int, metavar="K", help=BITS_HELP + "; for scenes where each state is one plane, "
                                                          "read through a homography")
 
-    p = _command(sub, "capture", cmd_capture, "show a sequence full-screen on a projector and grab a camera frame for "
+    p = command(sub, "capture", cmd_capture, "show a sequence full-screen on a projector and grab a camera frame for "
                  "each image (needs an OpenCV build with a GUI)", out_help="CAPTURE_ROOT/STATE/PROJECTOR to write")
     p.add_argument("sequence_dir", type=Path, help="folder from torchproj sequence")
     p.add_argument("--camera", type=int, default=0, help="OpenCV camera index (default 0)")
@@ -330,34 +225,34 @@ def _real_rig_commands(sub) -> None:
                    "the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
 
-    p = _command(sub, "calibrate", cmd_calibrate, "decode every state and projector of a capture root into a "
+    p = command(sub, "calibrate", cmd_calibrate, "decode every state and projector of a capture root into a "
                  "calibration bundle", out_help="bundle folder")
     p.add_argument("capture_root", type=Path, help="CAPTURE_ROOT/STATE/PROJECTOR/ folders of captures")
     p.add_argument("--projector", action="append", metavar="[NAME=]WxH",
                    help="projector size where a folder holds no sequence.json (repeat per projector)")
     p.add_argument("--states", nargs="+", metavar="STATE", help="state folders to calibrate (default: all)")
-    p.add_argument("--calibration", type=_existing_file,
+    p.add_argument("--calibration", type=existing_file,
                    help="OpenCV camera-projector calibration to keep in the bundle")
-    _decoding_options(p)
-    _map_options(p, maps=False, bits="Gray-code pattern pairs per axis of a shortened sequence, where folders hold "
+    decoding_options(p)
+    map_options(p, maps=False, bits="Gray-code pattern pairs per axis of a shortened sequence, where folders hold "
                                      "no sequence.json (which says its own)")
 
-    p = _command(sub, "solve", cmd_solve, "patterns for real projectors from a calibration bundle and target images")
+    p = command(sub, "solve", cmd_solve, "patterns for real projectors from a calibration bundle and target images")
     p.add_argument("bundle", type=Path, help="bundle folder from torchproj calibrate")
     p.add_argument("--targets", nargs="+", required=True, metavar="STATE=IMAGE",
                    help="the image to show in each state (a file, or a scikit-image name such as astronaut)")
-    _solve_options(p)
-    _map_options(p)
+    solve_options(p)
+    map_options(p)
 
-    p = _command(sub, "decode", cmd_decode, "decode a folder of real Gray-code captures (and triangulate)")
+    p = command(sub, "decode", cmd_decode, "decode a folder of real Gray-code captures (and triangulate)")
     p.add_argument("capture_dir", type=Path, help="folder of captures: Gray code in order, then white, then black")
-    p.add_argument("--projector", type=_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
-    p.add_argument("--calibration", type=_existing_file,
+    p.add_argument("--projector", type=projector_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
+    p.add_argument("--calibration", type=existing_file,
                    help="OpenCV camera-projector calibration (XML/YAML) to triangulate")
     p.add_argument("--names", default="graycode_{:02d}.png", help="file name template (default: graycode_{:02d}.png)")
-    _decoding_options(p)
+    decoding_options(p)
     p.add_argument("--no-subpixel", action="store_true", help="triangulate integer cells, no sub-pixel fit")
-    _map_options(p, maps=False, bits="the folder holds a shortened sequence, the first K pattern pairs per axis: "
+    map_options(p, maps=False, bits="the folder holds a shortened sequence, the first K pattern pairs per axis: "
                                      "read it through one homography (a plane)")
 
 
@@ -370,27 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_PAIR_OPTIONS = ("--bounds", "--gain", "--offset")
-
-
-def _join_negative_pairs(argv: list[str]) -> list[str]:
-    """``--bounds -100,255`` -> ``--bounds=-100,255``: argparse takes a value starting with '-' (and
-    not a plain number) for an option, so the paper's own notation would otherwise be refused."""
-    out, i = [], 0
-    while i < len(argv):
-        if argv[i] in _PAIR_OPTIONS and i + 1 < len(argv) and re.fullmatch(r"-[\d.]+,-?[\d.]+", argv[i + 1]):
-            out.append(f"{argv[i]}={argv[i + 1]}")
-            i += 2
-        else:
-            out.append(argv[i])
-            i += 1
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchproj`` console command."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(_join_negative_pairs(argv))
+    args = build_parser().parse_args(join_negative_pairs(argv))
     try:
         with warnings.catch_warnings():
             # The library's warnings (a state that decoded little, a missing ramp) in the command's own voice.

@@ -1,0 +1,140 @@
+"""The ``torchproj`` command's argument types and the options that several subcommands share.
+
+Each option is declared here once; :mod:`torchproj.cli` declares what is a command's own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+__all__ = ["BITS_HELP", "bounds", "command", "config_option", "decoding_options", "device_options", "existing_file",
+           "join_negative_pairs", "limits", "map_options", "projector_size", "projector_sizes", "solve_options"]
+
+
+# ------------------------------------------------------------------------------ argument types
+def projector_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 1024x768, got {text!r}") from None
+    return w, h
+
+
+def _pair(text: str, example: str, strict: bool) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LO,HI such as {example}, got {text!r}") from None
+    if not (lo < hi if strict else lo <= hi):
+        raise argparse.ArgumentTypeError(f"need LO {'<' if strict else '<='} HI, got {text!r}")
+    return lo, hi
+
+
+def bounds(text: str) -> tuple[float, float]:
+    return _pair(text, "0,255 or -100,255 (8-bit units)", strict=True)
+
+
+def limits(text: str) -> tuple[float, float]:
+    return _pair(text, "0.5,1.5", strict=False)
+
+
+def existing_file(text: str) -> Path:
+    if not Path(text).is_file():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    return Path(text)
+
+
+def projector_sizes(values: list[str] | None) -> dict[str, tuple[int, int]] | None:
+    sizes = {}
+    for v in values or []:
+        name, _, size = v.rpartition("=")
+        sizes[name or "*"] = projector_size(size)
+    return sizes or None
+
+
+# ------------------------------------------------------------------------ shared options
+BITS_HELP = ("show only the first K Gray-code pattern pairs per axis (at least 2): 4K + 4 images per projector "
+              "and state with white, black and the two ramps, instead of 44 for a 1024x768 projector")
+
+
+def command(sub, name: str, func, help: str, out: str | None = None, out_help: str = "output folder"):
+    """A subcommand that runs ``func``, with its ``--out`` folder (required where ``out`` is None)."""
+    p = sub.add_parser(name, help=help)
+    p.set_defaults(func=func)
+    if out != "":
+        p.add_argument("--out", type=Path, default=out, required=out is None,
+                       help=out_help + (f" (default: {out})" if out else ""))
+    return p
+
+
+def config_option(p, default: str = "paper_two_planes") -> None:
+    p.add_argument("config", nargs="?", help=f"YAML file or built-in name (default: {default})")
+
+
+def device_options(p, max_iter: bool = True) -> None:
+    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
+    if max_iter:
+        p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+
+
+def solve_options(p) -> None:
+    """The options of every command that solves patterns (``run``, ``solve``)."""
+    from .solve import OBJECTIVES, PSNR_DROP_DB, SOLVERS
+    from .transport import FOOTPRINTS
+
+    p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
+    p.add_argument("--bounds", type=bounds, default=(0.0, 255.0), metavar="LO,HI",
+                   help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
+    p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
+                   help="l2: least squares (default); ssim or mixed: SSIM of the predicted camera images with a small "
+                        "or larger weight on their squared error, started from the solver's patterns")
+    p.add_argument("--l2-weight", type=float, metavar="W", help="ssim/mixed: the squared error's weight relative to "
+                   f"the start's (defaults: ssim {OBJECTIVES['ssim']:g}, mixed {OBJECTIVES['mixed']:g})")
+    p.add_argument("--psnr-drop", type=float, default=PSNR_DROP_DB, metavar="DB", help="ssim/mixed: the PSNR each "
+                   f"target may give up against least squares, in the model (default {PSNR_DROP_DB:g}; -1: no limit)")
+    p.add_argument("--ssim-iter", type=int, default=30, metavar="N", help="ssim/mixed: iterations (default 30)")
+    p.add_argument("--footprint", default="nearest", choices=list(FOOTPRINTS), help="the projector cells a camera "
+                   "pixel's light is modelled on: nearest (one per projector, as the paper; default) or bilinear")
+    device_options(p)
+
+
+def map_options(p, maps: bool = True, bits: str | None = None) -> None:
+    from .transport import MAPS
+
+    if maps:
+        p.add_argument("--maps", default="decoded", choices=list(MAPS),
+                       help="camera-to-projector maps: decoded per pixel (default), or one homography per state and "
+                            "projector fitted to them (scenes where each state is one plane)")
+    if bits is not None:
+        p.add_argument("--bits", type=int, metavar="K", help=bits)
+    p.add_argument("--plane-tolerance", type=float, default=1.0, metavar="PX",
+                   help="with --maps homography or --bits: the largest 95th-percentile residual (projector pixels) "
+                        "between decoded and fitted coordinates that counts as a plane (default 1)")
+
+
+def decoding_options(p) -> None:
+    """Thresholds and hole filling of ``calibrate`` and ``decode`` (OpenCV's defaults)."""
+    p.add_argument("--white-threshold", type=float, default=5, help="8-bit units (OpenCV default 5)")
+    p.add_argument("--black-threshold", type=float, default=40, help="8-bit units (OpenCV default 40)")
+    p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
+
+
+_PAIR_OPTIONS = ("--bounds", "--gain", "--offset")
+
+
+def join_negative_pairs(argv: list[str]) -> list[str]:
+    """``--bounds -100,255`` -> ``--bounds=-100,255``: argparse takes a value starting with '-' (and
+    not a plain number) for an option, so the paper's own notation would otherwise be refused."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in _PAIR_OPTIONS and i + 1 < len(argv) and re.fullmatch(r"-[\d.]+,-?[\d.]+", argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
