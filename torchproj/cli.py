@@ -11,9 +11,9 @@ from pathlib import Path
 
 from . import __version__
 from .cli_options import (BITS_HELP, command, config_option, decoding_options, device_options, existing_file,
-                          join_negative_pairs, limits, map_options, projector_size, projector_sizes, solve_options)
+                          join_negative_pairs, limits, map_options, named_projector_size, projector_size, solve_options)
 from .core.errors import TorchprojError
-from .core.output import atomic_output, write_json
+from .core.output import atomic_output, check_output_folder, write_json
 
 __all__ = ["main", "build_parser"]
 
@@ -36,20 +36,22 @@ def _objective(args):
 
 
 # ----------------------------------------------------------------------------- virtual rig
-def cmd_scene(args) -> int:
+def _scene(args):
     from .scene import load_scene
 
-    print(load_scene(args.config).describe())
+    return load_scene(args.config, size_limit=args.size_limit)
+
+
+def cmd_scene(args) -> int:
+    print(_scene(args).describe())
     return 0
 
 
 def cmd_simulate(args) -> int:
     from .pipeline import simulate_scene
-    from .scene import load_scene
 
-    _publish(args.out, lambda stage: simulate_scene(load_scene(args.config), stage, device=args.device,
-                                                    noise=not args.no_noise, bits=args.bits,
-                                                    plane_tolerance=args.plane_tolerance,
+    _publish(args.out, lambda stage: simulate_scene(_scene(args), stage, device=args.device, noise=not args.no_noise,
+                                                    bits=args.bits, plane_tolerance=args.plane_tolerance,
                                                     write_captures=args.write_captures),
              "report.json, report.md, calibration.png")
     return 0
@@ -57,10 +59,9 @@ def cmd_simulate(args) -> int:
 
 def cmd_run(args) -> int:
     from .pipeline import run_virtual
-    from .scene import load_scene
 
     gain_offset = None if args.gain is None and args.offset is None else (args.gain or (1, 1), args.offset or (0, 0))
-    result = run_virtual(load_scene(args.config), solver=args.solver, bounds_8bit=args.bounds, device=args.device,
+    result = run_virtual(_scene(args), solver=args.solver, bounds_8bit=args.bounds, device=args.device,
                          max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
                          plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
                          footprint=args.footprint, ceiling=args.ceiling)
@@ -70,9 +71,8 @@ def cmd_run(args) -> int:
 
 def cmd_position(args) -> int:
     from .experiments import evaluate_positioning
-    from .scene import load_scene
 
-    scene = load_scene(args.config or "box_positions")
+    scene = _scene(args)
     result = evaluate_positioning(scene, trials=args.trials, spread_mm=args.spread_mm, spread_deg=args.spread_deg,
                                   seed=args.seed, max_evaluations=args.max_evaluations, device=args.device,
                                   max_iter=args.max_iter)
@@ -118,7 +118,7 @@ def cmd_calibrate(args) -> int:
     from .figures import calibration_summary
 
     t0 = time.perf_counter()
-    bundle = calibrate_folders(args.capture_root, projector_sizes(args.projector), states=args.states,
+    bundle = calibrate_folders(args.capture_root, dict(args.projector or []) or None, states=args.states,
                                white_threshold=args.white_threshold, black_threshold=args.black_threshold,
                                max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
     with atomic_output(args.out) as stage:
@@ -228,7 +228,7 @@ def _real_rig_commands(sub) -> None:
     p = command(sub, "calibrate", cmd_calibrate, "decode every state and projector of a capture root into a "
                  "calibration bundle", out_help="bundle folder")
     p.add_argument("capture_root", type=Path, help="CAPTURE_ROOT/STATE/PROJECTOR/ folders of captures")
-    p.add_argument("--projector", action="append", metavar="[NAME=]WxH",
+    p.add_argument("--projector", action="append", type=named_projector_size, metavar="[NAME=]WxH",
                    help="projector size where a folder holds no sequence.json (repeat per projector)")
     p.add_argument("--states", nargs="+", metavar="STATE", help="state folders to calibrate (default: all)")
     p.add_argument("--calibration", type=existing_file,
@@ -270,17 +270,19 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(join_negative_pairs(argv))
     try:
+        if getattr(args, "out", None) is not None:
+            check_output_folder(args.out)  # before the work, not after it
         with warnings.catch_warnings():
             # The library's warnings (a state that decoded little, a missing ramp) in the command's own voice.
             warnings.showwarning = lambda message, *_: print(f"torchproj {args.command}: warning: {message}",
                                                              file=sys.stderr)
             return args.func(args)
-    except TorchprojError as exc:
-        print(f"torchproj {args.command}: error: {exc}", file=sys.stderr)
-        return 2
     except BrokenPipeError:  # the reader went away (torchproj scene | head): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
+    except (TorchprojError, OSError) as exc:  # OSError: a disk full or a folder that turned read-only mid-run
+        print(f"torchproj {args.command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -10,18 +10,31 @@ import re
 from pathlib import Path
 
 __all__ = ["BITS_HELP", "bounds", "command", "config_option", "decoding_options", "device_options", "existing_file",
-           "join_negative_pairs", "limits", "map_options", "projector_size", "projector_sizes", "solve_options"]
+           "join_negative_pairs", "limits", "map_options", "named_projector_size", "projector_size", "solve_options"]
 
 
 # ------------------------------------------------------------------------------ argument types
 def projector_size(text: str) -> tuple[int, int]:
+    from .scene import SIZE_LIMIT
+
     try:
         w, h = (int(v) for v in text.lower().split("x"))
         if w <= 0 or h <= 0:
             raise ValueError
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 1024x768, got {text!r}") from None
+    if w * h > SIZE_LIMIT:
+        raise argparse.ArgumentTypeError(f"{text}: {w * h:.3g} cells, more than any projector ({SIZE_LIMIT:.0e})")
     return w, h
+
+
+def named_projector_size(text: str) -> tuple[str, tuple[int, int]]:
+    """``[NAME=]WxH``: a projector's name (``*``: every projector) and its size."""
+    name, _, size = text.rpartition("=")
+    try:
+        return name or "*", projector_size(size)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected [NAME=]WIDTHxHEIGHT such as lower=1024x768, got {text!r}") from None
 
 
 def _pair(text: str, example: str, strict: bool) -> tuple[float, float]:
@@ -48,14 +61,6 @@ def existing_file(text: str) -> Path:
     return Path(text)
 
 
-def projector_sizes(values: list[str] | None) -> dict[str, tuple[int, int]] | None:
-    sizes = {}
-    for v in values or []:
-        name, _, size = v.rpartition("=")
-        sizes[name or "*"] = projector_size(size)
-    return sizes or None
-
-
 # ------------------------------------------------------------------------ shared options
 BITS_HELP = ("show only the first K Gray-code pattern pairs per axis (at least 2): 4K + 4 images per projector "
               "and state with white, black and the two ramps, instead of 44 for a 1024x768 projector")
@@ -72,11 +77,26 @@ def command(sub, name: str, func, help: str, out: str | None = None, out_help: s
 
 
 def config_option(p, default: str = "paper_two_planes") -> None:
-    p.add_argument("config", nargs="?", help=f"YAML file or built-in name (default: {default})")
+    from .scene import SIZE_LIMIT
+
+    p.add_argument("config", nargs="?", default=default, help=f"YAML file or built-in name (default: {default})")
+    p.add_argument("--size-limit", type=float, default=SIZE_LIMIT, metavar="N", help="refuse a scene with more camera "
+                   f"rays per state (pixels x supersampling^2) or cells per projector than this (default {SIZE_LIMIT:.0e})")
+
+
+def device(text: str) -> str:
+    from .core.checks import check_device
+    from .core.errors import InputError
+
+    try:
+        check_device(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
 
 
 def device_options(p, max_iter: bool = True) -> None:
-    p.add_argument("--device", default="cpu", help="torch device, cpu or cuda (default: cpu)")
+    p.add_argument("--device", type=device, default="cpu", help="torch device, cpu or cuda (default: cpu)")
     if max_iter:
         p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
 

@@ -12,13 +12,35 @@ import torch
 
 from .errors import InputError
 
-__all__ = ["check_shape", "check_finite", "check_image", "check"]
+# Above this many camera rays per state (pixels x supersampling^2), or cells per projector, a rig is
+# refused before any work: the default scene casts 1.7e7 rays per state (3.8 s, README's table), so
+# the limit is ~6x that in time and memory; a mistyped size (60000 x 40000, supersampling 200) would
+# otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
+SIZE_LIMIT = 10 ** 8
+
+__all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_device"]
 
 
 def check(condition: bool, message: str) -> None:
     """Raise :class:`InputError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise InputError(message)
+
+
+def check_device(device) -> torch.device:
+    """``device`` as a :class:`torch.device` this machine has; an :class:`InputError` that lists the
+    devices it does have otherwise (torch's own errors name its internal backends, not what to use)."""
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    have = ["cpu"] + (["cuda"] + [f"cuda:{i}" for i in range(count)] if count else [])
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise InputError(f"device {device!r} is not a torch device; this machine has {have}") from None
+    if dev.type == "cuda" and (not count or (dev.index or 0) >= count):
+        why = "no such CUDA device is visible" if torch.version.cuda else "this torch is a CPU-only build"
+        raise InputError(f"device {device!r}: {why} (torch {torch.__version__}); use one of {have}")
+    check(dev.type in ("cpu", "cuda"), f"device {device!r}: torchproj runs on {have}")
+    return dev
 
 
 def check_shape(tensor: torch.Tensor, name: str, dims: Sequence[str | int]) -> dict[str, int]:
