@@ -2,6 +2,7 @@
 
 from .config import (
     BUILTIN_SCENES,
+    SIZE_LIMIT,
     Camera,
     Projector,
     Scene,
@@ -18,6 +19,7 @@ from .pose import look_at, rotation_from_euler_deg, rotation_from_rotvec
 
 __all__ = [
     "BUILTIN_SCENES",
+    "SIZE_LIMIT",
     "Camera",
     "Projector",
     "Scene",

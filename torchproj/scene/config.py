@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from ..core.checks import SIZE_LIMIT
 from ..core.errors import ConfigError
 from .fields import Fields
 from .pose import parse_pose
@@ -38,6 +39,7 @@ __all__ = [
     "config_dir",
     "scale_config",
     "BUILTIN_SCENES",
+    "SIZE_LIMIT",
 ]
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
@@ -297,6 +299,21 @@ def _parse_camera(f: Fields) -> Camera:
     return cam
 
 
+def _check_mesh(path: Path, where: str) -> None:
+    """A mesh file must hold triangles trimesh can read (the ray caster's loader), checked at load time."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as exc:  # noqa: BLE001 - trimesh's loaders raise many kinds for a file that is not a mesh
+        raise ConfigError(where, f"{str(path)!r} is not a mesh file trimesh can read ({type(exc).__name__}: {exc})",
+                          "give an OBJ, PLY, STL, OFF or GLB file of triangles") from None
+    faces = getattr(mesh, "faces", None)
+    if faces is None or len(faces) == 0 or not np.isfinite(np.asarray(mesh.vertices)).all():
+        raise ConfigError(where, f"{str(path)!r} holds no triangles (or non-finite vertices)",
+                          "give an OBJ, PLY, STL, OFF or GLB file of triangles")
+
+
 def _parse_surface(f: Fields, name: str, base_dir: Path) -> Surface:
     kind = f.text("type", choices=SURFACE_TYPES)
     surf = Surface(name=name, type=kind, world_from_local=parse_pose(f.sub("pose")),
@@ -325,6 +342,7 @@ def _parse_surface(f: Fields, name: str, base_dir: Path) -> Surface:
         if not path.is_file():
             raise ConfigError(f.where("file"), f"mesh file {str(path)!r} not found",
                               "paths are relative to the config file's folder")
+        _check_mesh(path, f.where("file"))
         surf.mesh_file = path
         surf.scale = f.number("scale", 1.0, lo=0, strict_lo=True)
     f.done()
@@ -359,10 +377,13 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
             if not isinstance(surfaces, list) or not surfaces:
                 raise ConfigError(tf.where("surfaces"), "must be a non-empty list of surface names")
             for m in surfaces:
-                if m not in states[state].surfaces:
+                if not isinstance(m, str) or m not in states[state].surfaces:
                     raise ConfigError(tf.where("surfaces"), f"names {m!r}, which is not present in state {state!r}",
                                       f"choose from {states[state].surfaces}")
         image = tf.text("image") if tf.has("image") else None
+        if image is not None and not image.strip():
+            raise ConfigError(tf.where("image"), "is empty", "give an image file or a scikit-image name such as "
+                                                             "astronaut, or leave image out for the default")
         if image is not None and Path(image).suffix:
             path = Path(image) if Path(image).is_absolute() else base_dir / image
             if not path.is_file():
@@ -379,8 +400,13 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
     return targets
 
 
-def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene") -> Scene:
-    """Validate a scene mapping (as loaded from YAML) into a :class:`Scene`."""
+def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene",
+                size_limit: float = SIZE_LIMIT) -> Scene:
+    """Validate a scene mapping (as loaded from YAML) into a :class:`Scene`.
+
+    ``size_limit``: the most camera rays per state (pixels x supersampling^2) and cells per projector
+    accepted (:data:`SIZE_LIMIT`).
+    """
     base_dir = Path(base_dir)
     top = Fields(data, "")
     projectors_raw = top.raw("projectors")
@@ -407,7 +433,7 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
         if not isinstance(members, list) or not members:
             raise ConfigError(sf.where("surfaces"), "must be a non-empty list of surface names")
         for m in members:
-            if m not in surfaces:
+            if not isinstance(m, str) or m not in surfaces:
                 raise ConfigError(sf.where("surfaces"), f"names unknown surface {m!r}",
                                   f"known: {sorted(surfaces)}")
         states.append(State(name=sf.text("name", f"state{i}"), surfaces=list(members)))
@@ -422,7 +448,25 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     )
     top.done()
     _check_in_front(scene)
+    _check_size(scene, size_limit)
     return scene
+
+
+def _check_size(scene: Scene, limit: float) -> None:
+    """Refuse, before any work, a rig whose ray casting or patterns would not fit in time or memory."""
+    fix = "or raise the limit: --size-limit N, or load_scene(size_limit=N)"
+    cam = scene.camera
+    rays = cam.width * cam.height * cam.supersampling ** 2
+    if rays > limit:
+        raise ConfigError("camera", f"{cam.width}x{cam.height} pixels x {cam.supersampling}x{cam.supersampling} "
+                                    f"samples = {rays:.3g} rays per state, above the limit of {limit:.3g} (the "
+                                    "default scene casts 1.7e7; time and memory grow with it)",
+                          f"lower camera.resolution or camera.supersampling, {fix}")
+    for i, proj in enumerate(scene.projectors):
+        if proj.width * proj.height > limit:
+            raise ConfigError(f"projectors[{i}].resolution", f"{proj.width}x{proj.height} = "
+                              f"{proj.width * proj.height:.3g} cells, above the limit of {limit:.3g}",
+                              f"lower the resolution, {fix}")
 
 
 def builtin_config(name: str = "paper_two_planes") -> Path:
@@ -468,7 +512,8 @@ def scale_config(data: dict, scale: float | None = None, *, camera: tuple[int, i
     return data
 
 
-def load_scene(path: str | os.PathLike | None = None, scale: float | None = None) -> Scene:
+def load_scene(path: str | os.PathLike | None = None, scale: float | None = None,
+               size_limit: float = SIZE_LIMIT) -> Scene:
     """Load a scene YAML file, or a built-in scene by name (None: the paper's two-plane rig).
 
     Args:
@@ -476,6 +521,7 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
         scale: give every camera and projector ``scale`` times the resolution (:func:`scale_config`):
             ``load_scene("paper_two_planes", scale=0.25)`` is the paper's rig with 256x192
             projectors and a 400x300 camera, a quick stand-in for the full one.
+        size_limit: see :func:`parse_scene`.
     """
     if path is None:
         path = builtin_config()
@@ -491,6 +537,6 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
         raise ConfigError(str(path), f"is not valid YAML: {exc}") from None
     if scale is not None and isinstance(data, dict):
         data = scale_config(data, scale)
-    scene = parse_scene(data, base_dir=path.parent, name=path.stem)
+    scene = parse_scene(data, base_dir=path.parent, name=path.stem, size_limit=size_limit)
     scene.source = path
     return scene

@@ -24,7 +24,7 @@ import torch
 from kornia.geometry.calibration import undistort_points
 from kornia.geometry.camera import project_points, unproject_points
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_device, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
 from ..core.sparse import csr_tensor
 from ..scene.config import Projector, Scene, Surface
@@ -112,7 +112,7 @@ class VirtualRig:
 
     def __init__(self, scene: Scene, device="cpu"):
         self.scene = scene
-        self.device = torch.device(device)
+        self.device = check_device(device)
         self.generator = torch.Generator(device=self.device).manual_seed(scene.seed)
         self._geometry: dict[str, StateGeometry] = {}
         self._vignette = [_vignette(p, self.device) for p in scene.projectors]
