@@ -36,12 +36,14 @@ import json
 import os
 import shutil
 import warnings
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..core.checks import SIZE_LIMIT
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
@@ -175,8 +177,12 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
             manifest = folder / SEQUENCE_FILE
             shown = bits
             if manifest.is_file():
-                meta = json.loads(manifest.read_text())
-                size, shown = tuple(meta["projector"]), meta.get("bits")
+                meta = read_json(manifest, "copy it again from the torchproj sequence output")
+                size, shown = meta.get("projector"), meta.get("bits")
+                if (not isinstance(size, list) or len(size) != 2
+                        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
+                    raise CaptureError(f"{manifest}: 'projector' must be [width, height], got {size!r}; copy it "
+                                       "again from the torchproj sequence output")
             elif sizes and (name in sizes or "*" in sizes):
                 size = sizes.get(name, sizes.get("*"))
             else:
@@ -185,8 +191,8 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
             size = (int(size[0]), int(size[1]))
             try:
                 shown = sequence_bits(*size, shown)
-            except InputError as exc:
-                raise CaptureError(f"{folder}: {exc}") from None
+            except (InputError, TypeError, ValueError) as exc:
+                raise CaptureError(f"{folder}: Gray-code bits {shown!r}: {exc}") from None
             entries.append((name, folder, size, shown))
         layout[state_dir.name] = entries
     if not layout:
@@ -300,34 +306,132 @@ def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_ca
 
 
 def load_bundle(folder: str | os.PathLike) -> CalibrationBundle:
-    """Read a bundle written by :func:`write_bundle` (or ``torchproj calibrate``)."""
+    """Read a bundle written by :func:`write_bundle` (or ``torchproj calibrate``).
+
+    Every file is checked as it is read: a :class:`CaptureError` names the file (and the field of
+    ``bundle.json``) that is missing, truncated, edited out of shape or physically impossible.
+    """
     folder = Path(folder)
     path = folder / "bundle.json"
     if not path.is_file():
         raise CaptureError(f"{folder}: not a calibration bundle (no bundle.json); make one with torchproj calibrate")
-    meta = json.loads(path.read_text())
+    meta = read_json(path, "calibrate again")
     if meta.get("version") != BUNDLE_VERSION:
         raise CaptureError(f"{path}: bundle format version {meta.get('version')!r}, this torchproj reads "
                            f"version {BUNDLE_VERSION}; calibrate again")
-    projectors = [(p["name"], *p["size"]) for p in meta["projectors"]]
+    try:
+        return _bundle_from_meta(folder, meta)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        if isinstance(exc, CaptureError):
+            raise
+        what = f"lacks the field {exc}" if isinstance(exc, KeyError) else f"holds a malformed value ({exc})"
+        raise CaptureError(f"{path}: {what}; was it edited or cut short? Calibrate again") from None
+
+
+def read_json(path: Path, fix: str) -> dict:
+    """A JSON object from ``path``, or a :class:`CaptureError` that names the file and ``fix``."""
+    try:
+        meta = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CaptureError(f"{path}: not valid JSON ({exc}); {fix}") from None
+    if not isinstance(meta, dict):
+        raise CaptureError(f"{path}: expected a JSON object, got {type(meta).__name__}; {fix}")
+    return meta
+
+
+def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
+    path = folder / "bundle.json"
+    width, height = _size(meta["camera"]["size"], f"{path}: camera.size")
+    channels = meta["camera"]["channels"]
+    if channels not in (1, 3) or isinstance(channels, bool):
+        raise CaptureError(f"{path}: camera.channels must be 1 or 3, got {channels!r}; calibrate again")
+    projectors = [(str(p["name"]), *_size(p["size"], f"{path}: projectors[{j}].size"))
+                  for j, p in enumerate(meta["projectors"])]
+    if not projectors or len(projectors) != len(meta["responses"]):
+        raise CaptureError(f"{path}: {len(projectors)} projector(s) but {len(meta['responses'])} response(s); "
+                           "calibrate again")
+    camera = (height, width)
     states, black = {}, {}
     for state in meta["states"]:
         maps = []
-        for name, _, _ in projectors:
-            with np.load(folder / meta["files"][state][name]) as data:
-                maps.append({k: torch.from_numpy(data[k]) for k in data.files})
+        for name, w, h in projectors:
+            arrays = _read_npz(folder / meta["files"][state][name], {"prj_xy": (*camera, 2), "valid": camera,
+                                                                     "contrast": camera})
+            xy = arrays["prj_xy"]
+            inside = (xy[..., 0] >= -1) & (xy[..., 0] <= w) & (xy[..., 1] >= -1) & (xy[..., 1] <= h)
+            if not (inside | ~torch.isfinite(xy).all(-1)).all():
+                raise CaptureError(f"{folder / meta['files'][state][name]}: projector coordinates outside the "
+                                   f"{w}x{h} projector that bundle.json names; calibrate again")
+            maps.append(arrays)
         states[state] = maps
-        with np.load(folder / state / "black.npz") as data:
-            black[state] = torch.from_numpy(data["black"])
-    responses = [None if r is None else ResponseCurve(*(torch.tensor(r[k]) for k in ("a", "b", "c")))
-                 for r in meta["responses"]]
-    ramps = [None if r is None else (torch.tensor(r["levels"]), torch.tensor(r["measured"]))
-             for r in meta.get("ramps", [None] * len(projectors))]
+        black[state] = _read_npz(folder / state / "black.npz", {"black": (channels, *camera)})["black"]
+    if not states:
+        raise CaptureError(f"{path}: no states; calibrate again")
+    responses = [None if r is None else _response(r, f"{path}: responses[{j}]") for j, r in enumerate(meta["responses"])]
+    ramps = [None if r is None else _ramp(r, f"{path}: ramps[{j}]", channels)
+             for j, r in enumerate(meta.get("ramps", [None] * len(projectors)))]
     xml = meta.get("procam_calibration")
     shown = meta.get("graycode_bits", {})
-    return CalibrationBundle(camera_size=tuple(meta["camera"]["size"]), channels=meta["camera"]["channels"],
-                             projectors=projectors, states=states, black=black, responses=responses,
-                             decoded=meta.get("decoded_fraction", {}), ramps=ramps,
+    return CalibrationBundle(camera_size=(width, height), channels=channels, projectors=projectors, states=states,
+                             black=black, responses=responses, decoded=meta.get("decoded_fraction", {}), ramps=ramps,
                              procam_calibration=None if xml is None else folder / xml,
                              bits=[tuple(shown.get(n, graycode_bits(w, h))) for n, w, h in projectors],
                              homographies=meta.get("homographies", {}))
+
+
+def _size(value, where: str) -> tuple[int, int]:
+    """``[width, height]`` of a device, in whole pixels and within :data:`~torchproj.core.checks.SIZE_LIMIT`."""
+    if (not isinstance(value, list) or len(value) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
+            or value[0] * value[1] > SIZE_LIMIT):
+        raise CaptureError(f"{where} must be [width, height] in whole pixels, got {value!r}; calibrate again")
+    return value[0], value[1]
+
+
+def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:
+    """The arrays of a bundle's ``.npz`` file, each array named in ``shapes`` checked (shape, finite
+    where it is not a map that marks undecoded pixels with NaN)."""
+    if not path.is_file():
+        raise CaptureError(f"{path}: missing from the bundle; calibrate again")
+    try:
+        with np.load(path) as data:
+            arrays = {k: torch.from_numpy(data[k]) for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise CaptureError(f"{path}: unreadable ({type(exc).__name__}: truncated or not a .npz file); "
+                           "calibrate again") from None
+    for key, shape in shapes.items():
+        if key not in arrays:
+            raise CaptureError(f"{path}: lacks the array {key!r}; calibrate again")
+        if tuple(arrays[key].shape) != shape:
+            raise CaptureError(f"{path}: {key!r} has shape {tuple(arrays[key].shape)}, but bundle.json's camera "
+                               f"needs {shape}; calibrate again")
+        if key != "prj_xy" and arrays[key].is_floating_point() and not torch.isfinite(arrays[key]).all():
+            raise CaptureError(f"{path}: {key!r} holds NaN or infinite values; calibrate again")
+    return arrays
+
+
+def _ramp(values: dict, where: str, channels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A bundle's measured ramp: levels :math:`(L,)` and the light measured at each :math:`(L, C)`."""
+    try:
+        levels, measured = torch.tensor(values["levels"]), torch.tensor(values["measured"])
+    except (RuntimeError, TypeError, ValueError):
+        levels = measured = None
+    if (levels is None or levels.ndim != 1 or tuple(measured.shape) != (len(levels), channels)
+            or not (torch.isfinite(levels).all() and torch.isfinite(measured).all())):
+        raise CaptureError(f"{where}: levels must be L finite numbers and measured L rows of {channels}; "
+                           "calibrate again")
+    return levels, measured
+
+
+def _response(values: dict, where: str) -> ResponseCurve:
+    """A bundle's response curve, refused where no projector could have it (``a x^b + c`` must rise)."""
+    try:
+        a, b, c = (torch.tensor(values[k], dtype=torch.float32).reshape(-1) for k in ("a", "b", "c"))
+    except (RuntimeError, TypeError, ValueError):
+        a = b = c = torch.zeros(0)
+    if not all(len(t) in (1, 3) and torch.isfinite(t).all() for t in (a, b, c)):
+        raise CaptureError(f"{where}: a, b and c must be 1 or 3 finite numbers each, got {values}; calibrate again")
+    if not ((a > 0).all() and (b > 0).all()):
+        raise CaptureError(f"{where}: y = a x^b + c needs a > 0 and b > 0 (a projector's light rises with its "
+                           f"input), got a={a.tolist()}, b={b.tolist()}; was it edited? Calibrate again")
+    return ResponseCurve(a, b, c)

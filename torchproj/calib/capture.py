@@ -63,7 +63,7 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
         raise CaptureError(f"{folder}: capture folder not found")
     nx, ny = sequence_bits(*projector_size, bits)
     count = 2 * (nx + ny) + 2
-    paths = [folder / names.format(i) for i in range(count)]
+    paths = [folder / name for name in _file_names(names, count)]
     missing = [p.name for p in paths if not p.is_file()]
     if missing:
         raise CaptureError(
@@ -71,11 +71,12 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
             f"({2 * nx} column + {2 * ny} row Gray-code images, then white, then black) named like "
             f"{paths[0].name}; missing {len(missing)}: {', '.join(missing[:4])}"
             f"{' ...' if len(missing) > 4 else ''} (check --projector, --bits and the name template)")
-    extra = folder / names.format(count)
-    if extra.is_file():
-        raise CaptureError(f"{extra}: one image more than a {projector_size[0]}x{projector_size[1]} projector's "
-                           f"{count} ({nx} column + {ny} row bits); check --projector and --bits, or move extra "
-                           "files out of the folder")
+    extra = _numbered_files(folder, names) - {p.name for p in paths}
+    if extra:
+        raise CaptureError(f"{folder / min(extra)}: {len(extra)} image(s) named like the sequence beyond a "
+                           f"{projector_size[0]}x{projector_size[1]} projector's {count} ({nx} column + {ny} row "
+                           "bits, then white and black); check --projector and --bits, or move extra files out of "
+                           "the folder")
     # PNG decoding releases the GIL: read on a few threads.
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         images = list(pool.map(read_image, paths))
@@ -95,6 +96,26 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
         if ramp.shape[1:] != white.shape:
             raise CaptureError(f"{ramp_paths[0]}: size differs from the Gray-code captures")
     return GraycodeCapture(patterns=stack[:-2], white=white, black=black, ramp=ramp)
+
+
+def _file_names(names: str, count: int) -> list[str]:
+    """The first ``count`` file names of a template, or a :class:`CaptureError` that says what a template is."""
+    try:
+        files = [names.format(i) for i in range(count)]
+    except (ValueError, IndexError, KeyError, AttributeError):
+        files = []
+    if len(set(files)) != count or any(not f or "/" in f or "\\" in f for f in files):
+        raise CaptureError(f"names {names!r} is not a file name template with one number field for the image index, "
+                           f"such as {DEFAULT_NAMES!r}")
+    return files
+
+
+def _numbered_files(folder: Path, names: str) -> set[str]:
+    """Files of ``folder`` that the template ``names`` could have made (any index)."""
+    head, _, rest = names.partition("{")
+    tail = rest.partition("}")[2]
+    return {p.name for p in folder.iterdir() if p.is_file() and p.name.startswith(head) and p.name.endswith(tail)
+            and len(p.name) > len(head) + len(tail) and p.name[len(head):len(p.name) - len(tail)].isdigit()}
 
 
 def write_graycode_folder(folder: str | os.PathLike, capture: GraycodeCapture, bits: int = 8,

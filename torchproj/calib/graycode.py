@@ -23,6 +23,7 @@ LCD cell that lit the pixel).
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -62,6 +63,10 @@ def sequence_bits(width: int, height: int, bits: int | tuple[int, int] | None = 
     check(kx >= min(2, nx) and ky >= min(2, ny),
           f"bits must be at least 2 Gray-code bits per axis (a homography needs two block edges per axis), got {bits}")
     if isinstance(bits, int):
+        # One number is what a user asks (--bits K): one that covers the whole sequence would silently
+        # calibrate as if shortened, through a homography, for nothing.
+        check(kx < max(nx, ny), f"bits {bits} shows the whole Gray-code sequence of a {width}x{height} projector "
+                                f"({nx} x {ny} pattern pairs): leave bits out for it, or give fewer than {max(nx, ny)}")
         return min(kx, nx), min(ky, ny)
     check(kx <= nx and ky <= ny, f"bits must be at most ({nx}, {ny}) for a {width}x{height} projector, got {tuple(bits)}")
     return kx, ky
@@ -173,10 +178,27 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
               for f, b, size in zip(first, block, (width, height))]
     contrast = white8 - black8
     lit = contrast.abs() > black_threshold + _EPS
-    valid = lit & reliable & (first[0] < width) & (first[1] < height)
+    inside = (first[0] < width) & (first[1] < height)
+    valid = lit & reliable & inside
+    _warn_if_codes_beyond(lit & reliable, inside, first, projector_size)
     prj_xy = torch.stack(centre, -1)
     prj_xy[~valid] = float("nan")
     return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast / 255.0, block=block)
+
+
+_BEYOND = 0.05  # a share of reliably decoded pixels beyond the projector that noise does not explain
+
+
+def _warn_if_codes_beyond(decoded: torch.Tensor, inside: torch.Tensor, first: list, projector_size) -> None:
+    """Codes past the projector's edge on many pixels mean the sequence came from another size: with
+    the same bit count (1000x700 read as 1024x768) the image count matches and nothing else says so."""
+    outside = decoded & ~inside
+    share = float(outside.sum()) / max(int(decoded.sum()), 1)
+    if share > _BEYOND:
+        reach = [int(f[decoded].max()) + 1 for f in first]
+        warnings.warn(f"{share:.0%} of the decoded pixels read codes beyond a {projector_size[0]}x{projector_size[1]} "
+                      f"projector (up to {reach[0]}x{reach[1]}): is that the size that showed the sequence? Check "
+                      "--projector (or sequence.json)", stacklevel=3)
 
 
 def _offset_kernels(window: int, dtype, device) -> torch.Tensor:

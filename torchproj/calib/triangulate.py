@@ -41,23 +41,39 @@ def read_opencv_calibration(path: str | os.PathLike) -> ProCamCalibration:
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: calibration file not found")
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    if not fs.isOpened():
-        raise CaptureError(f"{path}: not an OpenCV FileStorage file")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        opened = fs.isOpened()
+    except (cv2.error, SystemError):  # OpenCV's parser raises on malformed XML/YAML
+        raise CaptureError(f"{path}: not a readable OpenCV FileStorage file (malformed XML or YAML)") from None
+    if not opened:
+        raise CaptureError(f"{path}: not an OpenCV FileStorage file (XML or YAML)")
 
-    def mat(*names):
+    def mat(shapes, *names):
         for name in names:
             node = fs.getNode(name)
-            if not node.empty():
-                return torch.as_tensor(node.mat(), dtype=torch.float64)
+            if node.empty():
+                continue
+            value = node.mat()
+            if value is None or tuple(value.shape) not in shapes:
+                raise CaptureError(f"{path}: '{name}' must be a matrix of shape "
+                                   f"{' or '.join(map(str, shapes))}, got "
+                                   f"{'no matrix' if value is None else tuple(value.shape)}")
+            value = torch.as_tensor(value, dtype=torch.float64)
+            if not torch.isfinite(value).all():
+                raise CaptureError(f"{path}: '{name}' holds NaN or infinite values")
+            return value
         raise CaptureError(f"{path}: missing '{names[0]}' (expected cam_int, cam_dist, proj_int, proj_dist, "
                            "rotation, translation as written by cv2.stereoCalibrate scripts)")
 
-    rotation = mat("rotation", "roration", "R")
-    translation = mat("translation", "T").reshape(3, 1)
+    intrinsics, rotation_shape, vector3 = [(3, 3)], [(3, 3)], [(3, 1), (1, 3)]
+    distortion = [(1, n) for n in (4, 5, 8, 12, 14)] + [(n, 1) for n in (4, 5, 8, 12, 14)]
+    rotation = mat(rotation_shape, "rotation", "roration", "R")
+    translation = mat(vector3, "translation", "T").reshape(3, 1)
     calib = ProCamCalibration(
-        cam_K=mat("cam_int"), cam_dist=mat("cam_dist").reshape(-1), prj_K=mat("proj_int"),
-        prj_dist=mat("proj_dist").reshape(-1), prj_from_cam=torch.cat([rotation, translation], 1))
+        cam_K=mat(intrinsics, "cam_int"), cam_dist=mat(distortion, "cam_dist").reshape(-1),
+        prj_K=mat(intrinsics, "proj_int"), prj_dist=mat(distortion, "proj_dist").reshape(-1),
+        prj_from_cam=torch.cat([rotation, translation], 1))
     fs.release()
     return calib
 
