@@ -17,9 +17,9 @@ SURFACE = {
         "check_image", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_uint", "write_image",
         "write_json"],
     "scene": [
-        "BUILTIN_SCENES", "Camera", "Projector", "Scene", "State", "Surface", "TargetSpec", "builtin_config",
-        "config_dir", "load_scene", "look_at", "parse_scene", "rotation_from_euler_deg", "rotation_from_rotvec",
-        "scale_config"],
+        "BUILTIN_SCENES", "Camera", "Projector", "SIZE_LIMIT", "Scene", "State", "Surface", "TargetSpec",
+        "builtin_config", "config_dir", "load_scene", "look_at", "parse_scene", "rotation_from_euler_deg",
+        "rotation_from_rotvec", "scale_config"],
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
@@ -39,10 +39,10 @@ SURFACE = {
         "SSIMLoss", "crosstalk", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [
         "ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS",
-        "SolveResult", "calibration_parts", "check_bounds", "compensate", "component_chains", "epipolar_chains",
-        "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns", "solve_adam",
-        "solve_eo", "solve_fista", "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim",
-        "to_projectable"],
+        "SolveResult", "calibration_parts", "check_bounds", "check_solve_options", "compensate",
+        "component_chains", "epipolar_chains", "fundamental_between_projectors", "image_objective",
+        "make_patterns", "projectable_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",
+        "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "to_projectable"],
     "pipeline": [
         "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "ORACLES",
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",

@@ -38,10 +38,17 @@ def test_wrong_projector_size(folder):
         read_graycode_folder(folder, (200, 100))
 
 
-def test_extra_image(folder):
-    write_image(folder / "graycode_26.png", torch.zeros(1, 48, 64))
-    with pytest.raises(CaptureError, match="graycode_26.png: one image more"):
+@pytest.mark.parametrize("name", ["graycode_26.png", "graycode_99.png", "graycode_100.png"])
+def test_extra_image(folder, name):
+    write_image(folder / name, torch.zeros(1, 48, 64))
+    with pytest.raises(CaptureError, match=f"{name}: 1 image.* beyond a 64x48 projector's 26"):
         read_graycode_folder(folder, (64, 48))
+
+
+@pytest.mark.parametrize("names", ["graycode.png", "{", "{}/{}.png", "img_{x}.png", "{:q}.png"])
+def test_bad_name_template(folder, names):
+    with pytest.raises(CaptureError, match="not a file name template with one number field"):
+        read_graycode_folder(folder, (64, 48), names=names)
 
 
 def test_inconsistent_sizes(folder):

@@ -88,8 +88,12 @@ def test_too_few_block_edges_are_refused():
 
 def test_sequence_bits_and_the_shortened_patterns():
     assert sequence_bits(1024, 768) == (10, 10)
-    assert sequence_bits(1024, 768, 3) == (3, 3) and sequence_bits(1024, 768, 40) == (10, 10)
-    assert sequence_bits(100, 60, (4, 2)) == (4, 2)
+    assert sequence_bits(1024, 768, 3) == (3, 3) and sequence_bits(100, 60, 6) == (6, 6)
+    assert sequence_bits(100, 60, (4, 2)) == (4, 2) and sequence_bits(100, 60, (7, 6)) == (7, 6)
+    # One number that covers the whole sequence is no shortening: refused, not read through a homography.
+    for bits in (7, 10, 40):
+        with pytest.raises(InputError, match=r"whole Gray-code sequence .* \(7 x 6 pattern pairs\).* fewer than 7"):
+            sequence_bits(100, 60, bits)
     with pytest.raises(InputError, match="at least 2 Gray-code bits"):
         sequence_bits(1024, 768, 1)
     with pytest.raises(InputError, match=r"at most \(7, 6\)"):

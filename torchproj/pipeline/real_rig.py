@@ -15,7 +15,7 @@ import torch
 
 from ..calib import CalibrationBundle, load_bundle
 from ..core.checks import check
-from ..solve import SolveResult, image_objective, make_patterns
+from ..solve import SolveResult, check_solve_options, image_objective, make_patterns
 from ..transport import StateCalibration, Target, build_transport, select_maps, target_on_camera
 from .run import image_objective_report
 from .scoring import score_image
@@ -80,8 +80,8 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     t0 = time.perf_counter()
     image = image_objective(objective)
     bundle = bundle if isinstance(bundle, CalibrationBundle) else load_bundle(bundle)
+    lo, hi = check_solve_options(solver, bounds_8bit, len(bundle.projectors))
     wanted = _bundle_targets(bundle, targets)
-    lo, hi = (b / 255 for b in bounds_8bit)
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
     states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)

@@ -16,7 +16,7 @@ import torch
 from ..calib import sequence_bits
 from ..core.checks import check
 from ..scene.config import Scene
-from ..solve import SOLVERS, SolveResult, image_objective, make_patterns, projectable_patterns, solve_gain_offset
+from ..solve import SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns, solve_gain_offset
 from ..transport import MAPS, build_transport, select_maps
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
@@ -110,9 +110,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             (FISTA, least squares, to convergence) and score it the same way: each report row gets
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
     """
-    oracle = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling)
+    oracle, bounds = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling)
     image = image_objective(objective)
-    bounds = tuple(float(b) / 255 for b in bounds_8bit)
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
@@ -144,9 +143,10 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                      solution=solved.result, scene=scene)
 
 
-def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling) -> str | None:
-    """:func:`run_virtual`'s options checked together, before any work; returns the oracle's name or None."""
-    check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling):
+    """:func:`run_virtual`'s options checked together, before any work; returns the oracle's name (or
+    None) and the bounds in linear light."""
+    bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors))
     oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
     exact = oracle == "transport"
@@ -158,10 +158,8 @@ def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps,
     check(gain_offset is None or (solver == "fista" and image_objective(objective) is None),
           "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
           "gain/offset option")
-    lo, hi = (float(b) / 255 for b in bounds_8bit)
-    check(lo < hi, f"bounds must satisfy LO < HI, got {bounds_8bit}")
     check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
-    return oracle
+    return oracle, bounds
 
 
 @dataclass

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import torch
 
 from ..calib.response import ResponseCurve
 from ..core.checks import check, check_shape
+from ..core.errors import InputError
 
-__all__ = ["compensate", "make_patterns", "projectable_patterns"]
+__all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
 
 
 def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> list[torch.Tensor]:
@@ -52,6 +54,32 @@ def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WAR
                       "too close in depth or asking opposite light along the same rays, more targets than the "
                       "projectors can carry, or a noisy calibration", stacklevel=3)
     return share
+
+
+def check_solve_options(solver: str, bounds_8bit, projectors: int) -> tuple[float, float]:
+    """What :func:`make_patterns` will be asked, checked before any work: the solver's name, that
+    ``eo`` has its two projectors, and the paper's 8-bit bounds; returns the bounds in linear light.
+
+    Bounds: HI in (0, 255] (a projector gives no more than its white), LO in [-255, HI) (below 0 as
+    the paper's ``EO_-100^255``, whose values are brought into range afterwards).
+    """
+    from . import SOLVERS
+
+    check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    check(solver != "eo" or projectors == 2,
+          f"eo walks epipolar chains between exactly two projectors, and this rig has {projectors}: use another "
+          "solver (fista, the default, takes any number)" + (", or from Python solve_eo(..., chains='components')"
+                                                              if projectors > 2 else ""))
+    try:
+        lo, hi = (float(b) for b in bounds_8bit)
+    except (TypeError, ValueError):
+        raise InputError(f"bounds must be two numbers LO,HI in 8-bit units, got {bounds_8bit!r}") from None
+    check(math.isfinite(lo) and math.isfinite(hi), f"bounds must be finite, got {lo:g},{hi:g}")
+    check(lo < hi, f"bounds must satisfy LO < HI, got {lo:g},{hi:g}")
+    check(0 < hi <= 255, f"bounds: HI {hi:g} must lie in (0, 255] (8-bit units: 255 is the projector's white, "
+                         "more light than that it cannot give); use e.g. 0,255")
+    check(lo >= -255, f"bounds: LO {lo:g} must be at least -255 (8-bit units; the paper's EO_-100^255 uses -100)")
+    return lo / 255, hi / 255
 
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,

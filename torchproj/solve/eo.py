@@ -142,6 +142,8 @@ def _chain_index(op, chains, calibrations, band) -> torch.Tensor:
         chain = chains.to(op.col.device)
     elif chains == "epipolar":
         check(calibrations is not None, "chains='epipolar' needs the calibrations (for the fundamental matrix)")
+        check(len(op.projector_sizes) == 2, f"epipolar chains need exactly two projectors, the operator has "
+                                            f"{len(op.projector_sizes)}; use chains='components' or another solver")
         chain = epipolar_chains(op, fundamental_between_projectors(calibrations), band)
     else:
         check(chains == "components", f"chains must be 'epipolar', 'components' or a tensor, got {chains!r}")

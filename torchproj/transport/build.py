@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from kornia.geometry.transform import get_perspective_transform, warp_perspective
 
-from ..core.checks import check, check_finite, check_image, check_shape
+from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
 from .operator import TransportOperator, csr_from_coo
 
@@ -252,6 +252,7 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         a :class:`TransportOperator` with ``rhs`` = scale * targets.
     """
     check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
+    device = check_device(device)
     check(len(targets) >= 1, "targets must hold at least one Target")
     channels = {t.image.shape[0] for t in targets}
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")

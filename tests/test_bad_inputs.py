@@ -1,0 +1,340 @@
+"""Bad inputs, as a new user makes them: every config field, CLI option, capture file and bundle file
+mutated by a seeded fuzzer. The contract for each: the command either works, or it prints one
+``torchproj CMD: error:`` line and exits 2; never a traceback, never a file left in ``--out`` or beside
+it, and never more than a few seconds before a refusal.
+
+The default run draws a fixed sample of every mutation family; ``TORCHPROJ_FUZZ=all`` runs them all
+(marked slow, as CI's full pass does).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import random
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from torchproj.calib import write_graycode_folder
+from torchproj.cli import main
+from torchproj.pipeline import simulate_calibration
+from torchproj.scene import parse_scene
+from torchproj.sim import VirtualRig
+
+from .helpers import small_config
+
+# What a hand-edited YAML or a typo gives: wrong types, signs, NaN, inf, huge sizes, empties.
+BAD_VALUES = [None, "", "abc", -1, 0, 0.5, 1e30, -1e30, float("nan"), float("inf"), 10 ** 12, True, [], {}, [1],
+              [1, 2, 3], {"x": 1}]
+SAMPLE = None if os.environ.get("TORCHPROJ_FUZZ") == "all" else 40
+REFUSAL_SECONDS = 20.0  # a refusal on a tiny rig: far more than it takes, far less than a hang
+
+
+def tiny_config() -> dict:
+    data = small_config(camera=(160, 120), projector=(128, 96))
+    data["camera"]["supersampling"] = 2
+    data["targets"] = [{"name": "a", "state": "near", "image": "astronaut"},
+                       {"name": "b", "state": "far", "image": "camera"}]
+    return data
+
+
+def _leaves(data, path=()):
+    """Every field of a YAML tree as a path of keys and indices (mappings, lists and their items)."""
+    if isinstance(data, dict):
+        for k, v in data.items():
+            yield path + (k,)
+            yield from _leaves(v, path + (k,))
+    elif isinstance(data, list):
+        # The first and last items stand for the rest (a ramp holds 32 numbers of one kind).
+        for i in sorted({0, len(data) - 1} if data else ()):
+            yield path + (i,)
+            yield from _leaves(data[i], path + (i,))
+
+
+def _mutated(data: dict, path: tuple, value) -> dict:
+    data = copy.deepcopy(data)
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    if value is _DELETE:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+    return data
+
+
+_DELETE = object()
+
+
+def _sample(cases: list, seed: int) -> list:
+    return cases if SAMPLE is None or len(cases) <= SAMPLE else random.Random(seed).sample(cases, SAMPLE)
+
+
+def run_cli(argv: list[str], capsys, out: Path | None = None) -> tuple[int, str, float]:
+    """``main(argv)`` in this process: exit code (argparse's SystemExit included), stderr, seconds."""
+    t0 = time.perf_counter()
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    seconds = time.perf_counter() - t0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    assert code in (0, 2), f"exit code {code} for {argv}: {err}"
+    if code == 2:
+        assert f"torchproj {argv[0]}: error:" in err or "error: argument" in err or "error: the following" in err, err
+        assert seconds < REFUSAL_SECONDS, f"{argv} took {seconds:.1f} s to be refused"
+        if out is not None:
+            assert not out.exists(), f"{out} written by a refused {argv}"
+    if out is not None:
+        assert not [p for p in out.parent.iterdir() if ".partial-" in p.name], f"staging left beside {out}"
+    return code, err, seconds
+
+
+def _cases_for_config(data: dict) -> list:
+    cases = [(path, _DELETE) for path in _leaves(data)]
+    cases += [(path, value) for path in _leaves(data) for value in BAD_VALUES]
+    return cases
+
+
+def _each(cases: list, seed: int, tmp_path: Path, attempt) -> None:
+    """``attempt(case, folder)`` for the sample of ``cases``; one failure list for all of them."""
+    failures = []
+    for i, case in enumerate(_sample(cases, seed)):
+        folder = tmp_path / f"case{i}"
+        folder.mkdir()
+        try:
+            attempt(case, folder)
+        except Exception as exc:  # noqa: BLE001 - a traceback is exactly what this test looks for
+            failures.append(f"{case!r}: {type(exc).__name__}: {str(exc)[:300]}")
+    assert not failures, f"{len(failures)} bad input(s) mishandled:\n" + "\n".join(failures)
+
+
+def test_mutated_configs_are_refused_cleanly_or_run(tmp_path, capsys):
+    data = tiny_config()
+
+    def attempt(case, folder):
+        path, value = case
+        config = folder / "scene.yaml"
+        config.write_text(yaml.safe_dump(_mutated(data, path, value)))
+        run_cli(["run", str(config), "--out", str(folder / "out"), "--max-iter", "20"], capsys, folder / "out")
+
+    _each(_cases_for_config(data), 0, tmp_path, attempt)
+
+
+# Every option of `run` with values of the wrong kind; argparse or the library must refuse them.
+RUN_OPTIONS = ["--solver", "--bounds", "--objective", "--l2-weight", "--psnr-drop", "--ssim-iter", "--footprint",
+               "--device", "--max-iter", "--oracle", "--gain", "--offset", "--maps", "--bits", "--plane-tolerance",
+               "--size-limit"]
+BAD_ARGS = ["-1", "0", "nan", "inf", "1e30", "abc", "", "1,1", "2,1", "-1e30,1e30", "nan,1"]
+
+
+def test_bad_run_options_are_refused_cleanly_or_run(tmp_path, capsys):
+    config = tmp_path / "scene.yaml"
+    config.write_text(yaml.safe_dump(tiny_config()))
+
+    def attempt(case, folder):
+        option, value = case
+        run_cli(["run", str(config), "--out", str(folder / "out"), "--max-iter", "20", f"{option}={value}"], capsys,
+                folder / "out")
+
+    _each([(o, v) for o in RUN_OPTIONS for v in BAD_ARGS], 1, tmp_path, attempt)
+
+
+@pytest.fixture(scope="module")
+def capture_root(tmp_path_factory):
+    """A tiny rig's calibration captures as a bench stores them, and its calibration bundle."""
+    root = tmp_path_factory.mktemp("fuzz")
+    data = tiny_config()
+    data["states"] = sorted(data["states"], key=lambda s: s["name"])
+    scene = parse_scene(data, name="tiny")
+    rig = VirtualRig(scene)
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            write_graycode_folder(root / "captures" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
+    assert main(["calibrate", str(root / "captures"), "--projector", "128x96", "--out", str(root / "bundle")]) == 0
+    return root
+
+
+def _corrupt(path: Path, how: str, seed: int) -> None:
+    if how == "delete":
+        path.unlink()
+    elif how == "truncate":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif how == "empty":
+        path.write_bytes(b"")
+    elif how == "garbage":
+        path.write_bytes(np.random.default_rng(seed).bytes(200))
+
+
+FILE_DAMAGE = ["delete", "truncate", "empty", "garbage"]
+
+
+def _files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file())
+
+
+def test_damaged_capture_files_are_refused_cleanly(capture_root, tmp_path, capsys):
+    captures = capture_root / "captures"
+
+    def attempt(case, folder):
+        name, how = case
+        shutil.copytree(captures, folder / "captures")
+        _corrupt(folder / "captures" / name, how, len(str(name)))
+        out = folder / "bundle"
+        code, err, _ = run_cli(["calibrate", str(folder / "captures"), "--projector", "128x96", "--out", str(out)],
+                               capsys, out)
+        # A missing ramp is a warning (a linear response is assumed); anything else broken is an error.
+        assert code == 2 or (how == "delete" and name.name.startswith("ramp")), f"exit {code}: {err}"
+
+    _each([(f.relative_to(captures), how) for f in _files(captures) for how in FILE_DAMAGE], 2, tmp_path, attempt)
+
+
+def test_damaged_bundles_are_refused_cleanly(capture_root, tmp_path, capsys):
+    bundle = capture_root / "bundle"
+    meta = json.loads((bundle / "bundle.json").read_text())
+
+    def attempt(case, folder):
+        kind, what, how = case
+        shutil.copytree(bundle, folder / "bundle")
+        if kind == "file":
+            _corrupt(folder / "bundle" / what, how, len(str(what)))
+        else:
+            (folder / "bundle" / "bundle.json").write_text(json.dumps(_mutated(meta, what, how)))
+        out = folder / "solved"
+        run_cli(["solve", str(folder / "bundle"), "--targets", "near=astronaut", "far=camera", "--max-iter", "20",
+                 "--out", str(out)], capsys, out)
+
+    cases = [("file", f.relative_to(bundle), how) for f in _files(bundle) for how in FILE_DAMAGE]
+    cases += [("field", path, value) for path in _leaves(meta) for value in [_DELETE, *BAD_VALUES]]
+    _each(cases, 3, tmp_path, attempt)
+
+
+def test_output_that_is_a_file_or_under_one_is_refused_before_work(tmp_path, capsys):
+    config = tmp_path / "scene.yaml"
+    config.write_text(yaml.safe_dump(tiny_config()))
+    afile = tmp_path / "afile"
+    afile.write_text("keep me")
+    for out in (afile, afile / "sub"):
+        code, err, _ = run_cli(["run", str(config), "--out", str(out)], capsys)
+        assert code == 2 and "is a file" in err and afile.read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "scene.yaml"]
+
+
+def test_read_only_output_is_refused_before_work(tmp_path, capsys, monkeypatch):
+    # Root may write anywhere, so the permission the check reads is what is faked.
+    config = tmp_path / "scene.yaml"
+    config.write_text(yaml.safe_dump(tiny_config()))
+    (tmp_path / "ro").mkdir()
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p).name == "ro" else real_access(p, mode))
+    code, err, seconds = run_cli(["run", str(config), "--out", str(tmp_path / "ro" / "x")], capsys)
+    assert code == 2 and "is not writable" in err and not any((tmp_path / "ro").iterdir())
+
+
+def _config_with(tmp_path: Path, edit) -> str:
+    data = tiny_config()
+    edit(data)
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def _one_projector(d):
+    d["projectors"] = d["projectors"][:1]
+
+
+def _surface_from(tmp_path: Path, content: bytes, suffix: str):
+    mesh = tmp_path / f"thing{suffix}"
+    mesh.write_bytes(content)
+
+    def edit(d):
+        d["surfaces"]["near_plane"] = {"type": "mesh", "file": str(mesh), "pose": {"position": [0, 0, 0.8]}}
+    return edit
+
+
+# The inputs the issue found mishandled, each with the words its refusal must hold.
+NAMED = {
+    "eo with one projector": (lambda t: ["run", _config_with(t, _one_projector), "--solver", "eo"],
+                              "eo walks epipolar chains between exactly two projectors, and this rig has 1"),
+    "bits beyond the sequence": (lambda t: ["run", _config_with(t, lambda d: None), "--bits", "100"],
+                                 "shows the whole Gray-code sequence"),
+    "unknown device": (lambda t: ["run", _config_with(t, lambda d: None), "--device", "foo"],
+                       "device 'foo' is not a torch device; this machine has"),
+    "supersampling 200": (lambda t: ["run", _config_with(t, lambda d: d["camera"].update(supersampling=2000))],
+                          "rays per state, above the limit"),
+    "a 60000 x 40000 camera": (lambda t: ["run", _config_with(t, lambda d: d["camera"].update(resolution=[60000,
+                                                                                                          40000]))],
+                               "camera: 60000x40000 pixels"),
+    "a 100000 x 100000 projector": (lambda t: ["run", _config_with(t, lambda d: d["projectors"][0].update(
+        resolution=[100000, 100000]))], "projectors[0].resolution: 100000x100000"),
+    "an empty target image": (lambda t: ["run", _config_with(t, lambda d: d["targets"][0].update(image=""))],
+                              "targets[0].image: is empty"),
+    "bounds to 1e30": (lambda t: ["run", _config_with(t, lambda d: None), "--bounds", "0,1e30"],
+                       "HI 1e+30 must lie in (0, 255]"),
+    "a text file as mesh": (lambda t: ["run", _config_with(t, _surface_from(t, b"hello\n", ".obj"))],
+                            "holds no triangles"),
+    "a broken PLY as mesh": (lambda t: ["run", _config_with(t, _surface_from(t, b"\x00garbage", ".ply"))],
+                             "is not a mesh file trimesh can read"),
+    "a projector size without its width": (lambda t: ["calibrate", str(t), "--projector", "a=256"],
+                                           "expected [NAME=]WIDTHxHEIGHT"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(NAMED))
+def test_named_bad_inputs_get_their_error(name, tmp_path, capsys):
+    argv, words = NAMED[name]
+    out = tmp_path / "out"
+    code, err, _ = run_cli([*argv(tmp_path), "--out", str(out)], capsys, out)
+    assert code == 2 and words in err, err
+
+
+def test_bad_calibration_file_name_template_and_sequence_json(capture_root, tmp_path, capsys):
+    folder = capture_root / "captures" / "near" / "upper"
+    xml = tmp_path / "calibration.xml"
+    for content in ("<x>", "<?xml version='1.0'?><opencv_storage><cam_int>3</cam_int></opencv_storage>"):
+        xml.write_text(content)
+        code, err, _ = run_cli(["decode", str(folder), "--projector", "128x96", "--calibration", str(xml),
+                                "--out", str(tmp_path / "d")], capsys, tmp_path / "d")
+        assert code == 2 and "calibration.xml: " in err and ("not a readable OpenCV" in err or "missing" in err)
+    code, err, _ = run_cli(["decode", str(folder), "--projector", "128x96", "--names", "{", "--out",
+                            str(tmp_path / "d")], capsys, tmp_path / "d")
+    assert code == 2 and "not a file name template" in err
+    root = tmp_path / "captures"
+    shutil.copytree(capture_root / "captures", root)
+    (root / "near" / "upper" / "sequence.json").write_text("{not json")
+    code, err, _ = run_cli(["calibrate", str(root), "--projector", "128x96", "--out", str(tmp_path / "b")], capsys,
+                           tmp_path / "b")
+    assert code == 2 and "sequence.json: not valid JSON" in err
+
+
+def test_hand_edited_bundle_response_is_refused(capture_root, tmp_path, capsys):
+    bundle = tmp_path / "bundle"
+    shutil.copytree(capture_root / "bundle", bundle)
+    meta = json.loads((bundle / "bundle.json").read_text())
+    meta["responses"][0]["b"] = [-3.0]
+    (bundle / "bundle.json").write_text(json.dumps(meta))
+    out = tmp_path / "solved"
+    code, err, _ = run_cli(["solve", str(bundle), "--targets", "near=astronaut", "--out", str(out)], capsys, out)
+    assert code == 2 and "responses[0]: y = a x^b + c needs a > 0 and b > 0" in err
+    (bundle / "near" / "upper.npz").write_bytes(b"")
+    code, err, _ = run_cli(["solve", str(bundle), "--targets", "near=astronaut", "--out", str(out)], capsys, out)
+    assert code == 2 and "upper.npz" in err
+
+
+def test_decoding_with_the_wrong_projector_size_warns(capture_root, tmp_path, capsys):
+    # The capture came from a 128x96 projector; 100x70 has as many Gray-code bits (7 x 7), so the image
+    # count fits and only the codes beyond 100x70 tell. The right size decodes without the warning.
+    out = tmp_path / "d"
+    code, err, _ = run_cli(["decode", str(capture_root / "captures" / "near" / "upper"), "--projector", "100x70",
+                            "--out", str(out)], capsys, out)
+    assert "read codes beyond a 100x70 projector (up to 1" in err  # (the ramp then fails to read, an error too)
+    code, err, _ = run_cli(["decode", str(capture_root / "captures" / "near" / "upper"), "--projector", "128x96",
+                            "--out", str(tmp_path / "e")], capsys, tmp_path / "e")
+    assert code == 0 and "beyond" not in err
