@@ -23,13 +23,13 @@ SURFACE = {
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
-        "BUNDLE_VERSION", "CalibrationBundle", "DEFAULT_NAMES", "DecodedFolder", "GrayDecoding", "GraycodeCapture",
-        "HomographyFit", "ProCamCalibration", "ProjectorCalibration", "ResponseCurve", "calibrate_folders",
-        "calibrate_projector", "check_plane", "decode_folder", "decode_gray", "fill_holes", "fit_homography",
-        "fit_plane", "fit_response", "graycode_bits", "graycode_patterns", "homography_map", "inverse_map",
-        "load_bundle", "measure_ramp", "ramp_pattern", "read_graycode_folder", "read_opencv_calibration",
-        "refine_subpixel", "sequence_bits", "triangulate", "triangulate_map", "write_bundle",
-        "write_graycode_folder", "write_ply", "write_sequence"],
+        "BUNDLE_VERSION", "CalibrationBundle", "DEFAULT_NAMES", "DecodedFolder", "FEW_DECODED", "GrayDecoding",
+        "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration", "ResponseCurve",
+        "calibrate_folders", "calibrate_projector", "check_plane", "decode_folder", "decode_gray", "fill_holes",
+        "fit_homography", "fit_plane", "fit_response", "graycode_bits", "graycode_patterns", "homography_map",
+        "inverse_map", "load_bundle", "measure_ramp", "ramp_pattern", "read_graycode_folder",
+        "read_opencv_calibration", "refine_subpixel", "sequence_bits", "triangulate", "triangulate_map",
+        "warn_if_few_decoded", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [
         "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target", "TransportOperator",
         "build_transport", "cell_blocks", "csr_from_coo", "fit_homography", "geometric_weights", "group_rows",

@@ -9,7 +9,7 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import InputError
-from torchproj.pipeline import calibrate_virtual, run_virtual, target_image
+from torchproj.pipeline import calibrate_virtual, run_markdown, run_virtual, target_image
 from torchproj.experiments import depth_sweep
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
@@ -60,6 +60,10 @@ def test_run_from_three_gray_code_bits_matches_the_full_sequence(config, tmp_pat
     assert "3x3 bits (16 captures per state)" in (out / "report.md").read_text()
     full = run_virtual(parse_scene(yaml.safe_load(config.read_text()))).report
     assert full["graycode"]["upper"] == {"bits": [8, 8], "captures_per_state": 36}
+    # Each calibration's decoded share of the lit pixels is in the report, and in report.md.
+    assert sorted(full["decoded_fraction"]) == ["far", "near"]
+    assert all(0.95 < v <= 1 for per in full["decoded_fraction"].values() for v in per.values())
+    assert "Decoded (share of each projector's lit pixels): near upper " in run_markdown(full)
     for short, whole in zip(report["targets"], full["targets"]):
         assert short["psnr_db"] == pytest.approx(whole["psnr_db"], abs=0.3)
 

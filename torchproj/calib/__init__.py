@@ -18,7 +18,8 @@ from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write
 from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel, sequence_bits
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
-from .pipeline import DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder
+from .pipeline import (FEW_DECODED, DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder,
+                       warn_if_few_decoded)
 from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
 from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, triangulate_map, write_ply
 
@@ -27,6 +28,7 @@ __all__ = [
     "CalibrationBundle",
     "DEFAULT_NAMES",
     "DecodedFolder",
+    "FEW_DECODED",
     "GrayDecoding",
     "GraycodeCapture",
     "HomographyFit",
@@ -57,6 +59,7 @@ __all__ = [
     "triangulate_map",
     "write_bundle",
     "write_graycode_folder",
+    "warn_if_few_decoded",
     "write_ply",
     "write_sequence",
 ]

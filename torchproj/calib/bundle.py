@@ -49,7 +49,7 @@ from ..core.progress import progress_bar
 from ..core.imageio import write_image
 from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
 from .graycode import graycode_bits, graycode_patterns, sequence_bits
-from .pipeline import ProjectorCalibration, calibrate_projector
+from .pipeline import ProjectorCalibration, calibrate_projector, warn_if_few_decoded
 from .response import ResponseCurve, ramp_pattern
 
 __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
@@ -255,6 +255,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         if fraction < _FEW_DECODED:
             warnings.warn(f"{folder}: only {fraction:.1%} of the camera decoded; targets there will be small",
                           stacklevel=2)
+        warn_if_few_decoded(cal.decoding, str(folder))
         decoded.setdefault(state, {})[name] = fraction
         maps.setdefault(state, []).append(_maps(cal))
         black.setdefault(state, []).append(capture.black)

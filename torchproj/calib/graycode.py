@@ -115,7 +115,14 @@ class GrayDecoding:
 
     @property
     def valid_fraction(self) -> float:
+        """Share of the camera's pixels decoded."""
         return float(self.valid.float().mean())
+
+    @property
+    def lit_decoded_fraction(self) -> float:
+        """Share of the pixels the projector visibly lights (``lit``) that decoded: what calibration
+        could have had and got (a shadowed or unlit pixel is no loss)."""
+        return float((self.valid & self.lit).sum()) / max(int(self.lit.sum()), 1)
 
 
 def _grey(images: torch.Tensor) -> torch.Tensor:

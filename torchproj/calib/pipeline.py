@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -14,7 +15,24 @@ from .homography import HomographyFit, check_plane, fit_homography, homography_m
 from .maps import fill_holes, inverse_map
 from .response import ResponseCurve, fit_response, measure_ramp
 
-__all__ = ["DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder"]
+__all__ = ["FEW_DECODED", "DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder",
+           "warn_if_few_decoded"]
+
+# Below this share of its lit pixels decoded, a projector's calibration is warned about (measured on
+# the shipped scenes: README, "Bad inputs and odd captures").
+FEW_DECODED = 0.7
+
+
+def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:
+    """Warn, naming ``where`` and the likely causes, when few of the lit pixels decoded; returns the share."""
+    share = decoding.lit_decoded_fraction
+    if share < FEW_DECODED:
+        warnings.warn(f"{where}: only {share:.0%} of the pixels the projector lights decoded (under "
+                      f"{FEW_DECODED:.0%}); those pixels take no part in the solve. Likely causes: Gray-code stripes "
+                      "finer than the camera resolves (steep or distant surfaces), shadows and grazing light, or a "
+                      "projector size that does not match the captures. Try fewer bits (--bits with --maps "
+                      "homography on planes), a closer camera or more camera supersampling", stacklevel=3)
+    return share
 
 
 @dataclass

@@ -256,7 +256,8 @@ def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solve
         "scene": scene.name, "solver": solver if gain_offset is None else "fista+gain/offset",
         "bounds_8bit": list(bounds_8bit), "device": str(device),
         "calibration": _CALIBRATION["geometry" if oracle is None and cal.oracle else oracle],
-        "maps": maps, "graycode": _graycode_report(scene, cal), "model": model, "objective": least_squares,
+        "maps": maps, "graycode": _graycode_report(scene, cal), "decoded_fraction": cal.decoded,
+        "model": model, "objective": least_squares,
         "unexplained_fraction": round(_unexplained(ops, result.patterns), 5),
         "iterations": result.iterations, "scale": op.scale,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
@@ -291,6 +292,18 @@ def image_objective_report(result: SolveResult) -> dict:
             "start": {"solver": start.method, "iterations": start.iterations, "objective": start.objective}}
 
 
+def _decoded_lines(decoded: dict | None) -> list[str]:
+    from ..calib import FEW_DECODED
+
+    if not decoded:
+        return []
+    low = any(v < FEW_DECODED for per in decoded.values() for v in per.values())
+    return ["Decoded (share of each projector's lit pixels): " + "; ".join(
+        f"{state} " + ", ".join(f"{name} {v:.1%}" for name, v in per.items()) for state, per in decoded.items())
+        + (f". Under {FEW_DECODED:.0%} somewhere: those pixels take no part in the solve (see the warning)."
+           if low else "."), ""]
+
+
 def _image_objective_lines(image: dict | None) -> list[str]:
     if image is None:
         return []
@@ -316,6 +329,7 @@ def run_markdown(report: dict) -> str:
                  for name, g in report["graycode"].items())) + ".", "",
              f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
+             *_decoded_lines(report.get("decoded_fraction")),
              *_image_objective_lines(report.get("image_objective")),
              f"Evaluation: {report['evaluation']}.", "",
              "| target | state | PSNR (dB) | SSIM | crosstalk | pixels |"

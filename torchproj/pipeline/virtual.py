@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..calib import GraycodeCapture, ResponseCurve, calibrate_projector, graycode_patterns, ramp_pattern, sequence_bits
+from ..calib import (GraycodeCapture, ResponseCurve, calibrate_projector, graycode_patterns, ramp_pattern, sequence_bits,
+                     warn_if_few_decoded)
 from ..core.checks import check
 from ..core.errors import InputError
 from ..scene.config import Scene
@@ -92,6 +93,7 @@ class VirtualCalibration:
     oracle: bool = False
     bits: list | None = None  # per projector, (kx, ky) of a shortened Gray-code sequence; None: the full one
     homographies: dict | None = None  # per state, per projector, the HomographyFit a shortened sequence gave
+    decoded: dict | None = None  # per state, per projector name, the share of its lit pixels that decoded
 
 
 def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False,
@@ -118,9 +120,11 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     rig = VirtualRig(scene, device=device)
     per_state: dict[str, list] = {}
     black = {}
-    for name, _, capture, calibration in calibrate_rig(rig, bits=bits, plane_tolerance=plane_tolerance,
+    decoded: dict[str, dict[str, float]] = {}
+    for name, j, capture, calibration in calibrate_rig(rig, bits=bits, plane_tolerance=plane_tolerance,
                                                         progress=progress):
         per_state.setdefault(name, []).append(calibration)
+        decoded.setdefault(name, {})[scene.projectors[j].name] = round(calibration.decoding.lit_decoded_fraction, 4)
         black[name] = capture.black.cpu()  # every projector shows black: the state's black level and ambient light
     states = {name: StateCalibration.from_calibrations(pcs) for name, pcs in per_state.items()}
     shown = homographies = None
@@ -129,7 +133,8 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
         homographies = {name: [pc.homography for pc in pcs] for name, pcs in per_state.items()}
     return VirtualCalibration(rig=rig, states=states, black=black,
                               responses=[pc.response for pc in next(iter(per_state.values()))],
-                              seconds=time.perf_counter() - t0, bits=shown, homographies=homographies)
+                              seconds=time.perf_counter() - t0, bits=shown, homographies=homographies,
+                              decoded=decoded)
 
 
 def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: float = 1.0, noise: bool = True,
@@ -172,6 +177,7 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
                                               plane_tolerance=plane_tolerance)
         except InputError as exc:  # a block map off the plane, or nothing decoded: say which state and projector
             raise InputError(f"state {name!r}, projector {proj.name!r}: {exc}") from None
+        warn_if_few_decoded(calibration.decoding, f"state {name!r}, projector {proj.name!r}")
         for key, seconds in (("cast", t1 - t0), ("capture", t2 - t1), ("calibrate", time.perf_counter() - t2)):
             timings[key] = timings.get(key, 0.0) + seconds
         yield name, j, capture, calibration
