@@ -128,11 +128,17 @@ def test_mutated_configs_are_refused_cleanly_or_run(tmp_path, capsys):
     _each(_cases_for_config(data), 0, tmp_path, attempt)
 
 
-# Every option of `run` with values of the wrong kind; argparse or the library must refuse them.
-RUN_OPTIONS = ["--solver", "--bounds", "--objective", "--l2-weight", "--psnr-drop", "--ssim-iter", "--footprint",
-               "--device", "--max-iter", "--oracle", "--gain", "--offset", "--maps", "--bits", "--plane-tolerance",
-               "--size-limit"]
+# Every option of a command with values of the wrong kind; argparse or the library must refuse them.
 BAD_ARGS = ["-1", "0", "nan", "inf", "1e30", "abc", "", "1,1", "2,1", "-1e30,1e30", "nan,1"]
+
+
+def _options(command: str) -> list[str]:
+    """Every option of a subcommand that takes a value, read from the parser itself."""
+    from torchproj.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command").choices[command]
+    return [a.option_strings[-1] for a in sub._actions
+            if a.option_strings and a.nargs != 0 and a.dest not in ("help", "out")]
 
 
 def test_bad_run_options_are_refused_cleanly_or_run(tmp_path, capsys):
@@ -144,7 +150,7 @@ def test_bad_run_options_are_refused_cleanly_or_run(tmp_path, capsys):
         run_cli(["run", str(config), "--out", str(folder / "out"), "--max-iter", "20", f"{option}={value}"], capsys,
                 folder / "out")
 
-    _each([(o, v) for o in RUN_OPTIONS for v in BAD_ARGS], 1, tmp_path, attempt)
+    _each([(o, v) for o in _options("run") for v in BAD_ARGS], 1, tmp_path, attempt)
 
 
 @pytest.fixture(scope="module")
@@ -178,6 +184,23 @@ FILE_DAMAGE = ["delete", "truncate", "empty", "garbage"]
 
 def _files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file())
+
+
+def test_bad_options_of_every_file_command_are_refused_cleanly(capture_root, tmp_path, capsys):
+    # `position` needs its box scene (a minute per valid run) and `capture` a camera: their options go
+    # through the same types and checks as these commands'.
+    config = tmp_path / "scene.yaml"
+    config.write_text(yaml.safe_dump(tiny_config()))
+    base = {"simulate": ["simulate", str(config)], "sequence": ["sequence", "--projector", "128x96"],
+            "calibrate": ["calibrate", str(capture_root / "captures"), "--projector", "128x96"],
+            "solve": ["solve", str(capture_root / "bundle"), "--targets", "near=astronaut", "--max-iter", "20"],
+            "decode": ["decode", str(capture_root / "captures" / "near" / "upper"), "--projector", "128x96"]}
+
+    def attempt(case, folder):
+        command, option, value = case
+        run_cli([*base[command], "--out", str(folder / "out"), f"{option}={value}"], capsys, folder / "out")
+
+    _each([(c, o, v) for c in base for o in _options(c) for v in BAD_ARGS], 4, tmp_path, attempt)
 
 
 def test_damaged_capture_files_are_refused_cleanly(capture_root, tmp_path, capsys):
