@@ -36,7 +36,7 @@ SURFACE = {
         "homography_map", "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera",
         "triangulate_rays"],
     "metrics": [
-        "SSIMLoss", "crosstalk", "model_space_psnr", "psnr", "ssim", "ssim_map"],
+        "SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [
         "ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS",
         "SolveResult", "calibration_parts", "check_bounds", "check_solve_options", "compensate",
@@ -47,9 +47,9 @@ SURFACE = {
         "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "ORACLES",
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
         "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "decoding_accuracy",
-        "default_images", "evaluate_patterns", "light_transport", "run_markdown", "run_virtual", "scene_images",
-        "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene",
-        "solve_bundle", "solve_on_light_transport", "target_image"],
+        "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual",
+        "scene_images", "scene_targets", "score_image", "simulate_calibration", "simulate_markdown",
+        "simulate_scene", "solve_bundle", "solve_on_light_transport", "target_image"],
     "experiments": [
         "DepthSweep", "PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance",
         "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "placement_error",

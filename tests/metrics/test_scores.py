@@ -44,3 +44,25 @@ def test_crosstalk_ignores_colour_balance():
     mask = torch.ones(50, 50, dtype=torch.bool)
     assert crosstalk(a, [b], mask) < 0.05
     assert crosstalk(0.5 * a + 0.5 * b, [b], mask) > 0.6
+
+
+def test_explained_share_is_the_r_squared_of_numpy_least_squares():
+    import numpy as np
+
+    from torchproj.metrics import explained_share
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(2, 9, 11, generator=g), torch.rand(2, 9, 11, generator=g)
+    residual = 0.7 * a - 0.2 * b + 0.3 * torch.rand(2, 9, 11, generator=g)
+    mask = torch.rand(9, 11, generator=g) > 0.2
+    # Independent reference: centred per channel, one coefficient per regressor, numpy's lstsq.
+    centre = lambda x: (x[:, mask].double() - x[:, mask].double().mean(1, keepdim=True)).reshape(-1).numpy()  # noqa: E731
+    r, G = centre(residual), np.stack([centre(a), centre(b)], 1)
+    beta = np.linalg.lstsq(G, r, rcond=None)[0]
+    want = 1 - ((r - G @ beta) ** 2).sum() / (r ** 2).sum()
+    assert explained_share(residual, [a, b], mask) == pytest.approx(want, abs=1e-12)
+    assert explained_share(a, [a], mask) == pytest.approx(1.0) and explained_share(a, [], mask) == 0.0
+    # A pixel a regressor knows nothing about (NaN) counts as its mean, and changes nothing else.
+    holed = a.clone()
+    holed[:, ~mask] = float("nan")
+    assert explained_share(residual, [holed, b], mask) == pytest.approx(want, abs=1e-12)

@@ -64,6 +64,7 @@ def test_run_from_three_gray_code_bits_matches_the_full_sequence(config, tmp_pat
     assert sorted(full["decoded_fraction"]) == ["far", "near"]
     assert all(0.95 < v <= 1 for per in full["decoded_fraction"].values() for v in per.values())
     assert "Decoded (share of each projector's lit pixels): near upper " in run_markdown(full)
+    assert all(0 <= t["ghost"] <= 1 for t in full["targets"]) and "| crosstalk | ghost |" in run_markdown(full)
     for short, whole in zip(report["targets"], full["targets"]):
         assert short["psnr_db"] == pytest.approx(whole["psnr_db"], abs=0.3)
 

@@ -49,3 +49,29 @@ def test_patterns_for_another_rig_are_refused(quarter_rig):
     with pytest.raises(InputError, match="one pattern per projector"):
         evaluate_patterns(cal, [torch.zeros(1, 192, 256, dtype=torch.uint8)], scene_targets(scene, rig=cal.rig),
                           scale=0.5)
+
+
+def test_ghost_images_follow_the_light_to_where_parallax_puts_it(quarter_rig):
+    """One projector shows a picture; the simulator renders it on the far plane and on the near one.
+    Carried from the far capture through the calibrated correspondences, the picture must reproduce
+    the near capture (the physics is the independent reference), where the same camera pixels of
+    the far capture do not: parallax shifts it."""
+    from skimage.data import astronaut
+    from skimage.transform import resize
+
+    from torchproj.metrics import explained_share
+    from torchproj.pipeline import ghost_images
+
+    scene, cal = quarter_rig
+    near, far = scene_targets(scene, None, cal.rig)
+    proj = scene.projectors[0]
+    picture = torch.from_numpy(resize(astronaut().mean(-1) / 255, (proj.height, proj.width))).float()
+    light = {s: (cal.rig.capture(s, {0: picture[None, None]}, noise=False)[0] - cal.black[s]).cpu()
+             for s in ("near", "far")}
+    lit = {s: cal.states[s].lit() for s in ("near", "far")}
+    on_camera = [(light["near"], lit["near"]), (light["far"], lit["far"])]
+    ghosts = ghost_images(cal.states, [near, far], on_camera, 0)
+    assert len(ghosts) == 2  # one per projector; the second carries the picture through the other's cells
+    carried = explained_share(light["near"], ghosts[:1], lit["near"])
+    in_place = explained_share(light["near"], [light["far"]], lit["near"] & lit["far"])
+    assert carried > 0.9 and in_place < carried - 0.4

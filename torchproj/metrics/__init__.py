@@ -3,7 +3,7 @@
 Imports only :mod:`torchproj.core`, so that solvers can optimise the same SSIM that evaluation reports.
 """
 
-from .scores import crosstalk, model_space_psnr, psnr
+from .scores import crosstalk, explained_share, model_space_psnr, psnr
 from .ssim import SSIMLoss, ssim, ssim_map
 
-__all__ = ["SSIMLoss", "crosstalk", "model_space_psnr", "psnr", "ssim", "ssim_map"]
+__all__ = ["SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"]

@@ -1,4 +1,4 @@
-"""PSNR and crosstalk: scores that say what they compare (SSIM: :mod:`torchproj.metrics.ssim`)."""
+"""PSNR, crosstalk and the share of an error that ghosts explain: scores that say what they compare (SSIM: :mod:`torchproj.metrics.ssim`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 
 from ..core.checks import check
 
-__all__ = ["psnr", "model_space_psnr", "crosstalk"]
+__all__ = ["psnr", "model_space_psnr", "crosstalk", "explained_share"]
 
 
 def psnr(estimate: torch.Tensor, reference: torch.Tensor, data_range: float = 1.0) -> float:
@@ -51,3 +51,33 @@ def crosstalk(captured: torch.Tensor, others: list[torch.Tensor], mask: torch.Te
         if denom > 0:
             best = max(best, abs(float((c * o).sum()) / denom))
     return best
+
+
+def explained_share(residual: torch.Tensor, regressors: list[torch.Tensor], mask: torch.Tensor) -> float:
+    """Share of a residual's variance that a least-squares mix of regressor images explains.
+
+    Over the mask's pixels, each image is centred per channel (NaN in a regressor, a pixel it says
+    nothing about, counts as its mean); one coefficient per regressor, shared by the channels.
+
+    Args:
+        residual: :math:`(C, H, W)`, e.g. capture minus target.
+        regressors: each :math:`(C, H, W)`, e.g. other targets' images as ghosts would place them.
+        mask: :math:`(H, W)` bool.
+
+    Returns:
+        :math:`1 - \\|r - G\\beta\\|^2 / \\|r\\|^2` in [0, 1] (0 with no regressors or no residual).
+    """
+    r = residual[:, mask].double()
+    r = (r - r.mean(1, keepdim=True)).reshape(-1)
+    energy = float(r.pow(2).sum())
+    if not regressors or energy == 0:
+        return 0.0
+    columns = []
+    for g in regressors:
+        g = g[:, mask].double()
+        known = torch.isfinite(g)
+        mean = torch.where(known, g, 0).sum(1, keepdim=True) / known.sum(1, keepdim=True).clamp_min(1)
+        columns.append(torch.where(known, g - mean, 0).reshape(-1))
+    G = torch.stack(columns, 1)
+    beta = torch.linalg.lstsq(G, r[:, None]).solution
+    return float(min(max(1 - float((r[:, None] - G @ beta).pow(2).sum()) / energy, 0.0), 1.0))

@@ -332,13 +332,13 @@ def run_markdown(report: dict) -> str:
              *_decoded_lines(report.get("decoded_fraction")),
              *_image_objective_lines(report.get("image_objective")),
              f"Evaluation: {report['evaluation']}.", "",
-             "| target | state | PSNR (dB) | SSIM | crosstalk | pixels |"
+             "| target | state | PSNR (dB) | SSIM | crosstalk | ghost | pixels |"
              + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else "")
              + (" ceiling PSNR (dB) | ceiling SSIM |" if ceiling else ""),
-             "|---|---|---|---|---|---|" + ("---|---|---|---|" if adjusted else "") + ("---|---|" if ceiling else "")]
+             "|---|---|---|---|---|---|---|" + ("---|---|---|---|" if adjusted else "") + ("---|---|" if ceiling else "")]
     for r in report["targets"]:
         line = (f"| {r['name']} | {r['state']} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['crosstalk']:.3f} | "
-                f"{r['pixels']} |")
+                f"{r.get('ghost', float('nan')):.3f} | {r['pixels']} |")
         if adjusted:
             line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
         if ceiling:

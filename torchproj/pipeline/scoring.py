@@ -12,16 +12,19 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import check
-from ..metrics import crosstalk, psnr, ssim
+from ..core.conventions import round_to_pixel
+from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
 
-__all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "evaluate_patterns", "score_image"]
+__all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "evaluate_patterns", "ghost_images", "score_image"]
 
 EVALUATION = ("captured image minus the state's black capture, divided by the target scale, against the target image "
               "warped onto the camera pixels of its surfaces that calibration found lit; data range 1; SSIM "
               "(scikit-image's definition, 7x7 uniform window, torchproj.metrics.ssim) averaged over those pixels; "
               "crosstalk is the largest |Pearson correlation| there with another target's image placed on the same "
-              "pixels")
+              "pixels; ghost is the share of the error (capture minus target) that the other states' target images "
+              "explain (least squares), each carried through each projector's correspondence onto the pixels that "
+              "see the same projector cells, where parallax puts its ghost")
 
 
 def score_image(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Tensor) -> dict:
@@ -41,7 +44,7 @@ class TargetScore:
 
     Attributes:
         name, state: the target's.
-        psnr_db, ssim, crosstalk: see :data:`EVALUATION`.
+        psnr_db, ssim, crosstalk, ghost: see :data:`EVALUATION`.
         pixels: camera pixels scored.
         estimate: :math:`(C, H, W)` the capture in target units, clamped to [0, 1].
         values: :math:`(C, H, W)` the target image on the camera.
@@ -57,11 +60,12 @@ class TargetScore:
     estimate: torch.Tensor
     values: torch.Tensor
     covered: torch.Tensor
+    ghost: float = 0.0
 
     def as_dict(self) -> dict:
         """The row of ``report.json``."""
         return {"name": self.name, "state": self.state, "psnr_db": self.psnr_db, "ssim": self.ssim,
-                "crosstalk": self.crosstalk, "pixels": self.pixels}
+                "crosstalk": self.crosstalk, "ghost": self.ghost, "pixels": self.pixels}
 
 
 @dataclass
@@ -97,15 +101,71 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
              for j, p in enumerate(patterns)}
     captures = {state: calibration.rig.capture(state, shown, noise=noise)[0].cpu()
                 for state in dict.fromkeys(t.state for t in targets)}
+    regions = []
+    for target in targets:
+        lit = states[target.state].lit()
+        regions.append(lit if target.mask is None else lit & target.mask)
+    on_camera = [target_on_camera(target, region) for target, region in zip(targets, regions)]
     scores = []
     for k, target in enumerate(targets):
-        lit = states[target.state].lit()
-        region = lit if target.mask is None else lit & target.mask
-        values, covered = target_on_camera(target, region)
+        values, covered = on_camera[k]
         estimate = ((captures[target.state] - calibration.black[target.state]) / scale).clamp(0, 1)
-        others = [target_on_camera(Target(target.state, t.image, name=t.name), region)[0]
+        others = [target_on_camera(Target(target.state, t.image, name=t.name), regions[k])[0]
                   for m, t in enumerate(targets) if m != k]
+        ghosts = ghost_images(states, targets, on_camera, k)
         scores.append(TargetScore(name=target.name, state=target.state, **score_image(estimate, values, covered),
                                   crosstalk=crosstalk(estimate, others, covered), pixels=int(covered.sum()),
-                                  estimate=estimate, values=values, covered=covered))
+                                  estimate=estimate, values=values, covered=covered,
+                                  ghost=explained_share(estimate - values, ghosts, covered)))
     return PatternEvaluation(scores, captures)
+
+
+def ghost_images(states, targets: list[Target], on_camera: list, k: int) -> list[torch.Tensor]:
+    """Where the other states' targets would show as ghosts on target ``k``'s camera pixels.
+
+    Light meant for target ``l`` (state ``s_l``) leaves projector ``j`` from the cells that light
+    ``l``'s pixels in ``s_l``; in ``k``'s state the same cells light other pixels, shifted by parallax
+    and differently for each projector. Per other-state target and projector, the target's image is
+    averaged onto those cells (the correspondence of ``s_l``) and read back through ``k``'s state's
+    correspondence. Targets of ``k``'s own state share no cells with it and make no ghost.
+
+    Args:
+        states: state name -> :class:`~torchproj.transport.StateCalibration`.
+        on_camera: per target, ``(values (C, H, W), covered (H, W))`` on its state's camera pixels.
+
+    Returns:
+        :math:`(C, H, W)` images, NaN where a pixel's cell carries nothing of that target.
+    """
+    here = states[targets[k].state]
+    ghosts = []
+    for m, other in enumerate(targets):
+        if other.state == targets[k].state:
+            continue
+        values, covered = on_camera[m]
+        there = states[other.state]
+        for j, (w, h) in enumerate(there.projector_sizes):
+            cells = _cells(there.prj_xy[j], (w, h)) if covered.any() else None
+            if cells is None:
+                continue
+            use = covered.reshape(-1) & (cells >= 0)
+            sums = torch.zeros(values.shape[0], w * h, dtype=torch.float64)
+            sums.index_add_(1, cells[use], values.reshape(values.shape[0], -1)[:, use].double())
+            count = torch.zeros(w * h, dtype=torch.float64).index_add_(0, cells[use], torch.ones(int(use.sum()),
+                                                                                                  dtype=torch.float64))
+            on_cells = torch.where(count > 0, sums / count.clamp_min(1), float("nan"))
+            mine = _cells(here.prj_xy[j], (w, h))
+            ghost = torch.full((values.shape[0], mine.numel()), float("nan"), dtype=torch.float64)
+            ghost[:, mine >= 0] = on_cells[:, mine[mine >= 0]]
+            ghosts.append(ghost.reshape(values.shape))
+    return ghosts
+
+
+def _cells(prj_xy: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """:math:`(H W,)` the projector cell each camera pixel decoded to (row-major index), -1 where none."""
+    w, h = size
+    xy = prj_xy.reshape(-1, 2).cpu()
+    ok = torch.isfinite(xy).all(-1)
+    cell = torch.full((xy.shape[0], 2), -1, dtype=torch.int64)
+    cell[ok] = round_to_pixel(xy[ok])
+    inside = ok & (cell[:, 0] >= 0) & (cell[:, 0] < w) & (cell[:, 1] >= 0) & (cell[:, 1] < h)
+    return torch.where(inside, cell[:, 1] * w + cell[:, 0], -1)
