@@ -57,6 +57,8 @@ def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_r
     assert list(bundle.states) == ["far", "near"] and bundle.camera_size == (400, 300)
     assert main(["solve", str(calib), "--targets", "far=astronaut", "near=chelsea", "--out", str(solved)]) == 0
     run = run_virtual(scene)
+    # The bench's calibration says the same decoded share of each projector's lit pixels as the run.
+    assert bundle.decoded_lit == run.report["decoded_fraction"]
     report = json.loads((solved / "report.json").read_text())
     assert report["objective"] == pytest.approx(run.report["objective"], rel=1e-5)
     shown = {}

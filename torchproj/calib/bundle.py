@@ -106,6 +106,8 @@ class CalibrationBundle:
         responses: per projector, its :class:`ResponseCurve` (None where no ramp was captured).
         ramps: per projector, the measured ramp points its curve was fitted to (or None).
         decoded: state -> projector -> fraction of camera pixels decoded.
+        decoded_lit: state -> projector -> share of the pixels it visibly lights that decoded
+            (:attr:`~torchproj.calib.GrayDecoding.lit_decoded_fraction`).
         bits: per projector, the Gray-code pattern pairs per axis its sequence showed.
         homographies: state -> projector -> :class:`~torchproj.calib.HomographyFit` as a dict,
             for projectors calibrated from a shortened sequence.
@@ -118,15 +120,19 @@ class CalibrationBundle:
     black: dict[str, torch.Tensor]
     responses: list[ResponseCurve | None]
     decoded: dict[str, dict[str, float]] = field(default_factory=dict)
+    decoded_lit: dict[str, dict[str, float]] = field(default_factory=dict)
     procam_calibration: Path | None = None
     ramps: list = field(default_factory=list)  # per projector, (levels (L,), measured (L, C)) the fit used, or None
     bits: list = field(default_factory=list)
     homographies: dict = field(default_factory=dict)
 
     def summary(self) -> str:
-        """One line: states, projectors and the fraction of the camera decoded in each."""
+        """One line: states, projectors, the fraction of the camera decoded in each and (in brackets)
+        the share of the pixels each projector lights."""
+        lit = self.decoded_lit
         return (f"{len(self.states)} state(s) x {len(self.projectors)} projector(s); decoded: "
-                + ", ".join(f"{s}/{p} {f:.1%}" for s, d in self.decoded.items() for p, f in d.items()))
+                + ", ".join(f"{s}/{p} {f:.1%}" + (f" ({lit[s][p]:.1%} of its lit pixels)" if p in lit.get(s, {}) else "")
+                            for s, d in self.decoded.items() for p, f in d.items()))
 
     def figure_rows(self) -> list[dict]:
         """Per state and projector, a row of :func:`torchproj.figures.calibration_summary`."""
@@ -230,7 +236,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     first = next(iter(layout.values()))
     projectors = [(n, s[0], s[1]) for n, _, s, _ in first]
     shown = [b for _, _, _, b in first]
-    maps, black, decoded, homographies = {}, {}, {}, {}
+    maps, black, decoded, decoded_lit, homographies = {}, {}, {}, {}, {}
     responses: list[ResponseCurve | None] = [None] * len(projectors)
     ramps: list = [None] * len(projectors)
     shape = None
@@ -255,7 +261,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         if fraction < _FEW_DECODED:
             warnings.warn(f"{folder}: only {fraction:.1%} of the camera decoded; targets there will be small",
                           stacklevel=2)
-        warn_if_few_decoded(cal.decoding, str(folder))
+        decoded_lit.setdefault(state, {})[name] = round(warn_if_few_decoded(cal.decoding, str(folder)), 4)
         decoded.setdefault(state, {})[name] = fraction
         maps.setdefault(state, []).append(_maps(cal))
         black.setdefault(state, []).append(capture.black)
@@ -266,7 +272,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         warnings.warn(f"no ramp captures for {missing}: solving will assume a linear response there", stacklevel=2)
     return CalibrationBundle(camera_size=(shape[2], shape[1]), channels=shape[0], projectors=projectors,
                              states=maps, black={s: torch.stack(b).mean(0) for s, b in black.items()},
-                             responses=responses, decoded=decoded, ramps=ramps, bits=shown,
+                             responses=responses, decoded=decoded, decoded_lit=decoded_lit, ramps=ramps, bits=shown,
                              homographies=homographies)
 
 
@@ -293,7 +299,7 @@ def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_ca
         "responses": [None if r is None else r.as_dict() for r in bundle.responses],
         "ramps": [None if r is None else {"levels": r[0].tolist(), "measured": r[1].tolist()}
                   for r in (bundle.ramps or [None] * len(bundle.projectors))],
-        "decoded_fraction": bundle.decoded, "files": files,
+        "decoded_fraction": bundle.decoded, "decoded_lit_fraction": bundle.decoded_lit, "files": files,
     }
     full = [graycode_bits(w, h) for _, w, h in bundle.projectors]
     if bundle.bits and [tuple(b) for b in bundle.bits] != full:
@@ -374,7 +380,8 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
     xml = meta.get("procam_calibration")
     shown = meta.get("graycode_bits", {})
     return CalibrationBundle(camera_size=(width, height), channels=channels, projectors=projectors, states=states,
-                             black=black, responses=responses, decoded=meta.get("decoded_fraction", {}), ramps=ramps,
+                             black=black, responses=responses, decoded=meta.get("decoded_fraction", {}),
+                             decoded_lit=meta.get("decoded_lit_fraction", {}), ramps=ramps,
                              procam_calibration=None if xml is None else folder / xml,
                              bits=[tuple(shown.get(n, graycode_bits(w, h))) for n, w, h in projectors],
                              homographies=meta.get("homographies", {}))
