@@ -77,9 +77,11 @@ def chart(path: Path, rows: list[dict]) -> None:
     """Per scene, each target's captured SSIM against build + solve time for each model; the ceiling
     is a dashed line per target (its time is not a user's: it needs the simulator)."""
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    fig = Figure(figsize=(5 * len(scenes), 4), layout="constrained")
+    cols = min(4, len(scenes))
+    lines = -(-len(scenes) // cols)
+    fig = Figure(figsize=(5 * cols, 4 * lines), layout="constrained")
     for i, scene in enumerate(scenes):
-        ax = fig.add_subplot(1, len(scenes), i + 1)
+        ax = fig.add_subplot(lines, cols, i + 1)
         mine = [r for r in rows if r["scene"] == scene and r["model"] != "ceiling"]
         top = next(r for r in rows if r["scene"] == scene and r["model"] == "ceiling")
         for k, name in enumerate(t["name"] for t in top["targets"]):
