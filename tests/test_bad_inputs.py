@@ -361,3 +361,11 @@ def test_decoding_with_the_wrong_projector_size_warns(capture_root, tmp_path, ca
     code, err, _ = run_cli(["decode", str(capture_root / "captures" / "near" / "upper"), "--projector", "128x96",
                             "--out", str(tmp_path / "e")], capsys, tmp_path / "e")
     assert code == 0 and "beyond" not in err
+
+
+def test_bounds_in_linear_units_by_mistake_warn(tmp_path, capsys):
+    from torchproj.solve import check_solve_options
+
+    with pytest.warns(UserWarning, match="8-bit units: HI 1 lets each cell give 1/255 of its white"):
+        assert check_solve_options("fista", (0, 1), 2) == (0.0, 1 / 255)
+    assert check_solve_options("eo", (-100, 255), 2) == (-100 / 255, 1.0)

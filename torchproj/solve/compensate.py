@@ -79,6 +79,9 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int) -> tuple[floa
     check(0 < hi <= 255, f"bounds: HI {hi:g} must lie in (0, 255] (8-bit units: 255 is the projector's white, "
                          "more light than that it cannot give); use e.g. 0,255")
     check(lo >= -255, f"bounds: LO {lo:g} must be at least -255 (8-bit units; the paper's EO_-100^255 uses -100)")
+    if hi <= 1:
+        warnings.warn(f"bounds {lo:g},{hi:g} are 8-bit units: HI {hi:g} lets each cell give {hi:g}/255 of its white; "
+                      "for the full range use 0,255", stacklevel=3)
     return lo / 255, hi / 255
 
 
