@@ -11,7 +11,8 @@ from pathlib import Path
 
 from . import __version__
 from .cli_options import (BITS_HELP, command, config_option, decoding_options, device_options, existing_file,
-                          join_negative_pairs, limits, map_options, named_projector_size, projector_size, solve_options)
+                          join_negative_pairs, limits, map_options, named_projector_size, projector_size, solve_options,
+                          solver_options)
 from .core.errors import TorchprojError
 from .core.output import atomic_output, check_output_folder, write_json
 
@@ -75,7 +76,7 @@ def cmd_position(args) -> int:
     scene = _scene(args)
     result = evaluate_positioning(scene, trials=args.trials, spread_mm=args.spread_mm, spread_deg=args.spread_deg,
                                   seed=args.seed, max_evaluations=args.max_evaluations, device=args.device,
-                                  max_iter=args.max_iter)
+                                  max_iter=args.max_iter, solver=args.solver, bounds_8bit=args.bounds)
     _publish(args.out, lambda stage: result.write(stage, scene), "report.json, report.md, feedback.png, patterns/, "
              f"scans/ (view a scan: python viz/positioning.py {args.out})")
     return 0
@@ -186,6 +187,7 @@ def _virtual_rig_commands(sub) -> None:
     p.add_argument("--spread-deg", type=float, default=5.0, help="... turned by up to this (default 5)")
     p.add_argument("--seed", type=int, default=0, help="seeds the start poses and the camera noise (default 0)")
     p.add_argument("--max-evaluations", type=int, default=200, help="camera looks per placement (default 200)")
+    solver_options(p)
     device_options(p)
 
     p = command(sub, "simulate", cmd_simulate, "calibrate every state and projector of a scene on the virtual rig, "

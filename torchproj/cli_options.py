@@ -10,7 +10,8 @@ import re
 from pathlib import Path
 
 __all__ = ["BITS_HELP", "bounds", "command", "config_option", "decoding_options", "device_options", "existing_file",
-           "join_negative_pairs", "limits", "map_options", "named_projector_size", "projector_size", "solve_options"]
+           "join_negative_pairs", "limits", "map_options", "named_projector_size", "projector_size", "solve_options",
+           "solver_options"]
 
 
 # ------------------------------------------------------------------------------ argument types
@@ -101,14 +102,21 @@ def device_options(p, max_iter: bool = True) -> None:
         p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
 
 
-def solve_options(p) -> None:
-    """The options of every command that solves patterns (``run``, ``solve``)."""
-    from .solve import OBJECTIVES, PSNR_DROP_DB, SOLVERS
-    from .transport import FOOTPRINTS
+def solver_options(p) -> None:
+    """The pattern solver and its bounds (``run``, ``solve``, ``position``)."""
+    from .solve import SOLVERS
 
     p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
     p.add_argument("--bounds", type=bounds, default=(0.0, 255.0), metavar="LO,HI",
                    help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
+
+
+def solve_options(p) -> None:
+    """The options of every command that solves patterns (``run``, ``solve``)."""
+    from .solve import OBJECTIVES, PSNR_DROP_DB
+    from .transport import FOOTPRINTS
+
+    solver_options(p)
     p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
                    help="l2: least squares (default); ssim or mixed: SSIM of the predicted camera images with a small "
                         "or larger weight on their squared error, started from the solver's patterns")

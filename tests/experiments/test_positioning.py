@@ -231,3 +231,19 @@ def test_placement_error_between_the_real_chessboard_captures(tmp_path):
     brute = cdist(sample, ref).min(1)
     assert np.allclose(scan_distance(sample, ref), brute)
     assert report["rmse"] > 1.0 and report["points"] == len(placed)
+
+
+def test_position_with_the_papers_eo(box_scene, tmp_path, capsys):
+    # The paper's own test showed EO_0^255 patterns; the report says which solver made them.
+    result = evaluate_positioning(box_scene, trials=1, max_evaluations=20, profile_steps=2, solver="eo")
+    assert result.report["solver"] == "eo" and result.report["bounds_8bit"] == [0, 255]
+    assert result.report["method"].startswith("patterns solved by eo (bounds 0..255)")
+    fista = evaluate_positioning(box_scene, trials=1, max_evaluations=20, profile_steps=2)
+    # EO is the weaker optimiser of the same problem: its patterns score no better at the goal.
+    for e, f in zip(result.report["positions"], fista.report["positions"]):
+        assert e["psnr_db_at_goal"] <= f["psnr_db_at_goal"] + 0.1
+    path = tmp_path / "box.yaml"
+    path.write_text(yaml.safe_dump(dict(small_config("box_positions", **SMALL), name="small_box")))
+    with pytest.raises(SystemExit):  # argparse refuses an unknown solver before any work
+        main(["position", str(path), "--solver", "nope", "--out", str(tmp_path / "o")])
+    assert "invalid choice: 'nope'" in capsys.readouterr().err and not (tmp_path / "o").exists()
