@@ -185,10 +185,7 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
             if manifest.is_file():
                 meta = read_json(manifest, "copy it again from the torchproj sequence output")
                 size, shown = meta.get("projector"), meta.get("bits")
-                if (not isinstance(size, list) or len(size) != 2
-                        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
-                    raise CaptureError(f"{manifest}: 'projector' must be [width, height], got {size!r}; copy it "
-                                       "again from the torchproj sequence output")
+                size = _size(size, f"{manifest}: 'projector'")
             elif sizes and (name in sizes or "*" in sizes):
                 size = sizes.get(name, sizes.get("*"))
             else:
@@ -392,7 +389,8 @@ def _size(value, where: str) -> tuple[int, int]:
     if (not isinstance(value, list) or len(value) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
             or value[0] * value[1] > SIZE_LIMIT):
-        raise CaptureError(f"{where} must be [width, height] in whole pixels, got {value!r}; calibrate again")
+        raise CaptureError(f"{where} must be [width, height] in whole pixels (at most {SIZE_LIMIT:.0e} of them), got "
+                           f"{value!r}; write or calibrate it again")
     return value[0], value[1]
 
 
