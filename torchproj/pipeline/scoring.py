@@ -127,7 +127,9 @@ def ghost_images(states, targets: list[Target], on_camera: list, k: int) -> list
     ``l``'s pixels in ``s_l``; in ``k``'s state the same cells light other pixels, shifted by parallax
     and differently for each projector. Per other-state target and projector, the target's image is
     averaged onto those cells (the correspondence of ``s_l``) and read back through ``k``'s state's
-    correspondence. Targets of ``k``'s own state share no cells with it and make no ghost.
+    correspondence. Targets of ``k``'s own state are left out: an opaque surface point takes a cell's
+    whole light, so they share no cells with ``k`` (through a semi-transparent screen they do, and
+    this leaves that leak to ``crosstalk``).
 
     Args:
         states: state name -> :class:`~torchproj.transport.StateCalibration`.
@@ -144,14 +146,11 @@ def ghost_images(states, targets: list[Target], on_camera: list, k: int) -> list
         values, covered = on_camera[m]
         there = states[other.state]
         for j, (w, h) in enumerate(there.projector_sizes):
-            cells = _cells(there.prj_xy[j], (w, h)) if covered.any() else None
-            if cells is None:
-                continue
+            cells = _cells(there.prj_xy[j], (w, h))
             use = covered.reshape(-1) & (cells >= 0)
-            sums = torch.zeros(values.shape[0], w * h, dtype=torch.float64)
-            sums.index_add_(1, cells[use], values.reshape(values.shape[0], -1)[:, use].double())
-            count = torch.zeros(w * h, dtype=torch.float64).index_add_(0, cells[use], torch.ones(int(use.sum()),
-                                                                                                  dtype=torch.float64))
+            flat = values.reshape(values.shape[0], -1)[:, use].double()
+            sums = torch.zeros(values.shape[0], w * h, dtype=torch.float64).index_add_(1, cells[use], flat)
+            count = torch.bincount(cells[use], minlength=w * h).double()
             on_cells = torch.where(count > 0, sums / count.clamp_min(1), float("nan"))
             mine = _cells(here.prj_xy[j], (w, h))
             ghost = torch.full((values.shape[0], mine.numel()), float("nan"), dtype=torch.float64)
