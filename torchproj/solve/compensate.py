@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import torch
@@ -64,6 +63,7 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int) -> tuple[floa
     the paper's ``EO_-100^255``, whose values are brought into range afterwards).
     """
     from . import SOLVERS
+    from .solvers import check_bounds
 
     check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
     check(solver != "eo" or projectors == 2,
@@ -71,11 +71,11 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int) -> tuple[floa
           "solver (fista, the default, takes any number)" + (", or from Python solve_eo(..., chains='components')"
                                                               if projectors > 2 else ""))
     try:
-        lo, hi = (float(b) for b in bounds_8bit)
-    except (TypeError, ValueError):
+        lo, hi = check_bounds(bounds_8bit)  # finite, lo < hi
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
         raise InputError(f"bounds must be two numbers LO,HI in 8-bit units, got {bounds_8bit!r}") from None
-    check(math.isfinite(lo) and math.isfinite(hi), f"bounds must be finite, got {lo:g},{hi:g}")
-    check(lo < hi, f"bounds must satisfy LO < HI, got {lo:g},{hi:g}")
     check(0 < hi <= 255, f"bounds: HI {hi:g} must lie in (0, 255] (8-bit units: 255 is the projector's white, "
                          "more light than that it cannot give); use e.g. 0,255")
     check(lo >= -255, f"bounds: LO {lo:g} must be at least -255 (8-bit units; the paper's EO_-100^255 uses -100)")
