@@ -110,8 +110,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             (FISTA, least squares, to convergence) and score it the same way: each report row gets
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
     """
-    oracle, bounds = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling)
-    image = image_objective(objective)
+    oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling)
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
@@ -145,7 +144,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
 
 def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling):
     """:func:`run_virtual`'s options checked together, before any work; returns the oracle's name (or
-    None) and the bounds in linear light."""
+    None), the bounds in linear light and the image objective (None for least squares)."""
     bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors))
     oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
@@ -155,11 +154,12 @@ def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps,
                                        "solver other than eo with --oracle transport")
     if exact or ceiling:  # before calibrating, not after
         check_linear_camera(scene)
-    check(gain_offset is None or (solver == "fista" and image_objective(objective) is None),
+    image = image_objective(objective)
+    check(gain_offset is None or (solver == "fista" and image is None),
           "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
           "gain/offset option")
     check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
-    return oracle, bounds
+    return oracle, bounds, image
 
 
 @dataclass
