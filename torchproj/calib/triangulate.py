@@ -66,13 +66,13 @@ def read_opencv_calibration(path: str | os.PathLike) -> ProCamCalibration:
         raise CaptureError(f"{path}: missing '{names[0]}' (expected cam_int, cam_dist, proj_int, proj_dist, "
                            "rotation, translation as written by cv2.stereoCalibrate scripts)")
 
-    intrinsics, rotation_shape, vector3 = [(3, 3)], [(3, 3)], [(3, 1), (1, 3)]
+    square, vector3 = [(3, 3)], [(3, 1), (1, 3)]  # intrinsics and rotation; translation
     distortion = [(1, n) for n in (4, 5, 8, 12, 14)] + [(n, 1) for n in (4, 5, 8, 12, 14)]
-    rotation = mat(rotation_shape, "rotation", "roration", "R")
+    rotation = mat(square, "rotation", "roration", "R")
     translation = mat(vector3, "translation", "T").reshape(3, 1)
     calib = ProCamCalibration(
-        cam_K=mat(intrinsics, "cam_int"), cam_dist=mat(distortion, "cam_dist").reshape(-1),
-        prj_K=mat(intrinsics, "proj_int"), prj_dist=mat(distortion, "proj_dist").reshape(-1),
+        cam_K=mat(square, "cam_int"), cam_dist=mat(distortion, "cam_dist").reshape(-1),
+        prj_K=mat(square, "proj_int"), prj_dist=mat(distortion, "proj_dist").reshape(-1),
         prj_from_cam=torch.cat([rotation, translation], 1))
     fs.release()
     return calib
