@@ -70,7 +70,7 @@ def test_ghost_images_follow_the_light_to_where_parallax_puts_it(quarter_rig):
              for s in ("near", "far")}
     lit = {s: cal.states[s].lit() for s in ("near", "far")}
     on_camera = [(light["near"], lit["near"]), (light["far"], lit["far"])]
-    ghosts = ghost_images(cal.states, [near, far], on_camera, 0)
+    ghosts = ghost_images(cal.states, [near, far], on_camera)[0]  # on the near target
     assert len(ghosts) == 2  # one per projector; the second carries the picture through the other's cells
     carried = explained_share(light["near"], ghosts[:1], lit["near"])
     in_place = explained_share(light["near"], [light["far"]], lit["near"] & lit["far"])

@@ -106,56 +106,65 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
         lit = states[target.state].lit()
         regions.append(lit if target.mask is None else lit & target.mask)
     on_camera = [target_on_camera(target, region) for target, region in zip(targets, regions)]
+    ghosts = ghost_images(states, targets, on_camera)
     scores = []
     for k, target in enumerate(targets):
         values, covered = on_camera[k]
         estimate = ((captures[target.state] - calibration.black[target.state]) / scale).clamp(0, 1)
         others = [target_on_camera(Target(target.state, t.image, name=t.name), regions[k])[0]
                   for m, t in enumerate(targets) if m != k]
-        ghosts = ghost_images(states, targets, on_camera, k)
         scores.append(TargetScore(name=target.name, state=target.state, **score_image(estimate, values, covered),
                                   crosstalk=crosstalk(estimate, others, covered), pixels=int(covered.sum()),
                                   estimate=estimate, values=values, covered=covered,
-                                  ghost=explained_share(estimate - values, ghosts, covered)))
+                                  ghost=explained_share(estimate - values, ghosts[k], covered)))
     return PatternEvaluation(scores, captures)
 
 
-def ghost_images(states, targets: list[Target], on_camera: list, k: int) -> list[torch.Tensor]:
-    """Where the other states' targets would show as ghosts on target ``k``'s camera pixels.
+def ghost_images(states, targets: list[Target], on_camera: list) -> list[list[torch.Tensor]]:
+    """Per target, where the other states' targets would show as ghosts on its camera pixels.
 
     Light meant for target ``l`` (state ``s_l``) leaves projector ``j`` from the cells that light
-    ``l``'s pixels in ``s_l``; in ``k``'s state the same cells light other pixels, shifted by parallax
-    and differently for each projector. Per other-state target and projector, the target's image is
-    averaged onto those cells (the correspondence of ``s_l``) and read back through ``k``'s state's
-    correspondence. Targets of ``k``'s own state are left out: an opaque surface point takes a cell's
-    whole light, so they share no cells with ``k`` (through a semi-transparent screen they do, and
-    this leaves that leak to ``crosstalk``).
+    ``l``'s pixels in ``s_l``; in another state the same cells light other pixels, shifted by parallax
+    and differently for each projector. Per target ``l`` and projector, ``l``'s image is averaged onto
+    those cells (the correspondence of ``s_l``), then read back through each other state's
+    correspondence. Targets of a target's own state are left out: an opaque surface point takes a
+    cell's whole light, so they share no cells with it (through a semi-transparent screen they do,
+    and this leaves that leak to ``crosstalk``).
 
     Args:
         states: state name -> :class:`~torchproj.transport.StateCalibration`.
         on_camera: per target, ``(values (C, H, W), covered (H, W))`` on its state's camera pixels.
 
     Returns:
-        :math:`(C, H, W)` images, NaN where a pixel's cell carries nothing of that target.
+        per target, :math:`(C, H, W)` images (one per other-state target and projector), NaN where a
+        pixel's cell carries nothing of that target.
     """
-    here = states[targets[k].state]
-    ghosts = []
-    for m, other in enumerate(targets):
-        if other.state == targets[k].state:
-            continue
-        values, covered = on_camera[m]
-        there = states[other.state]
-        for j, (w, h) in enumerate(there.projector_sizes):
-            cells = _cells(there.prj_xy[j], (w, h))
-            use = covered.reshape(-1) & (cells >= 0)
+    cells = {(state, j): _cells(states[state].prj_xy[j], size)  # each state's map, read once
+             for state in dict.fromkeys(t.state for t in targets)
+             for j, size in enumerate(states[state].projector_sizes)}
+    on_cells = []  # per target, per projector: its image averaged onto the cells that light it
+    for target, (values, covered) in zip(targets, on_camera):
+        per = []
+        for j, (w, h) in enumerate(states[target.state].projector_sizes):
+            mine = cells[target.state, j]
+            use = covered.reshape(-1) & (mine >= 0)
             flat = values.reshape(values.shape[0], -1)[:, use].double()
-            sums = torch.zeros(values.shape[0], w * h, dtype=torch.float64).index_add_(1, cells[use], flat)
-            count = torch.bincount(cells[use], minlength=w * h).double()
-            on_cells = torch.where(count > 0, sums / count.clamp_min(1), float("nan"))
-            mine = _cells(here.prj_xy[j], (w, h))
-            ghost = torch.full((values.shape[0], mine.numel()), float("nan"), dtype=torch.float64)
-            ghost[:, mine >= 0] = on_cells[:, mine[mine >= 0]]
-            ghosts.append(ghost.reshape(values.shape))
+            sums = torch.zeros(values.shape[0], w * h, dtype=torch.float64).index_add_(1, mine[use], flat)
+            count = torch.bincount(mine[use], minlength=w * h).double()
+            per.append(torch.where(count > 0, sums / count.clamp_min(1), float("nan")))
+        on_cells.append(per)
+    ghosts = []
+    for target, (values, _) in zip(targets, on_camera):
+        mine = []
+        for other, per in zip(targets, on_cells):
+            if other.state == target.state:
+                continue
+            for j, light in enumerate(per):
+                seen = cells[target.state, j]
+                ghost = torch.full((values.shape[0], seen.numel()), float("nan"), dtype=torch.float64)
+                ghost[:, seen >= 0] = light[:, seen[seen >= 0]]
+                mine.append(ghost.reshape(values.shape))
+        ghosts.append(mine)
     return ghosts
 
 
