@@ -297,6 +297,8 @@ NAMED = {
                                "camera: 60000x40000 pixels"),
     "a 100000 x 100000 projector": (lambda t: ["run", _config_with(t, lambda d: d["projectors"][0].update(
         resolution=[100000, 100000]))], "projectors[0].resolution: 100000x100000"),
+    "a NaN size limit": (lambda t: ["run", _config_with(t, lambda d: None), "--size-limit", "nan"],
+                         "size_limit: must be a finite number above 0, got nan"),
     "an empty target image": (lambda t: ["run", _config_with(t, lambda d: d["targets"][0].update(image=""))],
                               "targets[0].image: is empty"),
     "bounds to 1e30": (lambda t: ["run", _config_with(t, lambda d: None), "--bounds", "0,1e30"],

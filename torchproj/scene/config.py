@@ -455,6 +455,9 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
 def _check_size(scene: Scene, limit: float) -> None:
     """Refuse, before any work, a rig whose ray casting or patterns would not fit in time or memory."""
     fix = "or raise the limit: --size-limit N, or load_scene(size_limit=N)"
+    # A NaN limit would compare false everywhere and silently switch the check off.
+    if not 0 < limit < float("inf"):
+        raise ConfigError("size_limit", f"must be a finite number above 0, got {limit!r}", "e.g. --size-limit 1e9")
     cam = scene.camera
     rays = cam.width * cam.height * cam.supersampling ** 2
     if rays > limit:
