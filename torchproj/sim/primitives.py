@@ -41,7 +41,7 @@ class Caster:
         """Nearest hit of rays.
 
         Args:
-            origins: :math:`(N, 3)` world points.
+            origins: :math:`(N, 3)` world points, or :math:`(1, 3)` when every ray starts at one point.
             directions: :math:`(N, 3)` unit world directions.
             t_min: ignore hits closer than this (metres), to step off the surface a ray starts on.
 
@@ -51,7 +51,7 @@ class Caster:
         o = (origins - self.position) @ self.rotation
         d = directions @ self.rotation
         t, n = self._local_hit(o, d, t_min)
-        return t, n @ self.rotation.T
+        return t, (n @ self.rotation.T).expand(t.shape[0], 3)
 
     def _local_hit(self, o, d, t_min):
         raise NotImplementedError
@@ -67,9 +67,7 @@ class _Rectangle(Caster):
             w, h = self.surface.size
             ok &= (p[:, 0].abs() <= w / 2) & (p[:, 1].abs() <= h / 2)
         t = torch.where(ok, t, torch.full_like(t, float("inf")))
-        n = torch.zeros_like(o)
-        n[:, 2] = 1.0
-        return t, n
+        return t, torch.tensor([[0.0, 0.0, 1.0]], dtype=o.dtype, device=o.device)
 
 
 class _Ellipsoid(Caster):
