@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import torch
 from kornia.geometry.calibration import undistort_points
-from kornia.geometry.camera import project_points, unproject_points
 
 from ..core.checks import check, check_device, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
@@ -81,6 +80,15 @@ def _vignette(p: Projector, device) -> torch.Tensor:
     return (1 - p.vignetting * r2 / r2max).reshape(-1)
 
 
+def _lit_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row-major index of the LCD cell each point's projector coordinate :math:`(M, 2)` falls in
+    (conventions module), and whether the projector lights it: inside its image and ``g > 0``."""
+    cell = round_to_pixel(u)
+    inside = ((cell[:, 0] >= 0) & (cell[:, 0] < proj.width) & (cell[:, 1] >= 0) & (cell[:, 1] < proj.height)
+              & (g > 0))
+    return cell[:, 1] * proj.width + cell[:, 0], inside
+
+
 def _warn_if_undersampled(scene: Scene, limit: float = 0.4) -> None:
     """Warn when camera samples fall too far apart to resolve the projectors' LCD cells.
 
@@ -131,24 +139,29 @@ class VirtualRig:
         """
         cam = self.scene.camera
         stop = cam.width * cam.height * supersampling**2 if stop is None else stop
-        return self._rays(torch.arange(start, stop, device=self.device), supersampling)
+        origin, dirs = self._rays(torch.arange(start, stop, device=self.device), supersampling)
+        return origin.expand_as(dirs), dirs
 
     def _rays(self, idx: torch.Tensor, s: int):
-        """Origins and directions of the camera rays numbered ``idx`` (numbering: :meth:`camera_rays`)."""
+        """The camera centre :math:`(1, 3)`, shared by every ray, and the unit directions :math:`(N, 3)`
+        of the camera rays numbered ``idx`` (numbering: :meth:`camera_rays`)."""
         cam = self.scene.camera
-        pixel, sample = idx // (s * s), idx % (s * s)
+        pixel = idx // (s * s)
+        sample = idx - pixel * (s * s)
+        row = pixel // cam.width
         offsets = (torch.arange(s, device=self.device, dtype=torch.float32) + 0.5) / s - 0.5
-        pix = torch.stack([(pixel % cam.width).float() + offsets[sample % s],
-                           (pixel // cam.width).float() + offsets[sample // s]], -1)
+        pix = torch.stack([(pixel - row * cam.width).float().add_(offsets[sample % s]),
+                           row.float().add_(offsets[sample // s])], -1)
         K = torch.as_tensor(cam.K, dtype=torch.float32, device=self.device)
         if cam.distortion:
             # A distorted lens bends the ray of pixel p: find the ideal pinhole pixel it came from.
             dist = torch.tensor(cam.distortion, dtype=torch.float32, device=self.device)
             pix = undistort_points(pix[None], K[None], dist[None], num_iters=10)[0]
-        dirs_cam = unproject_points(pix, torch.ones_like(pix[:, :1]), K, normalize=True)
         pose = torch.as_tensor(cam.world_from_cam, dtype=torch.float32, device=self.device)
-        dirs = dirs_cam @ pose[:3, :3].T
-        return pose[:3, 3].expand_as(dirs), dirs
+        # A pinhole pixel (u, v) looks along R K^-1 (u, v, 1): one 3 x 3 product for every ray.
+        world_from_pixel = pose[:3, :3] @ torch.linalg.inv(K)
+        dirs = torch.addmm(world_from_pixel[:, 2], pix, world_from_pixel[:, :2].T)
+        return pose[None, :3, 3], dirs.div_(dirs.norm(dim=-1, keepdim=True))
 
     # ------------------------------------------------------------------------------- casting
     def geometry(self, state: str) -> StateGeometry:
@@ -180,13 +193,10 @@ class VirtualRig:
                 ambient.index_add_(1, layer_pixel, (w * scene.ambient).T)
                 for j, proj in enumerate(scene.projectors):
                     u, g = self._illumination(proj, casters, transmit, layer)
-                    cell = round_to_pixel(u)
-                    inside = ((cell[:, 0] >= 0) & (cell[:, 0] < proj.width) & (cell[:, 1] >= 0)
-                              & (cell[:, 1] < proj.height) & (g > 0))
-                    n_cells = proj.width * proj.height
-                    entries[j][0].append(layer_pixel[inside] * n_cells + cell[inside, 1] * proj.width
-                                         + cell[inside, 0])
-                    entries[j][1].append(g[inside, None] * w[inside])
+                    cell, lit = _lit_cells(proj, u, g)
+                    lit = torch.nonzero(lit)[:, 0]
+                    entries[j][0].append(layer_pixel[lit] * (proj.width * proj.height) + cell[lit])
+                    entries[j][1].append(g[lit, None] * w[lit])
             # Merge the samples of a pixel that land in the same LCD cell. Unique keys come out
             # sorted, and chunks cover increasing pixel ranges, so rows stay in CSR order.
             for j in range(len(scene.projectors)):
@@ -225,14 +235,20 @@ class VirtualRig:
     def _layers(self, casters, transmit, o, d, max_layers):
         """Hits along camera rays, front to back, until an opaque surface.
 
+        Args:
+            o: :math:`(N, 3)` ray origins, or :math:`(1, 3)` when all rays start at one point.
+            d: :math:`(N, 3)` unit directions.
+
         Yields a :class:`_Layer` for the rays that hit: surface index, point, normal turned towards
         the camera, weight (the fraction of light the screens in front pass on) and ray index.
         """
         hits = [c.hit(o, d) for c in casters]
         t_all = torch.stack([h[0] for h in hits], 1)  # (N, S)
-        n_all = torch.stack([h[1] for h in hits], 1)  # (N, S, 3)
-        order = torch.argsort(t_all, dim=1)
-        weight = torch.ones(o.shape[0], device=o.device)
+        if len(hits) == 1:
+            order, normals = torch.zeros_like(t_all, dtype=torch.int64), hits[0][1]
+        else:
+            order, normals = torch.argsort(t_all, dim=1), torch.stack([h[1] for h in hits], 1)  # (N, S, 3)
+        weight = torch.ones(d.shape[0], device=d.device)
         for layer in range(min(max_layers, len(casters))):
             sid = order[:, layer]
             t = t_all.gather(1, sid[:, None])[:, 0]
@@ -240,10 +256,11 @@ class VirtualRig:
             if not bool(ok.any()):
                 break
             ray = torch.nonzero(ok)[:, 0]
-            x = o[ray] + t[ray, None] * d[ray]
-            n = n_all[ray, sid[ray]]
-            n = torch.where(((n * d[ray]).sum(-1) > 0)[:, None], -n, n)
-            yield _Layer(sid[ray], x, n, weight[ray], ray)
+            d_ray, sid_ray = d[ray], sid[ray]
+            x = torch.addcmul(o if o.shape[0] == 1 else o[ray], d_ray, t[ray, None])
+            n = normals[ray] if len(hits) == 1 else normals[ray, sid_ray]
+            n = n * torch.where((n * d_ray).sum(-1) > 0, -1.0, 1.0)[:, None]
+            yield _Layer(sid_ray, x, n, weight[ray], ray)
             weight = weight * transmit[sid]
 
     def _illumination(self, proj: Projector, casters, transmit, layer: "_Layer"):
@@ -255,16 +272,17 @@ class VirtualRig:
         """
         x, n = layer.x, layer.n
         pose = torch.as_tensor(proj.world_from_prj, dtype=torch.float32, device=self.device)
-        centre = pose[:3, 3]
-        to_prj = centre - x
-        dist = to_prj.norm(dim=-1)
-        l_dir = to_prj / dist[:, None]
-        cos = (n * l_dir).sum(-1).clamp_min(0)
-        x_prj = (x - centre) @ pose[:3, :3]
+        to_prj = pose[:3, 3] - x
+        dist2 = (to_prj * to_prj).sum(-1)
+        x_prj = to_prj @ -pose[:3, :3]  # the point in the projector's frame
         in_front = x_prj[:, 2] > 1e-6
-        K = torch.as_tensor(proj.K, dtype=torch.float32, device=self.device)
-        u = project_points(torch.where(in_front[:, None], x_prj, torch.ones_like(x_prj)), K)
-        g = cos / dist**2 * in_front
+        # Pinhole projection u = f xy / z + c; points behind the projector get any finite value (g = 0).
+        depth = torch.where(in_front, x_prj[:, 2], 1.0)[:, None]
+        focal = torch.tensor([proj.fx, proj.fy], device=self.device)
+        centre = torch.tensor([proj.cx, proj.cy], device=self.device)
+        u = torch.addcmul(centre, x_prj[:, :2] / depth, focal)
+        # max(0, n.l) / d^2 with l = to_prj / d: the clamped dot product over d^3.
+        g = (n * to_prj).sum(-1).clamp_min_(0).div_(dist2 * dist2.sqrt()).mul_(in_front)
         for index, (c, tr) in enumerate(zip(casters, transmit.tolist())):
             # Shadow rays. A point on a convex primitive that faces the projector cannot be shadowed
             # by that same primitive, so only other surfaces (and meshes, which may be concave) count.
@@ -274,8 +292,9 @@ class VirtualRig:
             if not bool(test.any()):
                 continue
             ray = torch.nonzero(test)[:, 0]
-            t, _ = c.hit(x[ray], l_dir[ray])
-            blocked = ray[t < dist[ray] - 1e-5]
+            dist = dist2[ray].sqrt()
+            t, _ = c.hit(x[ray], to_prj[ray] / dist[:, None])
+            blocked = ray[t < dist - 1e-5]
             g[blocked] = g[blocked] * tr
         return u, g
 
@@ -336,12 +355,13 @@ class VirtualRig:
         """
         p = self.scene.projectors[j]
         b = torch.tensor(p.response_b, dtype=patterns.dtype, device=patterns.device)
-        if patterns.shape[1] == 3 and b.numel() == 1:
-            b = b.expand(3)
-        elif patterns.shape[1] == 1 and b.numel() == 3:
+        if patterns.shape[1] == 1 and b.numel() == 3:
             patterns = patterns.expand(-1, 3, -1, -1)
-        light = p.power * (p.response_a * patterns.clamp(0, 1) ** b.view(1, -1, 1, 1) + p.black_level)
-        return light.flatten(2) * self._vignette[j]
+        # In place on one fresh tensor: a calibration sequence is tens of full-size images.
+        light = patterns.clamp(0, 1)
+        light = light.pow_(p.response_b[0]) if b.numel() == 1 else light.pow_(b.view(1, -1, 1, 1))
+        light.mul_(p.power * p.response_a).add_(p.power * p.black_level)
+        return light.flatten(2).mul_(self._vignette[j])
 
     def radiance(self, state: str, patterns: dict[str | int, torch.Tensor]) -> torch.Tensor:
         """Noise-free linear radiance seen by the camera.
@@ -359,17 +379,24 @@ class VirtualRig:
         geo = self.geometry(state)
         by_index, n = self._check_patterns(patterns)
         out_c = cam.channels
-        total = geo.ambient.reshape(-1, cam.height * cam.width).expand(n, out_c, -1).clone()
-        for j, proj in enumerate(self.scene.projectors):
-            light = self._light(j, by_index)  # (n or 1, Cp, M)
+        # What does not change from image to image (ambient light, projectors showing one image or
+        # black) is summed once; each image then adds one sparse product per projector and channel.
+        base = geo.ambient.reshape(-1, cam.height * cam.width).expand(out_c, -1).clone()
+        varying = []
+        for j in range(len(self.scene.projectors)):
+            if j in by_index and n > 1:
+                varying.append(j)
+                continue
+            light = self._light(j, by_index.get(j))  # (1, Cp, M)
+            for ch in range(out_c):
+                base[ch].addmv_(geo.transport[j][min(ch, len(geo.transport[j]) - 1)], light[0, min(ch, light.shape[1] - 1)])
+        total = base.expand(n, -1, -1).clone()
+        for j in varying:
             mats = geo.transport[j]
-            # One sparse matrix-vector product per image and channel. A single core.sparse.spmm
-            # over all images multiplies about 4x faster, but the products are a small part of a
-            # capture, and these per-image sums keep captures identical to earlier runs.
             for i in range(n):
+                light = self._light(j, by_index[j][i:i + 1])[0]  # image by image: a sequence's light at once is large
                 for ch in range(out_c):
-                    vec = light[min(i, light.shape[0] - 1), min(ch, light.shape[1] - 1)]
-                    total[i, ch] += mats[min(ch, len(mats) - 1)] @ vec
+                    total[i, ch].addmv_(mats[min(ch, len(mats) - 1)], light[min(ch, light.shape[0] - 1)])
         return total.reshape(n, out_c, cam.height, cam.width)
 
     def _check_patterns(self, patterns: dict) -> tuple[dict[int, torch.Tensor], int]:
@@ -389,11 +416,13 @@ class VirtualRig:
         check(len(sizes) <= 1, f"every projector must show the same number of images, got {sorted(sizes)}")
         return by_index, (sizes.pop() if sizes else 1)
 
-    def _light(self, j: int, by_index: dict[int, torch.Tensor]) -> torch.Tensor:
-        """Emitted light of projector j, :math:`(N, C_p, H_j W_j)`; one black image where not given."""
+    def _light(self, j: int, patterns: torch.Tensor | None) -> torch.Tensor:
+        """Emitted light of projector j for :math:`(N, C_p, H_j, W_j)` patterns, :math:`(N, C_p, H_j W_j)`;
+        None: one black image."""
         proj = self.scene.projectors[j]
-        pat = by_index.get(j, torch.zeros(1, 1, proj.height, proj.width, device=self.device))
-        light = self.emitted(j, pat)
+        if patterns is None:
+            patterns = torch.zeros(1, 1, proj.height, proj.width, device=self.device)
+        light = self.emitted(j, patterns)
         if self.scene.camera.channels == 1 and light.shape[1] == 3:
             light = light.mean(1, keepdim=True)  # a grey sensor integrates the three primaries
         return light
@@ -413,7 +442,8 @@ class VirtualRig:
             :math:`(N, C, H, W)` float images in [0, 1], quantised to the camera's bit depth.
         """
         gen = self.generator if seed is None else torch.Generator(device=self.device).manual_seed(seed)
-        return apply_camera(self.radiance(state, patterns), self.scene.camera, gen if noise else None, quantise)
+        radiance = self.radiance(state, patterns)
+        return apply_camera(radiance, self.scene.camera, gen if noise else None, quantise, out=radiance)
 
     def capture_surfaces(self, surfaces: list[Surface], patterns: dict[str | int, torch.Tensor],
                          pixels: torch.Tensor | None = None, seed: int | None = None,
@@ -443,7 +473,7 @@ class VirtualRig:
         pixels = pixels.to(self.device).reshape(-1)
         casters, albedo, transmit, max_layers = self._materials(surfaces)
         ss = cam.supersampling**2
-        lights = [self._light(j, by_index)[0] for j in range(len(self.scene.projectors))]  # (Cp, M)
+        lights = [self._light(j, by_index.get(j))[0] for j in range(len(self.scene.projectors))]  # (Cp, M)
         out_c = cam.channels
         total = torch.zeros(out_c, pixels.numel(), device=self.device)
         chunk = max(1, _CHUNK // ss)
@@ -458,10 +488,8 @@ class VirtualRig:
                 received = received[None].expand(out_c, -1).clone()
                 for j, proj in enumerate(self.scene.projectors):
                     u, g = self._illumination(proj, casters, transmit, layer)
-                    cell = round_to_pixel(u)
-                    inside = ((cell[:, 0] >= 0) & (cell[:, 0] < proj.width) & (cell[:, 1] >= 0)
-                              & (cell[:, 1] < proj.height) & (g > 0))
-                    flat = (cell[:, 1] * proj.width + cell[:, 0]).clamp(0, proj.width * proj.height - 1)
+                    flat, inside = _lit_cells(proj, u, g)
+                    flat = flat.clamp_(0, proj.width * proj.height - 1)
                     for ch in range(out_c):
                         received[ch] += torch.where(inside, lights[j][min(ch, lights[j].shape[0] - 1), flat] * g, 0.0)
                 value = received * w.T[[min(ch, w.shape[1] - 1) for ch in range(out_c)]]
