@@ -22,6 +22,7 @@ LCD cell that lit the pixel).
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -85,12 +86,21 @@ def graycode_patterns(width: int, height: int, bits: int | tuple[int, int] | Non
     """
     nx, _ = graycode_bits(width, height)
     kx, ky = sequence_bits(width, height, bits)
-    gen = cv2.structured_light.GrayCodePattern.create(width, height)
-    ok, patterns = gen.generate()
-    check(bool(ok), f"OpenCV could not generate Gray code for {width}x{height}")
+    patterns = _opencv_graycode(width, height)
     patterns = list(patterns[:2 * kx]) + list(patterns[2 * nx:2 * (nx + ky)])
     stack = np.stack(patterns + [np.full((height, width), 255, np.uint8), np.zeros((height, width), np.uint8)])
     return torch.from_numpy(stack).float().div_(255.0)[:, None]
+
+
+@functools.lru_cache(maxsize=4)
+def _opencv_graycode(width: int, height: int) -> tuple[np.ndarray, ...]:
+    """OpenCV's full pattern/inverse sequence, read-only: generated once per size, because a virtual
+    calibration shows the same sequence in every state."""
+    ok, patterns = cv2.structured_light.GrayCodePattern.create(width, height).generate()
+    check(bool(ok), f"OpenCV could not generate Gray code for {width}x{height}")
+    for p in patterns:
+        p.flags.writeable = False
+    return tuple(patterns)
 
 
 @dataclass
@@ -132,13 +142,21 @@ def _grey(images: torch.Tensor) -> torch.Tensor:
     return images
 
 
-def _gray_to_binary(bits: torch.Tensor) -> torch.Tensor:
-    """(n, H, W) Gray-code bits, MSB first -> (H, W) int64 values."""
-    binary = torch.zeros(bits.shape[1:], dtype=torch.bool, device=bits.device)
-    value = torch.zeros(bits.shape[1:], dtype=torch.int32, device=bits.device)
-    for g in bits:  # b_i = b_{i-1} xor g_i; value accumulates MSB first
-        binary = binary ^ g
-        value = value * 2 + binary
+def _decode_axis(images: torch.Tensor, pairs: range, threshold: float, reliable: torch.Tensor) -> torch.Tensor:
+    """(H, W) int64 values of the Gray code that ``pairs`` of the pattern/inverse captures spell, MSB
+    first; clears ``reliable`` where a pair's difference is below ``threshold`` ([0, 1] units).
+
+    One pair at a time: a capture sequence is tens of full-size images, and whole-stack temporaries
+    would cost more memory traffic (and memory) than the comparisons.
+    """
+    binary = torch.zeros(images.shape[-2:], dtype=torch.bool, device=images.device)
+    value = torch.zeros(images.shape[-2:], dtype=torch.int32, device=images.device)
+    for k in pairs:  # b_i = b_{i-1} xor g_i; value accumulates MSB first
+        pair = _grey(images[2 * k:2 * k + 2])
+        diff = pair[0] - pair[1]
+        binary ^= diff > 0
+        value.mul_(2).add_(binary)
+        reliable &= diff.abs_() >= threshold
     return value.to(torch.int64)
 
 
@@ -164,33 +182,32 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     width, height = projector_size
     nx, ny = graycode_bits(width, height)
     kx, ky = sequence_bits(width, height, bits)
-    imgs = _grey(patterns) * 255.0
-    white8 = _grey(white[None] if white.dim() <= 3 else white)[0] * 255.0
-    black8 = _grey(black[None] if black.dim() <= 3 else black)[0] * 255.0
-    sizes = check_shape(imgs, "patterns", ["N", "H", "W"])
+    white = _grey(white[None] if white.dim() <= 3 else white)[0]
+    black = _grey(black[None] if black.dim() <= 3 else black)[0]
+    sizes = check_shape(patterns[:, 0] if patterns.dim() == 4 else patterns, "patterns", ["N", "H", "W"])
     check(sizes["N"] == 2 * (kx + ky),
           f"patterns must hold {2 * (kx + ky)} images for a {width}x{height} projector "
           f"({kx} column + {ky} row bits, each a pattern/inverse pair), got {sizes['N']}")
-    check_shape(white8, "white", [sizes["H"], sizes["W"]])
-    check_shape(black8, "black", [sizes["H"], sizes["W"]])
+    check_shape(white, "white", [sizes["H"], sizes["W"]])
+    check_shape(black, "black", [sizes["H"], sizes["W"]])
 
-    pos, neg = imgs[0::2], imgs[1::2]
-    bits_seen = pos > neg
-    reliable = ((pos - neg).abs() >= white_threshold - _EPS).all(0)
+    reliable = torch.ones(white.shape, dtype=torch.bool, device=white.device)
+    codes = [_decode_axis(patterns, range(kx), (white_threshold - _EPS) / 255, reliable),
+             _decode_axis(patterns, range(kx, kx + ky), (white_threshold - _EPS) / 255, reliable)]
     block = (2 ** (nx - kx), 2 ** (ny - ky))
     # A block index names cells [b * block, (b + 1) * block - 1], cut at the image edge; its
     # coordinate is the centre of the cells inside (the cell itself for a full sequence).
-    first = [_gray_to_binary(bits_seen[:kx]) * block[0], _gray_to_binary(bits_seen[kx:]) * block[1]]
+    first = [codes[0] * block[0], codes[1] * block[1]]
     centre = [(f + torch.clamp(f + b, max=size) - 1).to(torch.float32) / 2
               for f, b, size in zip(first, block, (width, height))]
-    contrast = white8 - black8
-    lit = contrast.abs() > black_threshold + _EPS
+    contrast = white - black
+    lit = contrast.abs() > (black_threshold + _EPS) / 255
     inside = (first[0] < width) & (first[1] < height)
     valid = lit & reliable & inside
     _warn_if_codes_beyond(lit & reliable, inside, first, projector_size)
     prj_xy = torch.stack(centre, -1)
     prj_xy[~valid] = float("nan")
-    return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast / 255.0, block=block)
+    return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast, block=block)
 
 
 _BEYOND = 0.05  # a share of reliably decoded pixels beyond the projector that noise does not explain
@@ -247,17 +264,19 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     vals = torch.nan_to_num(prj_xy.to(dtype)).permute(2, 0, 1)[:, None] * m  # (2, 1, H, W)
     pad = window // 2
     # conv2d correlates, so kernel entry d weighs the neighbour at offset d (neighbour - centre).
-    mom = F.conv2d(m, kernels, padding=pad)[0].double()  # (6, H, W): n, sx, sy, sxx, sxy, syy
-    rhs = F.conv2d(vals, kernels[:3], padding=pad).double()  # (2, 3, H, W): su, sux, suy
-    n, sx, sy, sxx, sxy, syy = mom
-    enough = valid & (n >= min_fill * window * window)
+    mom = F.conv2d(m, kernels, padding=pad)[0]  # (6, H, W): n, sx, sy, sxx, sxy, syy
+    rhs = F.conv2d(vals, kernels[:3], padding=pad)  # (2, 3, H, W): su, sux, suy
+    enough = valid & (mom[0] >= min_fill * window * window)
     out = prj_xy.clone()
     if not bool(enough.any()):
         return out
     # Normal equations [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] c = [su, sux, suy]; only the
-    # fitted value at the centre, c0, is needed: Cramer's rule on the symmetric 3x3 system.
-    n, sx, sy, sxx, sxy, syy = (v[enough] for v in mom)
-    su, sux, suy = (rhs[:, k][:, enough] for k in range(3))  # each (2, M)
+    # fitted value at the centre, c0, is needed: Cramer's rule on the symmetric 3x3 system. Only the
+    # fitted pixels go to float64, not whole maps.
+    at = torch.nonzero(enough.flatten())[:, 0]
+    n, sx, sy, sxx, sxy, syy = mom.flatten(1)[:, at].double()
+    su, sux, suy = rhs.flatten(2)[:, :, at].double().unbind(1)  # each (2, M)
+    del mom, rhs
     cof_xx = sxx * syy - sxy * sxy
     cof_xy = sx * syy - sxy * sy
     cof_xz = sx * sxy - sxx * sy
