@@ -36,10 +36,9 @@ def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp
     """
     index = projector if isinstance(projector, int) else [p.name for p in rig.scene.projectors].index(projector)
     proj = rig.scene.projectors[index]
-    gray = graycode_patterns(proj.width, proj.height, bits)
-    ramps = torch.cat([ramp_pattern(proj.width, proj.height, ramp_steps),
+    shown = torch.cat([graycode_patterns(proj.width, proj.height, bits), ramp_pattern(proj.width, proj.height, ramp_steps),
                        ramp_pattern(proj.width, proj.height, ramp_steps, mirrored=True)])
-    images = rig.capture(state, {index: torch.cat([gray, ramps])}, noise=noise)
+    images = rig.capture(state, {index: shown}, noise=noise)
     return GraycodeCapture(patterns=images[:-4], white=images[-4], black=images[-3], ramp=images[-2:])
 
 
@@ -125,7 +124,10 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
                                                         progress=progress):
         per_state.setdefault(name, []).append(calibration)
         decoded.setdefault(name, {})[scene.projectors[j].name] = round(calibration.decoding.lit_decoded_fraction, 4)
-        black[name] = capture.black.cpu()  # every projector shows black: the state's black level and ambient light
+        # Every projector shows black: the state's black level and ambient light. A copy, not a view that
+        # would keep the whole capture stack (hundreds of MB per projector) alive.
+        black[name] = capture.black.to("cpu", copy=True)
+        del capture  # see calibrate_rig
     states = {name: StateCalibration.from_calibrations(pcs) for name, pcs in per_state.items()}
     shown = homographies = None
     if bits is not None:
@@ -181,6 +183,7 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
         for key, seconds in (("cast", t1 - t0), ("capture", t2 - t1), ("calibrate", time.perf_counter() - t2)):
             timings[key] = timings.get(key, 0.0) + seconds
         yield name, j, capture, calibration
+        del capture  # a capture stack is hundreds of MB: never hold two while simulating the next
 
 
 def _oracle_calibration(scene: Scene, device, black_threshold: float = 40) -> VirtualCalibration:
@@ -276,6 +279,7 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
                             count=cal.count.numpy(), contrast=cal.decoding.contrast.numpy())
         results.append(result)
         rows.append(row)
+        del capture  # see calibrate_rig
     calibration_summary(folder / "calibration.png", rows)
     timings["total"] = time.perf_counter() - t_start
     report = {"scene": scene.name, "config": str(scene.source), "torchproj": __version__, "device": str(rig.device),
