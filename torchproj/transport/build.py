@@ -214,14 +214,18 @@ def _merge(columns: torch.Tensor, values: torch.Tensor, rhs: torch.Tensor, targe
     # through the eigen-decomposition (on the default scene 55% of the rows are alone).
     alone = torch.bincount(group, minlength=n_groups)[group] == 1
     shared = torch.nonzero(~alone)[:, 0]
-    group = torch.unique(group[shared], return_inverse=True)[1]
-    n_groups = int(group.max()) + 1 if group.numel() else 0
-    merged = _merge_groups(columns[shared], values[shared], rhs[shared], target[shared], group, n_groups)
-    return (*(torch.cat([x[alone], m]) for x, m in zip((columns, values, rhs, target), merged[:4])), merged[4])
+    ids, compact = torch.unique(group[shared], return_inverse=True)
+    *merged, merged_group, constant = _merge_groups(columns[shared], values[shared], rhs[shared], target[shared],
+                                                    compact, ids.numel())
+    # Rows in group order (the columns' lexicographic order), whatever order the targets came in:
+    # the same model gives the same products to the last bit.
+    order = torch.sort(torch.cat([group[alone], ids[merged_group]]), stable=True).indices
+    return (*(torch.cat([x[alone], m])[order] for x, m in zip((columns, values, rhs, target), merged)), constant)
 
 
 def _merge_groups(columns, values, rhs, target, group, n_groups):
-    """:func:`_merge` for rows already grouped (``group`` :math:`(N,)` of ``n_groups``)."""
+    """:func:`_merge` for rows already grouped (``group`` :math:`(N,)` of ``n_groups``); also returns
+    the group of each new row, before the constant."""
     s = columns.shape[1]
     a = values.double()
     gram = torch.zeros(n_groups, s, s, dtype=torch.float64, device=a.device)
@@ -241,7 +245,7 @@ def _merge_groups(columns, values, rhs, target, group, n_groups):
     new_vals = rows_val[g_idx, k_idx].to(values.dtype)
     new_rhs = rows_rhs[g_idx, k_idx]
     constant = (total - new_rhs.pow(2).sum(0)).clamp_min(0)
-    return new_cols, new_vals, new_rhs.to(rhs.dtype), target[first][g_idx], constant.to(rhs.dtype)
+    return new_cols, new_vals, new_rhs.to(rhs.dtype), target[first][g_idx], g_idx, constant.to(rhs.dtype)
 
 
 def build_transport(calibrations: dict[str, StateCalibration], targets: list[Target], *,
