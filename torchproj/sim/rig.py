@@ -124,6 +124,7 @@ class VirtualRig:
         self.generator = torch.Generator(device=self.device).manual_seed(scene.seed)
         self._geometry: dict[str, StateGeometry] = {}
         self._vignette = [_vignette(p, self.device) for p in scene.projectors]
+        self._kept: dict = {}  # see _reuse
         _warn_if_undersampled(scene)
 
     # ---------------------------------------------------------------------------------- rays
@@ -445,6 +446,27 @@ class VirtualRig:
         radiance = self.radiance(state, patterns)
         return apply_camera(radiance, self.scene.camera, gen if noise else None, quantise, out=radiance)
 
+    def _pixel_rays(self, pixels: torch.Tensor, chunk: int):
+        """Lazily, per chunk of ``chunk`` pixels: origin, directions and each ray's position in ``pixels``."""
+        ss = self.scene.camera.supersampling**2
+        for start in range(0, pixels.numel(), chunk):
+            local = torch.arange(start, min(start + chunk, pixels.numel()), device=self.device)
+            ray_id = (pixels[local, None] * ss + torch.arange(ss, device=self.device)).reshape(-1)
+            yield (*self._rays(ray_id, self.scene.camera.supersampling), local.repeat_interleave(ss))
+
+    def _reuse(self, name: tuple, inputs: list, make):
+        """``make()``, or what it gave last time for the same ``inputs`` (the same tensor objects, not
+        modified since). An object placed by watching it is captured look after look through the same
+        camera pixels under the same patterns: their rays and emitted light are made once."""
+        stamp = [(t, t._version) for t in inputs]
+        kept = self._kept.get(name)
+        if kept is not None and len(kept[0]) == len(stamp) and all(
+                a is b and u == v for (a, u), (b, v) in zip(kept[0], stamp)):
+            return kept[1]
+        value = make()
+        self._kept[name] = (stamp, value)
+        return value
+
     def capture_surfaces(self, surfaces: list[Surface], patterns: dict[str | int, torch.Tensor],
                          pixels: torch.Tensor | None = None, seed: int | None = None,
                          noise: bool = True) -> torch.Tensor:
@@ -468,20 +490,21 @@ class VirtualRig:
         cam = self.scene.camera
         by_index, n = self._check_patterns(patterns)
         check(n == 1, f"capture_surfaces shows one image per projector, got {n}")
+        shown = sorted(by_index)
+        lights = self._reuse(("lights", *shown), [by_index[j] for j in shown],
+                             lambda: [self._light(j, by_index.get(j))[0] for j in range(len(self.scene.projectors))])
+        asked = pixels
         if pixels is None:
             pixels = torch.arange(cam.width * cam.height, device=self.device)
         pixels = pixels.to(self.device).reshape(-1)
         casters, albedo, transmit, max_layers = self._materials(surfaces)
         ss = cam.supersampling**2
-        lights = [self._light(j, by_index.get(j))[0] for j in range(len(self.scene.projectors))]  # (Cp, M)
         out_c = cam.channels
         total = torch.zeros(out_c, pixels.numel(), device=self.device)
         chunk = max(1, _CHUNK // ss)
-        for start in range(0, pixels.numel(), chunk):
-            local = torch.arange(start, min(start + chunk, pixels.numel()), device=self.device)
-            ray_id = (pixels[local, None] * ss + torch.arange(ss, device=self.device)).reshape(-1)
-            o, d = self._rays(ray_id, cam.supersampling)
-            owner = local.repeat_interleave(ss)  # position in `pixels` of each ray
+        rays = self._reuse(("rays",), [asked], lambda: list(self._pixel_rays(pixels, chunk))) \
+            if asked is not None and pixels.numel() <= chunk else self._pixel_rays(pixels, chunk)
+        for o, d, owner in rays:
             for layer in self._layers(casters, transmit, o, d, max_layers):
                 w = layer.weight[:, None] * albedo[layer.sid] / math.pi / ss  # (M, A)
                 received = torch.full((layer.x.shape[0],), self.scene.ambient, device=self.device)
