@@ -9,13 +9,22 @@ vectorised decoder (median of several runs after one warm-up) against OpenCV's
 ``decode`` works. The virtual rig is timed on the paper's rig (two 1024x768 projectors, a 1600x1200
 camera with 3x3 supersampling): casting a state, then capturing one projector's 42-image Gray-code
 sequence.
+
+The everyday loop is timed as a user meets it, each command in a fresh process on the default
+scene: ``torchproj run`` and ``torchproj position`` (wall time, peak resident memory from the
+kernel's accounting of the child, and the stage timings of ``report.json``); ``--suite`` also times
+the default test suite (``python -m pytest -q``) and its quick part (``-m "not slow"``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import platform
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -77,6 +86,48 @@ def bench_virtual_rig(results: dict) -> None:
     results["transport_nnz"] = [int(m[0]._nnz()) for m in rig.geometry("near").transport]
 
 
+def _timed(command: list[str]) -> tuple[float, float]:
+    """Wall seconds and peak resident GB of ``command`` run as a child process (fails loudly)."""
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile() as err:
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        if os.waitstatus_to_exitcode(status) != 0:
+            err.seek(0)
+            raise SystemExit(f"{' '.join(command)} failed:\n{err.read().decode()[-2000:]}")
+    return wall, usage.ru_maxrss / 1024**2  # ru_maxrss is in KiB on Linux
+
+
+def bench_everyday(results: dict, suite: bool) -> None:
+    cli = [sys.executable, "-c", "import sys; from torchproj.cli import main; sys.exit(main())"]
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ("run", "position"):
+            out = Path(tmp) / name
+            results[f"{name}_wall_s"], results[f"{name}_peak_rss_gb"] = _timed(cli + [name, "--out", str(out)])
+            results[f"{name}_timings_s"] = json.loads((out / "report.json").read_text())["timings_s"]
+    if suite:
+        root = Path(__file__).resolve().parents[1]
+        for name, extra in (("suite", []), ("suite_quick", ["-m", "not slow"])):
+            results[f"{name}_wall_s"], _ = _timed([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                                   "--rootdir", str(root), str(root / "tests"), *extra])
+
+
+def _everyday_rows(r: dict) -> list[str]:
+    if "run_wall_s" not in r:
+        return []
+    stages = lambda t: ", ".join(f"{k} {v:.1f}" for k, v in t.items())  # noqa: E731
+    rows = ["", "| everyday command (fresh process, default scene) | wall seconds | peak memory (GB) | "
+            "stages (report.json, s) |", "|---|---|---|---|",
+            f"| `torchproj run` | {r['run_wall_s']:.1f} | {r['run_peak_rss_gb']:.2f} | {stages(r['run_timings_s'])} |",
+            f"| `torchproj position` | {r['position_wall_s']:.1f} | {r['position_peak_rss_gb']:.2f} | "
+            f"{stages(r['position_timings_s'])} |"]
+    if "suite_wall_s" in r:
+        rows += [f"| `python -m pytest` (default suite) | {r['suite_wall_s']:.0f} | | |",
+                 f"| `python -m pytest -m \"not slow\"` | {r['suite_quick_wall_s']:.0f} | | |"]
+    return rows
+
+
 def markdown(r: dict) -> str:
     return "\n".join([
         "# Calibration speed",
@@ -95,6 +146,7 @@ def markdown(r: dict) -> str:
         f"| hole filling + inverse map | {r['torchproj_fill_and_inverse_s']:.3f} |",
         f"| virtual rig: cast one state (1600x1200, 3x3 samples, 2 projectors) | {r['cast_state_s']:.2f} |",
         f"| virtual rig: capture one projector's 42-image Gray-code sequence | {r['capture_42_images_s']:.2f} |",
+        *_everyday_rows(r),
         "",
         f"Decoded fraction of the camera frame: {r['valid_fraction']:.1%}.",
         "",
@@ -106,6 +158,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/calibration_speed"))
     parser.add_argument("--opencv-pixels", type=int, default=None,
                         help="time OpenCV on this many sampled pixels and extrapolate (default: all)")
+    parser.add_argument("--skip-everyday", action="store_true", help="do not time torchproj run and position")
+    parser.add_argument("--suite", action="store_true", help="also time the test suite (minutes)")
     args = parser.parse_args(argv)
     if not DATA.is_dir():
         print(f"real captures not found at {DATA}", file=sys.stderr)
@@ -115,6 +169,8 @@ def main(argv=None) -> int:
                "command": "python benchmarks/calibration_speed.py " + " ".join(argv if argv is not None else sys.argv[1:])}
     bench_decode(results, args.opencv_pixels)
     bench_virtual_rig(results)
+    if not args.skip_everyday:
+        bench_everyday(results, args.suite)
     args.out.mkdir(parents=True, exist_ok=True)
     write_results(args.out, results, markdown(results))
     fig, ax = plt.subplots(figsize=(7, 3))
