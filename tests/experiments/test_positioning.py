@@ -46,6 +46,25 @@ def test_capture_of_posed_surfaces_equals_the_transport_capture():
     assert (direct > 0.05).float().mean() > 0.2  # most sampled pixels see a lit surface
 
 
+def test_repeated_looks_follow_patterns_and_pixels_changed_in_place():
+    # capture_surfaces reuses the last look's rays and emitted light for the same tensors; a pattern or
+    # pixel list modified in place must still be seen as it is now, as a fresh rig sees it.
+    scene = small_scene("box_cylinders", camera=(160, 120), projector=(128, 96))
+    surfaces = [scene.surfaces[n] for n in scene.states[0].surfaces]
+    gen = torch.Generator().manual_seed(4)
+    patterns = {j: torch.rand(1, 1, p.height, p.width, generator=gen) for j, p in enumerate(scene.projectors)}
+    pixels = torch.randperm(160 * 120, generator=gen)[:2000]
+    rig = VirtualRig(scene)
+    first = rig.capture_surfaces(surfaces, patterns, pixels, noise=False)
+    assert torch.equal(rig.capture_surfaces(surfaces, patterns, pixels, noise=False), first)
+    patterns[0].mul_(0.3)
+    pixels[:1000] = torch.randperm(160 * 120, generator=gen)[:1000]
+    again = rig.capture_surfaces(surfaces, patterns, pixels, noise=False)
+    fresh = VirtualRig(scene).capture_surfaces(surfaces, {j: p.clone() for j, p in patterns.items()}, pixels.clone(),
+                                               noise=False)
+    assert torch.equal(again, fresh) and not torch.equal(again, first)
+
+
 def test_box_surface_distance_against_a_dense_sampling():
     pose = np.eye(4)
     pose[:3, :3] = rotation_from_euler_deg([10, 30, -5])
