@@ -141,6 +141,7 @@ def _options(command: str) -> list[str]:
             if a.option_strings and a.nargs != 0 and a.dest not in ("help", "out")]
 
 
+@pytest.mark.slow
 def test_bad_run_options_are_refused_cleanly_or_run(tmp_path, capsys):
     config = tmp_path / "scene.yaml"
     config.write_text(yaml.safe_dump(tiny_config()))
@@ -186,6 +187,7 @@ def _files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file())
 
 
+@pytest.mark.slow
 def test_bad_options_of_every_file_command_are_refused_cleanly(capture_root, tmp_path, capsys):
     # `position` needs its box scene (a minute per valid run) and `capture` a camera: their options go
     # through the same types and checks as these commands'.
@@ -203,6 +205,7 @@ def test_bad_options_of_every_file_command_are_refused_cleanly(capture_root, tmp
     _each([(c, o, v) for c in base for o in _options(c) for v in BAD_ARGS], 4, tmp_path, attempt)
 
 
+@pytest.mark.slow
 def test_damaged_capture_files_are_refused_cleanly(capture_root, tmp_path, capsys):
     captures = capture_root / "captures"
 

@@ -51,6 +51,7 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
     assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
 
 
+@pytest.mark.slow
 def test_simulate_a_shortened_sequence_checks_the_fitted_maps(tmp_path):
     path = tmp_path / "small.yaml"
     path.write_text(yaml.safe_dump(dict(small_config(camera=(240, 180), projector=(128, 96)), name="small")))
@@ -89,6 +90,7 @@ def test_projector_size_is_checked(capsys):
     assert "expected WIDTHxHEIGHT" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_console_script_is_installed(tmp_path):
     """The ``torchproj`` command beside this interpreter (what ``pip install`` puts on the PATH), run
     from a folder outside the checkout."""

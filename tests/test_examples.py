@@ -5,11 +5,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_train_patterns_example(tmp_path):
     out = tmp_path / "train"
     run = subprocess.run([sys.executable, str(ROOT / "examples" / "train_patterns.py"), "--scale", "0.25",

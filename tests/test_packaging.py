@@ -6,6 +6,8 @@ import sys
 import tomllib
 from pathlib import Path
 
+import pytest
+
 import torchproj
 from torchproj.scene import BUILTIN_SCENES, config_dir
 
@@ -31,6 +33,7 @@ def test_torch_is_a_tested_range_and_pinned_only_in_the_constraints():
     assert len(pins) == 1
 
 
+@pytest.mark.slow
 def test_figures_leave_the_users_matplotlib_backend_alone(tmp_path):
     code = ("import matplotlib, numpy, torch; import torchproj.figures as f; "
             "assert matplotlib.get_backend() == 'svg', matplotlib.get_backend(); "

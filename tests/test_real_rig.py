@@ -52,6 +52,7 @@ def test_sequence_is_what_the_virtual_rig_shows(tmp_path):
         assert torch.equal(read_image(tmp_path / "seq" / files[i]), gray[i])
 
 
+@pytest.mark.slow
 def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_root, tmp_path):
     calib, solved = tmp_path / "calib", tmp_path / "solved"
     assert main(["calibrate", str(capture_root), "--projector", "256x192", "--out", str(calib)]) == 0
@@ -97,6 +98,7 @@ def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_r
             assert ours["p95_px"] < 1 and np.allclose(ours["matrix"], theirs["matrix"], rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_a_shortened_sequence_from_folders_matches_the_virtual_run(scene, tmp_path):
     assert main(["sequence", "--projector", "256x192", "--bits", "3", "--out", str(tmp_path / "seq")]) == 0
     manifest = json.loads((tmp_path / "seq" / "sequence.json").read_text())
@@ -179,6 +181,7 @@ def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path,
 
 @pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD} (they live in "
                                                      "../shared/data beside the checkout)")
+@pytest.mark.slow
 def test_calibrate_real_captures_matches_decode(tmp_path, capsys):
     assert main(["calibrate", str(CHESSBOARD), "--states", "capture_0", "capture_1", "--projector", "1024x768",
                  "--calibration", str(CHESSBOARD / "calibration_result.xml"), "--out", str(tmp_path / "calib")]) == 0

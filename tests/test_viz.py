@@ -110,6 +110,7 @@ def test_point_cloud_view_fits_the_plane(viz, tmp_path):
     assert warm > 200 and cool > 200
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD}")
 def test_point_cloud_view_of_the_real_chessboard(viz, tmp_path):
     from torchproj.cli import main
@@ -121,6 +122,7 @@ def test_point_cloud_view_of_the_real_chessboard(viz, tmp_path):
     assert (out / "points.png").is_file() and _colours(out / "points.png")[2] > 5000
 
 
+@pytest.mark.slow
 def test_correspondences_view_triangulates_onto_the_planes(viz, tmp_path):
     import yaml
 

@@ -101,6 +101,7 @@ def test_triangulated_board_is_as_flat_as_the_opencv_pipeline(decoded, name, rea
     assert refined < reference  # sub-pixel refinement helps on real data
 
 
+@pytest.mark.slow
 def test_decode_command_on_real_captures(decoded, tmp_path):
     root, _ = decoded
     out = tmp_path / "dec"

@@ -140,6 +140,7 @@ def test_scan_measures_a_known_displacement(box_scene):
     assert 3.0 < rms(scan["points"], box.world_from_local) < 6.5
 
 
+@pytest.mark.slow
 def test_position_report_and_files(position_run):
     out, report = position_run
     assert {p["name"] for p in report["positions"]} == {"near", "far"}
@@ -167,6 +168,7 @@ def test_position_report_and_files(position_run):
     assert "| near |" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_placement_gets_closer_than_it_started(box_scene):
     result = evaluate_positioning(box_scene, trials=2, max_evaluations=120, seed=3, profile_steps=2)
     for t in result.report["trials"]:
@@ -229,6 +231,7 @@ def test_placement_error_of_real_scans_from_files(tmp_path, capsys):
     assert "--mask is 10x10" in capsys.readouterr().err and not bad.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD}")
 def test_placement_error_between_the_real_chessboard_captures(tmp_path):
     from scipy.spatial.distance import cdist
@@ -252,6 +255,7 @@ def test_placement_error_between_the_real_chessboard_captures(tmp_path):
     assert report["rmse"] > 1.0 and report["points"] == len(placed)
 
 
+@pytest.mark.slow
 def test_position_with_the_papers_eo(box_scene, tmp_path, capsys):
     # The paper's own test showed EO_0^255 patterns; the report says which solver made them.
     result = evaluate_positioning(box_scene, trials=1, max_evaluations=20, profile_steps=2, solver="eo")

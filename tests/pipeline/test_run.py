@@ -49,6 +49,7 @@ def test_run_with_homography_maps_writes_the_fits(config, tmp_path):
     assert "Homographies" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_run_from_three_gray_code_bits_matches_the_full_sequence(config, tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(config), "--out", str(out), "--bits", "3"]) == 0

@@ -72,6 +72,7 @@ def test_geometry_is_cast_once_per_state(monkeypatch):
     assert casts == ["near", "far", "near"]  # released states are cast again
 
 
+@pytest.mark.slow
 def test_primitive_scenes_use_no_mesh_machinery():
     code = ("import torch, sys; from tests.helpers import small_scene; from torchproj.sim import VirtualRig; "
             "r = VirtualRig(small_scene('box_cylinders')); r.geometry('together'); "

@@ -18,6 +18,7 @@ def calibrated(quarter_rig):
     return cals, op, full
 
 
+@pytest.mark.slow
 def test_bounded_optimum_beats_the_paper_baselines(calibrated):
     cals, op, full = calibrated
     best = solve_fista(op, (0, 1), max_iter=3000, tol=1e-10)
@@ -41,6 +42,7 @@ def test_twenty_fista_iterations_are_nearly_optimal(calibrated):
     assert all(b - q < 0.3 for b, q in zip(best, quick))
 
 
+@pytest.mark.slow
 def test_coarse_start_halves_the_full_resolution_iterations(calibrated):
     # The smooth part of the patterns, where gradient steps crawl, is solved on tied cells first.
     _, op, _ = calibrated
