@@ -381,7 +381,9 @@ class VirtualRig:
         by_index, n = self._check_patterns(patterns)
         out_c = cam.channels
         # What does not change from image to image (ambient light, projectors showing one image or
-        # black) is summed once; each image then adds one sparse product per projector and channel.
+        # black) is summed once; each image then adds one sparse product per projector and channel,
+        # in place. That measured faster on 2 cores than one sparse-times-dense product over the whole
+        # sequence, whose dense operands need a transposed copy each way.
         base = geo.ambient.reshape(-1, cam.height * cam.width).expand(out_c, -1).clone()
         varying = []
         for j in range(len(self.scene.projectors)):
