@@ -59,7 +59,9 @@ def check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
 def to_projectable(p: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
     """Map values solved within ``bounds`` linearly into [0, 1] when the bounds leave that range.
 
-    This is how the paper brings ``EO_-100^255`` patterns back into what a projector can show.
+    Our choice, not the paper's: the paper solves ``EO_-100^255`` with a lower bound below black but
+    does not say how such values are shown. A linear map keeps the solution's contrast but lifts a
+    zero to ``-lo / (hi - lo)`` of white; clipping at black is the alternative (issue 19 measures both).
     """
     lo, hi = check_bounds(bounds)
     if lo >= 0 and hi <= 1:
