@@ -61,7 +61,7 @@ def to_projectable(p: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor
 
     Our choice, not the paper's: the paper solves ``EO_-100^255`` with a lower bound below black but
     does not say how such values are shown. A linear map keeps the solution's contrast but lifts a
-    zero to ``-lo / (hi - lo)`` of white; clipping at black is the alternative (issue 19 measures both).
+    zero to ``-lo / (hi - lo)`` of white; clipping at black is the alternative.
     """
     lo, hi = check_bounds(bounds)
     if lo >= 0 and hi <= 1:
