@@ -62,9 +62,9 @@ def cmd_run(args) -> int:
     from .pipeline import run_virtual
 
     gain_offset = None if args.gain is None and args.offset is None else (args.gain or (1, 1), args.offset or (0, 0))
-    result = run_virtual(_scene(args), solver=args.solver, bounds_8bit=args.bounds, device=args.device,
-                         max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
-                         plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
+    result = run_virtual(_scene(args), solver=args.solver, bounds_8bit=args.bounds, outside=args.outside,
+                         device=args.device, max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset,
+                         maps=args.maps, plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
                          footprint=args.footprint, ceiling=args.ceiling)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0
@@ -76,7 +76,8 @@ def cmd_position(args) -> int:
     scene = _scene(args)
     result = evaluate_positioning(scene, trials=args.trials, spread_mm=args.spread_mm, spread_deg=args.spread_deg,
                                   seed=args.seed, max_evaluations=args.max_evaluations, device=args.device,
-                                  max_iter=args.max_iter, solver=args.solver, bounds_8bit=args.bounds)
+                                  max_iter=args.max_iter, solver=args.solver, bounds_8bit=args.bounds,
+                                  outside=args.outside)
     _publish(args.out, lambda stage: result.write(stage, scene), "report.json, report.md, feedback.png, patterns/, "
              f"scans/ (view a scan: python viz/positioning.py {args.out})")
     return 0
@@ -134,7 +135,7 @@ def cmd_solve(args) -> int:
     from .pipeline import solve_bundle
 
     solution = solve_bundle(args.bundle, args.targets, solver=args.solver, bounds_8bit=args.bounds,
-                            objective=_objective(args), footprint=args.footprint, maps=args.maps,
+                            outside=args.outside, objective=_objective(args), footprint=args.footprint, maps=args.maps,
                             plane_tolerance=args.plane_tolerance, max_iter=args.max_iter, device=args.device)
     solution.report["bundle"] = str(args.bundle)
     print(f"solved {len(solution.predicted)} target(s) with {args.solver} ({args.objective}): "

@@ -109,6 +109,9 @@ def solver_options(p) -> None:
     p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
     p.add_argument("--bounds", type=bounds, default=(0.0, 255.0), metavar="LO,HI",
                    help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
+    p.add_argument("--outside", default="clip", choices=["clip", "map"],
+                   help="how values solved below 0 (bounds LO < 0) are shown: clip them to black (default) or map "
+                        "LO..HI linearly onto 0..255 (the paper does not say which it did)")
 
 
 def solve_options(p) -> None:

@@ -148,6 +148,32 @@ def test_negative_bounds_in_the_papers_notation(config, tmp_path):
     assert json.loads((out / "report.json").read_text())["bounds_8bit"] == [-100.0, 255.0]
 
 
+def test_values_below_black_are_clipped_or_mapped_as_asked(config, tmp_path, capsys):
+    # One calibration, one solve below black (FISTA with the paper's EO_-100^255 bounds), shown both ways.
+    scene = parse_scene(yaml.safe_load(config.read_text()))
+    cal = calibrate_virtual(scene)
+    runs = {o: run_virtual(scene, solver="fista", bounds_8bit=(-100, 255), calibration=cal, outside=o)
+            for o in ("clip", "map")}
+    assert torch.equal(runs["clip"].solution.patterns, runs["map"].solution.patterns)  # only the display differs
+    assert bool((runs["clip"].solution.patterns < 0).any())  # the solution does use the room below black
+    for clip, mapped in zip(runs["clip"].patterns, runs["map"].patterns):
+        # (x - lo) / (1 - lo) >= max(x, 0) on [lo, 1], and compensation is monotone: the map lifts
+        # every cell (black to 100/355 of white), clipping sends what was solved below black as 0.
+        assert bool((mapped >= clip).all()) and float(mapped.float().mean()) > float(clip.float().mean()) + 20
+        assert int(clip.min()) == 0
+    for outside, run in runs.items():
+        assert run.report["outside"] == outside
+        assert f"values below 0 shown by {outside}" in run_markdown(run.report)
+    # On this rig clipping shows both targets better, as on the paper's (benchmarks/image_quality.py).
+    for clip, mapped in zip(runs["clip"].report["targets"], runs["map"].report["targets"]):
+        assert clip["psnr_db"] > mapped["psnr_db"] + 2
+    with pytest.raises(SystemExit):
+        main(["run", str(config), "--out", str(tmp_path / "bad"), "--outside", "wrap"])
+    assert "invalid choice: 'wrap'" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    with pytest.raises(InputError, match="outside must be one of"):
+        run_virtual(scene, bounds_8bit=(-100, 255), outside="wrap")
+
+
 def test_colour_targets_end_to_end(tmp_path_factory):
     scene = parse_scene(yaml.safe_load(_small("colour_two_planes", tmp_path_factory).read_text()))
     result = run_virtual(scene)

@@ -28,10 +28,13 @@ def test_bounded_optimum_beats_the_paper_baselines(calibrated):
     eo_neg = solve_eo(op, (neg, 1), calibrations=cals, max_iter=1000)
     psnr = {name: min(model_space_psnr(full, p)) for name, p in [
         ("fista", best.patterns), ("lf", lf.patterns), ("eo", eo.patterns),
-        ("eo_neg", to_projectable(eo_neg.patterns, (neg, 1)))]}
-    # The paper's ordering: EO_0^255 well above LF and EO_-100^255; the exact optimum above all.
+        ("eo_neg", to_projectable(eo_neg.patterns, (neg, 1), "map")),
+        ("eo_neg_clip", to_projectable(eo_neg.patterns, (neg, 1), "clip"))]}
+    # The paper's ordering: EO_0^255 well above LF and EO_-100^255 (shown through the linear map);
+    # the exact optimum above all. Clipping shows EO_-100^255 better than the linear map.
     assert psnr["fista"] > psnr["eo"] > psnr["lf"] + 3
     assert psnr["eo"] > psnr["eo_neg"]
+    assert psnr["eo_neg_clip"] > psnr["eo_neg"]
     assert psnr["fista"] > 15
 
 

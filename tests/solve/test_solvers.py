@@ -206,9 +206,13 @@ def test_clamped_adam_rejects_bad_lr():
 
 
 def test_to_projectable_and_compensation():
-    p = torch.tensor([[-100 / 255], [0.2], [1.0]])
-    q = to_projectable(p, (-100 / 255, 1.0))
-    assert float(q.min()) == pytest.approx(0) and float(q.max()) == pytest.approx(1)
+    p = torch.tensor([[-100 / 255], [0.0], [0.2], [1.0]])
+    # Below black: clipped (the default), or the bounds mapped linearly onto [0, 1].
+    assert torch.equal(to_projectable(p, (-100 / 255, 1.0)), torch.tensor([[0.0], [0.0], [0.2], [1.0]]))
+    mapped = to_projectable(p, (-100 / 255, 1.0), "map")
+    assert torch.allclose(mapped, (p + 100 / 255) / (1 + 100 / 255)) and float(mapped[1]) == pytest.approx(100 / 355)
+    with pytest.raises(InputError, match="outside must be one of"):
+        to_projectable(p, (-100 / 255, 1.0), "wrap")
     assert torch.equal(to_projectable(p.clamp(0, 1), (0, 1)), p.clamp(0, 1))
     curve = ResponseCurve(a=torch.tensor([0.95]), b=torch.tensor([2.2]), c=torch.tensor([0.03]))
     light = torch.linspace(0, 1, 256).reshape(1, 16, 16)

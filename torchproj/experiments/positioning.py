@@ -294,7 +294,8 @@ def _rmse(points: np.ndarray, pose: np.ndarray, size) -> float:
 def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20.0, spread_deg: float = 5.0,
                          seed: int = 0, max_evaluations: int = 200, profile_mm: float = 40.0, profile_steps: int = 8, feedback_stride: int = 2,
                          device="cpu", progress=None, calibration: VirtualCalibration | None = None,
-                         max_iter: int = 300, solver: str = "fista", bounds_8bit=(0, 255)) -> PositioningResult:
+                         max_iter: int = 300, solver: str = "fista", bounds_8bit=(0, 255),
+                         outside: str = "clip") -> PositioningResult:
     """Solve patterns for the scene's targets, place each box from random starts by feedback, scan it.
 
     Args:
@@ -309,18 +310,19 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         feedback_stride: score the camera image on every n-th pixel in each direction.
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
         max_iter: iteration limit of the pattern solver.
-        solver, bounds_8bit: the pattern solver and its bounds, as :func:`~torchproj.pipeline.run_virtual`
+        solver, bounds_8bit, outside: the pattern solver, its bounds and how values outside them are shown,
+            as :func:`~torchproj.pipeline.run_virtual`
             (the paper's own test used ``eo`` with ``(0, 255)``, ``EO_0^255``).
     """
     check(trials >= 1, f"trials must be at least 1, got {trials}")
-    check_solve_options(solver, bounds_8bit, len(scene.projectors))  # before calibrating
+    check_solve_options(solver, bounds_8bit, len(scene.projectors), outside)  # before calibrating
     check(spread_mm >= 0 and spread_deg >= 0, "spread_mm and spread_deg must not be negative")
     check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
     positions = _positions(scene)
     t_start = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress)
     run = run_virtual(scene, calibration=cal, device=device, progress=progress, max_iter=max_iter, solver=solver,
-                      bounds_8bit=bounds_8bit)
+                      bounds_8bit=bounds_8bit, outside=outside)
     scale = run.report["scale"]
     shown = {j: (p.float() / 255)[None].to(device) for j, p in enumerate(run.patterns)}
     prj_mid = np.mean([p.centre for p in scene.projectors], axis=0)
@@ -359,7 +361,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         "scene": scene.name, "seed": seed, "trials_per_position": trials,
         "start_spread": {"position_mm": spread_mm, "rotation_deg": spread_deg},
         "max_evaluations": max_evaluations, "feedback_stride": feedback_stride,
-        "solver": solver, "bounds_8bit": list(bounds_8bit),
+        "solver": solver, "bounds_8bit": list(bounds_8bit), "outside": outside,
         "method": (f"patterns solved by {solver} (bounds {bounds_8bit[0]:g}..{bounds_8bit[1]:g}) on the Gray-code "
                    "calibration; placement by Nelder-Mead on the "
                    "6-DoF displacement from the start, maximising the PSNR of the camera image against the target "

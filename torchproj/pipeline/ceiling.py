@@ -108,7 +108,8 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
 
 
 def solve_on_light_transport(ops: list[TransportOperator], bounds: tuple[float, float], responses, *,
-                             solver: str = "fista", max_iter: int = 2000, progress=None, objective="l2"):
+                             solver: str = "fista", max_iter: int = 2000, progress=None, objective="l2",
+                             outside: str = "clip"):
     """Solve on :func:`light_transport`'s operators as :func:`~torchproj.solve.make_patterns` does.
 
     With one operator per colour channel each channel is solved alone (least squares with a box
@@ -125,7 +126,7 @@ def solve_on_light_transport(ops: list[TransportOperator], bounds: tuple[float, 
     check(solver != "eo", "the exact light transport has no epipolar chains for eo to walk: choose another solver")
     if len(ops) == 1:
         return make_patterns(ops[0], solver, bounds, responses, max_iter=max_iter, progress=progress,
-                             objective=objective)
+                             objective=objective, outside=outside)
     check(image_objective(objective) is None, "an image objective on the exact light transport needs surfaces whose "
                                               "albedo is the same in every colour channel; use --objective l2")
     results = [make_patterns(op, solver, bounds, responses, max_iter=max_iter, progress=progress)[0] for op in ops]
@@ -133,4 +134,4 @@ def solve_on_light_transport(ops: list[TransportOperator], bounds: tuple[float, 
         results[0], patterns=torch.cat([r.patterns for r in results], 1), history=[],
         iterations=max(r.iterations for r in results), objective=sum(r.objective for r in results),
         time_s=sum(r.time_s for r in results), converged=all(r.converged for r in results))
-    return (joined, *projectable_patterns(ops[0], joined.patterns, bounds, responses))
+    return (joined, *projectable_patterns(ops[0], joined.patterns, bounds, responses, outside))

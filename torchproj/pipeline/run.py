@@ -68,7 +68,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
                 oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
-                objective="l2", footprint: str = "nearest", ceiling: bool = False) -> RunResult:
+                objective="l2", footprint: str = "nearest", ceiling: bool = False, outside: str = "clip") -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -109,8 +109,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         ceiling: also solve the same targets, rows and bounds on the simulator's own light transport
             (FISTA, least squares, to convergence) and score it the same way: each report row gets
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
+        outside: how values solved outside [0, 255] are shown: ``clip`` (below black shows black) or
+            ``map`` (the bounds map linearly onto 0..255); :func:`~torchproj.solve.to_projectable`.
     """
-    oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling)
+    oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
+                                       outside)
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
@@ -123,29 +126,30 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
 
     solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=oracle == "transport",
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
-                              device=device, timings=timings)
+                              device=device, timings=timings, outside=outside)
     t0 = time.perf_counter()
     evaluation = evaluate_patterns(cal, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
     scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
     timings["evaluate"] = time.perf_counter() - t0
     if ceiling:
         t0 = time.perf_counter()
-        for row, score in zip(rows, _ceiling(cal, states, targets, bounds, footprint, progress, device)):
+        for row, score in zip(rows, _ceiling(cal, states, targets, bounds, footprint, progress, device, outside)):
             row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
         timings["ceiling"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
     report["footprint"] = footprint
+    report["outside"] = outside
     if fits is not None:
         report["homographies"] = fits
     return RunResult(report=report, patterns=solved.patterns, captures=evaluation.captures, targets=scores,
                      solution=solved.result, scene=scene)
 
 
-def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling):
+def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside):
     """:func:`run_virtual`'s options checked together, before any work; returns the oracle's name (or
     None), the bounds in linear light and the image objective (None for least squares)."""
-    bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors))
+    bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors), outside)
     oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
     exact = oracle == "transport"
@@ -173,7 +177,7 @@ class _Solved:
 
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
-                     progress, device, timings) -> _Solved:
+                     progress, device, timings, outside) -> _Solved:
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
@@ -188,14 +192,14 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     t0 = time.perf_counter()
     if exact:
         result, _, patterns = solve_on_light_transport(ops, bounds, cal.responses, solver=solver, max_iter=max_iter,
-                                                       progress=progress, objective=image)
+                                                       progress=progress, objective=image, outside=outside)
     elif gain_offset is not None:
         result, op, patterns = _solve_gain_offset(op, states, targets, bounds, gain_offset, cal.responses,
-                                                  max_iter, progress, device, footprint)
+                                                  max_iter, progress, device, footprint, outside)
         ops = [op]
     else:
         result, _, patterns = make_patterns(op, solver, bounds, cal.responses, calibrations=states,
-                                            max_iter=max_iter, progress=progress, objective=image)
+                                            max_iter=max_iter, progress=progress, objective=image, outside=outside)
     timings["solve"] = time.perf_counter() - t0
     return _Solved(result, ops, patterns, model)
 
@@ -216,21 +220,22 @@ def _target_rows(scene, scores: list[TargetScore], gain_offset: dict | None):
     return scores, rows
 
 
-def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_iter, progress, device, footprint):
+def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_iter, progress, device, footprint,
+                       outside):
     """FISTA with one gain and offset per target: the result, the operator it solved, the 8-bit patterns."""
     flat = build_transport(states, [dataclasses.replace(t, image=torch.ones_like(t.image)) for t in targets],
                            merge=False, scale=op.scale, footprint=footprint, device=device)
     result = solve_gain_offset(op, flat.rhs, bounds, gain=gain_offset[0], offset=gain_offset[1], max_iter=max_iter,
                                progress=progress)
     op = result.info.pop("operator")
-    return result, op, projectable_patterns(op, result.patterns, bounds, responses)[1]
+    return result, op, projectable_patterns(op, result.patterns, bounds, responses, outside)[1]
 
 
-def _ceiling(cal, states, targets, bounds, footprint, progress, device) -> list[TargetScore]:
+def _ceiling(cal, states, targets, bounds, footprint, progress, device, outside) -> list[TargetScore]:
     """The targets' scores when solved on the simulator's own light transport, on the same rows."""
     rows = build_transport(states, targets, merge=False, footprint=footprint, device=device)
     _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds, cal.responses,
-                                              max_iter=CEILING_ITERATIONS, progress=progress)
+                                              max_iter=CEILING_ITERATIONS, progress=progress, outside=outside)
     return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states).targets
 
 
@@ -321,8 +326,10 @@ def run_markdown(report: dict) -> str:
     adjusted = "gain_offset_limits" in report
     footprint = report.get("footprint", "nearest")
     ceiling = all("ceiling" in r for r in report["targets"]) and bool(report["targets"])
+    below = report["bounds_8bit"][0] < 0  # only then is there anything to clip or map
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
-             f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}", "",
+             f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}"
+             + (f" (values below 0 shown by {report.get('outside', 'clip')})" if below else ""), "",
              f"Calibration: {report['calibration']}; maps: {report['maps']}; footprint: {footprint}"
              + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
                  f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"

@@ -5,7 +5,7 @@ from .eo import component_chains, epipolar_chains, fundamental_between_projector
 from .gain_offset import solve_gain_offset
 from .model import ProjectionModel, calibration_parts
 from .objectives import OBJECTIVES, PSNR_DROP_DB, ImageLoss, ImageObjective, image_objective, solve_ssim
-from .solvers import (ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd,
+from .solvers import (OUTSIDE, ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd,
                       to_projectable)
 
 SOLVERS = {"lf": solve_lf, "eo": solve_eo, "pgd": solve_pgd, "fista": solve_fista, "adam": solve_adam}
@@ -19,7 +19,7 @@ def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> So
     return SOLVERS[method](op, bounds, **kwargs)
 
 
-__all__ = ["ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
+__all__ = ["ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "OUTSIDE", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
            "check_solve_options",
            "compensate", "component_chains", "epipolar_chains", "fundamental_between_projectors", "image_objective",
            "make_patterns", "projectable_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",

@@ -55,17 +55,20 @@ def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WAR
     return share
 
 
-def check_solve_options(solver: str, bounds_8bit, projectors: int) -> tuple[float, float]:
+def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str = "clip") -> tuple[float, float]:
     """What :func:`make_patterns` will be asked, checked before any work: the solver's name, that
-    ``eo`` has its two projectors, and the paper's 8-bit bounds; returns the bounds in linear light.
+    ``eo`` has its two projectors, the paper's 8-bit bounds and how values outside [0, 255] are shown
+    (:data:`~torchproj.solve.OUTSIDE`); returns the bounds in linear light.
 
     Bounds: HI in (0, 255] (a projector gives no more than its white), LO in [-255, HI) (below 0 as
     the paper's ``EO_-100^255``, whose values are brought into range afterwards).
     """
     from . import SOLVERS
-    from .solvers import check_bounds
+    from .solvers import OUTSIDE, check_bounds
 
     check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    check(outside in OUTSIDE, f"outside must be one of {list(OUTSIDE)} (how values solved below black are shown), "
+                              f"got {outside!r}")
     check(solver != "eo" or projectors == 2,
           f"eo walks epipolar chains between exactly two projectors, and this rig has {projectors}: use another "
           "solver (fista, the default, takes any number)" + (", or from Python solve_eo(..., chains='components')"
@@ -86,7 +89,7 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int) -> tuple[floa
 
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
-                  max_iter: int = 300, progress: bool | None = None, objective="l2"):
+                  max_iter: int = 300, progress: bool | None = None, objective="l2", outside: str = "clip"):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
     Args:
@@ -97,6 +100,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         objective: ``l2`` (the solver's least squares), or an image-space objective (``ssim``,
             ``mixed`` or an :class:`~torchproj.solve.ImageObjective`) started from the solver's
             patterns (:func:`~torchproj.solve.solve_ssim`).
+        outside: how values solved outside [0, 1] are shown (:func:`~torchproj.solve.to_projectable`).
 
     Returns:
         ``(result, light, patterns)``: the :class:`SolveResult` (for an image-space objective, its
@@ -122,15 +126,17 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         result.info["start"] = start
         result.info["objective"] = image
         result.time_s += start.time_s
-    return (result, *projectable_patterns(op, result.patterns, bounds, responses))
+    return (result, *projectable_patterns(op, result.patterns, bounds, responses, outside))
 
 
-def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], responses: list[ResponseCurve]):
+def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], responses: list[ResponseCurve],
+                         outside: str = "clip"):
     """Solved values -> what each projector should emit, and the 8-bit images that make it emit that.
 
     Args:
         op: the operator whose columns ``p`` holds.
         p: :math:`(N_{cols}, C)` values solved within ``bounds``.
+        outside: how values outside [0, 1] are shown (:func:`~torchproj.solve.to_projectable`).
 
     Returns:
         ``(light, patterns)``: per projector :math:`(C, H_j, W_j)` linear light in [0, 1] (on the
@@ -138,5 +144,5 @@ def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], respo
     """
     from .solvers import to_projectable
 
-    light = [img.cpu() for img in op.to_images(to_projectable(p.detach(), bounds).clamp(0, 1))]
+    light = [img.cpu() for img in op.to_images(to_projectable(p.detach(), bounds, outside).clamp(0, 1))]
     return light, compensate(light, responses)

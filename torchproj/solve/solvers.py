@@ -20,7 +20,7 @@ from ..core.checks import check, check_finite
 from ..core.progress import progress_bar
 from ..transport.operator import SUM_RUN, TransportOperator
 
-__all__ = ["SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "to_projectable",
+__all__ = ["OUTSIDE", "SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "to_projectable",
            "check_bounds"]
 
 
@@ -56,17 +56,22 @@ def check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
     return lo, hi
 
 
-def to_projectable(p: torch.Tensor, bounds: tuple[float, float]) -> torch.Tensor:
-    """Map values solved within ``bounds`` linearly into [0, 1] when the bounds leave that range.
+OUTSIDE = ("clip", "map")  # how a solution whose bounds leave [0, 1] is shown: to_projectable
+
+
+def to_projectable(p: torch.Tensor, bounds: tuple[float, float], outside: str = "clip") -> torch.Tensor:
+    """Bring values solved within ``bounds`` into [0, 1], what a projector can show.
 
     Our choice, not the paper's: the paper solves ``EO_-100^255`` with a lower bound below black but
-    does not say how such values are shown. A linear map keeps the solution's contrast but lifts a
-    zero to ``-lo / (hi - lo)`` of white; clipping at black is the alternative.
+    does not say how such values are shown. ``clip`` (default) shows them black; ``map`` maps the
+    bounds linearly onto [0, 1], which keeps the solution's contrast but lifts a zero to
+    ``-lo / (hi - lo)`` of white. ``benchmarks/image_quality.py`` measures both for ``EO_-100^255``.
     """
     lo, hi = check_bounds(bounds)
+    check(outside in OUTSIDE, f"outside must be one of {list(OUTSIDE)}, got {outside!r}")
     if lo >= 0 and hi <= 1:
         return p
-    return (p - lo) / (hi - lo)
+    return p.clamp(0, 1) if outside == "clip" else (p - lo) / (hi - lo)
 
 
 def _start(op: TransportOperator, x0: torch.Tensor | None, lo: float, hi: float) -> torch.Tensor:
