@@ -58,12 +58,16 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _solver_args(args) -> dict:
+    """The solver options every solving command shares (``cli_options.solver_options``)."""
+    return dict(solver=args.solver, bounds_8bit=args.bounds, outside=args.outside, chains=args.chains)
+
+
 def cmd_run(args) -> int:
     from .pipeline import run_virtual
 
     gain_offset = None if args.gain is None and args.offset is None else (args.gain or (1, 1), args.offset or (0, 0))
-    result = run_virtual(_scene(args), solver=args.solver, bounds_8bit=args.bounds, outside=args.outside,
-                         device=args.device, max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset,
+    result = run_virtual(_scene(args), **_solver_args(args), device=args.device, max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset,
                          maps=args.maps, plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
                          footprint=args.footprint, ceiling=args.ceiling)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
@@ -76,8 +80,7 @@ def cmd_position(args) -> int:
     scene = _scene(args)
     result = evaluate_positioning(scene, trials=args.trials, spread_mm=args.spread_mm, spread_deg=args.spread_deg,
                                   seed=args.seed, max_evaluations=args.max_evaluations, device=args.device,
-                                  max_iter=args.max_iter, solver=args.solver, bounds_8bit=args.bounds,
-                                  outside=args.outside)
+                                  max_iter=args.max_iter, **_solver_args(args))
     _publish(args.out, lambda stage: result.write(stage, scene), "report.json, report.md, feedback.png, patterns/, "
              f"scans/ (view a scan: python viz/positioning.py {args.out})")
     return 0
@@ -134,8 +137,8 @@ def cmd_calibrate(args) -> int:
 def cmd_solve(args) -> int:
     from .pipeline import solve_bundle
 
-    solution = solve_bundle(args.bundle, args.targets, solver=args.solver, bounds_8bit=args.bounds,
-                            outside=args.outside, objective=_objective(args), footprint=args.footprint, maps=args.maps,
+    solution = solve_bundle(args.bundle, args.targets, **_solver_args(args), objective=_objective(args),
+                            footprint=args.footprint, maps=args.maps,
                             plane_tolerance=args.plane_tolerance, max_iter=args.max_iter, device=args.device)
     solution.report["bundle"] = str(args.bundle)
     print(f"solved {len(solution.predicted)} target(s) with {args.solver} ({args.objective}): "

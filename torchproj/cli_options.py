@@ -112,6 +112,9 @@ def solver_options(p) -> None:
     p.add_argument("--outside", default="clip", choices=["clip", "map"],
                    help="how values solved below 0 (bounds LO < 0) are shown: clip them to black (default) or map "
                         "LO..HI linearly onto 0..255 (the paper does not say which it did)")
+    p.add_argument("--chains", default="epipolar", choices=["epipolar", "components"],
+                   help="eo's independent problems: epipolar chains between two projectors (the paper's; default) "
+                        "or the connected components of the transport (any number of projectors)")
 
 
 def solve_options(p) -> None:

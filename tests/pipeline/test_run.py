@@ -174,6 +174,24 @@ def test_values_below_black_are_clipped_or_mapped_as_asked(config, tmp_path, cap
         run_virtual(scene, bounds_8bit=(-100, 255), outside="wrap")
 
 
+def test_eo_on_three_projectors_walks_the_components(tmp_path, capsys):
+    data = small_config()
+    side = dict(data["projectors"][0], name="side", pose={"position": [0.12, 0.0, 0.0], "look_at": [0.0, 0.0, 0.9]})
+    data["projectors"].append(side)
+    config = tmp_path / "three.yaml"
+    config.write_text(yaml.safe_dump(dict(data, name="three")))
+    # The paper's epipolar chains join two projectors: refused before any work, naming the way out.
+    assert main(["run", str(config), "--solver", "eo", "--out", str(tmp_path / "refused")]) == 2
+    assert "--chains components" in capsys.readouterr().err and not (tmp_path / "refused").exists()
+    out = tmp_path / "run"
+    assert main(["run", str(config), "--solver", "eo", "--chains", "components", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["chains"] == "components" and len(report["decoded_fraction"]["near"]) == 3
+    # Three overlapping projectors make one component: EO then solves the whole bounded problem.
+    fista = run_virtual(parse_scene(yaml.safe_load(config.read_text())), solver="fista")
+    assert report["objective"] == pytest.approx(fista.report["objective"], rel=1e-2)
+
+
 def test_colour_targets_end_to_end(tmp_path_factory):
     scene = parse_scene(yaml.safe_load(_small("colour_two_planes", tmp_path_factory).read_text()))
     result = run_virtual(scene)

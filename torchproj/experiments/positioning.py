@@ -295,7 +295,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
                          seed: int = 0, max_evaluations: int = 200, profile_mm: float = 40.0, profile_steps: int = 8, feedback_stride: int = 2,
                          device="cpu", progress=None, calibration: VirtualCalibration | None = None,
                          max_iter: int = 300, solver: str = "fista", bounds_8bit=(0, 255),
-                         outside: str = "clip") -> PositioningResult:
+                         outside: str = "clip", chains: str = "epipolar") -> PositioningResult:
     """Solve patterns for the scene's targets, place each box from random starts by feedback, scan it.
 
     Args:
@@ -310,19 +310,19 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         feedback_stride: score the camera image on every n-th pixel in each direction.
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
         max_iter: iteration limit of the pattern solver.
-        solver, bounds_8bit, outside: the pattern solver, its bounds and how values outside them are shown,
-            as :func:`~torchproj.pipeline.run_virtual`
+        solver, bounds_8bit, outside, chains: the pattern solver, its bounds, how values outside them are
+            shown and eo's chains, as :func:`~torchproj.pipeline.run_virtual`
             (the paper's own test used ``eo`` with ``(0, 255)``, ``EO_0^255``).
     """
     check(trials >= 1, f"trials must be at least 1, got {trials}")
-    check_solve_options(solver, bounds_8bit, len(scene.projectors), outside)  # before calibrating
+    check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)  # before calibrating
     check(spread_mm >= 0 and spread_deg >= 0, "spread_mm and spread_deg must not be negative")
     check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
     positions = _positions(scene)
     t_start = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress)
     run = run_virtual(scene, calibration=cal, device=device, progress=progress, max_iter=max_iter, solver=solver,
-                      bounds_8bit=bounds_8bit, outside=outside)
+                      bounds_8bit=bounds_8bit, outside=outside, chains=chains)
     scale = run.report["scale"]
     shown = {j: (p.float() / 255)[None].to(device) for j, p in enumerate(run.patterns)}
     prj_mid = np.mean([p.centre for p in scene.projectors], axis=0)

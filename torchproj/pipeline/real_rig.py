@@ -68,7 +68,7 @@ def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
 def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
                  objective="l2", maps: str = "decoded", footprint: str = "nearest",
                  plane_tolerance: float = 1.0, max_iter: int = 300, device="cpu", progress=None,
-                 outside: str = "clip") -> BundleSolution:
+                 outside: str = "clip", chains: str = "epipolar") -> BundleSolution:
     """Solve the patterns that show each image in its state, from a bench's calibration.
 
     Args:
@@ -76,12 +76,12 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
         targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
             scikit-image test-image name per state.
         solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
-        device, outside: as :func:`~torchproj.pipeline.run_virtual`.
+        device, outside, chains: as :func:`~torchproj.pipeline.run_virtual`.
     """
     t0 = time.perf_counter()
     image = image_objective(objective)
     bundle = bundle if isinstance(bundle, CalibrationBundle) else load_bundle(bundle)
-    lo, hi = check_solve_options(solver, bounds_8bit, len(bundle.projectors), outside)
+    lo, hi = check_solve_options(solver, bounds_8bit, len(bundle.projectors), outside, chains)
     wanted = _bundle_targets(bundle, targets)
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
@@ -90,7 +90,8 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     op = build_transport(states, wanted, merge=image is None and footprint == "nearest", footprint=footprint,
                          device=device)
     result, light, patterns = make_patterns(op, solver, (lo, hi), bundle.response_curves(), calibrations=states,
-                                            max_iter=max_iter, progress=progress, objective=image, outside=outside)
+                                            max_iter=max_iter, progress=progress, objective=image, outside=outside,
+                                            chains=chains)
     rows, predicted = [], {}
     for t in wanted:
         view = states[t.state].predict(light, bundle.black[t.state], footprint)
@@ -100,6 +101,7 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
         rows.append({"name": t.name, "state": t.state, "pixels": int(covered.sum()),
                      "predicted_psnr_db": scores["psnr_db"], "predicted_ssim": scores["ssim"]})
     report = {"solver": solver, "bounds_8bit": list(bounds_8bit), "outside": outside,
+              **({"chains": chains} if solver == "eo" else {}),
               "model": op.size_report(), "objective": result.info.get("l2_objective", result.objective),
               "iterations": result.iterations, "scale": op.scale,
               "timings_s": {"total": round(time.perf_counter() - t0, 3), "solve": round(result.time_s, 3)},

@@ -68,7 +68,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
                 oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
-                objective="l2", footprint: str = "nearest", ceiling: bool = False, outside: str = "clip") -> RunResult:
+                objective="l2", footprint: str = "nearest", ceiling: bool = False, outside: str = "clip",
+                chains: str = "epipolar") -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -111,9 +112,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
         outside: how values solved outside [0, 255] are shown: ``clip`` (below black shows black) or
             ``map`` (the bounds map linearly onto 0..255); :func:`~torchproj.solve.to_projectable`.
+        chains: ``eo``'s independent problems: ``epipolar`` (the paper's; two projectors) or
+            ``components`` (connected components of the transport; any number of projectors).
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
-                                       outside)
+                                       outside, chains)
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
@@ -126,7 +129,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
 
     solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=oracle == "transport",
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
-                              device=device, timings=timings, outside=outside)
+                              device=device, timings=timings, outside=outside, chains=chains)
     t0 = time.perf_counter()
     evaluation = evaluate_patterns(cal, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
     scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
@@ -140,16 +143,18 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
     report["footprint"] = footprint
     report["outside"] = outside
+    if solver == "eo":
+        report["chains"] = chains
     if fits is not None:
         report["homographies"] = fits
     return RunResult(report=report, patterns=solved.patterns, captures=evaluation.captures, targets=scores,
                      solution=solved.result, scene=scene)
 
 
-def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside):
+def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside, chains):
     """:func:`run_virtual`'s options checked together, before any work; returns the oracle's name (or
     None), the bounds in linear light and the image objective (None for least squares)."""
-    bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors), outside)
+    bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)
     oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
     exact = oracle == "transport"
@@ -177,7 +182,7 @@ class _Solved:
 
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
-                     progress, device, timings, outside) -> _Solved:
+                     progress, device, timings, outside, chains) -> _Solved:
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
@@ -199,7 +204,8 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
         ops = [op]
     else:
         result, _, patterns = make_patterns(op, solver, bounds, cal.responses, calibrations=states,
-                                            max_iter=max_iter, progress=progress, objective=image, outside=outside)
+                                            max_iter=max_iter, progress=progress, objective=image, outside=outside,
+                                            chains=chains)
     timings["solve"] = time.perf_counter() - t0
     return _Solved(result, ops, patterns, model)
 

@@ -1,6 +1,6 @@
 """Box-constrained pattern solvers on the transport operator, and compensation to 8-bit patterns."""
 
-from .compensate import check_solve_options, compensate, make_patterns, projectable_patterns
+from .compensate import CHAINS, check_solve_options, compensate, make_patterns, projectable_patterns
 from .eo import component_chains, epipolar_chains, fundamental_between_projectors, solve_eo
 from .gain_offset import solve_gain_offset
 from .model import ProjectionModel, calibration_parts
@@ -19,7 +19,7 @@ def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> So
     return SOLVERS[method](op, bounds, **kwargs)
 
 
-__all__ = ["ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "OUTSIDE", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
+__all__ = ["CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "OUTSIDE", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
            "check_solve_options",
            "compensate", "component_chains", "epipolar_chains", "fundamental_between_projectors", "image_objective",
            "make_patterns", "projectable_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",

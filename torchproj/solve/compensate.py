@@ -10,7 +10,7 @@ from ..calib.response import ResponseCurve
 from ..core.checks import check, check_shape
 from ..core.errors import InputError
 
-__all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
+__all__ = ["CHAINS", "check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
 
 
 def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> list[torch.Tensor]:
@@ -36,6 +36,8 @@ def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> li
     return out
 
 
+CHAINS = ("epipolar", "components")  # eo's independent problems, by name (solve_eo also takes an index)
+
 UNEXPLAINED_WARNING = 0.1
 
 
@@ -55,10 +57,12 @@ def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WAR
     return share
 
 
-def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str = "clip") -> tuple[float, float]:
+def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str = "clip",
+                        chains: str = "epipolar") -> tuple[float, float]:
     """What :func:`make_patterns` will be asked, checked before any work: the solver's name, that
-    ``eo`` has its two projectors, the paper's 8-bit bounds and how values outside [0, 255] are shown
-    (:data:`~torchproj.solve.OUTSIDE`); returns the bounds in linear light.
+    ``eo``'s chains suit the rig (epipolar chains need exactly two projectors), the paper's 8-bit
+    bounds and how values outside [0, 255] are shown (:data:`~torchproj.solve.OUTSIDE`); returns
+    the bounds in linear light.
 
     Bounds: HI in (0, 255] (a projector gives no more than its white), LO in [-255, HI) (below 0 as
     the paper's ``EO_-100^255``, whose values are brought into range afterwards).
@@ -69,10 +73,11 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str 
     check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
     check(outside in OUTSIDE, f"outside must be one of {list(OUTSIDE)} (how values solved below black are shown), "
                               f"got {outside!r}")
-    check(solver != "eo" or projectors == 2,
+    check(chains in CHAINS, f"chains must be one of {list(CHAINS)}, got {chains!r}")
+    check(solver != "eo" or chains != "epipolar" or projectors == 2,
           f"eo walks epipolar chains between exactly two projectors, and this rig has {projectors}: use another "
-          "solver (fista, the default, takes any number)" + (", or from Python solve_eo(..., chains='components')"
-                                                              if projectors > 2 else ""))
+          "solver (fista, the default, takes any number), or eo's connected components of the transport "
+          "(--chains components)")
     try:
         lo, hi = check_bounds(bounds_8bit)  # finite, lo < hi
     except (TypeError, ValueError) as exc:
@@ -89,7 +94,8 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str 
 
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
-                  max_iter: int = 300, progress: bool | None = None, objective="l2", outside: str = "clip"):
+                  max_iter: int = 300, progress: bool | None = None, objective="l2", outside: str = "clip",
+                  chains: str = "epipolar"):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
     Args:
@@ -101,6 +107,8 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
             ``mixed`` or an :class:`~torchproj.solve.ImageObjective`) started from the solver's
             patterns (:func:`~torchproj.solve.solve_ssim`).
         outside: how values solved outside [0, 1] are shown (:func:`~torchproj.solve.to_projectable`).
+        chains: ``eo``'s independent problems (:func:`~torchproj.solve.solve_eo`): ``epipolar`` (the
+            paper's, two projectors) or ``components`` (connected components of the transport).
 
     Returns:
         ``(result, light, patterns)``: the :class:`SolveResult` (for an image-space objective, its
@@ -113,7 +121,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
 
     image = image_objective(objective)
     if solver == "eo":
-        result = solve_eo(op, bounds, calibrations=calibrations, max_iter=max_iter, progress=progress)
+        result = solve_eo(op, bounds, chains=chains, calibrations=calibrations, max_iter=max_iter, progress=progress)
     else:
         result = solve_patterns(op, solver, bounds, max_iter=max_iter, progress=progress)
     # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
