@@ -233,6 +233,9 @@ def _offset_kernels(window: int, dtype, device) -> torch.Tensor:
     return torch.stack([one, dx, dy, dx * dx, dx * dy, dy * dy])[:, None]  # (6, 1, w, w)
 
 
+_REFINE_CHUNK = 1 << 18  # fitted pixels per float64 pass of refine_subpixel
+
+
 def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
                     min_fill: float = 0.7, max_shift: float = 0.75) -> torch.Tensor:
     """Sub-pixel projector coordinates by a local affine fit over neighbouring camera pixels.
@@ -267,24 +270,23 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     mom = F.conv2d(m, kernels, padding=pad)[0]  # (6, H, W): n, sx, sy, sxx, sxy, syy
     rhs = F.conv2d(vals, kernels[:3], padding=pad)  # (2, 3, H, W): su, sux, suy
     enough = valid & (mom[0] >= min_fill * window * window)
-    out = prj_xy.clone()
+    out = prj_xy.clone(memory_format=torch.contiguous_format)
     if not bool(enough.any()):
         return out
     # Normal equations [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] c = [su, sux, suy]; only the
     # fitted value at the centre, c0, is needed: Cramer's rule on the symmetric 3x3 system. Only the
     # fitted pixels go to float64, not whole maps.
-    at = torch.nonzero(enough.flatten())[:, 0]
-    n, sx, sy, sxx, sxy, syy = mom.flatten(1)[:, at].double()
-    su, sux, suy = rhs.flatten(2)[:, :, at].double().unbind(1)  # each (2, M)
-    del mom, rhs
-    cof_xx = sxx * syy - sxy * sxy
-    cof_xy = sx * syy - sxy * sy
-    cof_xz = sx * sxy - sxx * sy
-    det = n * cof_xx - sx * cof_xy + sy * cof_xz
-    c0 = (su * cof_xx - sx * (sux * syy - sxy * suy) + sy * (sux * sxy - sxx * suy)) / det
-    fitted = c0.T.to(prj_xy.dtype)  # (M, 2)
-    decoded = prj_xy[enough]
-    keep = (fitted - decoded).abs().max(-1).values <= max_shift
-    refined = torch.where(keep[:, None], fitted, decoded)
-    out[enough] = refined
+    mom, rhs, flat_out = mom.flatten(1), rhs.flatten(2), out.view(-1, 2)
+    for at in torch.nonzero(enough.flatten())[:, 0].split(_REFINE_CHUNK):  # bounded float64 temporaries
+        n, sx, sy, sxx, sxy, syy = mom[:, at].double()
+        su, sux, suy = rhs[:, :, at].double().unbind(1)  # each (2, M)
+        cof_xx = sxx * syy - sxy * sxy
+        cof_xy = sx * syy - sxy * sy
+        cof_xz = sx * sxy - sxx * sy
+        det = n * cof_xx - sx * cof_xy + sy * cof_xz
+        c0 = (su * cof_xx - sx * (sux * syy - sxy * suy) + sy * (sux * sxy - sxx * suy)) / det
+        fitted = c0.T.to(prj_xy.dtype)  # (M, 2)
+        decoded = flat_out[at]
+        keep = (fitted - decoded).abs().max(-1).values <= max_shift
+        flat_out[at] = torch.where(keep[:, None], fitted, decoded)
     return out
