@@ -67,8 +67,9 @@ def cmd_run(args) -> int:
     from .pipeline import run_virtual
 
     gain_offset = None if args.gain is None and args.offset is None else (args.gain or (1, 1), args.offset or (0, 0))
-    result = run_virtual(_scene(args), **_solver_args(args), device=args.device, max_iter=args.max_iter, oracle=args.oracle, gain_offset=gain_offset,
-                         maps=args.maps, plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
+    result = run_virtual(_scene(args), **_solver_args(args), device=args.device, max_iter=args.max_iter,
+                         oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
+                         plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
                          footprint=args.footprint, ceiling=args.ceiling)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0

@@ -104,15 +104,15 @@ def device_options(p, max_iter: bool = True) -> None:
 
 def solver_options(p) -> None:
     """The pattern solver and its bounds (``run``, ``solve``, ``position``)."""
-    from .solve import SOLVERS
+    from .solve import CHAINS, OUTSIDE, SOLVERS
 
     p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
     p.add_argument("--bounds", type=bounds, default=(0.0, 255.0), metavar="LO,HI",
                    help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
-    p.add_argument("--outside", default="clip", choices=["clip", "map"],
+    p.add_argument("--outside", default="clip", choices=list(OUTSIDE),
                    help="how values solved below 0 (bounds LO < 0) are shown: clip them to black (default) or map "
                         "LO..HI linearly onto 0..255 (the paper does not say which it did)")
-    p.add_argument("--chains", default="epipolar", choices=["epipolar", "components"],
+    p.add_argument("--chains", default="epipolar", choices=list(CHAINS),
                    help="eo's independent problems: epipolar chains between two projectors (the paper's; default) "
                         "or the connected components of the transport (any number of projectors)")
 

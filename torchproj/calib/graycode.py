@@ -192,8 +192,9 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     check_shape(black, "black", [sizes["H"], sizes["W"]])
 
     reliable = torch.ones(white.shape, dtype=torch.bool, device=white.device)
-    codes = [_decode_axis(patterns, range(kx), (white_threshold - _EPS) / 255, reliable),
-             _decode_axis(patterns, range(kx, kx + ky), (white_threshold - _EPS) / 255, reliable)]
+    threshold = (white_threshold - _EPS) / 255  # [0, 1] units, as the captures
+    codes = [_decode_axis(patterns, range(kx), threshold, reliable),
+             _decode_axis(patterns, range(kx, kx + ky), threshold, reliable)]
     block = (2 ** (nx - kx), 2 ** (ny - ky))
     # A block index names cells [b * block, (b + 1) * block - 1], cut at the image edge; its
     # coordinate is the centre of the cells inside (the cell itself for a full sequence).

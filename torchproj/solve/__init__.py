@@ -1,7 +1,7 @@
 """Box-constrained pattern solvers on the transport operator, and compensation to 8-bit patterns."""
 
-from .compensate import CHAINS, check_solve_options, compensate, make_patterns, projectable_patterns
-from .eo import component_chains, epipolar_chains, fundamental_between_projectors, solve_eo
+from .compensate import check_solve_options, compensate, make_patterns, projectable_patterns
+from .eo import CHAINS, component_chains, epipolar_chains, fundamental_between_projectors, solve_eo
 from .gain_offset import solve_gain_offset
 from .model import ProjectionModel, calibration_parts
 from .objectives import OBJECTIVES, PSNR_DROP_DB, ImageLoss, ImageObjective, image_objective, solve_ssim

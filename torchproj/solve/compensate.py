@@ -10,7 +10,7 @@ from ..calib.response import ResponseCurve
 from ..core.checks import check, check_shape
 from ..core.errors import InputError
 
-__all__ = ["CHAINS", "check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
+__all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
 
 
 def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> list[torch.Tensor]:
@@ -35,8 +35,6 @@ def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> li
         out.append(torch.round(x * 255).to(torch.uint8))
     return out
 
-
-CHAINS = ("epipolar", "components")  # eo's independent problems, by name (solve_eo also takes an index)
 
 UNEXPLAINED_WARNING = 0.1
 
@@ -68,11 +66,11 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str 
     the paper's ``EO_-100^255``, whose values are brought into range afterwards).
     """
     from . import SOLVERS
-    from .solvers import OUTSIDE, check_bounds
+    from .eo import CHAINS
+    from .solvers import check_bounds, check_outside
 
     check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
-    check(outside in OUTSIDE, f"outside must be one of {list(OUTSIDE)} (how values solved below black are shown), "
-                              f"got {outside!r}")
+    check_outside(outside)
     check(chains in CHAINS, f"chains must be one of {list(CHAINS)}, got {chains!r}")
     check(solver != "eo" or chains != "epipolar" or projectors == 2,
           f"eo walks epipolar chains between exactly two projectors, and this rig has {projectors}: use another "

@@ -36,7 +36,9 @@ from ..transport.operator import TransportOperator, csr_from_coo
 from ..core.progress import progress_bar
 from .solvers import SolveResult, check_bounds
 
-__all__ = ["fundamental_between_projectors", "epipolar_chains", "component_chains", "solve_eo"]
+__all__ = ["CHAINS", "fundamental_between_projectors", "epipolar_chains", "component_chains", "solve_eo"]
+
+CHAINS = ("epipolar", "components")  # solve_eo's independent problems, by name (it also takes an index)
 
 
 def fundamental_between_projectors(calibrations: dict[str, StateCalibration], first: int = 0, second: int = 1,
@@ -146,7 +148,7 @@ def _chain_index(op, chains, calibrations, band) -> torch.Tensor:
                                             f"{len(op.projector_sizes)}; use chains='components' or another solver")
         chain = epipolar_chains(op, fundamental_between_projectors(calibrations), band)
     else:
-        check(chains == "components", f"chains must be 'epipolar', 'components' or a tensor, got {chains!r}")
+        check(chains == "components", f"chains must be one of {list(CHAINS)} or a tensor, got {chains!r}")
         chain = component_chains(op)
     check(chain.shape == (op.shape[1],), f"chain index must have shape ({op.shape[1]},)")
     return chain

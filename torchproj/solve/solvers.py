@@ -59,6 +59,12 @@ def check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
 OUTSIDE = ("clip", "map")  # how a solution whose bounds leave [0, 1] is shown: to_projectable
 
 
+def check_outside(outside: str) -> None:
+    """``outside`` names one of :data:`OUTSIDE` (one message for every entry point)."""
+    check(outside in OUTSIDE, f"outside must be one of {list(OUTSIDE)} (how values solved below black are shown), "
+                              f"got {outside!r}")
+
+
 def to_projectable(p: torch.Tensor, bounds: tuple[float, float], outside: str = "clip") -> torch.Tensor:
     """Bring values solved within ``bounds`` into [0, 1], what a projector can show.
 
@@ -68,7 +74,7 @@ def to_projectable(p: torch.Tensor, bounds: tuple[float, float], outside: str = 
     ``-lo / (hi - lo)`` of white. ``benchmarks/image_quality.py`` measures both for ``EO_-100^255``.
     """
     lo, hi = check_bounds(bounds)
-    check(outside in OUTSIDE, f"outside must be one of {list(OUTSIDE)}, got {outside!r}")
+    check_outside(outside)
     if lo >= 0 and hi <= 1:
         return p
     return p.clamp(0, 1) if outside == "clip" else (p - lo) / (hi - lo)
