@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.optimize import lsq_linear
+from scipy.sparse import csr_matrix
 
 from torchproj.calib import calibrate_projector
 from torchproj.pipeline import simulate_calibration
@@ -11,6 +12,7 @@ from torchproj.core import InputError
 from torchproj.sim import VirtualRig
 from torchproj.solve import (component_chains, epipolar_chains, fundamental_between_projectors, solve_eo,
                              solve_fista)
+from torchproj.solve.eo import _chain_index
 from torchproj.transport import StateCalibration, Target, TransportOperator, build_transport, csr_from_coo
 
 from ..helpers import small_scene
@@ -63,7 +65,7 @@ def test_eo_with_components_is_exact():
     A, b = op.dense().numpy(), op.rhs.numpy()
     ref = np.stack([lsq_linear(A, b[:, c], bounds=(0, 1), tol=1e-12).x for c in range(3)], 1)
     f_ref = float(((A @ ref - b) ** 2).sum() + op.constant.sum())
-    assert res.info["weight_kept"] == pytest.approx(1.0)
+    assert res.info["coupled_weight"] == 0.0 and res.info["colours"] == 1  # no row joins two components
     assert res.objective == pytest.approx(f_ref, rel=1e-6)
 
 
@@ -82,19 +84,40 @@ def test_each_chain_is_solved_to_its_own_optimum():
     np.testing.assert_allclose(res.patterns[:, 0].numpy(), ref, atol=1e-6)
 
 
-def test_eo_stays_in_bounds_and_reports_its_approximation(paper_rig):
+@pytest.mark.parametrize("bounds", [(0.0, 1.0), (-100 / 255, 1.0)], ids=["EO_0^255", "EO_-100^255"])
+def test_epipolar_eo_reaches_the_bounded_optimum(paper_rig, bounds):
+    """The paper's chains leak light into their neighbours on a camera finer than the projectors; the
+    sweeps keep that coupling, so EO reaches the optimum of the whole problem (FISTA's and scipy's)."""
     _, _, cals = paper_rig
     g = torch.Generator().manual_seed(1)
     op = build_transport(cals, [Target("near", torch.rand(1, 20, 20, generator=g), name="a"),
-                                Target("far", torch.rand(1, 20, 20, generator=g), name="b")])
-    for bounds in [(0.0, 1.0), (-100 / 255, 1.0)]:
-        res = solve_eo(op, bounds, calibrations=cals, max_iter=500)
-        eps = 1e-6  # float32 patterns against float64 bounds
-        assert bounds[0] - eps <= float(res.patterns.min()) and float(res.patterns.max()) <= bounds[1] + eps
-        assert torch.isfinite(res.patterns).all()
-        assert 0.5 < res.info["weight_kept"] < 1.0  # rows straddling bands lose their other entries
-        # The global optimum is at least as good as the chain approximation.
-        assert solve_fista(op, bounds, max_iter=500).objective <= res.objective * (1 + 1e-6)
+                                Target("far", torch.rand(1, 20, 20, generator=g), name="b")]).double()
+    res = solve_eo(op, bounds, calibrations=cals)
+    assert bounds[0] <= float(res.patterns.min()) and float(res.patterns.max()) <= bounds[1]
+    assert 0.0 < res.info["coupled_weight"] < 1.0 and res.info["colours"] >= 2 and res.converged
+    A = csr_matrix((op.val.numpy(), op.col.numpy(), op.crow.numpy()), shape=op.shape)
+    ref = lsq_linear(A, op.rhs[:, 0].numpy(), bounds=bounds, tol=1e-12, lsmr_tol=1e-12, max_iter=500).x
+    f_ref = float(((A @ ref - op.rhs[:, 0].numpy()) ** 2).sum() + op.constant.sum())
+    fista = solve_fista(op, bounds, max_iter=5000, tol=1e-12).objective
+    assert fista == pytest.approx(f_ref, rel=1e-4)
+    assert f_ref <= res.objective <= f_ref * (1 + 1e-2)  # the issue's bar: within 1e-2 of the optimum
+    tight = solve_eo(op, bounds, calibrations=cals, tol=1e-10, max_iter=3000)
+    assert tight.objective == pytest.approx(f_ref, rel=1e-5)  # and to the optimum itself when asked
+
+
+def test_no_row_touches_two_chains_of_one_colour(paper_rig):
+    """What makes a colour's chains independent, so that solving them at once is exact."""
+    _, _, cals = paper_rig
+    img = torch.rand(1, 16, 16, generator=torch.Generator().manual_seed(2))
+    op = build_transport(cals, [Target("near", img, name="a"), Target("far", img, name="b")])
+    Q = op.normal_equations().Q
+    rows = torch.repeat_interleave(torch.arange(Q.shape[0]), Q.crow_indices().long().diff())
+    col = Q.col_indices().long()
+    chain, colour = _chain_index(op, "epipolar", cals, 1.0, (rows, col, Q.values()))
+    same_colour = colour[rows] == colour[col]
+    assert bool((chain[rows] == chain[col])[same_colour].all())
+    assert bool((chain[rows] != chain[col]).any())  # rows do straddle chains: the colours are needed
+    assert int(colour.max()) + 1 == 2  # epipolar bands couple their neighbours only
 
 
 def test_epipolar_chains_need_two_projectors_and_calibrations():
