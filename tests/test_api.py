@@ -38,11 +38,12 @@ SURFACE = {
     "metrics": [
         "SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [
-        "CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "OUTSIDE", "PSNR_DROP_DB",
-        "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds", "check_solve_options",
-        "compensate", "component_chains", "epipolar_chains", "fundamental_between_projectors", "image_objective",
-        "make_patterns", "projectable_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",
-        "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "to_projectable"],
+        "CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "LF_NORMALISE", "OBJECTIVES", "OUTSIDE",
+        "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
+        "check_solve_options", "compensate", "component_chains", "epipolar_bands", "epipolar_chains",
+        "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns", "solve_adam",
+        "solve_eo", "solve_fista", "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim",
+        "to_projectable"],
     "pipeline": [
         "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "ORACLES",
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",

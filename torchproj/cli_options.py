@@ -99,7 +99,8 @@ def device(text: str) -> str:
 def device_options(p, max_iter: bool = True) -> None:
     p.add_argument("--device", type=device, default="cpu", help="torch device, cpu or cuda (default: cpu)")
     if max_iter:
-        p.add_argument("--max-iter", type=int, default=300, help="iteration limit of iterative solvers (default 300)")
+        p.add_argument("--max-iter", type=int, default=None,
+                       help="iteration limit of the pattern solver (default: the solver's own, which stops on convergence first)")
 
 
 def solver_options(p) -> None:

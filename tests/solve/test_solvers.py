@@ -11,7 +11,7 @@ from torchproj.core import InputError
 from torchproj.solve import (ClampedAdam, compensate, solve_adam, solve_fista, solve_lf, solve_patterns, solve_pgd,
                              to_projectable)
 from torchproj.solve import solvers
-from torchproj.transport import build_transport
+from torchproj.transport import TransportOperator, build_transport, csr_from_coo
 from torchproj.transport.operator import SUM_RUN
 
 from ..helpers import LARGE, synthetic_calibration, targets
@@ -134,10 +134,35 @@ def test_adam_gets_close(problem):
 
 def test_lf_is_the_normalised_least_squares_solution(problem):
     op, A, b = problem
-    res = solve_lf(op, (0, 1), max_iter=2000, tol=1e-12)
     x = np.linalg.lstsq(A, b, rcond=None)[0]
-    expected = (x - x.min()) / (x.max() - x.min())
-    np.testing.assert_allclose(res.patterns.numpy(), expected, atol=1e-4)
+    res = solve_lf(op, (0, 1), tol=1e-12)
+    assert res.converged and res.info["residual"] < 1e-9  # a converged least squares, not an iteration count
+    expected = (x - x.min()) / (x.max() - x.min())  # the paper's normalisation: everything together
+    np.testing.assert_allclose(res.patterns.numpy(), expected, atol=1e-6)
+    clipped = solve_lf(op, (0, 1), tol=1e-12, normalise="clip")
+    np.testing.assert_allclose(clipped.patterns.numpy(), x.clip(0, 1), atol=1e-6)
+    own = solve_lf(op, (0, 1), tol=1e-12, normalise="projector").patterns.numpy()
+    for j in range(len(op.projector_sizes)):
+        cols = (op.column_projector == j).numpy()
+        xj = x[cols]
+        np.testing.assert_allclose(own[cols], (xj - xj.min(0)) / (xj.max(0) - xj.min(0)), atol=1e-6)
+
+
+def test_lf_converges_in_float32_and_stops_on_a_singular_system(problem):
+    op, A, b = problem
+    single_precision = build_transport(synthetic_calibration(shape=(30, 40)), targets(channels=3), scale=0.9)
+    res = solve_lf(single_precision, (-1e3, 1e3), normalise="clip")
+    x = np.linalg.lstsq(A, b, rcond=None)[0]
+    assert res.converged and res.info["residual"] < 1e-4
+    assert res.objective == pytest.approx(objective(op, A, b, x), rel=1e-4)
+    # Two columns that always light the same rows: Q is singular, CG must neither blow up nor spin.
+    twin = torch.cat([op.dense(), op.dense()[:, :1]], 1).float()
+    rows, cols = torch.nonzero(twin, as_tuple=True)
+    single = TransportOperator(csr_from_coo(rows, cols, twin[rows, cols], tuple(twin.shape)), op.rhs.float(),
+                               torch.cat([op.column_projector, op.column_projector[:1]]),
+                               torch.cat([op.column_cell, op.column_cell[:1] + 1]), op.projector_sizes)
+    res = solve_lf(single, (0, 1))
+    assert torch.isfinite(res.patterns).all() and res.iterations < 20000
 
 
 def test_projected_gradient_never_raises_the_objective(problem):

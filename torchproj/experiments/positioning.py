@@ -294,7 +294,7 @@ def _rmse(points: np.ndarray, pose: np.ndarray, size) -> float:
 def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20.0, spread_deg: float = 5.0,
                          seed: int = 0, max_evaluations: int = 200, profile_mm: float = 40.0, profile_steps: int = 8, feedback_stride: int = 2,
                          device="cpu", progress=None, calibration: VirtualCalibration | None = None,
-                         max_iter: int = 300, solver: str = "fista", bounds_8bit=(0, 255),
+                         max_iter: int | None = None, solver: str = "fista", bounds_8bit=(0, 255),
                          outside: str = "clip", chains: str = "epipolar") -> PositioningResult:
     """Solve patterns for the scene's targets, place each box from random starts by feedback, scan it.
 
@@ -309,7 +309,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
             (spaced geometrically from 0.25 mm).
         feedback_stride: score the camera image on every n-th pixel in each direction.
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
-        max_iter: iteration limit of the pattern solver.
+        max_iter: iteration limit of the pattern solver (None: the solver's own default).
         solver, bounds_8bit, outside, chains: the pattern solver, its bounds, how values outside them are
             shown and eo's chains, as :func:`~torchproj.pipeline.run_virtual`
             (the paper's own test used ``eo`` with ``(0, 255)``, ``EO_0^255``).

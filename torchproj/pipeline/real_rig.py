@@ -67,7 +67,7 @@ def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
 
 def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
                  objective="l2", maps: str = "decoded", footprint: str = "nearest",
-                 plane_tolerance: float = 1.0, max_iter: int = 300, device="cpu", progress=None,
+                 plane_tolerance: float = 1.0, max_iter: int | None = None, device="cpu", progress=None,
                  outside: str = "clip", chains: str = "epipolar") -> BundleSolution:
     """Solve the patterns that show each image in its state, from a bench's calibration.
 

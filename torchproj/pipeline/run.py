@@ -16,7 +16,9 @@ import torch
 from ..calib import sequence_bits
 from ..core.checks import check
 from ..scene.config import Scene
-from ..solve import SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns, solve_gain_offset
+from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
+                     solve_gain_offset)
+from ..solve.compensate import iteration_limit
 from ..transport import MAPS, build_transport, select_maps
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
@@ -65,7 +67,7 @@ class RunResult:
 
 
 def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
-                device="cpu", max_iter: int = 300, progress=None, calibration: VirtualCalibration | None = None,
+                device="cpu", max_iter: int | None = None, progress=None, calibration: VirtualCalibration | None = None,
                 oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
                 objective="l2", footprint: str = "nearest", ceiling: bool = False, outside: str = "clip",
@@ -79,7 +81,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             ``EO_-100^255``); bounds outside [0, 255] are brought into range afterwards.
         images: one :math:`(C, h, w)` image per target; default: the config's, else scikit-image's.
         device: torch device for the rig and the solver.
-        max_iter: iteration limit of iterative solvers.
+        max_iter: iteration limit of the pattern solver (None: the solver's own default).
         progress: progress bars (None: on a terminal, for steps longer than a second).
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
         oracle: ``"geometry"`` (or True): build the operator from the simulator's exact geometry
@@ -231,8 +233,8 @@ def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_
     """FISTA with one gain and offset per target: the result, the operator it solved, the 8-bit patterns."""
     flat = build_transport(states, [dataclasses.replace(t, image=torch.ones_like(t.image)) for t in targets],
                            merge=False, scale=op.scale, footprint=footprint, device=device)
-    result = solve_gain_offset(op, flat.rhs, bounds, gain=gain_offset[0], offset=gain_offset[1], max_iter=max_iter,
-                               progress=progress)
+    result = solve_gain_offset(op, flat.rhs, bounds, gain=gain_offset[0], offset=gain_offset[1],
+                               progress=progress, **iteration_limit(max_iter))
     op = result.info.pop("operator")
     return result, op, projectable_patterns(op, result.patterns, bounds, responses, outside)[1]
 

@@ -1,11 +1,11 @@
 """Box-constrained pattern solvers on the transport operator, and compensation to 8-bit patterns."""
 
 from .compensate import check_solve_options, compensate, make_patterns, projectable_patterns
-from .eo import CHAINS, component_chains, epipolar_chains, fundamental_between_projectors, solve_eo
+from .eo import CHAINS, component_chains, epipolar_bands, epipolar_chains, fundamental_between_projectors, solve_eo
 from .gain_offset import solve_gain_offset
 from .model import ProjectionModel, calibration_parts
 from .objectives import OBJECTIVES, PSNR_DROP_DB, ImageLoss, ImageObjective, image_objective, solve_ssim
-from .solvers import (OUTSIDE, ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd,
+from .solvers import (LF_NORMALISE, OUTSIDE, ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd,
                       to_projectable)
 
 SOLVERS = {"lf": solve_lf, "eo": solve_eo, "pgd": solve_pgd, "fista": solve_fista, "adam": solve_adam}
@@ -19,8 +19,8 @@ def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> So
     return SOLVERS[method](op, bounds, **kwargs)
 
 
-__all__ = ["CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "OBJECTIVES", "OUTSIDE", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
+__all__ = ["CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "LF_NORMALISE", "OBJECTIVES", "OUTSIDE", "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
            "check_solve_options",
-           "compensate", "component_chains", "epipolar_chains", "fundamental_between_projectors", "image_objective",
+           "compensate", "component_chains", "epipolar_bands", "epipolar_chains", "fundamental_between_projectors", "image_objective",
            "make_patterns", "projectable_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",
            "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "to_projectable"]

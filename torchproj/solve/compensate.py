@@ -91,8 +91,16 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str 
     return lo / 255, hi / 255
 
 
+def iteration_limit(max_iter: int | None) -> dict:
+    """``max_iter`` as a solver keyword, or none where None leaves each solver its own default."""
+    if max_iter is None:
+        return {}
+    check(int(max_iter) >= 1, f"max_iter must be >= 1, got {max_iter}")
+    return {"max_iter": int(max_iter)}
+
+
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
-                  max_iter: int = 300, progress: bool | None = None, objective="l2", outside: str = "clip",
+                  max_iter: int | None = None, progress: bool | None = None, objective="l2", outside: str = "clip",
                   chains: str = "epipolar"):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
@@ -104,6 +112,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         objective: ``l2`` (the solver's least squares), or an image-space objective (``ssim``,
             ``mixed`` or an :class:`~torchproj.solve.ImageObjective`) started from the solver's
             patterns (:func:`~torchproj.solve.solve_ssim`).
+        max_iter: the solver's iteration limit (None: its own default; each stops on convergence first).
         outside: how values solved outside [0, 1] are shown (:func:`~torchproj.solve.to_projectable`).
         chains: ``eo``'s independent problems (:func:`~torchproj.solve.solve_eo`): ``epipolar`` (the
             paper's, two projectors) or ``components`` (connected components of the transport).
@@ -118,10 +127,11 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     from .objectives import image_objective, solve_ssim
 
     image = image_objective(objective)
+    limit = iteration_limit(max_iter)
     if solver == "eo":
-        result = solve_eo(op, bounds, chains=chains, calibrations=calibrations, max_iter=max_iter, progress=progress)
+        result = solve_eo(op, bounds, chains=chains, calibrations=calibrations, progress=progress, **limit)
     else:
-        result = solve_patterns(op, solver, bounds, max_iter=max_iter, progress=progress)
+        result = solve_patterns(op, solver, bounds, progress=progress, **limit)
     # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
     # threshold is calibrated on it); an image objective departs from it on purpose.
     warn_if_ill_posed(op, result.patterns)

@@ -20,7 +20,7 @@ from ..core.checks import check, check_finite
 from ..core.progress import progress_bar
 from ..transport.operator import SUM_RUN, TransportOperator
 
-__all__ = ["OUTSIDE", "SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "to_projectable",
+__all__ = ["OUTSIDE", "LF_NORMALISE", "SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "to_projectable",
            "check_bounds"]
 
 
@@ -139,19 +139,11 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     t0 = time.perf_counter()
     ne = op.normal_equations()
-    coarse = op.coarse_levels(levels) if x0 is None else []
-    history, coarse_iterations = [], []
-    p = None
-    for level in reversed(range(len(coarse))):
-        level_ne, _ = coarse[level]
-        if p is None:
-            p = torch.full_like(level_ne.q, 0.5 * (lo + hi))
-        p, _, its, _ = _iterate(level_ne.jacobi() if precondition else level_ne, p, lo, hi, _COARSE_MAX_ITER,
-                                max(tol, _COARSE_TOL), accelerate, t0, history, None)
-        coarse_iterations.append(its)
-        p = p[coarse[level][1]]  # each cell takes its block's value
-    if p is None:
-        p = _start(op, x0, lo, hi)
+    history = []
+    if x0 is None:
+        p, coarse_iterations = coarse_start(op, lo, hi, levels, tol, t0, history, precondition, accelerate)
+    else:
+        p, coarse_iterations = _start(op, x0, lo, hi), []
     bar = progress_bar(desc="fista" if accelerate else "pgd", enabled=progress, total=max_iter)
     ne = ne.jacobi() if precondition else ne
     p, f, it, converged = _iterate(ne, p, lo, hi, max_iter, tol, accelerate, t0, history, bar)
@@ -160,7 +152,33 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
                        converged=converged, method="fista" if accelerate else "pgd",
                        info={"lipschitz": ne.lipschitz(), "preconditioned": bool(precondition),
                              "coarse_iterations": coarse_iterations,
-                             "coarse_columns": [level_ne.Q.shape[0] for level_ne, _ in reversed(coarse)]})
+                             "coarse_columns": [level_ne.Q.shape[0] for level_ne, _ in
+                                                reversed(op.coarse_levels(levels) if x0 is None else [])]})
+
+
+def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: float, t0: float, history: list,
+                 precondition: bool = True, accelerate: bool = True) -> tuple[torch.Tensor, list[int]]:
+    """A start for a full-resolution solve: the rig solved with cells tied in blocks, coarsest first.
+
+    Each of ``levels`` tied problems (8x8, 4x4, 2x2 blocks for 3; see
+    :meth:`TransportOperator.coarse_levels`) runs to a relative change of 1e-4 (or ``tol`` if looser),
+    at most 100 iterations, from the previous level's patterns; ``levels=0`` starts in the middle of
+    the box. Appends to ``history`` (times from ``t0``).
+
+    Returns:
+        :math:`(N_{cols}, C)` patterns within ``[lo, hi]``, and the iterations per level, coarsest first.
+    """
+    coarse = op.coarse_levels(levels)
+    p, iterations = None, []
+    for level in reversed(range(len(coarse))):
+        level_ne, block = coarse[level]
+        if p is None:
+            p = torch.full_like(level_ne.q, 0.5 * (lo + hi))
+        p, _, its, _ = _iterate(level_ne.jacobi() if precondition else level_ne, p, lo, hi, _COARSE_MAX_ITER,
+                                max(tol, _COARSE_TOL), accelerate, t0, history, None)
+        iterations.append(its)
+        p = p[block]  # each cell takes its block's value
+    return (_start(op, None, lo, hi) if p is None else p), iterations
 
 
 # The element-wise part of an iteration (objective, extrapolation, gradient step, clamp) reads and
@@ -388,42 +406,92 @@ def solve_adam(op: TransportOperator, bounds=(0.0, 1.0), *, lr: float = 0.02, ma
                        time_s=time.perf_counter() - t0, converged=converged, method="adam")
 
 
-def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 300, tol: float = 1e-6,
-             progress: bool | None = None) -> SolveResult:
-    """The predecessor method (LF): unconstrained least squares, then linear normalisation into range.
+LF_NORMALISE = ("joint", "projector", "clip")  # how solve_lf brings its least-squares solution into the bounds
+_LF_STALL = 300  # CG iterations without a new smallest residual before LF stops short of tol
 
-    Conjugate gradients on the normal equations ``A^T A p = A^T i`` (the global sparse solve), then
-    the whole pattern vector is mapped linearly so its minimum and maximum meet the bounds, which
-    is what compresses the dynamic range and lowers the contrast.
+
+def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 20000, tol: float = 1e-5,
+             normalise: str = "joint", progress: bool | None = None) -> SolveResult:
+    """The predecessor method (LF): unconstrained least squares, then brought into the bounds.
+
+    The least squares is solved by conjugate gradients on the Jacobi-scaled normal equations
+    (``S Q S z = S q``, ``p = S z``; see :meth:`NormalEquations.jacobi`) until the residual
+    ``||q - Q p||`` falls below ``tol`` of ``||q||``, per channel: a converged solve, not a count
+    (``max_iter`` is a safety limit). Then ``normalise``:
+
+    - ``"joint"``: the paper's words, "normalising p so that the elements are in the range of
+      [0,255]": the whole pattern vector, every projector and channel together, is mapped linearly so
+      its minimum and maximum meet the bounds. What compresses the dynamic range and lowers contrast.
+    - ``"projector"``: the same map per projector and channel (our variant; the paper does not say).
+    - ``"clip"``: values outside the bounds clipped, the rest left as solved (our variant).
+
+    ``info`` gives the residual reached and the unnormalised solution's range.
     """
     lo, hi = check_bounds(bounds)
+    check(normalise in LF_NORMALISE, f"normalise must be one of {list(LF_NORMALISE)}, got {normalise!r}")
+    check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     t0 = time.perf_counter()
-    ne = op.normal_equations()
-    x = torch.zeros(op.shape[1], op.channels, dtype=op.val.dtype, device=op.val.device)
-    r = ne.q.clone()  # residual of the normal equations at x = 0
+    base = op.normal_equations()
+    ne = base.jacobi()
+    z = torch.zeros(op.shape[1], op.channels, dtype=op.val.dtype, device=op.val.device)
+    r = ne.q.clone()  # residual of the normal equations at z = 0
     d = r.clone()
-    rr = (r * r).sum(0)
-    r0 = rr.clamp_min(1e-30)
-    history = [(time.perf_counter() - t0, float(op.objective(x)))]
+    rr = (r * r).sum(0, dtype=torch.float64)
+    r0 = rr.clamp_min(1e-300)
+    history = [(time.perf_counter() - t0, float(op.objective(z)))]
     bar = progress_bar(desc="lf (cg)", enabled=progress, total=max_iter)
-    it, converged = 0, False
+    it, converged, best, since_best = 0, False, float("inf"), 0
     for it in range(1, max_iter + 1):
         qd = ne.product(d)
-        alpha = rr / (d * qd).sum(0).clamp_min(1e-30)
-        x += alpha * d
+        curvature = (d * qd).sum(0, dtype=torch.float64)
+        # Round-off on a singular system (projectors that see the scene alike) can leave a direction
+        # without curvature; the solve stops there with what it has rather than step to infinity.
+        if not bool((torch.isfinite(curvature) & ((curvature > 0) | (rr == 0))).all()):
+            break
+        alpha = (rr / curvature.clamp_min(1e-300)).to(z.dtype)
+        z += alpha * d
         r -= alpha * qd
-        rr_new = (r * r).sum(0)
-        d = r + (rr_new / rr.clamp_min(1e-30)) * d
+        rr_new = (r * r).sum(0, dtype=torch.float64)
+        d = r + (rr_new / rr.clamp_min(1e-300)).to(z.dtype) * d
         rr = rr_new
-        history.append((time.perf_counter() - t0, ne.objective(x, ne.q - r)))  # CG keeps r = q - Q x
+        if it % 10 == 0:
+            history.append((time.perf_counter() - t0, ne.objective(z, ne.q - r)))  # CG keeps r = q - Q z
         bar.update(1)
         if bool((rr <= tol * tol * r0).all()):
             converged = True
             break
+        total = float(rr.sum())
+        best, since_best = (total, 0) if total < best else (best, since_best + 1)
+        if since_best >= _LF_STALL or not math.isfinite(total):
+            break  # float32 round-off floor above tol: more iterations change nothing
     bar.close()
-    span = (x.max() - x.min()).clamp_min(1e-12)
-    p = lo + (x - x.min()) / span * (hi - lo)
+    x = z * ne.scale
+    # The true residual of the unscaled system (CG's recursive one drifts in float32).
+    residual = float(((base.q - base.product(x)).double().norm() / base.q.double().norm().clamp_min(1e-300)))
+    p = _lf_normalise(op, x, lo, hi, normalise)
     f = float(op.objective(p))
     history.append((time.perf_counter() - t0, f))
     return SolveResult(patterns=p, iterations=it, objective=f, history=history, time_s=time.perf_counter() - t0,
-                       converged=converged, method="lf")
+                       converged=converged, method="lf",
+                       info={"normalise": normalise, "residual": residual,
+                             "least_squares_range": (float(x.min()), float(x.max()))})
+
+
+def _lf_normalise(op: TransportOperator, x: torch.Tensor, lo: float, hi: float, normalise: str) -> torch.Tensor:
+    """:math:`(N_{cols}, C)` least-squares values brought into ``[lo, hi]`` (see :func:`solve_lf`)."""
+    if normalise == "clip":
+        return x.clamp(lo, hi)
+    if normalise == "joint":
+        groups = torch.zeros(x.shape[0], dtype=torch.int64, device=x.device)
+    else:
+        groups = op.column_projector.to(x.device).long()
+    n = int(groups.max()) + 1 if groups.numel() else 1
+    index = groups[:, None].expand_as(x)
+    low = torch.full((n, x.shape[1]), float("inf"), dtype=x.dtype, device=x.device).scatter_reduce(0, index, x, "amin")
+    high = torch.full((n, x.shape[1]), -float("inf"), dtype=x.dtype, device=x.device).scatter_reduce(0, index, x,
+                                                                                                     "amax")
+    if normalise == "joint":
+        low, high = low.min().expand_as(low), high.max().expand_as(high)
+    span = (high - low).clamp_min(1e-12)
+    return lo + (x - low[groups]) / span[groups] * (hi - lo)
+
