@@ -47,10 +47,10 @@ SURFACE = {
     "pipeline": [
         "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "ORACLES",
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
-        "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "decoding_accuracy",
-        "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual",
-        "scene_images", "scene_targets", "score_image", "simulate_calibration", "simulate_markdown",
-        "simulate_scene", "solve_bundle", "solve_on_light_transport", "target_image"],
+        "affine_psnr", "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration",
+        "decoding_accuracy", "default_images", "evaluate_patterns", "ghost_images", "light_transport",
+        "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image", "simulate_calibration",
+        "simulate_markdown", "simulate_scene", "solve_bundle", "solve_on_light_transport", "target_image"],
     "experiments": [
         "DepthSweep", "PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance",
         "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "placement_error",

@@ -75,3 +75,53 @@ def test_ghost_images_follow_the_light_to_where_parallax_puts_it(quarter_rig):
     carried = explained_share(light["near"], ghosts[:1], lit["near"])
     in_place = explained_share(light["near"], [light["far"]], lit["near"] & lit["far"])
     assert carried > 0.9 and in_place < carried - 0.4
+
+
+def test_affine_psnr_takes_brightness_out_and_nothing_else():
+    from torchproj.pipeline import affine_psnr
+    from torchproj.metrics import psnr
+
+    g = torch.Generator().manual_seed(0)
+    values = torch.rand(1, 30, 40, generator=g)
+    covered = torch.ones(30, 40, dtype=torch.bool)
+    covered[:5] = False
+    assert affine_psnr(0.5 * values + 0.2, values, covered) > 100  # a pure gain and offset costs nothing
+    noisy = values + 0.1 * torch.randn(values.shape, generator=g)
+    assert affine_psnr(noisy, values, covered) >= psnr(noisy[:, covered], values[:, covered])  # gain 1, offset 0 is a candidate
+    assert affine_psnr(torch.rand(1, 30, 40, generator=g), values, covered) < 12  # structure is not forgiven
+
+
+def test_paper_score_compares_with_a_direct_single_projector_capture(quarter_rig):
+    """The paper's baseline, built here by hand: the target image on the cells of the projector that sees
+    most of it (each cell the mean over the camera pixels decoded to it), response-compensated, projected
+    alone. Shown as the patterns, it must score as a perfect match against the paper's reference."""
+    from torchproj.core.conventions import round_to_pixel
+    from torchproj.solve import compensate
+
+    scene, cal = quarter_rig
+    targets = scene_targets(scene, rig=cal.rig)
+    model = ProjectionModel.from_calibration(cal, targets)
+    target = targets[0]
+    values, covered = target_on_camera(target, cal.states[target.state].lit())
+    light, counts = [], []
+    for j, (w, h) in enumerate(cal.states[target.state].projector_sizes):
+        xy = cal.states[target.state].prj_xy[j].reshape(-1, 2)
+        ok = covered.reshape(-1) & torch.isfinite(xy).all(-1)
+        cell = round_to_pixel(xy[ok])
+        inside = (cell[:, 0] >= 0) & (cell[:, 0] < w) & (cell[:, 1] >= 0) & (cell[:, 1] < h)
+        flat = (cell[inside, 1] * w + cell[inside, 0]).numpy()
+        v = values.reshape(-1)[ok][inside].double().numpy()
+        sums, count = np.bincount(flat, v, w * h), np.bincount(flat, minlength=w * h)
+        light.append(torch.from_numpy(np.where(count > 0, sums / np.maximum(count, 1), 0.0)).float().reshape(1, h, w))
+        counts.append(int(inside.sum()))
+    j = int(np.argmax(counts))
+    patterns = [torch.zeros(1, h, w, dtype=torch.uint8) for w, h in cal.states[target.state].projector_sizes]
+    patterns[j] = compensate([light[j]], [cal.responses[j]])[0]
+    score = evaluate_patterns(cal, patterns, targets, scale=model.scale, noise=False).targets[0]
+    assert score.paper["psnr_db"] > 60 and score.paper["ssim"] == pytest.approx(1.0, abs=1e-9)
+    # The solver's patterns are further from that baseline than the baseline is from itself.
+    solved = evaluate_patterns(cal, model.to_patterns(), targets, scale=model.scale, noise=False).targets[0]
+    assert 5 < solved.paper["psnr_db"] < 40 and solved.paper["ssim"] < 0.99
+    assert solved.affine_psnr_db >= solved.psnr_db
+    assert "paper" not in evaluate_patterns(cal, model.to_patterns(), targets, scale=model.scale, noise=False,
+                                            paper=False).targets[0].as_dict()

@@ -11,7 +11,8 @@ from .acquire import OpenCVCamera, OpenCVDisplay, capture_sequence
 from .real_rig import BundleSolution, solve_bundle
 from .ceiling import light_transport, solve_on_light_transport
 from .run import CEILING_ITERATIONS, ORACLES, RunResult, run_markdown, run_virtual
-from .scoring import EVALUATION, PatternEvaluation, TargetScore, evaluate_patterns, ghost_images, score_image
+from .scoring import (EVALUATION, PatternEvaluation, TargetScore, affine_psnr, evaluate_patterns, ghost_images,
+                      score_image)
 from .targets import DEFAULT_IMAGES, default_images, scene_images, scene_targets, target_image
 from .virtual import (DecodingAccuracy, VirtualCalibration, calibrate_rig, calibrate_virtual, check_calibration,
                       decoding_accuracy, simulate_calibration, simulate_markdown, simulate_scene)
@@ -20,7 +21,7 @@ __all__ = [
     "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "ORACLES",
     "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
     "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "decoding_accuracy",
-    "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual", "scene_images",
+    "affine_psnr", "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual", "scene_images",
     "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle",
     "solve_on_light_transport", "target_image",
 ]

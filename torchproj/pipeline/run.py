@@ -244,7 +244,7 @@ def _ceiling(cal, states, targets, bounds, footprint, progress, device, outside)
     rows = build_transport(states, targets, merge=False, footprint=footprint, device=device)
     _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds, cal.responses,
                                               max_iter=CEILING_ITERATIONS, progress=progress, outside=outside)
-    return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states).targets
+    return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states, paper=False).targets
 
 
 def _unexplained(ops, p: torch.Tensor) -> float:
@@ -334,6 +334,7 @@ def run_markdown(report: dict) -> str:
     adjusted = "gain_offset_limits" in report
     footprint = report.get("footprint", "nearest")
     ceiling = all("ceiling" in r for r in report["targets"]) and bool(report["targets"])
+    paper = all("paper" in r for r in report["targets"]) and bool(report["targets"])
     below = report["bounds_8bit"][0] < 0  # only then is there anything to clip or map
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}"
@@ -347,18 +348,26 @@ def run_markdown(report: dict) -> str:
              *_decoded_lines(report.get("decoded_fraction")),
              *_image_objective_lines(report.get("image_objective")),
              f"Evaluation: {report['evaluation']}.", "",
-             "| target | state | PSNR (dB) | SSIM | crosstalk | ghost | pixels |"
+             "| target | state | PSNR (dB) | SSIM | crosstalk | ghost | pixels | affine PSNR (dB) |"
+             + (" paper PSNR (dB) | paper SSIM |" if paper else "")
              + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else "")
              + (" ceiling PSNR (dB) | ceiling SSIM |" if ceiling else ""),
-             "|---|---|---|---|---|---|---|" + ("---|---|---|---|" if adjusted else "") + ("---|---|" if ceiling else "")]
+             "|---|---|---|---|---|---|---|---|" + ("---|---|" if paper else "") + ("---|---|---|---|" if adjusted else "")
+             + ("---|---|" if ceiling else "")]
     for r in report["targets"]:
         line = (f"| {r['name']} | {r['state']} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['crosstalk']:.3f} | "
-                f"{r.get('ghost', float('nan')):.3f} | {r['pixels']} |")
+                f"{r.get('ghost', float('nan')):.3f} | {r['pixels']} | {r.get('affine_psnr_db', float('nan')):.2f} |")
+        if paper:
+            line += f" {r['paper']['psnr_db']:.2f} | {r['paper']['ssim']:.3f} |"
         if adjusted:
             line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
         if ceiling:
             line += f" {r['ceiling']['psnr_db']:.2f} | {r['ceiling']['ssim']:.3f} |"
         lines.append(line)
+    lines += ["", "Scores: PSNR and SSIM against the target image are ours and the primary ones; affine PSNR takes "
+                  "each capture's best gain and offset first (structure without brightness)"
+              + ("; the paper's PSNR and SSIM compare the capture with a capture of the target image projected alone "
+                 "by one projector, the paper's baseline" if paper else "") + "."]
     if ceiling:
         lines += ["", "Ceiling: the same targets, rows and bounds solved on the simulator's own light transport "
                       "(FISTA, least squares) and scored the same way: the best any calibration could give."]

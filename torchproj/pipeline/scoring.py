@@ -16,7 +16,8 @@ from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
 
-__all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "evaluate_patterns", "ghost_images", "score_image"]
+__all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "affine_psnr", "evaluate_patterns", "ghost_images",
+           "score_image"]
 
 EVALUATION = ("captured image minus the state's black capture, divided by the target scale, against the target image "
               "warped onto the camera pixels of its surfaces that calibration found lit; data range 1; SSIM "
@@ -24,7 +25,25 @@ EVALUATION = ("captured image minus the state's black capture, divided by the ta
               "crosstalk is the largest |Pearson correlation| there with another target's image placed on the same "
               "pixels; ghost is the share of the error (capture minus target) that the other states' target images "
               "explain (least squares), each carried through each projector's correspondence onto the pixels that "
-              "see the same projector cells, where parallax puts its ghost")
+              "see the same projector cells, where parallax puts its ghost; affine PSNR is the PSNR after the best gain "
+              "and offset per target (least squares), what is left when brightness is taken out; the paper's score "
+              "compares the capture with a capture of the target image projected alone by one projector "
+              "(response-compensated) onto the same surface, as the paper used a capture of the original image as "
+              "its baseline")
+
+
+def affine_psnr(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Tensor) -> float:
+    """PSNR after the gain and offset that best bring the estimate onto the values (least squares, one
+    pair per target over all channels): the structure of a capture, its brightness taken out.
+
+    Args:
+        estimate, values: :math:`(C, H, W)` in target units.
+        covered: :math:`(H, W)` bool.
+    """
+    x, y = estimate[:, covered].reshape(-1).double(), values[:, covered].reshape(-1).double()
+    design = torch.stack([x, torch.ones_like(x)], 1)
+    gain_offset = torch.linalg.lstsq(design, y[:, None]).solution
+    return psnr((design @ gain_offset)[:, 0], y)
 
 
 def score_image(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Tensor) -> dict:
@@ -44,7 +63,9 @@ class TargetScore:
 
     Attributes:
         name, state: the target's.
-        psnr_db, ssim, crosstalk, ghost: see :data:`EVALUATION`.
+        psnr_db, ssim, crosstalk, ghost, affine_psnr_db: see :data:`EVALUATION`.
+        paper: ``{psnr_db, ssim}`` against the paper's baseline, a capture of the target image projected
+            alone (see :func:`evaluate_patterns`); None where it was not asked for.
         pixels: camera pixels scored.
         estimate: :math:`(C, H, W)` the capture in target units, clamped to [0, 1].
         values: :math:`(C, H, W)` the target image on the camera.
@@ -61,11 +82,15 @@ class TargetScore:
     values: torch.Tensor
     covered: torch.Tensor
     ghost: float = 0.0
+    affine_psnr_db: float = float("nan")
+    paper: dict | None = None
 
     def as_dict(self) -> dict:
         """The row of ``report.json``."""
-        return {"name": self.name, "state": self.state, "psnr_db": self.psnr_db, "ssim": self.ssim,
-                "crosstalk": self.crosstalk, "ghost": self.ghost, "pixels": self.pixels}
+        row = {"name": self.name, "state": self.state, "psnr_db": self.psnr_db, "ssim": self.ssim,
+               "crosstalk": self.crosstalk, "ghost": self.ghost, "pixels": self.pixels,
+               "affine_psnr_db": self.affine_psnr_db}
+        return row if self.paper is None else {**row, "paper": self.paper}
 
 
 @dataclass
@@ -77,7 +102,7 @@ class PatternEvaluation:
 
 
 def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[Target], *, scale: float,
-                      states=None, noise: bool = True) -> PatternEvaluation:
+                      states=None, noise: bool = True, paper: bool = True) -> PatternEvaluation:
     """Project patterns on the virtual rig, capture each target's state and score every target.
 
     Args:
@@ -91,6 +116,12 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
         states: per state the :class:`~torchproj.transport.StateCalibration` whose lit pixels are
             scored (default: the calibration's own; a run on homography maps passes those).
         noise: camera noise in the captures, as on a bench.
+        paper: also score against the paper's baseline: for each target, the target image carried onto
+            the cells of the one projector that lights most of its pixels (each cell the mean of the
+            target over the camera pixels decoded to it), response-compensated, projected alone onto
+            its state, captured and brought to target units like the estimate. One more capture per
+            target. Which projector and how the image reaches its cells are our choices: the paper
+            says only that it "projected the original image on the plane".
     """
     states = calibration.states if states is None else states
     check(len(patterns) == len(calibration.rig.scene.projectors),
@@ -106,7 +137,9 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
         lit = states[target.state].lit()
         regions.append(lit if target.mask is None else lit & target.mask)
     on_camera = [target_on_camera(target, region) for target, region in zip(targets, regions)]
-    ghosts = ghost_images(states, targets, on_camera)
+    cells = _cell_maps(states, targets)
+    ghosts = ghost_images(states, targets, on_camera, cells)
+    references = _paper_references(calibration, states, targets, on_camera, cells, scale, noise) if paper else None
     scores = []
     for k, target in enumerate(targets):
         values, covered = on_camera[k]
@@ -116,11 +149,50 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
         scores.append(TargetScore(name=target.name, state=target.state, **score_image(estimate, values, covered),
                                   crosstalk=crosstalk(estimate, others, covered), pixels=int(covered.sum()),
                                   estimate=estimate, values=values, covered=covered,
-                                  ghost=explained_share(estimate - values, ghosts[k], covered)))
+                                  ghost=explained_share(estimate - values, ghosts[k], covered),
+                                  affine_psnr_db=affine_psnr(estimate, values, covered),
+                                  paper=None if references is None else score_image(estimate, references[k], covered)))
     return PatternEvaluation(scores, captures)
 
 
-def ghost_images(states, targets: list[Target], on_camera: list) -> list[list[torch.Tensor]]:
+def _cell_maps(states, targets: list[Target]) -> dict:
+    """(state, projector) -> :math:`(H W,)` each camera pixel's cell (:func:`_cells`), for the targets' states."""
+    return {(state, j): _cells(states[state].prj_xy[j], size)
+            for state in dict.fromkeys(t.state for t in targets)
+            for j, size in enumerate(states[state].projector_sizes)}
+
+
+def _on_cells(values: torch.Tensor, covered: torch.Tensor, mine: torch.Tensor, size: tuple[int, int]):
+    """:math:`(C, H_j W_j)` float64: values averaged onto the cells their covered pixels decoded to, NaN
+    on cells that none did."""
+    w, h = size
+    use = covered.reshape(-1) & (mine >= 0)
+    flat = values.reshape(values.shape[0], -1)[:, use].double()
+    sums = torch.zeros(values.shape[0], w * h, dtype=torch.float64).index_add_(1, mine[use], flat)
+    count = torch.bincount(mine[use], minlength=w * h).double()
+    return torch.where(count > 0, sums / count.clamp_min(1), float("nan"))
+
+
+def _paper_references(calibration, states, targets, on_camera, cells, scale: float, noise: bool):
+    """Per target, :math:`(C, H, W)` the capture of its image projected alone by one projector (see
+    :func:`evaluate_patterns`), in target units."""
+    from ..solve import compensate
+
+    references = []
+    for target, (values, covered) in zip(targets, on_camera):
+        sizes = states[target.state].projector_sizes
+        lit = [int((covered.reshape(-1) & (cells[target.state, j] >= 0)).sum()) for j in range(len(sizes))]
+        j = max(range(len(sizes)), key=lambda i: (lit[i], -i))
+        w, h = sizes[j]
+        light = _on_cells(values, covered, cells[target.state, j], (w, h)).nan_to_num(0.0).clamp(0, 1)
+        pattern = compensate([light.reshape(-1, h, w).float()], [calibration.responses[j]])[0]
+        shown = {j: (pattern.float() / 255)[None].to(calibration.rig.device)}  # the others show black
+        capture = calibration.rig.capture(target.state, shown, noise=noise)[0].cpu()
+        references.append(((capture - calibration.black[target.state]) / scale).clamp(0, 1))
+    return references
+
+
+def ghost_images(states, targets: list[Target], on_camera: list, cells: dict | None = None) -> list[list[torch.Tensor]]:
     """Per target, where the other states' targets would show as ghosts on its camera pixels.
 
     Light meant for target ``l`` (state ``s_l``) leaves projector ``j`` from the cells that light
@@ -139,20 +211,11 @@ def ghost_images(states, targets: list[Target], on_camera: list) -> list[list[to
         per target, :math:`(C, H, W)` images (one per other-state target and projector), NaN where a
         pixel's cell carries nothing of that target.
     """
-    cells = {(state, j): _cells(states[state].prj_xy[j], size)  # each state's map, read once
-             for state in dict.fromkeys(t.state for t in targets)
-             for j, size in enumerate(states[state].projector_sizes)}
-    on_cells = []  # per target, per projector: its image averaged onto the cells that light it
-    for target, (values, covered) in zip(targets, on_camera):
-        per = []
-        for j, (w, h) in enumerate(states[target.state].projector_sizes):
-            mine = cells[target.state, j]
-            use = covered.reshape(-1) & (mine >= 0)
-            flat = values.reshape(values.shape[0], -1)[:, use].double()
-            sums = torch.zeros(values.shape[0], w * h, dtype=torch.float64).index_add_(1, mine[use], flat)
-            count = torch.bincount(mine[use], minlength=w * h).double()
-            per.append(torch.where(count > 0, sums / count.clamp_min(1), float("nan")))
-        on_cells.append(per)
+    cells = _cell_maps(states, targets) if cells is None else cells  # each state's map, read once
+    # Per target, per projector: its image averaged onto the cells that light it.
+    on_cells = [[_on_cells(values, covered, cells[target.state, j], size)
+                 for j, size in enumerate(states[target.state].projector_sizes)]
+                for target, (values, covered) in zip(targets, on_camera)]
     ghosts = []
     for target, (values, _) in zip(targets, on_camera):
         mine = []
