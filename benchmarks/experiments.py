@@ -5,13 +5,15 @@
 For each built-in scene (two planes in grey and in colour, three planes with three simple patterns,
 the head-like object wearing a different mask at two positions, the box behind two cylinders with
 one image on each, two screens at once), the scene is calibrated from simulated captures and solved
-with FISTA (torchproj's default), with the paper's EO_0^255, and with FISTA on the oracle operator
-(the simulator's exact geometry: the gap is what calibration costs). Every number is scored on
+with FISTA (torchproj's default), with the paper's LF and EO_0^255 (its non-planar experiments compare
+those two), and with FISTA on the oracle operator (the simulator's exact geometry: the gap is what
+calibration costs). Every number is scored on
 simulated captures. Then the depth-selectivity sweep: with the two-plane patterns fixed, the near
 plane moves from 0.65 m to 1.15 m and each target image is scored on it at every depth.
 
 Writes ``results.json``, ``results.md``, ``depth_selectivity.png`` and one ``<scene>.png`` overview
-per scene (targets, patterns, captures side by side).
+per scene and method (``<scene>.png`` for FISTA, ``<scene>_lf.png``, ``<scene>_eo.png``: targets, patterns,
+captures side by side).
 """
 
 from __future__ import annotations
@@ -31,8 +33,9 @@ from torchproj.scene import load_scene
 
 SCENES = ["paper_two_planes", "colour_two_planes", "three_planes", "head_two_positions", "box_cylinders",
           "two_screens"]
-METHODS = [("FISTA", dict(solver="fista")), ("EO_0^255", dict(solver="eo", max_iter=1000)),
+METHODS = [("FISTA", dict(solver="fista")), ("LF", dict(solver="lf")), ("EO_0^255", dict(solver="eo")),
            ("FISTA oracle", dict(solver="fista", oracle=True))]
+OVERVIEW = {"FISTA": "", "LF": "_lf", "EO_0^255": "_eo"}  # the overview image of each method, by file suffix
 
 
 def main(argv=None) -> int:
@@ -59,9 +62,9 @@ def main(argv=None) -> int:
             print(f"{scene.name:20s} {label:13s} " + "  ".join(
                 f"{t['name']}: {t['psnr_db']:.2f} dB SSIM {t['ssim']:.3f} xt {t['crosstalk']:.2f}"
                 for t in rep["targets"]) + f"  solve {rep['timings_s']['solve']:.1f} s", flush=True)
-            if label == "FISTA":
-                run_overview(args.out / f"{scene.name}.png", res.patterns, [p.name for p in scene.projectors],
-                             res.targets)
+            if label in OVERVIEW:
+                run_overview(args.out / f"{scene.name}{OVERVIEW[label]}.png", res.patterns,
+                             [p.name for p in scene.projectors], res.targets)
             if scene.name == args.sweep_scene and args.depths and label != "FISTA oracle":
                 depths = np.linspace(0.65, 1.15, args.depths)
                 sweeps[label] = depth_sweep(scene, "near_plane", depths, res.patterns, res.targets, res.report["scale"])
@@ -80,13 +83,16 @@ def markdown(r: dict) -> str:
              "Scored on simulated captures: PSNR (dB, data range 1) and SSIM of the captured image against the "
              "target on the camera pixels of the target's surfaces that calibration found lit; crosstalk is the "
              "largest |correlation| there with another target's image. `FISTA oracle` solves on the simulator's "
-             "exact geometry instead of calibration.", "",
-             "| scene | method | target | PSNR (dB) | SSIM | crosstalk | variables | solve (s) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "exact geometry instead of calibration. Affine PSNR: after the capture's best gain and offset; paper: "
+             "PSNR / SSIM against a capture of the target image projected alone by one projector (the paper's "
+             "protocol).", "",
+             "| scene | method | target | PSNR (dB) | SSIM | crosstalk | affine PSNR (dB) | paper PSNR / SSIM | variables | "
+             "solve (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for row in r["rows"]:
         for t in row["targets"]:
             lines.append(f"| {row['scene']} | {row['method']} | {t['name']} | {t['psnr_db']:.2f} | {t['ssim']:.3f} | "
-                         f"{t['crosstalk']:.3f} | {row['model']['variables']} | {row['solve_s']:.2f} |")
+                         f"{t['crosstalk']:.3f} | {t['affine_psnr_db']:.2f} | {t['paper']['psnr_db']:.2f} / "
+                         f"{t['paper']['ssim']:.3f} | {row['model']['variables']} | {row['solve_s']:.2f} |")
     if r["depth_sweep"]:
         lines += ["", "## Depth selectivity (two-plane patterns, near plane moved through depth)", "",
                   "PSNR (dB) of each target image on the moved plane; the near image belongs at 0.80 m, the far "

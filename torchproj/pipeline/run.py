@@ -71,7 +71,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
                 objective="l2", footprint: str = "nearest", ceiling: bool = False, outside: str = "clip",
-                chains: str = "epipolar") -> RunResult:
+                chains: str = "epipolar", solver_options: dict | None = None) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -116,6 +116,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             ``map`` (the bounds map linearly onto 0..255); :func:`~torchproj.solve.to_projectable`.
         chains: ``eo``'s independent problems: ``epipolar`` (the paper's; two projectors) or
             ``components`` (connected components of the transport; any number of projectors).
+        solver_options: further keywords for the solver (e.g. ``{"normalise": "projector"}`` for
+            ``lf``, :func:`~torchproj.solve.solve_lf`); the report keeps them.
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains)
@@ -131,7 +133,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
 
     solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=oracle == "transport",
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
-                              device=device, timings=timings, outside=outside, chains=chains)
+                              device=device, timings=timings, outside=outside, chains=chains,
+                              solver_options=solver_options)
     t0 = time.perf_counter()
     evaluation = evaluate_patterns(cal, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
     scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
@@ -147,6 +150,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     report["outside"] = outside
     if solver == "eo":
         report["chains"] = chains
+    if solver_options:
+        report["solver_options"] = dict(solver_options)
     if fits is not None:
         report["homographies"] = fits
     return RunResult(report=report, patterns=solved.patterns, captures=evaluation.captures, targets=scores,
@@ -184,7 +189,7 @@ class _Solved:
 
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
-                     progress, device, timings, outside, chains) -> _Solved:
+                     progress, device, timings, outside, chains, solver_options=None) -> _Solved:
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
@@ -207,7 +212,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     else:
         result, _, patterns = make_patterns(op, solver, bounds, cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
-                                            chains=chains)
+                                            chains=chains, solver_options=solver_options)
     timings["solve"] = time.perf_counter() - t0
     return _Solved(result, ops, patterns, model)
 

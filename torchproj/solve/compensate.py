@@ -101,7 +101,7 @@ def iteration_limit(max_iter: int | None) -> dict:
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
                   max_iter: int | None = None, progress: bool | None = None, objective="l2", outside: str = "clip",
-                  chains: str = "epipolar"):
+                  chains: str = "epipolar", solver_options: dict | None = None):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
     Args:
@@ -116,6 +116,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         outside: how values solved outside [0, 1] are shown (:func:`~torchproj.solve.to_projectable`).
         chains: ``eo``'s independent problems (:func:`~torchproj.solve.solve_eo`): ``epipolar`` (the
             paper's, two projectors) or ``components`` (connected components of the transport).
+        solver_options: further keywords for the solver (e.g. ``{"normalise": "clip"}`` for ``lf``).
 
     Returns:
         ``(result, light, patterns)``: the :class:`SolveResult` (for an image-space objective, its
@@ -127,7 +128,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     from .objectives import image_objective, solve_ssim
 
     image = image_objective(objective)
-    limit = iteration_limit(max_iter)
+    limit = {**iteration_limit(max_iter), **(solver_options or {})}
     if solver == "eo":
         result = solve_eo(op, bounds, chains=chains, calibrations=calibrations, progress=progress, **limit)
     else:
