@@ -10,11 +10,22 @@ import re
 from pathlib import Path
 
 __all__ = ["BITS_HELP", "bounds", "command", "config_option", "decoding_options", "device_options", "existing_file",
-           "join_negative_pairs", "limits", "map_options", "named_projector_size", "projector_size", "solve_options",
+           "join_negative_pairs", "limits", "map_options", "named_projector_size", "positive_int", "projector_size", "solve_options",
            "solver_options"]
 
 
 # ------------------------------------------------------------------------------ argument types
+def positive_int(text: str) -> int:
+    """A whole number of at least 1 (an iteration limit)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def projector_size(text: str) -> tuple[int, int]:
     from .scene import SIZE_LIMIT
 
@@ -99,8 +110,9 @@ def device(text: str) -> str:
 def device_options(p, max_iter: bool = True) -> None:
     p.add_argument("--device", type=device, default="cpu", help="torch device, cpu or cuda (default: cpu)")
     if max_iter:
-        p.add_argument("--max-iter", type=int, default=None,
-                       help="iteration limit of the pattern solver (default: the solver's own, which stops on convergence first)")
+        p.add_argument("--max-iter", type=positive_int, default=None,
+                       help="iteration limit of the pattern solver (default: 300 for fista, pgd and adam; lf and eo "
+                            "stop on their own convergence rules)")
 
 
 def solver_options(p) -> None:

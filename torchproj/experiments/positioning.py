@@ -309,7 +309,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
             (spaced geometrically from 0.25 mm).
         feedback_stride: score the camera image on every n-th pixel in each direction.
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
-        max_iter: iteration limit of the pattern solver (None: the solver's own default).
+        max_iter: iteration limit of the pattern solver (None: as :func:`~torchproj.pipeline.run_virtual`).
         solver, bounds_8bit, outside, chains: the pattern solver, its bounds, how values outside them are
             shown and eo's chains, as :func:`~torchproj.pipeline.run_virtual`
             (the paper's own test used ``eo`` with ``(0, 255)``, ``EO_0^255``).

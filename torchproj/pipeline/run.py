@@ -81,7 +81,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             ``EO_-100^255``); bounds outside [0, 255] are brought into range afterwards.
         images: one :math:`(C, h, w)` image per target; default: the config's, else scikit-image's.
         device: torch device for the rig and the solver.
-        max_iter: iteration limit of the pattern solver (None: the solver's own default).
+        max_iter: iteration limit of the pattern solver (None: 300 for the gradient solvers, LF and EO
+            their own convergence rules; :data:`~torchproj.solve.compensate.PIPELINE_ITERATIONS`).
         progress: progress bars (None: on a terminal, for steps longer than a second).
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
         oracle: ``"geometry"`` (or True): build the operator from the simulator's exact geometry

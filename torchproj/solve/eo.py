@@ -1,7 +1,7 @@
 """EO: the paper's epipolar optimisation, chains of projector cells solved within the box.
 
 Light from two projectors mixes only between pixels on corresponding epipolar lines (section
-"Problem reduction using epipolar constraints" of the paper), so the problem splits into small
+"Problem reduction using epipolar constraints and constraint-aware optimization" of the paper), so the problem splits into small
 problems ("chains"), each solved with the box constraint ``lo <= p <= hi``. Two ways to form chains:
 
 - ``"epipolar"``: the fundamental matrix between the two projectors is estimated (kornia's
@@ -61,8 +61,10 @@ def fundamental_between_projectors(calibrations: dict[str, StateCalibration], fi
         :math:`(3, 3)` float64.
     """
     p1, p2 = [], []
+    pixels = sum(cal.prj_xy[first][..., 0].numel() for cal in calibrations.values())
+    stride = max(1, pixels // (8 * max_points))  # a grid of pixels, well over max_points of them, is plenty
     for cal in calibrations.values():
-        a, b = cal.prj_xy[first].reshape(-1, 2), cal.prj_xy[second].reshape(-1, 2)
+        a, b = cal.prj_xy[first].reshape(-1, 2)[::stride], cal.prj_xy[second].reshape(-1, 2)[::stride]
         both = torch.isfinite(a).all(-1) & torch.isfinite(b).all(-1)
         p1.append(a[both])
         p2.append(b[both])
@@ -213,9 +215,11 @@ class _Colour:
         mine = entry_colours[0] == c
         inside = mine & (entry_colours[1] == c)
         # Q's entries are sorted by row, then column, and positions keep that order: both blocks are CSR as cut.
-        self.block = self._csr(position[rows[inside]], position[col[inside]], val[inside], (self.idx.shape[0],) * 2)
-        self.coupling = self._csr(position[rows[mine & ~inside]], col[mine & ~inside], val[mine & ~inside],
-                                  (self.idx.shape[0], n))
+        # Each mask becomes an index once, shared by the three arrays it selects from.
+        keep = torch.nonzero(inside)[:, 0]
+        self.block = self._csr(position[rows[keep]], position[col[keep]], val[keep], (self.idx.shape[0],) * 2)
+        keep = torch.nonzero(mine.logical_xor_(inside))[:, 0]
+        self.coupling = self._csr(position[rows[keep]], col[keep], val[keep], (self.idx.shape[0], n))
         self.chain = torch.unique(chain[self.idx], return_inverse=True)[1]
         self.n = int(self.chain.max()) + 1
         self.q = ne.q[self.idx]
