@@ -249,3 +249,15 @@ def test_to_projectable_and_compensation():
     assert float((relative - light).abs().max()) < 0.02
     with pytest.raises(InputError, match="to_projectable"):
         compensate([light - 0.5], [curve])
+
+
+def test_pipeline_iteration_limits():
+    """The pipeline caps the gradient solvers where none is given (their last iterations fit calibration
+    errors on scenes they do not converge on) and leaves LF and EO to their convergence rules."""
+    from torchproj.solve.compensate import PIPELINE_ITERATIONS, iteration_limit
+
+    assert iteration_limit(None, "fista") == {"max_iter": PIPELINE_ITERATIONS["fista"]}
+    assert iteration_limit(None, "lf") == {} and iteration_limit(None, "eo") == {}
+    assert iteration_limit(7, "eo") == {"max_iter": 7}
+    with pytest.raises(InputError, match="max_iter"):
+        iteration_limit(0, "fista")
