@@ -1,30 +1,31 @@
 """EO: the paper's epipolar optimisation, chains of projector cells solved within the box.
 
 Light from two projectors mixes only between pixels on corresponding epipolar lines (section
-"Problem reduction using epipolar constraints and constraint-aware optimization" of the paper), so the problem splits into small
-problems ("chains"), each solved with the box constraint ``lo <= p <= hi``. Two ways to form chains:
+"Problem reduction using epipolar constraints and constraint-aware optimization" of the paper), so
+the problem splits into small problems ("chains"), each solved with the box ``lo <= p <= hi``.
+Two ways to form them:
 
 - ``"epipolar"``: the fundamental matrix between the two projectors is estimated (kornia's
   normalised 8-point algorithm) from the calibrated correspondences (camera pixels decoded by both
   projectors see the same surface point); every projector cell gets the parameter of its epipolar
-  line, and cells whose lines fall in the same one-pixel-wide band form a band. The paper's chains
-  are then walked through the correspondences inside a band: the connected components of the rows
-  that stay in it (a cell, the camera pixels it lights, the other projector's cells that light
-  them, and so on), tens to hundreds of cells each.
+  line, and cells whose lines fall in one pixel-wide strip form a band (:func:`epipolar_bands`).
+  The paper's chains are walked through the correspondences inside a band (:func:`epipolar_chains`:
+  the connected components of the rows that stay in it: a cell, the camera pixels it lights, the
+  other projector's cells that light them, and so on). They share no row, so a band is solved as
+  one block of its chains: the same minimiser, without finding them on every solve.
 - ``"components"``: the connected components of the whole operator's column graph. No row joins two
-  of them, so one pass solves the problem; on a rig whose camera is finer than the projectors
-  neighbouring cells are coupled and a component can span most of the image. Works for any number of
-  projectors.
+  of them; on a rig whose camera is finer than the projectors one component can span most of the
+  image. Works for any number of projectors.
 
-On a real (or virtual) camera the epipolar chains are not closed: a camera pixel whose footprint
-straddles two bands couples them (about 17% of the transport's weight on the paper's rig). The
-paper drops that light; we keep it exact instead, with block sweeps: chains are coloured so that
-no row touches two chains of one colour, and each sweep solves every chain of a colour at once, in
-one batched accelerated projected gradient (per-chain steps, momentum and restarts), with the
-other colours' light held fixed, colour after colour. The objective never rises, and the sweeps
-converge to the optimum of the whole bounded problem, the one FISTA reaches. Our choices, not the
-paper's, measured in ``benchmarks/model_space.py``: the sweeps start from the rig solved with
-cells tied in blocks (as FISTA does), are extrapolated with restart, and give each chain a few
+On a real (or virtual) camera the bands are not closed: a camera pixel whose footprint straddles
+two bands couples them (17% of ``A^T A``'s weight on the paper's full-size rig). The paper's split
+drops that light; here it is kept, with block sweeps: blocks are coloured so that no row touches two
+blocks of one colour, and each sweep solves every block of a colour at once, in one batched
+accelerated projected gradient (a step size, momentum and restarts per block), the other colours'
+light held fixed, colour after colour. The objective never rises, and the sweeps converge to the
+optimum of the whole bounded problem, the one FISTA reaches. Our choices, not the paper's, measured
+in ``benchmarks/model_space.py`` against their alternatives: the sweeps start from the rig solved
+with cells tied in blocks (as FISTA does), are extrapolated with restart, and give each block a few
 gradient steps per sweep rather than solving it exactly.
 """
 
@@ -206,8 +207,8 @@ def _per_chain(values: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tenso
 
 
 class _Colour:
-    """The chains of one colour: their block of the (Jacobi-scaled) ``Q``, its coupling to the other
-    colours, and a step size per chain."""
+    """The blocks of one colour: their part of the (Jacobi-scaled) ``Q``, its coupling to the other
+    colours, and a step size per block (``chain`` numbers the blocks)."""
 
     def __init__(self, ne, rows, col, val, colour, entry_colours, position, chain, c: int, lo, hi):
         n = ne.Q.shape[0]
@@ -246,8 +247,8 @@ class _Colour:
         return (1.0 / lam.clamp_min(1e-30))[self.chain][:, None]
 
     def solve(self, z: torch.Tensor, iterations: int) -> None:
-        """Accelerated projected gradient on every chain of this colour at once, the others held fixed;
-        writes the chains' new values into ``z``. Each chain restarts its own momentum when its objective
+        """Accelerated projected gradient on every block of this colour at once, the others held fixed;
+        writes the blocks' new values into ``z``. Each block restarts its own momentum when its objective
         would rise, so none gets worse."""
         b = self.q - spmm(self.coupling, z)
         chain, n, step = self.chain, self.n, self.step
@@ -283,7 +284,8 @@ class _Colour:
 def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Tensor = "epipolar",
              calibrations: dict[str, StateCalibration] | None = None, band: float = 1.0, max_iter: int = 300,
              tol: float = 1e-3, inner_iter: int = 3, levels: int = 3, progress: bool | None = None) -> SolveResult:
-    """The paper's EO: chains of projector cells, each solved within ``bounds``, in block sweeps.
+    """The paper's EO: chains of projector cells, solved within ``bounds`` in block sweeps that keep the
+    light rows share between them (see the module's text).
 
     Args:
         op: the transport operator.
@@ -293,7 +295,7 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
             or a precomputed :math:`(N_{cols},)` chain index.
         calibrations: the state calibrations the operator was built from (for the epipolar geometry).
         band: epipolar band width in projector pixels.
-        max_iter: the most sweeps (each sweep visits every chain once).
+        max_iter: the most sweeps (each sweep visits every block once).
         tol: stop when a sweep lowers the objective by less than ``tol`` of it.
         inner_iter: accelerated gradient steps per block and sweep (3 measured fastest to the optimum on
             the paper's rig, before 5 and 10: more sweeps, each cheaper).
