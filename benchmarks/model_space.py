@@ -196,7 +196,7 @@ def markdown(r: dict) -> str:
         lines += ["", f"scipy `lsq_linear` (one channel, bounds 0..1, capped at {q['iterations']} iterations): "
                       f"{q['time_s']:.1f} s, relative gap {q['relative_gap_channel0']:.1e} (status {q['status']})."]
     for row in r["methods"]:
-        if "chains" in row["info"]:
+        if "blocks" in row["info"]:
             lines.append(f"\n{row['method']}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
                                                            for k, v in row["info"].items()))
     return "\n".join(lines) + "\n"
