@@ -184,8 +184,7 @@ def markdown(r: dict) -> str:
               "| pair | gain | offset | PSNR vs g t + o | SSIM vs g t + o | PSNR vs t | SSIM vs t | EO_0^255 PSNR | "
               "EO_0^255 SSIM |", "|---|---|---|---|---|---|---|---|---|"]
     for pair in PAIRS:
-        g = next(x for x in r["rows"] if x["pair"] == "/".join(pair) and x["method"] == "FISTA + gain/offset")
-        e = next(x for x in r["rows"] if x["pair"] == "/".join(pair) and x["method"] == "EO_0^255")
+        g, e = _row(r, pair, "FISTA + gain/offset"), _row(r, pair, "EO_0^255")
 
         def two(v, f=".2f"):
             return f"{v[0]:{f}} / {v[1]:{f}}"
@@ -195,8 +194,7 @@ def markdown(r: dict) -> str:
     lines.append("")
     lines += ["## Solve time (s)", "", "| pair | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
     for pair in PAIRS:
-        cells = [f"{next(x for x in r['rows'] if x['pair'] == '/'.join(pair) and x['method'] == m)['solve_s']:.1f}"
-                 for m in methods]
+        cells = [f"{_row(r, pair, m)['solve_s']:.1f}" for m in methods]
         lines.append(f"| {'/'.join(pair)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -323,7 +323,7 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     colours = [_Colour(ne, rows, col, val, colour, entry_colours, position, chain, c, ne.bound(lo), ne.bound(hi))
                for c in range(n_colours)]
     history = []
-    p, coarse_iterations = coarse_start(op, lo, hi, levels, 0.0, t0, history)
+    p, coarse_iterations, _ = coarse_start(op, lo, hi, levels, 0.0, t0, history)
     z = p / ne.scale
 
     def objective(x):

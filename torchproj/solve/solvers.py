@@ -141,9 +141,10 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
     ne = op.normal_equations()
     history = []
     if x0 is None:
-        p, coarse_iterations = coarse_start(op, lo, hi, levels, tol, t0, history, precondition, accelerate)
+        p, coarse_iterations, coarse_columns = coarse_start(op, lo, hi, levels, tol, t0, history, precondition,
+                                                            accelerate)
     else:
-        p, coarse_iterations = _start(op, x0, lo, hi), []
+        p, coarse_iterations, coarse_columns = _start(op, x0, lo, hi), [], []
     bar = progress_bar(desc="fista" if accelerate else "pgd", enabled=progress, total=max_iter)
     ne = ne.jacobi() if precondition else ne
     p, f, it, converged = _iterate(ne, p, lo, hi, max_iter, tol, accelerate, t0, history, bar)
@@ -151,13 +152,11 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
     return SolveResult(patterns=p, iterations=it, objective=f, history=history, time_s=time.perf_counter() - t0,
                        converged=converged, method="fista" if accelerate else "pgd",
                        info={"lipschitz": ne.lipschitz(), "preconditioned": bool(precondition),
-                             "coarse_iterations": coarse_iterations,
-                             "coarse_columns": [level_ne.Q.shape[0] for level_ne, _ in
-                                                reversed(op.coarse_levels(levels) if x0 is None else [])]})
+                             "coarse_iterations": coarse_iterations, "coarse_columns": coarse_columns})
 
 
 def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: float, t0: float, history: list,
-                 precondition: bool = True, accelerate: bool = True) -> tuple[torch.Tensor, list[int]]:
+                 precondition: bool = True, accelerate: bool = True) -> tuple[torch.Tensor, list[int], list[int]]:
     """A start for a full-resolution solve: the rig solved with cells tied in blocks, coarsest first.
 
     Each of ``levels`` tied problems (8x8, 4x4, 2x2 blocks for 3; see
@@ -166,10 +165,11 @@ def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: 
     the box. Appends to ``history`` (times from ``t0``).
 
     Returns:
-        :math:`(N_{cols}, C)` patterns within ``[lo, hi]``, and the iterations per level, coarsest first.
+        :math:`(N_{cols}, C)` patterns within ``[lo, hi]``, and per level, coarsest first, its iterations
+        and its number of columns.
     """
     coarse = op.coarse_levels(levels)
-    p, iterations = None, []
+    p, iterations, columns = None, [], []
     for level in reversed(range(len(coarse))):
         level_ne, block = coarse[level]
         if p is None:
@@ -177,8 +177,9 @@ def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: 
         p, _, its, _ = _iterate(level_ne.jacobi() if precondition else level_ne, p, lo, hi, _COARSE_MAX_ITER,
                                 max(tol, _COARSE_TOL), accelerate, t0, history, None)
         iterations.append(its)
+        columns.append(level_ne.Q.shape[0])
         p = p[block]  # each cell takes its block's value
-    return (_start(op, None, lo, hi) if p is None else p), iterations
+    return (_start(op, None, lo, hi) if p is None else p), iterations, columns
 
 
 # The element-wise part of an iteration (objective, extrapolation, gradient step, clamp) reads and
