@@ -211,3 +211,26 @@ def test_a_built_in_name_is_found_whatever_the_working_folder_holds(tmp_path, mo
     with pytest.raises(ConfigError) as err:
         load_scene("paper_two_plane")
     assert "'paper_two_plane' not found" in str(err.value) and "'paper_two_plane'," not in str(err.value)
+
+
+@pytest.mark.parametrize("focus, message", [
+    ({"distance": -0.8, "aperture": 10}, "projectors[0].focus.distance: must be greater than 0"),
+    ({"aperture": 10}, "projectors[0].focus.distance: is required"),
+    ({"distance": 0.8}, "projectors[0].focus.aperture: is required"),
+    ({"distance": 0.8, "aperture": 0}, "projectors[0].focus.aperture: must be greater than 0"),
+    ({"distance": 0.8, "aperture": 10000}, "projectors[0].focus.aperture: is 10000 mm, wider than any projector lens"),
+    ({"distance": 0.8, "aperture": 10, "f_number": 2}, "projectors[0].focus.f_number: unknown key"),
+    (0.8, "projectors[0].focus: must be a mapping"),
+])
+def test_bad_focus_names_the_field(focus, message):
+    assert _bad(lambda d: d["projectors"][0].update(focus=focus)).startswith(message)
+
+
+def test_a_focused_projector_reads_millimetres_and_says_so():
+    data = small_config()
+    data["projectors"][0]["focus"] = {"distance": 0.8, "aperture": 10}
+    scene = parse_scene(data)
+    upper, lower = scene.projectors
+    assert (upper.focus_distance, upper.aperture, lower.focus_distance) == (0.8, 0.01, None)
+    assert upper.blur_diameter(1.0)[0] == pytest.approx(upper.fx * 0.01 * 0.25)
+    assert "focused at 0.8 m, aperture 10 mm" in scene.describe()

@@ -44,7 +44,7 @@ __all__ = [
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
-                  "two_screens", "box_positions")
+                  "two_screens", "box_positions", "paper_defocus")
 
 
 def config_dir() -> Path:
@@ -87,6 +87,11 @@ class Projector(Pinhole):
     ``power * (a * x**b + black_level) * vignette(u)``, where
     ``vignette(u) = 1 - vignetting * (r / r_corner)**2`` and r is the distance of pixel u from the
     principal point. ``power`` is the irradiance in W/m^2 on a surface facing the projector at 1 m.
+
+    Lens (optional, a thin lens): focused at ``focus_distance`` metres (depth along the projector's
+    axis) with an aperture of diameter ``aperture`` metres. A cell's light then reaches a surface
+    point at depth z spread over a disc (the circle of confusion) of diameter
+    :meth:`blur_diameter` cells; None (the default) is a pinhole, sharp at every depth.
     """
 
     name: str = ""
@@ -96,10 +101,22 @@ class Projector(Pinhole):
     black_level: float = 0.01
     vignetting: float = 0.0
     power: float = 1.0
+    focus_distance: float | None = None
+    aperture: float = 0.0
 
     @property
     def centre(self) -> np.ndarray:
         return self.world_from_prj[:3, 3]
+
+    def blur_diameter(self, depth):
+        """Diameters ``(along x, along y)`` in LCD cells of the circle of confusion at ``depth``
+        metres (a number or an array). The aperture's cone converges on the focus plane, so at depth z
+        it is ``aperture |z - z_f| / z_f`` wide; seen from the projector at depth z that is
+        ``f aperture |1/z_f - 1/z|`` cells (f the focal length in cells, per axis)."""
+        if self.focus_distance is None:
+            return 0.0 * depth, 0.0 * depth
+        spread = self.aperture * abs(1 / self.focus_distance - 1 / depth)
+        return self.fx * spread, self.fy * spread
 
 
 @dataclass
@@ -196,7 +213,9 @@ class Scene:
         for p in self.projectors:
             lines.append(f"  projector {p.name}: {p.width}x{p.height}, f={p.fx:g}px, at "
                          f"{np.round(p.centre, 3).tolist()} m, response x^{'/'.join(f'{b:g}' for b in p.response_b)}, "
-                         f"black {p.black_level:g}")
+                         f"black {p.black_level:g}"
+                         + (f", focused at {p.focus_distance:g} m, aperture {p.aperture * 1000:g} mm"
+                            if p.focus_distance is not None else ""))
         lines.append(f"  camera: {cam.width}x{cam.height}, f={cam.fx:g}px, {cam.channels} channel(s), "
                      f"{cam.bit_depth}-bit, {cam.supersampling}x{cam.supersampling} samples per pixel")
         lines += [f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m"
@@ -252,6 +271,10 @@ def _intrinsics(f: Fields, width: int, height: int) -> tuple[float, float, float
     return fx, fy, cx, cy
 
 
+# A projector lens wider than this is no lens a projector has: most likely metres written as millimetres.
+_MAX_APERTURE_MM = 200.0
+
+
 def _parse_projector(f: Fields, index: int) -> Projector:
     name = f.text("name", f"projector{index}")
     width, height = _resolution(f)
@@ -268,6 +291,18 @@ def _parse_projector(f: Fields, index: int) -> Projector:
         vignetting=f.number("vignetting", 0.0, lo=0, hi=0.99),
         power=f.number("power", 1.0, lo=0, strict_lo=True),
     )
+    if f.has("focus"):
+        lens = f.sub("focus")
+        proj.focus_distance = lens.number("distance", lo=0, strict_lo=True)
+        # Millimetres in the file, as lens makers quote apertures; metres inside, as every length.
+        aperture = lens.number("aperture", lo=0, strict_lo=True)
+        if aperture > _MAX_APERTURE_MM:
+            raise ConfigError(lens.where("aperture"), f"is {aperture:g} mm, wider than any projector lens",
+                              "give the lens aperture's diameter in millimetres (a projector's is about 5-30)")
+        proj.aperture = aperture / 1000
+        lens.done()
+    else:
+        f.raw("focus", None)
     f.done()
     return proj
 

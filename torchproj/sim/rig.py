@@ -4,7 +4,9 @@ Physics (DESIGN.md, "Physics contract"): a camera sample ray hits surface point 
 semi-transparent screens in front, each passing ``transmittance`` of the light on). Projector j lights
 X with irradiance ``E_j = L_j(u_j) * max(0, n.l_j) / d_j^2`` where u_j is X projected into projector j,
 ``L_j`` the light of the LCD cell containing u_j, d_j the distance to the projector centre, and zero
-where X is shadowed from j. The radiance towards the camera is ``albedo / pi * (sum_j E_j + ambient)``;
+where X is shadowed from j. A projector with a lens focused elsewhere (``focus`` in its config) blurs:
+``L_j`` is then the mean light over the circle of confusion around u_j at X's depth (thin lens;
+shadows stay those of the lens centre). The radiance towards the camera is ``albedo / pi * (sum_j E_j + ambient)``;
 the camera model (:mod:`torchproj.sim.camera`) turns it into pixel values.
 
 Geometry is cast once per state. Because the LCD cells are squares of constant light, a camera pixel's
@@ -93,6 +95,71 @@ def _lit_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor) -> tuple[torch
     inside = ((cell[:, 0] >= 0) & (cell[:, 0] < proj.width) & (cell[:, 1] >= 0) & (cell[:, 1] < proj.height)
               & (g > 0))
     return cell[:, 1] * proj.width + cell[:, 0], inside
+
+
+# The circle of confusion of each surface sample is sampled at points of a Vogel spiral, which covers
+# the disc evenly (its mean squared radius is exactly the disc's); turning the spiral by the golden
+# angle from one ray to the next spreads a camera pixel's samples over different points of the disc.
+# How many points a sample gets grows with its blur (a diameter in cells below each bound gets that
+# many): a disc under a twentieth of a cell is taken as its centre, one under a cell needs few points
+# to share its light between the cells it straddles, and 16 points times a pixel's 4-9 samples cover
+# a disc several cells wide.
+_DISC_POINTS = ((0.05, 1), (1.0, 4), (math.inf, 16))
+_GOLDEN_ANGLE = math.pi * (3 - math.sqrt(5))
+
+
+def _disc(points: int, device) -> torch.Tensor:
+    """:math:`(K, 2)` points of the unit-diameter disc, a Vogel spiral (the centre for K = 1)."""
+    k = torch.arange(points, dtype=torch.float64, device=device)
+    radius = ((k + 0.5) / points).sqrt() / 2 if points > 1 else torch.zeros(1, dtype=torch.float64, device=device)
+    angle = k * _GOLDEN_ANGLE
+    return torch.stack([radius * angle.cos(), radius * angle.sin()], -1).float()
+
+
+def _footprint_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor, depth: torch.Tensor,
+                     ray: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Which LCD cells light each point, and what share of the point's light each gives.
+
+    A pinhole projector lights a point from the one cell its coordinate falls in. Through a thin
+    lens focused elsewhere (:class:`~torchproj.scene.Projector`) the point sees a disc of the LCD,
+    the circle of confusion at its depth, every part of it equally: the disc is sampled at the points
+    ``_DISC_POINTS`` gives its size, turned by the golden angle per ray.
+
+    Args:
+        u: :math:`(M, 2)` projector coordinates; g: :math:`(M,)` geometric factors (0: unlit);
+        depth: :math:`(M,)` depths along the projector's axis; ray: :math:`(M,)` global ray numbers.
+
+    Returns:
+        entries ``point, cell, share`` :math:`(E,)`: the point, a row-major cell that lights it and
+        the share of the point's light from that cell (a point's shares sum to at most 1: less where
+        part of its disc falls outside the image); unlit points have none.
+    """
+    if proj.focus_distance is None:
+        cell, lit = _lit_cells(proj, u, g)
+        point = torch.nonzero(lit)[:, 0]
+        return point, cell[point], torch.ones(point.shape, dtype=u.dtype, device=u.device)
+    across, down = proj.blur_diameter(depth)
+    size = torch.maximum(across, down)
+    entries, low = [], 0.0
+    for high, count in _DISC_POINTS:
+        point = torch.nonzero((size >= low) & (size < high) & (g > 0))[:, 0]
+        low = high
+        if point.numel() == 0:
+            continue
+        turn = (ray[point].double() * _GOLDEN_ANGLE).remainder(2 * math.pi).float()
+        cos, sin = turn.cos()[:, None], turn.sin()[:, None]
+        disc = _disc(count, u.device)
+        dx, dy = disc[:, 0], disc[:, 1]
+        spots = torch.stack([u[point, 0, None] + (cos * dx - sin * dy) * across[point, None],
+                             u[point, 1, None] + (sin * dx + cos * dy) * down[point, None]], -1)  # (m, K, 2)
+        cell, lit = _lit_cells(proj, spots.reshape(-1, 2), g[point].repeat_interleave(count))
+        slot = torch.nonzero(lit)[:, 0]
+        entries.append((point[slot // count], cell[slot], torch.full(slot.shape, 1 / count, device=u.device)))
+    if not entries:
+        none = torch.zeros(0, dtype=torch.int64, device=u.device)
+        return none, none, torch.zeros(0, dtype=u.dtype, device=u.device)
+    point, cell, share = (torch.cat(parts) for parts in zip(*entries))
+    return point, cell, share
 
 
 def _warn_if_undersampled(scene: Scene, limit: float = 0.4) -> None:
@@ -200,11 +267,10 @@ class VirtualRig:
                 layer_pixel = pixel[layer.ray]
                 ambient.index_add_(1, layer_pixel, (w * scene.ambient).T)
                 for j, proj in enumerate(scene.projectors):
-                    u, g = self._illumination(proj, casters, transmit, layer)
-                    cell, lit = _lit_cells(proj, u, g)
-                    lit = torch.nonzero(lit)[:, 0]
-                    entries[j][0].append(layer_pixel[lit] * (proj.width * proj.height) + cell[lit])
-                    entries[j][1].append(g[lit, None] * w[lit])
+                    u, g, depth = self._illumination(proj, casters, transmit, layer)
+                    point, cell, share = _footprint_cells(proj, u, g, depth, start + layer.ray)
+                    entries[j][0].append(layer_pixel[point] * (proj.width * proj.height) + cell)
+                    entries[j][1].append((g[point] * share)[:, None] * w[point])
             # Merge the samples of a pixel that land in the same LCD cell. Unique keys come out
             # sorted, and chunks cover increasing pixel ranges, so rows stay in CSR order.
             for j in range(len(scene.projectors)):
@@ -275,8 +341,9 @@ class VirtualRig:
         """Where a projector's light falls on a layer's points and how strongly.
 
         Returns:
-            continuous projector coordinates :math:`(M, 2)` and the geometric factor
-            ``max(0, n.l) / d^2 * visibility`` :math:`(M,)` (0 where unlit).
+            continuous projector coordinates :math:`(M, 2)`, the geometric factor
+            ``max(0, n.l) / d^2 * visibility`` :math:`(M,)` (0 where unlit) and the points' depths
+            along the projector's axis :math:`(M,)` (1 behind it, where the factor is 0).
         """
         x, n = layer.x, layer.n
         pose = torch.as_tensor(proj.world_from_prj, dtype=torch.float32, device=self.device)
@@ -304,7 +371,7 @@ class VirtualRig:
             t, _ = c.hit(x[ray], to_prj[ray] / dist[:, None])
             blocked = ray[t < dist - 1e-5]
             g[blocked] = g[blocked] * tr
-        return u, g
+        return u, g, depth[:, 0]
 
     def _centre_truth(self, casters, transmit) -> dict:
         """Ground truth at pixel centres: first surface hit, its normal, each projector's coordinate."""
@@ -322,7 +389,7 @@ class VirtualRig:
             idx = start + layer.ray
             points[idx], normals[idx], sid_map[idx] = layer.x, layer.n, layer.sid
             for j, proj in enumerate(self.scene.projectors):
-                u, g = self._illumination(proj, casters, transmit, layer)
+                u, g, _ = self._illumination(proj, casters, transmit, layer)
                 inside = ((u[:, 0] >= -0.5) & (u[:, 0] < proj.width - 0.5) & (u[:, 1] >= -0.5)
                           & (u[:, 1] < proj.height - 0.5) & (g > 0))
                 prj_xy[j, idx[inside]] = u[inside]
@@ -456,12 +523,13 @@ class VirtualRig:
         return apply_camera(radiance, self.scene.camera, gen if noise else None, quantise, out=radiance)
 
     def _pixel_rays(self, pixels: torch.Tensor, chunk: int):
-        """Lazily, per chunk of ``chunk`` pixels: origin, directions and each ray's position in ``pixels``."""
+        """Lazily, per chunk of ``chunk`` pixels: origin, directions, each ray's position in ``pixels``
+        and its number (:meth:`camera_rays`)."""
         ss = self.scene.camera.supersampling**2
         for start in range(0, pixels.numel(), chunk):
             local = torch.arange(start, min(start + chunk, pixels.numel()), device=self.device)
             ray_id = (pixels[local, None] * ss + torch.arange(ss, device=self.device)).reshape(-1)
-            yield (*self._rays(ray_id, self.scene.camera.supersampling), local.repeat_interleave(ss))
+            yield (*self._rays(ray_id, self.scene.camera.supersampling), local.repeat_interleave(ss), ray_id)
 
     def _reuse(self, name: tuple, inputs: list, make):
         """``make()``, or what it gave last time for the same ``inputs`` (the same tensor objects, not
@@ -513,17 +581,17 @@ class VirtualRig:
         chunk = max(1, _CHUNK // ss)
         rays = self._reuse(("rays",), [asked], lambda: list(self._pixel_rays(pixels, chunk))) \
             if asked is not None and pixels.numel() <= chunk else self._pixel_rays(pixels, chunk)
-        for o, d, owner in rays:
+        for o, d, owner, ray_id in rays:
             for layer in self._layers(casters, transmit, o, d, max_layers):
                 w = layer.weight[:, None] * albedo[layer.sid] / math.pi / ss  # (M, A)
                 received = torch.full((layer.x.shape[0],), self.scene.ambient, device=self.device)
                 received = received[None].expand(out_c, -1).clone()
                 for j, proj in enumerate(self.scene.projectors):
-                    u, g = self._illumination(proj, casters, transmit, layer)
-                    flat, inside = _lit_cells(proj, u, g)
-                    flat = flat.clamp_(0, proj.width * proj.height - 1)
+                    u, g, depth = self._illumination(proj, casters, transmit, layer)
+                    point, cell, share = _footprint_cells(proj, u, g, depth, ray_id[layer.ray])
                     for ch in range(out_c):
-                        received[ch] += torch.where(inside, lights[j][min(ch, lights[j].shape[0] - 1), flat] * g, 0.0)
+                        light = lights[j][min(ch, lights[j].shape[0] - 1), cell] * share * g[point]
+                        received[ch].index_add_(0, point, light)
                 value = received * w.T[[min(ch, w.shape[1] - 1) for ch in range(out_c)]]
                 total.index_add_(1, owner[layer.ray], value)
         gen = self.generator if seed is None else torch.Generator(device=self.device).manual_seed(seed)
