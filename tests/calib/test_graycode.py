@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchproj.calib import warn_if_few_decoded
 from torchproj.calib import decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
 from torchproj.core import InputError
@@ -134,3 +135,67 @@ def test_folder_round_trip_decodes_identically(tmp_path):
     a = decode_gray(cap.patterns, cap.white, cap.black, (128, 96))
     b = decode_gray(back.patterns, back.white, back.black, (128, 96))
     assert torch.equal(a.valid, b.valid) and torch.equal(a.prj_xy[a.valid], b.prj_xy[b.valid])
+
+
+def _box_blurred(size, footprints):
+    """Captures of the full sequence for one row of camera pixels, each the mean of the cells listed
+    in its footprint: ``footprints`` is a list of ``(xs, y)``, cells ``xs`` of row ``y``."""
+    w, h = size
+    seq = graycode_patterns(w, h)[:, 0]  # (N, h, w)
+    cols = [seq[:, y, list(xs)].mean(-1) for xs, y in footprints]  # each (N,)
+    images = torch.stack(cols, -1)[:, None]  # (N, 1, P): one camera row
+    return images[:-2], images[-2], images[-1]
+
+
+def test_a_pixel_on_a_stripe_edge_or_under_blur_is_partly_decoded():
+    """Box footprints: a pixel inside one cell decodes fully; one straddling the edge between two
+    cells, or blurred over an aligned block of 2 or 4 cells, keeps the bits that are still sharp and
+    names the cells they leave open; one spread over cells no bits can name stays undecoded."""
+    size = (64, 16)
+    cases = [  # footprint cells, want (centre x, cells open along x) or None
+        ([21], (21.0, 1)),
+        ([23, 24], (23.5, 2)),  # an edge of a coarse bit (23 = 0b10111, 24 = 0b11000) and of the finest
+        ([40, 41], (40.5, 2)),  # the finest bit's stripe blurred out
+        ([8, 9, 10, 11], (9.5, 4)),  # the two finest bits blurred out
+        ([14, 15, 16, 17], None),  # a blur over a coarse edge and a fine one: two unrelated bits unreliable
+    ]
+    patterns, white, black = _box_blurred(size, [(xs, 5) for xs, _ in cases])
+    dec = decode_gray(patterns, white, black, size)
+    for i, (xs, want) in enumerate(cases):
+        if want is None:
+            assert not dec.valid[0, i] and not dec.partial[0, i] and int(dec.spread[0, i, 0]) == 0
+            continue
+        assert bool(dec.valid[0, i]) == (want[1] == 1)
+        assert dec.coarse_xy[0, i].tolist() == [want[0], 5.0]
+        assert dec.spread[0, i].tolist() == [want[1], 1]
+    assert dec.counts() == {"lit": 5, "full": 1, "partial": 3, "none": 1}
+    assert dec.lit_located_fraction == pytest.approx(4 / 5)
+    # OpenCV's semantics are untouched: a partly decoded pixel is invalid there, NaN in prj_xy.
+    assert dec.valid.sum() == 1 and torch.isnan(dec.prj_xy[0, 1:4]).all()
+
+
+def test_refinement_places_partly_decoded_pixels_between_their_cells():
+    """On a smooth map whose finest stripes the camera cannot resolve at every second pixel, those
+    pixels, refined from their neighbours, land near the truth, not on their block's centre."""
+    ys, xs = torch.meshgrid(torch.arange(40.0), torch.arange(50.0), indexing="ij")
+    true = torch.stack([0.37 * xs + 0.05 * ys + 3.2, -0.02 * xs + 0.41 * ys + 7.7], -1)
+    decoded = torch.floor(true + 0.5)
+    blurred = (xs.long() + ys.long()) % 2 == 1
+    coarse = decoded.clone()
+    coarse[blurred] = torch.floor(decoded[blurred] / 2) * 2 + 0.5  # a 2 x 2 block's centre
+    spread = torch.where(blurred[..., None], 2, 1).expand(-1, -1, 2).to(torch.int16)
+    refined = refine_subpixel(coarse, torch.ones(40, 50, dtype=torch.bool), window=9, spread=spread)
+    inner = (refined - true)[6:-6, 6:-6][blurred[6:-6, 6:-6]]
+    assert float(inner.abs().max()) < 0.25
+    assert float((coarse - true)[blurred].abs().max()) > 0.9
+
+
+def test_few_placed_pixels_are_warned_about_naming_the_causes():
+    """Pixels whose unreliable bits name no cells (here a blur across a coarse and a fine edge) cannot be
+    placed; when they are most of the lit ones, calibration says so and why."""
+    size = (64, 16)
+    patterns, white, black = _box_blurred(size, [([14, 15, 16, 17], 5)] * 3 + [([21], 5)])
+    dec = decode_gray(patterns, white, black, size)
+    assert dec.counts() == {"lit": 4, "full": 1, "partial": 0, "none": 3}
+    with pytest.warns(UserWarning, match=r"only 25% of the pixels the projector lights decoded, fully or partly.*stripes"):
+        assert warn_if_few_decoded(dec, "state 'near', projector 'upper'") == pytest.approx(0.25)

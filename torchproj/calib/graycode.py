@@ -9,6 +9,14 @@ The decoder follows the semantics of OpenCV's ``cv2.structured_light.GrayCodePat
 - column bits come first, most significant bit first, then row bits; the Gray code is turned into
   a binary number; decoded coordinates outside the projector image are invalid.
 
+A pixel whose bits do not all pass the threshold is invalid in OpenCV's sense, but some of its bits
+still say where it is. Where only the finest ``m`` bits of an axis are unreliable (stripes finer than
+the camera or a defocused lens resolves), the reliable ones name a block of ``2^m`` cells; where one
+coarser bit is unreliable and flipping it names the neighbouring cell, the pixel sits on that
+bit's stripe edge, between two cells. Such a pixel is *partly* decoded: :attr:`GrayDecoding.coarse_xy`
+holds the centre of the cells its bits leave open and :attr:`GrayDecoding.spread` how many there are
+per axis, so that calibration can place it from its neighbours instead of dropping it.
+
 A shortened sequence keeps only the first (most significant) ``k`` of the ``n`` pattern pairs per
 axis, ``bits=(kx, ky)``: they are exactly the Gray code of the block of ``2^(n-k)`` cells a pixel
 falls in (the top bits of a Gray code are the Gray code of the top bits), so it decodes to the
@@ -115,6 +123,11 @@ class GrayDecoding:
             radiometric weight of this projector at each pixel).
         block: ``(bx, by)`` projector cells per decoded value: ``(1, 1)`` for a full sequence; for
             a shortened one ``prj_xy`` is the centre of a block of that many cells.
+        coarse_xy: :math:`(H, W, 2)` what the reliable bits say: ``prj_xy`` where valid, the centre of
+            the cells the reliable bits leave open where the pixel is partly decoded (module
+            docstring), NaN elsewhere. None for a shortened sequence.
+        spread: :math:`(H, W, 2)` int, the cells per axis that ``coarse_xy`` leaves open (1 where
+            valid, 0 where nothing is known). None for a shortened sequence.
     """
 
     prj_xy: torch.Tensor
@@ -122,6 +135,27 @@ class GrayDecoding:
     lit: torch.Tensor
     contrast: torch.Tensor
     block: tuple[int, int] = (1, 1)
+    coarse_xy: torch.Tensor | None = None
+    spread: torch.Tensor | None = None
+
+    @property
+    def partial(self) -> torch.Tensor:
+        """:math:`(H, W)` bool, lit pixels partly decoded (some bits unreliable, yet a few cells named)."""
+        if self.coarse_xy is None:
+            return torch.zeros_like(self.valid)
+        return torch.isfinite(self.coarse_xy).all(-1) & ~self.valid
+
+    def counts(self) -> dict[str, int]:
+        """How many of the pixels the projector visibly lights decoded fully, partly or not at all."""
+        lit, full, partial = self.lit, self.valid & self.lit, self.partial & self.lit
+        return {"lit": int(lit.sum()), "full": int(full.sum()), "partial": int(partial.sum()),
+                "none": int(lit.sum() - full.sum() - partial.sum())}
+
+    @property
+    def lit_located_fraction(self) -> float:
+        """Share of the lit pixels decoded fully or partly: those calibration can place."""
+        counts = self.counts()
+        return (counts["full"] + counts["partial"]) / max(counts["lit"], 1)
 
     @property
     def valid_fraction(self) -> float:
@@ -142,22 +176,54 @@ def _grey(images: torch.Tensor) -> torch.Tensor:
     return images
 
 
-def _decode_axis(images: torch.Tensor, pairs: range, threshold: float, reliable: torch.Tensor) -> torch.Tensor:
-    """(H, W) int64 values of the Gray code that ``pairs`` of the pattern/inverse captures spell, MSB
-    first; clears ``reliable`` where a pair's difference is below ``threshold`` ([0, 1] units).
+def _decode_axis(images: torch.Tensor, pairs: range, threshold: float):
+    """Decode the Gray code that ``pairs`` of the pattern/inverse captures spell, MSB first.
 
     One pair at a time: a capture sequence is tens of full-size images, and whole-stack temporaries
     would cost more memory traffic (and memory) than the comparisons.
+
+    Returns:
+        :math:`(H, W)` int64 binary values (every bit read by its sign, reliable or not), and int16
+        maps of the first unreliable pair's index (``len(pairs)`` where none) and of the number of
+        unreliable pairs (difference below ``threshold``, [0, 1] units).
     """
-    binary = torch.zeros(images.shape[-2:], dtype=torch.bool, device=images.device)
-    value = torch.zeros(images.shape[-2:], dtype=torch.int32, device=images.device)
-    for k in pairs:  # b_i = b_{i-1} xor g_i; value accumulates MSB first
+    shape, device = images.shape[-2:], images.device
+    binary = torch.zeros(shape, dtype=torch.bool, device=device)
+    value = torch.zeros(shape, dtype=torch.int32, device=device)
+    first_bad = torch.full(shape, len(pairs), dtype=torch.int16, device=device)
+    bad = torch.zeros(shape, dtype=torch.int16, device=device)
+    for i, k in enumerate(pairs):  # b_i = b_{i-1} xor g_i; value accumulates MSB first
         pair = _grey(images[2 * k:2 * k + 2])
         diff = pair[0] - pair[1]
         binary ^= diff > 0
         value.mul_(2).add_(binary)
-        reliable &= diff.abs_() >= threshold
-    return value.to(torch.int64)
+        weak = diff.abs_() < threshold
+        bad += weak
+        first_bad.masked_fill_(weak & (first_bad == len(pairs)), i)
+    return value.to(torch.int64), first_bad, bad
+
+
+# At most this many finest bits of an axis may be unreliable for a pixel to count as partly decoded:
+# a block of 8 cells is still pinned by its neighbours' fit (refine_subpixel); wider ones are guesses.
+_MAX_OPEN_BITS = 3
+
+
+def _open_cells(value: torch.Tensor, first_bad: torch.Tensor, bad: torch.Tensor, bits: int):
+    """What an axis' reliable bits say (module docstring): the centre of the cells they leave open
+    :math:`(H, W)` float and how many :math:`(H, W)` int (0 where they name no contiguous cells)."""
+    first, bad = first_bad.long(), bad.long()
+    suffix = (bad == bits - first) & (bad <= _MAX_OPEN_BITS)  # all bits from the first unreliable one on
+    width = torch.where(suffix, 1 << bad.clamp(max=_MAX_OPEN_BITS), 1)
+    start = torch.div(value, width, rounding_mode="floor") * width
+    # One unreliable coarser bit: flipping its Gray bit flips every binary bit from it down. The two
+    # readings are neighbours exactly when the pixel sits on that bit's stripe edge.
+    other = value ^ ((1 << (bits - first).clamp(min=0, max=bits)) - 1)
+    edge = (bad == 1) & ~suffix & ((other - value).abs() == 1)
+    start = torch.where(edge, torch.minimum(value, other), start)
+    width = torch.where(edge, 2, width)
+    known = suffix | edge | (bad == 0)
+    centre = start.to(torch.float32) + (width - 1).to(torch.float32) / 2
+    return centre, torch.where(known, width, 0)
 
 
 def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, projector_size: tuple[int, int],
@@ -191,10 +257,10 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     check_shape(white, "white", [sizes["H"], sizes["W"]])
     check_shape(black, "black", [sizes["H"], sizes["W"]])
 
-    reliable = torch.ones(white.shape, dtype=torch.bool, device=white.device)
     threshold = (white_threshold - _EPS) / 255  # [0, 1] units, as the captures
-    codes = [_decode_axis(patterns, range(kx), threshold, reliable),
-             _decode_axis(patterns, range(kx, kx + ky), threshold, reliable)]
+    axes = [_decode_axis(patterns, range(kx), threshold), _decode_axis(patterns, range(kx, kx + ky), threshold)]
+    codes = [value for value, _, _ in axes]
+    reliable = (axes[0][2] == 0) & (axes[1][2] == 0)
     block = (2 ** (nx - kx), 2 ** (ny - ky))
     # A block index names cells [b * block, (b + 1) * block - 1], cut at the image edge; its
     # coordinate is the centre of the cells inside (the cell itself for a full sequence).
@@ -208,7 +274,16 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     _warn_if_codes_beyond(lit & reliable, inside, first, projector_size)
     prj_xy = torch.stack(centre, -1)
     prj_xy[~valid] = float("nan")
-    return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast, block=block)
+    coarse_xy = spread = None
+    if block == (1, 1):
+        (cx, sx), (cy, sy) = (_open_cells(*axis, bits) for axis, bits in zip(axes, (kx, ky)))
+        spread = torch.stack([sx, sy], -1).to(torch.int16)
+        known = lit & (sx > 0) & (sy > 0) & (cx < width) & (cy < height)
+        spread[~known] = 0
+        coarse_xy = torch.where(valid[..., None], prj_xy, torch.stack([cx, cy], -1))
+        coarse_xy[~(known | valid)] = float("nan")
+    return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=contrast, block=block, coarse_xy=coarse_xy,
+                        spread=spread)
 
 
 _BEYOND = 0.05  # a share of reliably decoded pixels beyond the projector that noise does not explain
@@ -238,7 +313,7 @@ _REFINE_CHUNK = 1 << 18  # fitted pixels per float64 pass of refine_subpixel
 
 
 def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
-                    min_fill: float = 0.7, max_shift: float = 0.75) -> torch.Tensor:
+                    min_fill: float = 0.7, max_shift: float = 0.75, spread: torch.Tensor | None = None) -> torch.Tensor:
     """Sub-pixel projector coordinates by a local affine fit over neighbouring camera pixels.
 
     Gray code quantises each coordinate to whole LCD cells, a staircase across the camera image.
@@ -254,6 +329,8 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
         window: odd neighbourhood size in camera pixels.
         min_fill: minimum fraction of valid pixels in the window.
         max_shift: largest accepted move away from the decoded value, in projector pixels.
+        spread: optional :math:`(H, W, 2)` cells per axis a partly decoded value leaves open
+            (:attr:`GrayDecoding.spread`); such a value may move by half its block more.
 
     Returns:
         :math:`(H, W, 2)` refined coordinates, NaN where invalid.
@@ -288,6 +365,7 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
         c0 = (su * cof_xx - sx * (sux * syy - sxy * suy) + sy * (sux * sxy - sxx * suy)) / det
         fitted = c0.T.to(prj_xy.dtype)  # (M, 2)
         decoded = flat_out[at]
-        keep = (fitted - decoded).abs().max(-1).values <= max_shift
+        allowed = max_shift if spread is None else max_shift + (spread.reshape(-1, 2)[at] - 1).clamp_min(0) / 2
+        keep = ((fitted - decoded).abs() <= allowed).all(-1)
         flat_out[at] = torch.where(keep[:, None], fitted, decoded)
     return out

@@ -25,10 +25,10 @@ FEW_DECODED = 0.7
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:
     """Warn, naming ``where`` and the likely causes, when few of the lit pixels decoded; returns the share."""
-    share = decoding.lit_decoded_fraction
+    share = decoding.lit_located_fraction if decoding.coarse_xy is not None else decoding.lit_decoded_fraction
     if share < FEW_DECODED:
-        warnings.warn(f"{where}: only {share:.0%} of the pixels the projector lights decoded (under "
-                      f"{FEW_DECODED:.0%}); those pixels take no part in the solve. Likely causes: Gray-code stripes "
+        warnings.warn(f"{where}: only {share:.0%} of the pixels the projector lights decoded, fully or partly (under "
+                      f"{FEW_DECODED:.0%}); the others take no part in the solve. Likely causes: Gray-code stripes "
                       "finer than the camera resolves (steep or distant surfaces), shadows and grazing light, or a "
                       "projector size that does not match the captures. Try fewer bits (--bits with --maps "
                       "homography on planes), a closer camera or more camera supersampling", stacklevel=3)
@@ -102,7 +102,10 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
             covered = fill_holes(covered, max_hole)
         prj_xy = homography_map(fit.matrix, torch.isfinite(covered).all(-1), projector_size)
     else:
-        prj_xy = refine_subpixel(dec.prj_xy, dec.valid) if subpixel else dec.prj_xy.clone()
+        # Partly decoded pixels join the fit: their open cells' centre is within half a block of the
+        # truth, and the fit over their neighbours places them between the cells.
+        located = dec.valid | dec.partial
+        prj_xy = refine_subpixel(dec.coarse_xy, located, spread=dec.spread) if subpixel else dec.coarse_xy.clone()
         if max_hole:
             prj_xy = fill_holes(prj_xy, max_hole)
     cam_xy, count = inverse_map(prj_xy, projector_size)

@@ -19,7 +19,7 @@ from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
 from ..solve.compensate import iteration_limit
-from ..transport import MAPS, build_transport, select_maps
+from ..transport import DEFAULT_FOOTPRINT, MAPS, build_transport, select_maps
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
@@ -70,7 +70,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 device="cpu", max_iter: int | None = None, progress=None, calibration: VirtualCalibration | None = None,
                 oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
-                objective="l2", footprint: str = "nearest", ceiling: bool = False, outside: str = "clip",
+                objective="l2", footprint: str = DEFAULT_FOOTPRINT, ceiling: bool = False, outside: str = "clip",
                 chains: str = "epipolar", solver_options: dict | None = None) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
@@ -108,8 +108,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             within 1 dB of least squares), or an :class:`~torchproj.solve.ImageObjective`; the
             image objectives start from the solver's patterns (:func:`~torchproj.solve.solve_ssim`).
         footprint: the projector cells each camera pixel's light is modelled on: ``"nearest"``
-            (one per projector, as the paper) or ``"bilinear"`` (the four around its sub-pixel
-            coordinate; :func:`~torchproj.transport.build_transport`).
+            (one per projector, as the paper), ``"bilinear"`` (the four around its sub-pixel
+            coordinate) or ``"area"`` (the cells its area covers, the default:
+            :data:`~torchproj.transport.DEFAULT_FOOTPRINT`; :func:`~torchproj.transport.build_transport`).
         ceiling: also solve the same targets, rows and bounds on the simulator's own light transport
             (FISTA, least squares, to convergence) and score it the same way: each report row gets
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
@@ -194,7 +195,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
-    # per-target g t + o is an exact right-hand side of the same A), and with the bilinear footprint,
+    # per-target g t + o is an exact right-hand side of the same A), and with the bilinear or area footprint,
     # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
     # merged otherwise (exact, smaller).
     op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact
@@ -276,6 +277,7 @@ def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solve
         "bounds_8bit": list(bounds_8bit), "device": str(device),
         "calibration": _CALIBRATION["geometry" if oracle is None and cal.oracle else oracle],
         "maps": maps, "graycode": _graycode_report(scene, cal), "decoded_fraction": cal.decoded,
+        "decode": cal.decode,
         "model": model, "objective": least_squares,
         "unexplained_fraction": round(_unexplained(ops, result.patterns), 5),
         "iterations": result.iterations, "scale": op.scale,
@@ -311,11 +313,19 @@ def image_objective_report(result: SolveResult) -> dict:
             "start": {"solver": start.method, "iterations": start.iterations, "objective": start.objective}}
 
 
-def _decoded_lines(decoded: dict | None) -> list[str]:
+def _decoded_lines(decoded: dict | None, decode: dict | None = None) -> list[str]:
     from ..calib import FEW_DECODED
 
     if not decoded:
         return []
+    if decode:  # fully, partly (placed from their neighbours) and not at all
+        low = any(1 - v["none"] < FEW_DECODED for per in decode.values() for v in per.values())
+        text = "; ".join(f"{state} " + ", ".join(f"{name} {v['full']:.1%} fully, {v['partial']:.1%} partly, "
+                                                  f"{v['none']:.1%} not" for name, v in per.items())
+                         for state, per in decode.items())
+        return [f"Decoded (shares of each projector's lit pixels; a partly decoded pixel is placed from its neighbours): "
+                f"{text}" + (f". Under {FEW_DECODED:.0%} decoded somewhere: the others take no part in the solve (see "
+                             "the warning)." if low else "."), ""]
     low = any(v < FEW_DECODED for per in decoded.values() for v in per.values())
     return ["Decoded (share of each projector's lit pixels): " + "; ".join(
         f"{state} " + ", ".join(f"{name} {v:.1%}" for name, v in per.items()) for state, per in decoded.items())
@@ -351,7 +361,7 @@ def run_markdown(report: dict) -> str:
                  for name, g in report["graycode"].items())) + ".", "",
              f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
-             *_decoded_lines(report.get("decoded_fraction")),
+             *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
              *_image_objective_lines(report.get("image_objective")),
              f"Evaluation: {report['evaluation']}.", "",
              "| target | state | PSNR (dB) | SSIM | crosstalk | ghost | pixels | affine PSNR (dB) |"

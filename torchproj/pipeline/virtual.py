@@ -93,6 +93,8 @@ class VirtualCalibration:
     bits: list | None = None  # per projector, (kx, ky) of a shortened Gray-code sequence; None: the full one
     homographies: dict | None = None  # per state, per projector, the HomographyFit a shortened sequence gave
     decoded: dict | None = None  # per state, per projector name, the share of its lit pixels that decoded
+    # per state, per projector name, the shares of its lit pixels decoded fully, partly and not at all
+    decode: dict | None = None
 
 
 def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False,
@@ -120,10 +122,14 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     per_state: dict[str, list] = {}
     black = {}
     decoded: dict[str, dict[str, float]] = {}
+    decode: dict[str, dict[str, dict]] = {}
     for name, j, capture, calibration in calibrate_rig(rig, bits=bits, plane_tolerance=plane_tolerance,
                                                         progress=progress):
         per_state.setdefault(name, []).append(calibration)
         decoded.setdefault(name, {})[scene.projectors[j].name] = round(calibration.decoding.lit_decoded_fraction, 4)
+        counts = calibration.decoding.counts()
+        decode.setdefault(name, {})[scene.projectors[j].name] = {
+            k: round(counts[k] / max(counts["lit"], 1), 4) for k in ("full", "partial", "none")}
         # Every projector shows black: the state's black level and ambient light. A copy, not a view that
         # would keep the whole capture stack (hundreds of MB per projector) alive.
         black[name] = capture.black.to("cpu", copy=True)
@@ -136,7 +142,7 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     return VirtualCalibration(rig=rig, states=states, black=black,
                               responses=[pc.response for pc in next(iter(per_state.values()))],
                               seconds=time.perf_counter() - t0, bits=shown, homographies=homographies,
-                              decoded=decoded)
+                              decoded=decoded, decode=decode)
 
 
 def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: float = 1.0, noise: bool = True,
@@ -230,7 +236,9 @@ def check_calibration(rig: VirtualRig, state: str, projector: int, capture: Gray
     span = capture.white - capture.black
     lit = calibration.decoding.valid & (span.mean(0) > 0.1)
     flat = (((shot - capture.black) / span.clamp_min(1e-3)).mean(1).sum(0))[lit]
+    counts = calibration.decoding.counts()
     report = {"state": state, "projector": proj.name, "block_cells": list(calibration.decoding.block),
+              "decode": {k: counts[k] for k in ("lit", "full", "partial", "none")},
               "decoding_integer": decoding_accuracy(calibration.decoding.prj_xy, truth).as_dict(),
               "decoding_subpixel": decoding_accuracy(calibration.prj_xy, truth).as_dict(),
               "response_fit": calibration.response.as_dict(), "response_true_b": list(proj.response_b),
@@ -290,25 +298,36 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
     return text
 
 
+def _decode_shares(decode: dict | None, decoded: float) -> str:
+    """``full / partly / not`` shares of the lit pixels; a shortened sequence has no partial decoding."""
+    if not decode or not decode["lit"]:
+        return f"{decoded:.2%}"
+    return " / ".join(f"{decode[k] / decode['lit']:.1%}" for k in ("full", "partial", "none"))
+
+
 def simulate_markdown(report: dict) -> str:
     """``report.md`` of ``torchproj simulate``."""
     lines = [f"# Virtual-rig calibration: {report['scene']}", "",
              "Decoded coordinates against the simulator's truth, over the camera pixels each projector truly "
              "lights. `exact`: decoded cell equals the true cell; RMS: distance to the continuous true "
              "coordinate (projector pixels); `block`: cells per decoded value (a shortened sequence decodes "
-             "blocks, and its map is the homography fitted to them: the RMS of the map). Flatness: "
-             "compensated ramp plus its mirror, normalised by white - black (ideal 1, std 0).", "",
-             "| state | projector | block | decoded | exact | RMS decoded | RMS map | fitted b (true) | "
-             "ramp+mirror mean / std |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "blocks, and its map is the homography fitted to them: the RMS of the map). Decoded fully / partly / "
+             "not: shares of the pixels the projector visibly lights (white - black over the shadow threshold); a "
+             "partly decoded pixel's reliable bits name two or a few cells, and the map places it from its "
+             "neighbours (`map` covers those too). Flatness: compensated ramp plus its mirror, normalised by "
+             "white - black (ideal 1, std 0).", "",
+             "| state | projector | block | decoded fully / partly / not | exact | RMS decoded | map covers | RMS map "
+             "| fitted b (true) | ramp+mirror mean / std |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["calibrations"]:
         di, ds = r["decoding_integer"], r["decoding_subpixel"]
         b = "/".join(f"{v:.3f}" for v in r["response_fit"]["b"])
         tb = "/".join(f"{v:g}" for v in r["response_true_b"])
         f = r["compensated_ramp_sum"]
         lines.append(f"| {r['state']} | {r['projector']} | {'x'.join(map(str, r['block_cells']))} | "
-                     f"{di['decoded']:.2%} | {di['exact']:.2%} | "
-                     f"{di['rms_px']:.3f} | {ds['rms_px']:.3f} | {b} ({tb}) | {f['mean']:.3f} / {f['std']:.3f} |")
+                     f"{_decode_shares(r.get('decode'), di['decoded'])} | {di['exact']:.2%} | "
+                     f"{di['rms_px']:.3f} | {ds['decoded']:.2%} | {ds['rms_px']:.3f} | {b} ({tb}) | "
+                     f"{f['mean']:.3f} / {f['std']:.3f} |")
     t = report["timings_s"]
     lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
     return "\n".join(lines)
