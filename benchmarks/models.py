@@ -3,8 +3,9 @@
     python benchmarks/models.py --out benchmarks/results/models [--scenes paper_two_planes box_cylinders ...]
 
 Each scene is calibrated once from simulated captures. For each model of a camera pixel's light
-(the nearest cell, as the paper; the four cells around its sub-pixel coordinate, ``bilinear``) the
-operator is built on that calibration, solved with FISTA (least squares, bounds 0..255) and the
+(the nearest cell, as the paper; the four cells around its sub-pixel coordinate, ``bilinear``; the
+cells the pixel's own area covers through the map's local slope, ``area``, the default of ``run``)
+the operator is built on that calibration, solved with FISTA (least squares, bounds 0..255) and the
 patterns scored on the virtual rig's captures as ``torchproj run`` scores them. The top line is the
 ceiling: the same rows solved on the simulator's own light transport
 (:func:`torchproj.pipeline.light_transport`), the best any calibration could give. Times are this
@@ -26,7 +27,7 @@ from matplotlib.figure import Figure
 
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
                                 scene_targets, solve_on_light_transport)
-from torchproj.scene import load_scene
+from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
 from torchproj.transport import build_transport
 
@@ -38,10 +39,10 @@ def measure(name: str, scale: float, log=print) -> list[dict]:
     cal = calibrate_virtual(scene, progress=False)
     targets = scene_targets(scene, None, cal.rig)
     rows = []
-    for model in ("nearest", "bilinear", "ceiling"):
+    for model in ("nearest", "bilinear", "area", "ceiling"):
         t0 = time.perf_counter()
         op = build_transport(cal.states, targets, footprint="nearest" if model == "ceiling" else model,
-                             merge=model == "nearest")  # as run_virtual: bilinear rows do not repeat
+                             merge=model == "nearest")  # as run_virtual: bilinear and area rows do not repeat
         ops = light_transport(cal.rig, targets, op) if model == "ceiling" else [op]
         built = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -87,7 +88,7 @@ def chart(path: Path, rows: list[dict]) -> None:
         for k, name in enumerate(t["name"] for t in top["targets"]):
             colour = f"C{k}"
             ax.axhline(top["targets"][k]["ssim"], color=colour, ls="--", lw=1, label=f"{name}: ceiling")
-            for marker, r in zip("os^v", mine):
+            for marker, r in zip("os^vD", mine):
                 ax.plot(r["build_s"] + r["solve_s"], r["targets"][k]["ssim"], marker, color=colour,
                         label=f"{name}: {r['model']}")
         ax.set(title=scene, xlabel="build + solve (s)", ylabel="captured SSIM")
@@ -98,7 +99,7 @@ def chart(path: Path, rows: list[dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/models"))
-    ap.add_argument("--scenes", nargs="+", default=["paper_two_planes"])
+    ap.add_argument("--scenes", nargs="+", default=list(BUILTIN_SCENES))
     ap.add_argument("--scale", type=float, default=1.0, help="resolution scale of every scene (default 1)")
     ap.add_argument("--chart-only", action="store_true", help="redraw models.png from --out's results.json")
     args = ap.parse_args()

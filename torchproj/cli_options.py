@@ -133,7 +133,7 @@ def solver_options(p) -> None:
 def solve_options(p) -> None:
     """The options of every command that solves patterns (``run``, ``solve``)."""
     from .solve import OBJECTIVES, PSNR_DROP_DB
-    from .transport import FOOTPRINTS
+    from .transport import DEFAULT_FOOTPRINT, FOOTPRINTS
 
     solver_options(p)
     p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
@@ -144,8 +144,9 @@ def solve_options(p) -> None:
     p.add_argument("--psnr-drop", type=float, default=PSNR_DROP_DB, metavar="DB", help="ssim/mixed: the PSNR each "
                    f"target may give up against least squares, in the model (default {PSNR_DROP_DB:g}; -1: no limit)")
     p.add_argument("--ssim-iter", type=int, default=30, metavar="N", help="ssim/mixed: iterations (default 30)")
-    p.add_argument("--footprint", default="nearest", choices=list(FOOTPRINTS), help="the projector cells a camera "
-                   "pixel's light is modelled on: nearest (one per projector, as the paper; default) or bilinear")
+    p.add_argument("--footprint", default=DEFAULT_FOOTPRINT, choices=list(FOOTPRINTS), help="the projector cells a "
+                   "camera pixel's light is modelled on: nearest (one per projector, as the paper), bilinear (the four "
+                   f"around its sub-pixel coordinate) or area (those its area covers); default {DEFAULT_FOOTPRINT}")
     device_options(p)
 
 

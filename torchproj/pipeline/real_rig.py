@@ -16,7 +16,7 @@ import torch
 from ..calib import CalibrationBundle, load_bundle
 from ..core.checks import check
 from ..solve import SolveResult, check_solve_options, image_objective, make_patterns
-from ..transport import StateCalibration, Target, build_transport, select_maps, target_on_camera
+from ..transport import DEFAULT_FOOTPRINT, StateCalibration, Target, build_transport, select_maps, target_on_camera
 from .run import image_objective_report
 from .scoring import score_image
 from .targets import target_image
@@ -66,7 +66,7 @@ def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
 
 
 def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
-                 objective="l2", maps: str = "decoded", footprint: str = "nearest",
+                 objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT,
                  plane_tolerance: float = 1.0, max_iter: int | None = None, device="cpu", progress=None,
                  outside: str = "clip", chains: str = "epipolar") -> BundleSolution:
     """Solve the patterns that show each image in its state, from a bench's calibration.

@@ -6,7 +6,11 @@ at r, measured from the same Gray-code capture set (it folds fall-off, angle, al
 into one number), ``cell_j(r)`` the decoded projector coordinate, and ``p_j`` the projector's linear
 relative light (0 = black, 1 = white). A target asks for ``black_k(r) + scale * t(r)`` at its pixels,
 so ``A[r, (j, cell)] = w_j(r)`` and ``i[r] = scale * t(r)``. With the bilinear footprint a pixel
-spreads its weight over the four cells around its sub-pixel coordinate.
+spreads its weight over the four cells around its sub-pixel coordinate. With the ``area`` footprint
+it spreads it over the cells its own area covers on the projector: the square pixel carried through
+the map's local slope (a parallelogram, from the calibrated map alone), each cell weighted by the
+share of the pixel it lights. That is the light a camera pixel integrates when it is as large as a
+few projector cells (a camera coarser than the projectors, a steep surface).
 
 Rows with the same columns merge exactly: their normal-equation blocks add, and an equivalent set
 of at most ``s`` rows (s = columns per row) replaces them (``R^T R = sum a a^T``, ``R^T b = sum i a``),
@@ -25,9 +29,20 @@ from ..core.checks import check, check_device, check_finite, check_image, check_
 from ..core.conventions import round_to_pixel
 from .operator import TransportOperator, csr_from_coo
 
-__all__ = ["FOOTPRINTS", "Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows"]
+__all__ = ["DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows", "map_slope"]
 
-FOOTPRINTS = ("nearest", "bilinear")  # the cells a camera pixel's light is modelled on (build_transport)
+FOOTPRINTS = ("nearest", "bilinear", "area")  # the cells a camera pixel's light is modelled on (build_transport)
+# What run, solve and position model by default: the footprint closest to the exact-light ceiling on
+# the shipped scenes, for a few seconds more than nearest (benchmarks/models.py, README "Transport
+# models"). build_transport's own default stays the paper's nearest cell, whose rows merge.
+DEFAULT_FOOTPRINT = "area"
+
+# Points per axis at which a camera pixel's area is carried onto the projector by the ``area``
+# footprint: 4 x 4 shares a pixel's light among its cells to 1/16, as the virtual rig samples it.
+_AREA_SAMPLES = 4
+# Camera pixels either side over which the map's slope is taken: a wider difference averages the
+# refined coordinates' own error (about a tenth of a cell) over more pixels.
+_SLOPE_REACH = 2
 
 
 @dataclass
@@ -95,7 +110,8 @@ class StateCalibration:
         for j, (xy, weight, img) in enumerate(zip(self.prj_xy, self.weight, light)):
             w, h = self.projector_sizes[j]
             check_shape(img, f"light[{j}]", ["C", h, w])
-            cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint == "bilinear")
+            slope = map_slope(xy).reshape(-1, 2, 2) if footprint == "area" else None
+            cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint, slope)
             flat = img.reshape(img.shape[0], -1)[:, cells.clamp_min(0)]  # (C, N, s); unused slots weigh 0
             out += (flat * weights).sum(-1).reshape(out.shape)
         return out
@@ -174,11 +190,65 @@ def group_rows(columns: torch.Tensor) -> tuple[torch.Tensor, int]:
     return group, int(new.sum())
 
 
-def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], bilinear: bool):
-    """Cells and weights of one projector for rows: :math:`(N, s)` flat cells (-1 = none), weights."""
+def map_slope(prj_xy: torch.Tensor) -> torch.Tensor:
+    """:math:`(H, W, 2, 2)` the map's local slope, projector cells per camera pixel:
+    ``[..., i, 0] = d u_i / d x``, ``[..., i, 1] = d u_i / d y``.
+
+    A central difference over ``_SLOPE_REACH`` pixels either side where both ends are mapped, over
+    one pixel where only those are, else NaN (an edge pixel with no mapped neighbours on an axis).
+    """
+    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    slope = torch.full((*prj_xy.shape[:2], 2, 2), float("nan"), dtype=prj_xy.dtype, device=prj_xy.device)
+    for axis, dim in ((0, 1), (1, 0)):  # x runs along dim 1 (columns), y along dim 0 (rows)
+        for reach in (1, _SLOPE_REACH):  # the wider difference, where it exists, wins
+            ahead = torch.roll(prj_xy, -reach, dim)
+            behind = torch.roll(prj_xy, reach, dim)
+            diff = (ahead - behind) / (2 * reach)
+            inner = torch.zeros(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
+            inner.narrow(dim, reach, max(prj_xy.shape[dim] - 2 * reach, 0)).fill_(True)  # roll wraps round
+            ok = torch.isfinite(diff).all(-1) & inner
+            slope[..., axis][ok] = diff[ok]
+    return slope
+
+
+def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tuple[int, int]):
+    """The cells a camera pixel's square covers, carried through the local ``slope``, and the share
+    of the pixel each lights (sampled at ``_AREA_SAMPLES`` squared points): :math:`(N, s)` each."""
+    w, h = size
+    steps = (torch.arange(_AREA_SAMPLES, dtype=u.dtype, device=u.device) + 0.5) / _AREA_SAMPLES - 0.5
+    dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
+    offset = torch.stack([dx, dy], -1)  # (S, 2) camera-pixel offsets from the centre
+    # Cell centres at integers (conventions module): a point's cell is floor(u + 0.5), kept in float
+    # (exact for any projector size) and turned to int32 once, for a fast sort.
+    points = torch.einsum("nij,sj->nsi", torch.nan_to_num(slope), offset).add_(u[:, None, :] + 0.5).floor_()
+    x, y = points.unbind(-1)
+    inside = ok[:, None] & (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    flat = torch.where(inside, y.mul_(w).add_(x), -1.0).to(torch.int32)
+    # A row's distinct cells, each with its count of samples: sort the samples, number the runs.
+    flat, _ = torch.sort(flat, dim=1)
+    run = torch.zeros_like(flat)
+    run[:, 1:] = (flat[:, 1:] != flat[:, :-1]).cumsum(1)
+    slots = int(run.max()) + 1 if run.numel() else 1
+    cells = torch.full((flat.shape[0], slots), -1, dtype=torch.int64, device=flat.device).scatter_(1, run, flat.long())
+    share = torch.zeros(flat.shape[0], slots, dtype=u.dtype, device=u.device).scatter_add_(
+        1, run, (flat >= 0).to(u.dtype) / offset.shape[0])
+    return cells, share
+
+
+def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], model: str,
+               slope: torch.Tensor | None = None):
+    """Cells and weights of one projector for rows: :math:`(N, s)` flat cells (-1 = none), weights.
+
+    ``slope`` :math:`(N, 2, 2)` (:func:`map_slope` at the rows) is needed by the ``area`` model; a
+    row whose slope is unknown keeps its nearest cell."""
     w, h = size
     ok = torch.isfinite(prj_xy).all(-1) & (weight > 0)
-    if not bilinear:
+    if model == "area":
+        u = torch.nan_to_num(prj_xy, nan=-10.0)
+        known = torch.isfinite(slope).all(-1).all(-1)
+        cells, share = _area_cells(u, torch.where(known[:, None, None], slope, 0.0), ok, size)
+        return cells, share * torch.where(ok, weight, 0.0)[:, None]
+    if model == "nearest":
         cell = round_to_pixel(torch.nan_to_num(prj_xy, nan=-10.0))
         ok &= (cell[:, 0] >= 0) & (cell[:, 0] < w) & (cell[:, 1] >= 0) & (cell[:, 1] < h)
         flat = torch.where(ok, cell[:, 1] * w + cell[:, 0], -1)
@@ -256,7 +326,8 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     Args:
         calibrations: state name -> :class:`StateCalibration` (from Gray-code calibration).
         targets: at least one :class:`Target`; each names a calibrated state.
-        footprint: ``"nearest"`` (one cell per projector and row, as the paper) or ``"bilinear"``.
+        footprint: ``"nearest"`` (one cell per projector and row, as the paper), ``"bilinear"`` (the four
+            around the sub-pixel coordinate) or ``"area"`` (the cells the pixel's area covers).
         merge: merge rows with the same columns (exact; smaller model). Unmerged rows are camera
             pixels, and the operator keeps their map (:meth:`TransportOperator.to_camera`), which
             an image-space model needs (:class:`~torchproj.solve.ProjectionModel`).
@@ -295,7 +366,8 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         offset = 0
         for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
             check_finite(weight, f"weight[{j}] of state {target.state!r}")
-            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint == "bilinear")
+            slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
+            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope)
             cols.append(torch.where(c >= 0, c + offset, -1))
             vals.append(v)
             offset += sizes[j][0] * sizes[j][1]
