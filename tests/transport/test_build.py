@@ -9,10 +9,10 @@ import torch
 from torchproj.core import InputError
 from torchproj.pipeline import calibrate_virtual
 from torchproj.scene import parse_scene
-from torchproj.transport import Target, TransportOperator, build_transport, csr_from_coo, group_rows, map_slope
+from torchproj.transport import StateCalibration, Target, TransportOperator, build_transport, csr_from_coo, group_rows, map_slope
 from torchproj.transport.build import target_on_camera
 
-from ..helpers import SIZES, dense_reference, small_config, synthetic_calibration, targets
+from ..helpers import LARGE, SIZES, dense_reference, small_config, synthetic_calibration, targets
 
 
 @pytest.mark.parametrize("footprint", ["nearest", "bilinear"])
@@ -213,3 +213,21 @@ def test_area_footprint_predicts_the_simulated_capture(camera, oracle, gain):
             for fp in ("nearest", "area")}
     assert miss["area"] < gain * miss["nearest"]
     assert miss["area"] < 0.3 * float(shot[0][lit].std())
+
+
+def test_area_rows_keep_each_pixels_light_whatever_their_width():
+    """Two states whose maps are smooth but differently steep (a pixel over ~0.3 and over ~1.6 cells):
+    their rows need different numbers of cells, and a uniform light of 1 still gives each row exactly its
+    pixel's weight (a pixel's shares sum to one), as the nearest cell does."""
+    ys, xs = torch.meshgrid(torch.arange(15.0), torch.arange(20.0), indexing="ij")
+    cals = {}
+    for state, gain in (("near", 1.6), ("far", 0.3)):
+        maps = [torch.stack([gain * xs + 0.9, gain * ys + 0.7], -1) for _ in LARGE]  # inside every projector
+        weights = [0.5 + 0.01 * xs + 0.02 * ys for _ in LARGE]
+        cals[state] = StateCalibration(maps, weights, LARGE)
+    tgts = targets()
+    area = build_transport(cals, tgts, footprint="area", merge=False, scale=0.7)
+    nearest = build_transport(cals, tgts, footprint="nearest", merge=False, scale=0.7)
+    ones = torch.ones(area.shape[1], 1)
+    torch.testing.assert_close(area.A(ones), nearest.A(torch.ones(nearest.shape[1], 1)))
+    assert area.nnz > 2 * nearest.nnz  # the steep state's pixels spread over several cells
