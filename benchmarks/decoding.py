@@ -4,7 +4,9 @@
 
 Each state and projector of each built-in scene is calibrated with Gray code on the virtual rig
 (:func:`torchproj.pipeline.calibrate_virtual`, as ``torchproj run``), and the share of the pixels the
-projector visibly lights that decoded is recorded (:attr:`torchproj.calib.GrayDecoding.lit_decoded_fraction`).
+projector visibly lights that decoded fully, partly (a few cells named, placed from the neighbours) or not
+at all is recorded; the located share (:attr:`torchproj.calib.GrayDecoding.lit_located_fraction`, fully or
+partly) is what the warning compares with ``FEW_DECODED``.
 Writes ``results.json`` and ``results.md``.
 """
 
@@ -33,14 +35,17 @@ def main() -> None:
             cal = calibrate_virtual(load_scene(name, scale=args.scale), progress=False)
         for state, per in cal.decoded.items():
             for projector, share in per.items():
-                rows.append({"scene": name, "state": state, "projector": projector, "lit_decoded": share})
-                print(f"{name:20s} {state:12s} {projector:10s} {share:.1%}", flush=True)
-    lines = ["# Share of each projector's lit pixels that decodes", "",
+                shares = cal.decode[state][projector]
+                rows.append({"scene": name, "state": state, "projector": projector, "lit_located": share, **shares})
+                print(f"{name:20s} {state:12s} {projector:10s} {shares['full']:.1%} fully, "
+                      f"{shares['partial']:.1%} partly", flush=True)
+    lines = ["# Share of each projector's lit pixels that decodes, fully or partly", "",
              f"`python benchmarks/decoding.py`{'' if args.scale is None else f' --scale {args.scale:g}'} on "
              f"{machine()}; under {FEW_DECODED:.0%} torchproj warns.", "",
-             "| scene | state | projector | decoded |", "|---|---|---|---|"]
-    lines += [f"| {r['scene']} | {r['state']} | {r['projector']} | {r['lit_decoded']:.1%}"
-              + (" (warned)" if r["lit_decoded"] < FEW_DECODED else "") + " |" for r in rows]
+             "| scene | state | projector | fully | partly | not | located |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['scene']} | {r['state']} | {r['projector']} | {r['full']:.1%} | {r['partial']:.1%} | "
+              f"{r['none']:.1%} | {r['lit_located']:.1%}" + (" (warned)" if r["lit_located"] < FEW_DECODED else "")
+              + " |" for r in rows]
     write_results(args.out, {"machine": machine(), "scale": args.scale, "threshold": FEW_DECODED, "rows": rows},
                   "\n".join(lines) + "\n")
 

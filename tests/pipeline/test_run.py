@@ -64,7 +64,11 @@ def test_run_from_three_gray_code_bits_matches_the_full_sequence(config, tmp_pat
     # Each calibration's decoded share of the lit pixels is in the report, and in report.md.
     assert sorted(full["decoded_fraction"]) == ["far", "near"]
     assert all(0.95 < v <= 1 for per in full["decoded_fraction"].values() for v in per.values())
-    assert "Decoded (share of each projector's lit pixels): near upper " in run_markdown(full)
+    # report.md says per state and projector how many of the lit pixels decoded fully, partly and not.
+    shares = full["decode"]["near"]["upper"]
+    assert sum(shares.values()) == pytest.approx(1, abs=1e-3)
+    assert full["decoded_fraction"]["near"]["upper"] == pytest.approx(shares["full"] + shares["partial"], abs=2e-4)
+    assert f"near upper {shares['full']:.1%} fully, {shares['partial']:.1%} partly" in run_markdown(full)
     assert all(0 <= t["ghost"] <= 1 for t in full["targets"]) and "| crosstalk | ghost |" in run_markdown(full)
     for short, whole in zip(report["targets"], full["targets"]):
         assert short["psnr_db"] == pytest.approx(whole["psnr_db"], abs=0.3)

@@ -107,7 +107,7 @@ class CalibrationBundle:
         ramps: per projector, the measured ramp points its curve was fitted to (or None).
         decoded: state -> projector -> fraction of camera pixels decoded.
         decoded_lit: state -> projector -> share of the pixels it visibly lights that decoded
-            (:attr:`~torchproj.calib.GrayDecoding.lit_decoded_fraction`).
+            (:attr:`~torchproj.calib.GrayDecoding.lit_located_fraction`).
         bits: per projector, the Gray-code pattern pairs per axis its sequence showed.
         homographies: state -> projector -> :class:`~torchproj.calib.HomographyFit` as a dict,
             for projectors calibrated from a shortened sequence.

@@ -25,7 +25,7 @@ FEW_DECODED = 0.7
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:
     """Warn, naming ``where`` and the likely causes, when few of the lit pixels decoded; returns the share."""
-    share = decoding.lit_located_fraction if decoding.coarse_xy is not None else decoding.lit_decoded_fraction
+    share = decoding.lit_located_fraction
     if share < FEW_DECODED:
         warnings.warn(f"{where}: only {share:.0%} of the pixels the projector lights decoded, fully or partly (under "
                       f"{FEW_DECODED:.0%}); the others take no part in the solve. Likely causes: Gray-code stripes "

@@ -92,7 +92,7 @@ class VirtualCalibration:
     oracle: bool = False
     bits: list | None = None  # per projector, (kx, ky) of a shortened Gray-code sequence; None: the full one
     homographies: dict | None = None  # per state, per projector, the HomographyFit a shortened sequence gave
-    decoded: dict | None = None  # per state, per projector name, the share of its lit pixels that decoded
+    decoded: dict | None = None  # per state, per projector name, the share of its lit pixels decoded fully or partly
     # per state, per projector name, the shares of its lit pixels decoded fully, partly and not at all
     decode: dict | None = None
 
@@ -126,7 +126,7 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     for name, j, capture, calibration in calibrate_rig(rig, bits=bits, plane_tolerance=plane_tolerance,
                                                         progress=progress):
         per_state.setdefault(name, []).append(calibration)
-        decoded.setdefault(name, {})[scene.projectors[j].name] = round(calibration.decoding.lit_decoded_fraction, 4)
+        decoded.setdefault(name, {})[scene.projectors[j].name] = round(calibration.decoding.lit_located_fraction, 4)
         counts = calibration.decoding.counts()
         decode.setdefault(name, {})[scene.projectors[j].name] = {
             k: round(counts[k] / max(counts["lit"], 1), 4) for k in ("full", "partial", "none")}
