@@ -5,6 +5,8 @@
 Each scene is calibrated once from simulated captures. For each model of a camera pixel's light
 (the nearest cell, as the paper; the four cells around its sub-pixel coordinate, ``bilinear``; the
 cells the pixel's own area covers through the map's local slope, ``area``, the default of ``run``)
+and, with ``--blur``, ``area+blur``: the area footprint spread over each projector's defocus disc as
+measured from the Gray-code captures by :func:`torchproj.calib.measure_blur`)
 the operator is built on that calibration, solved with FISTA (least squares, bounds 0..255) and the
 patterns scored on the virtual rig's captures as ``torchproj run`` scores them. The top line is the
 ceiling: the same rows solved on the simulator's own light transport
@@ -18,6 +20,7 @@ against build + solve time, one panel per scene).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -25,8 +28,9 @@ from pathlib import Path
 from common import machine, write_results
 from matplotlib.figure import Figure
 
+from torchproj.calib import measure_blur
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
-                                scene_targets, solve_on_light_transport)
+                                scene_targets, simulate_calibration, solve_on_light_transport)
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
 from torchproj.transport import build_transport
@@ -34,14 +38,37 @@ from torchproj.transport import build_transport
 BOUNDS = (0.0, 1.0)
 
 
-def measure(name: str, scale: float, log=print) -> list[dict]:
+def measured_blur(cal) -> tuple[dict, float, dict]:
+    """Each state's calibration with the defocus measured from its Gray-code captures (captured again:
+    calibrate_virtual does not keep them), the seconds measuring took, and the median per state and
+    projector."""
+    states, seconds, medians = {}, 0.0, {}
+    for name, state in cal.states.items():
+        blur = []
+        for j, p in enumerate(cal.rig.scene.projectors):
+            capture = simulate_calibration(cal.rig, name, j)
+            t0 = time.perf_counter()
+            blur.append(measure_blur(capture.patterns, capture.white, capture.black, state.prj_xy[j], (p.width, p.height)))
+            seconds += time.perf_counter() - t0
+            medians.setdefault(name, {})[p.name] = round(float(blur[-1].nanmedian()), 2)
+        states[name] = dataclasses.replace(state, blur=blur)
+    return states, seconds, medians
+
+
+def measure(name: str, scale: float, log=print, blur: bool = False) -> list[dict]:
     scene = load_scene(name, scale=scale)
     cal = calibrate_virtual(scene, progress=False)
     targets = scene_targets(scene, None, cal.rig)
     rows = []
-    for model in ("nearest", "bilinear", "area", "ceiling"):
+    for model in ("nearest", "bilinear", "area", *(("area+blur",) if blur else ()), "ceiling"):
+        extra, states = {}, cal.states
+        if model == "area+blur":
+            states, seconds, medians = measured_blur(cal)
+            extra = {"measure_blur_s": round(seconds, 2), "blur_median_cells": medians}
+            log(f"{name} measured blur (median cells): {medians} in {seconds:.1f} s")
         t0 = time.perf_counter()
-        op = build_transport(cal.states, targets, footprint="nearest" if model == "ceiling" else model,
+        footprint = {"ceiling": "nearest", "area+blur": "area"}.get(model, model)
+        op = build_transport(states, targets, footprint=footprint,
                              merge=model == "nearest")  # as run_virtual: bilinear and area rows do not repeat
         ops = light_transport(cal.rig, targets, op) if model == "ceiling" else [op]
         built = time.perf_counter() - t0
@@ -52,7 +79,7 @@ def measure(name: str, scale: float, log=print) -> list[dict]:
             result, _, patterns = make_patterns(op, "fista", BOUNDS, cal.responses, progress=False)
         solved = time.perf_counter() - t0
         scores = evaluate_patterns(cal, patterns, targets, scale=op.scale).targets
-        row = {"scene": name, "model": model, "variables": ops[0].shape[1], "rows": ops[0].shape[0],
+        row = {"scene": name, "model": model, **extra, "variables": ops[0].shape[1], "rows": ops[0].shape[0],
                "nnz": sum(o.nnz for o in ops), "build_s": round(built, 3), "solve_s": round(solved, 3),
                "iterations": result.iterations, "converged": result.converged,
                "targets": [{"name": s.name, "psnr_db": round(s.psnr_db, 3), "ssim": round(s.ssim, 4),
@@ -102,11 +129,12 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=list(BUILTIN_SCENES))
     ap.add_argument("--scale", type=float, default=1.0, help="resolution scale of every scene (default 1)")
     ap.add_argument("--chart-only", action="store_true", help="redraw models.png from --out's results.json")
+    ap.add_argument("--blur", action="store_true", help="also the area footprint with the defocus measured from captures")
     args = ap.parse_args()
     if args.chart_only:
         chart(args.out / "models.png", json.loads((args.out / "results.json").read_text())["rows"])
         return
-    rows = [r for name in args.scenes for r in measure(name, args.scale)]
+    rows = [r for name in args.scenes for r in measure(name, args.scale, blur=args.blur)]
     args.out.mkdir(parents=True, exist_ok=True)
     write_results(args.out, {"machine": machine(), "scale": args.scale, "rows": rows}, markdown(rows, args.scale))
     chart(args.out / "models.png", rows)

@@ -13,6 +13,7 @@ The calibration types, and how they relate:
 - :class:`ProCamCalibration`: OpenCV's camera-projector stereo calibration, for triangulation.
 """
 
+from .blur import measure_blur
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
 from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel, sequence_bits
@@ -49,6 +50,7 @@ __all__ = [
     "homography_map",
     "inverse_map",
     "load_bundle",
+    "measure_blur",
     "measure_ramp",
     "ramp_pattern",
     "read_graycode_folder",

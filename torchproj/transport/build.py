@@ -27,6 +27,7 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 
 from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
+from ..calib.maps import map_slope
 from .operator import TransportOperator, csr_from_coo
 
 __all__ = ["DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows", "map_slope"]
@@ -40,14 +41,23 @@ DEFAULT_FOOTPRINT = "area"
 # Points per axis at which a camera pixel's area is carried onto the projector by the ``area``
 # footprint: 4 x 4 shares a pixel's light among its cells to 1/16, as the virtual rig samples it.
 _AREA_SAMPLES = 4
-# Camera pixels either side over which the map's slope is taken: a wider difference averages the
-# refined coordinates' own error (about a tenth of a cell) over more pixels.
-_SLOPE_REACH = 2
 # A slope over this many cells per camera pixel (on either projector axis) is a depth edge, not a
 # surface: the difference spans two surfaces, and the pixel keeps its nearest cell. Steep faces of the
 # shipped scenes stay under 2.5; on box_cylinders the 0.5% of lit pixels above 4 sit on the objects'
 # outlines, and there the area model missed the simulated capture 4x more than elsewhere.
 _EDGE_SLOPE = 4.0
+# Points of a defocused lens's disc (Vogel spiral) added to each area sample, by the widest blur in
+# the rows at hand: as the virtual rig samples a circle of confusion (torchproj.sim.rig).
+_BLUR_POINTS = ((0.05, 1), (1.0, 4), (float("inf"), 16))
+_BLUR_CHUNK = 1 << 15  # rows per pass when blurred
+
+
+def _disc_points(count: int, dtype, device) -> torch.Tensor:
+    """:math:`(K, 2)` points spread evenly over the unit-diameter disc (a Vogel spiral)."""
+    k = torch.arange(count, dtype=dtype, device=device)
+    radius = 0.5 * torch.sqrt((k + 0.5) / count)
+    angle = k * (torch.pi * (3 - 5 ** 0.5))
+    return torch.stack([radius * torch.cos(angle), radius * torch.sin(angle)], -1)
 
 
 @dataclass
@@ -59,11 +69,16 @@ class StateCalibration:
             (NaN where unknown), e.g. :attr:`torchproj.calib.ProjectorCalibration.prj_xy`.
         weight: list over projectors of :math:`(H, W)` white minus black of that projector.
         projector_sizes: ``(width, height)`` per projector.
+        blur: None, or per projector :math:`(H, W)` the diameter in cells of the disc over which a
+            defocused lens spreads each cell's light where that pixel looks (0 = in focus; NaN
+            where unknown, taken as 0), e.g. :func:`torchproj.calib.measure_blur`. Only the
+            ``area`` footprint uses it.
     """
 
     prj_xy: list[torch.Tensor]
     weight: list[torch.Tensor]
     projector_sizes: list[tuple[int, int]]
+    blur: list[torch.Tensor] | None = None
 
     @classmethod
     def from_calibrations(cls, calibrations, weighting: str = "radiometric", camera=None,
@@ -116,7 +131,8 @@ class StateCalibration:
             w, h = self.projector_sizes[j]
             check_shape(img, f"light[{j}]", ["C", h, w])
             slope = map_slope(xy).reshape(-1, 2, 2) if footprint == "area" else None
-            cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint, slope)
+            blur = None if self.blur is None else self.blur[j].reshape(-1)
+            cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint, slope, blur)
             flat = img.reshape(img.shape[0], -1)[:, cells.clamp_min(0)]  # (C, N, s); unused slots weigh 0
             out += (flat * weights).sum(-1).reshape(out.shape)
         return out
@@ -195,37 +211,29 @@ def group_rows(columns: torch.Tensor) -> tuple[torch.Tensor, int]:
     return group, int(new.sum())
 
 
-def map_slope(prj_xy: torch.Tensor) -> torch.Tensor:
-    """:math:`(H, W, 2, 2)` the map's local slope, projector cells per camera pixel:
-    ``[..., i, 0] = d u_i / d x``, ``[..., i, 1] = d u_i / d y``.
-
-    A central difference over ``_SLOPE_REACH`` pixels either side where both ends are mapped, over
-    one pixel where only those are, else NaN (an edge pixel with no mapped neighbours on an axis).
-    """
-    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
-    slope = torch.full((*prj_xy.shape[:2], 2, 2), float("nan"), dtype=prj_xy.dtype, device=prj_xy.device)
-    for axis, dim in ((0, 1), (1, 0)):  # x runs along dim 1 (columns), y along dim 0 (rows)
-        for reach in (1, _SLOPE_REACH):  # the wider difference, where it exists, wins
-            ahead = torch.roll(prj_xy, -reach, dim)
-            behind = torch.roll(prj_xy, reach, dim)
-            diff = (ahead - behind) / (2 * reach)
-            inner = torch.zeros(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
-            inner.narrow(dim, reach, max(prj_xy.shape[dim] - 2 * reach, 0)).fill_(True)  # roll wraps round
-            ok = torch.isfinite(diff).all(-1) & inner
-            slope[..., axis][ok] = diff[ok]
-    return slope
-
-
-def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tuple[int, int]):
+def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tuple[int, int],
+                blur: torch.Tensor | None = None):
     """The cells a camera pixel's square covers, carried through the local ``slope``, and the share
-    of the pixel each lights (sampled at ``_AREA_SAMPLES`` squared points): :math:`(N, s)` each."""
+    of the pixel each lights (sampled at ``_AREA_SAMPLES`` squared points): :math:`(N, s)` each.
+
+    With ``blur`` :math:`(N,)` (disc diameters in cells), each sample also spreads over its disc:
+    the light a pixel sees through a defocused lens is the mean of the cells within that circle."""
     w, h = size
     steps = (torch.arange(_AREA_SAMPLES, dtype=u.dtype, device=u.device) + 0.5) / _AREA_SAMPLES - 0.5
     dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
     offset = torch.stack([dx, dy], -1)  # (S, 2) camera-pixel offsets from the centre
     # Cell centres at integers (conventions module): a point's cell is floor(u + 0.5), kept in float
     # (exact for any projector size) and turned to int32 once, for a fast sort.
-    points = torch.einsum("nij,sj->nsi", torch.nan_to_num(slope), offset).add_(u[:, None, :] + 0.5).floor_()
+    points = torch.einsum("nij,sj->nsi", torch.nan_to_num(slope), offset).add_(u[:, None, :] + 0.5)
+    if blur is not None and blur.numel():
+        widest = float(blur.max())
+        count = next(n for limit, n in _BLUR_POINTS if widest <= limit)
+        if count > 1:
+            disc = _disc_points(count, u.dtype, u.device)  # (K, 2)
+            spread = blur[:, None, None, None] * disc  # (N, 1, K, 2)
+            points = (points[:, :, None, :] + spread).reshape(u.shape[0], -1, 2)
+            offset = offset.repeat_interleave(count, 0)
+    points = points.floor_()
     x, y = points.unbind(-1)
     inside = ok[:, None] & (x >= 0) & (x < w) & (y >= 0) & (y < h)
     flat = torch.where(inside, y.mul_(w).add_(x), -1.0).to(torch.int32)
@@ -241,17 +249,27 @@ def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tu
 
 
 def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], model: str,
-               slope: torch.Tensor | None = None):
+               slope: torch.Tensor | None = None, blur: torch.Tensor | None = None):
     """Cells and weights of one projector for rows: :math:`(N, s)` flat cells (-1 = none), weights.
 
     ``slope`` :math:`(N, 2, 2)` (:func:`map_slope` at the rows) is needed by the ``area`` model; a
-    row whose slope is unknown keeps its nearest cell."""
+    row whose slope is unknown keeps its nearest cell. ``blur`` :math:`(N,)`, the ``area`` model's
+    defocus disc per row (:attr:`StateCalibration.blur`)."""
     w, h = size
     ok = torch.isfinite(prj_xy).all(-1) & (weight > 0)
     if model == "area":
         u = torch.nan_to_num(prj_xy, nan=-10.0)
         known = torch.isfinite(slope).all(-1).all(-1) & (slope.abs().sum(-1).amax(-1) <= _EDGE_SLOPE)
-        cells, share = _area_cells(u, torch.where(known[:, None, None], slope, 0.0), ok, size)
+        if blur is not None:
+            blur = torch.nan_to_num(blur.to(u.dtype), nan=0.0).clamp_min(0)
+        slope = torch.where(known[:, None, None], slope, 0.0)
+        # A blurred row carries up to 16 x 16 samples: rows go in chunks, so memory stays bounded.
+        step = u.shape[0] if blur is None else _BLUR_CHUNK
+        parts = [_area_cells(u[i:i + step], slope[i:i + step], ok[i:i + step], size,
+                             None if blur is None else blur[i:i + step]) for i in range(0, max(u.shape[0], 1), step)]
+        width = max(c.shape[1] for c, _ in parts)
+        cells = torch.cat([torch.nn.functional.pad(c, (0, width - c.shape[1]), value=-1) for c, _ in parts])
+        share = torch.cat([torch.nn.functional.pad(v, (0, width - v.shape[1])) for _, v in parts])
         return cells, share * torch.where(ok, weight, 0.0)[:, None]
     if model == "nearest":
         cell = round_to_pixel(torch.nan_to_num(prj_xy, nan=-10.0))
@@ -372,7 +390,8 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
             check_finite(weight, f"weight[{j}] of state {target.state!r}")
             slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
-            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope)
+            blur = None if cal.blur is None or footprint != "area" else cal.blur[j].reshape(-1)[rows]
+            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope, blur)
             cols.append(torch.where(c >= 0, c + offset, -1))
             vals.append(v)
             offset += sizes[j][0] * sizes[j][1]

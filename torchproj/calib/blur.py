@@ -1,0 +1,115 @@
+"""Projector defocus measured from the Gray-code captures themselves.
+
+A lens focused at one depth spreads each LCD cell's light over a disc (the circle of confusion) at
+any other depth. The finest Gray-code stripes, a few cells wide, are where that shows: a sharp
+pixel inside a stripe sees ``pattern - inverse = +-(white - black)``, a blurred one sees the stripes
+averaged, and how much they average depends on the disc's diameter and on where the pixel sits
+among the stripes. Calibration already knows where (the refined map) and what the pixel's own area
+covers (the map's slope), so the disc's diameter is the one unknown: per sampled pixel, the
+diameter whose predicted normalised differences of the finest bits of both axes best match the
+captured ones (least squares over a grid of diameters), then a median over neighbouring samples,
+because the blur follows depth, which varies smoothly on a surface.
+
+The paper has no defocus model (its projectors are taken as sharp at every depth); this estimator,
+its grid, sampling and median are our choices, measured in README ("The ceiling").
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ..core.checks import check, check_shape
+from .graycode import _grey, graycode_bits
+from .maps import map_slope
+
+__all__ = ["measure_blur"]
+
+# Diameters (cells) tried per sample: half-cell steps from sharp to wider than the finest bits can
+# tell (the fourth-finest stripes are 16 cells wide).
+_DIAMETERS = torch.arange(0, 12.25, 0.5)
+_AREA = 4  # points per axis across a camera pixel's square, as the area footprint
+_DISC = 16  # points of the disc (Vogel spiral), as the virtual rig samples a circle of confusion
+
+
+def _disc_points(count: int) -> torch.Tensor:
+    """:math:`(K, 2)` points spread evenly over the unit-diameter disc (a Vogel spiral)."""
+    k = torch.arange(count, dtype=torch.float32)
+    radius = 0.5 * torch.sqrt((k + 0.5) / count)
+    angle = k * (torch.pi * (3 - 5 ** 0.5))
+    return torch.stack([radius * torch.cos(angle), radius * torch.sin(angle)], -1)
+
+
+def _stripes(position: torch.Tensor, bits: int, finest: int, size: int) -> torch.Tensor:
+    """Sign (+1 white, -1 black, 0 off the projector) of the ``finest`` last Gray-code bits of
+    ``bits`` at projector coordinates ``position`` (cell centres at integers): ``(..., finest)``."""
+    cell = torch.floor(position + 0.5).long()
+    inside = (cell >= 0) & (cell < size)
+    gray = cell.clamp(0, size - 1)
+    gray = gray ^ (gray >> 1)
+    shifts = torch.arange(finest - 1, -1, -1, device=position.device)  # finest bits, MSB first
+    sign = ((gray[..., None] >> shifts) & 1).to(position.dtype) * 2 - 1
+    return sign * inside[..., None].to(position.dtype)
+
+
+def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
+                 projector_size: tuple[int, int], *, finest: int = 4, step: int = 16,
+                 min_contrast: float = 0.1) -> torch.Tensor:
+    """Diameter in cells of each camera pixel's defocus disc, from the finest Gray-code captures.
+
+    Args:
+        patterns: :math:`(N, H, W)` or :math:`(N, C, H, W)` the full Gray-code sequence's
+            pattern/inverse captures (:func:`~torchproj.calib.graycode_patterns` order).
+        white, black: :math:`(H, W)` or :math:`(C, H, W)`.
+        prj_xy: :math:`(H, W, 2)` the refined map (NaN where unknown).
+        projector_size: ``(width, height)``.
+        finest: how many of each axis' finest bits to compare.
+        step: camera pixels between samples along each axis; each pixel takes its sample's value.
+        min_contrast: white minus black, [0, 1] units, below which a pixel is too dark to judge.
+
+    Returns:
+        :math:`(H, W)` float32 diameters (0 = sharp), NaN where the map is unknown or no sample
+        near it could be judged.
+    """
+    width, height = projector_size
+    nx, ny = graycode_bits(width, height)
+    grey = _grey(patterns)
+    sizes = check_shape(grey, "patterns", [2 * (nx + ny), "H", "W"])
+    check_shape(prj_xy, "prj_xy", [sizes["H"], sizes["W"], 2])
+    check(1 <= finest <= min(nx, ny), f"finest must be 1..{min(nx, ny)}, got {finest}")
+    check(step >= 1, f"step must be >= 1, got {step}")
+    contrast = _grey(white[None] if white.dim() <= 3 else white)[0] - _grey(black[None] if black.dim() <= 3 else black)[0]
+    slope = map_slope(prj_xy)
+    # Samples on a grid, at pixel centres, where everything the prediction needs is known.
+    ys = torch.arange(step // 2, sizes["H"], step)
+    xs = torch.arange(step // 2, sizes["W"], step)
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    u, g, c = prj_xy[gy, gx], slope[gy, gx], contrast[gy, gx]
+    ok = torch.isfinite(u).all(-1) & torch.isfinite(g).all(-1).all(-1) & (c > min_contrast)
+    u, g, c = u[ok], g[ok], c[ok]
+    observed = []
+    for first, bits in ((0, nx), (nx, ny)):
+        pairs = range(first + bits - finest, first + bits)
+        observed.append(torch.stack([(grey[2 * k] - grey[2 * k + 1])[gy, gx][ok] for k in pairs], -1) / c[:, None])
+    steps = (torch.arange(_AREA, dtype=torch.float32) + 0.5) / _AREA - 0.5
+    dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
+    area = u[:, None, :] + torch.einsum("nij,sj->nsi", g, torch.stack([dx, dy], -1))  # (n, S, 2)
+    disc = _disc_points(_DISC)  # (K, 2)
+    error = torch.zeros(u.shape[0], _DIAMETERS.numel())
+    for i, diameter in enumerate(_DIAMETERS.tolist()):
+        points = area[:, :, None, :] + diameter * disc  # (n, S, K, 2)
+        for axis, (bits, size) in enumerate(((nx, width), (ny, height))):
+            predicted = _stripes(points[..., axis], bits, finest, size).mean((1, 2))
+            error[:, i] += (predicted - observed[axis]).square().sum(-1)
+    best = _DIAMETERS[error.argmin(1)]
+    # The median over each sample's 3 x 3 neighbours: the blur follows depth, smooth on a surface,
+    # and one noisy sample should not set its block's model.
+    grid = torch.full(gy.shape, float("nan"))
+    grid[ok] = best
+    padded = F.pad(grid[None, None], (1, 1, 1, 1), value=float("nan"))
+    grid = torch.nanmedian(F.unfold(padded, 3).reshape(9, *gy.shape), 0).values
+    # Every pixel takes its nearest sample's diameter.
+    rows = torch.clamp(torch.arange(sizes["H"]) // step, max=gy.shape[0] - 1)
+    cols = torch.clamp(torch.arange(sizes["W"]) // step, max=gy.shape[1] - 1)
+    blur = grid[rows[:, None], cols[None, :]]
+    return torch.where(torch.isfinite(prj_xy).all(-1), blur, float("nan")).to(torch.float32)
