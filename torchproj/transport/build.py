@@ -28,7 +28,8 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope
-from .operator import TransportOperator, csr_from_coo
+from ..core.sparse import csr_tensor
+from .operator import TransportOperator
 
 __all__ = ["DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows", "map_slope"]
 
@@ -49,7 +50,7 @@ _EDGE_SLOPE = 4.0
 # Points of a defocused lens's disc (Vogel spiral) added to each area sample, by the widest blur in
 # the rows at hand: as the virtual rig samples a circle of confusion (torchproj.sim.rig).
 _BLUR_POINTS = ((0.05, 1), (1.0, 4), (float("inf"), 16))
-_BLUR_CHUNK = 1 << 15  # rows per pass when blurred
+_AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
 
 
 def _disc_points(count: int, dtype, device) -> torch.Tensor:
@@ -263,8 +264,8 @@ def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int]
         if blur is not None:
             blur = torch.nan_to_num(blur.to(u.dtype), nan=0.0).clamp_min(0)
         slope = torch.where(known[:, None, None], slope, 0.0)
-        # A blurred row carries up to 16 x 16 samples: rows go in chunks, so memory stays bounded.
-        step = u.shape[0] if blur is None else _BLUR_CHUNK
+        # Rows go in chunks, so the samples' temporaries (16 per row, up to 16 x 16 blurred) stay small.
+        step = _AREA_CHUNK if blur is None else _BLUR_CHUNK
         parts = [_area_cells(u[i:i + step], slope[i:i + step], ok[i:i + step], size,
                              None if blur is None else blur[i:i + step]) for i in range(0, max(u.shape[0], 1), step)]
         width = max(c.shape[1] for c, _ in parts)
@@ -416,12 +417,21 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     if merge:
         cols, vals, rhs, tgt, constant = _merge(cols, vals, rhs, tgt)
         pixels = {}  # merged rows mix pixels
-    # Variables only for the cells that light at least one row.
-    used = cols >= 0
-    global_cols, compact = torch.unique(cols[used], return_inverse=True)
-    row_index = torch.arange(cols.shape[0])[:, None].expand_as(cols)[used]
-    matrix = csr_from_coo(row_index, compact, vals[used], (cols.shape[0], global_cols.numel()))
+    # Variables only for the cells that light at least one row, numbered in cell order through a
+    # table over all cells (a few million), not a sort of every nonzero. Each row names a cell at most
+    # once (projectors' cells are offset apart), so sorting each row's slots gives CSR directly.
     starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
+    cols, order = torch.sort(cols, dim=1)
+    vals = vals.gather(1, order)
+    used = cols >= 0
+    check(not bool((used[:, 1:] & (cols[:, 1:] == cols[:, :-1])).any()), "a row names one cell twice")
+    lights = torch.zeros(int(starts[-1]), dtype=torch.bool)
+    lights[cols[used]] = True
+    global_cols = torch.nonzero(lights)[:, 0]
+    number = torch.cumsum(lights, 0) - 1
+    crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64)
+    crow[1:] = torch.cumsum(used.sum(1), 0)
+    matrix = csr_tensor(crow, number[cols[used]], vals[used], (cols.shape[0], global_cols.numel()))
     projector = torch.searchsorted(starts, global_cols, right=True) - 1
     return TransportOperator(matrix, rhs, projector, global_cols - starts[projector], sizes, constant, tgt,
                              scale, target_count=len(targets), **pixels).to(device)
