@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
+from ..core.lens import disc_points
 from .graycode import _grey, graycode_bits
 from .maps import map_slope
 
@@ -30,14 +31,6 @@ __all__ = ["measure_blur"]
 _DIAMETERS = torch.arange(0, 12.25, 0.5)
 _AREA = 4  # points per axis across a camera pixel's square, as the area footprint
 _DISC = 16  # points of the disc (Vogel spiral), as the virtual rig samples a circle of confusion
-
-
-def _disc_points(count: int) -> torch.Tensor:
-    """:math:`(K, 2)` points spread evenly over the unit-diameter disc (a Vogel spiral)."""
-    k = torch.arange(count, dtype=torch.float32)
-    radius = 0.5 * torch.sqrt((k + 0.5) / count)
-    angle = k * (torch.pi * (3 - 5 ** 0.5))
-    return torch.stack([radius * torch.cos(angle), radius * torch.sin(angle)], -1)
 
 
 def _stripes(position: torch.Tensor, bits: int, finest: int, size: int) -> torch.Tensor:
@@ -94,7 +87,7 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     steps = (torch.arange(_AREA, dtype=torch.float32) + 0.5) / _AREA - 0.5
     dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
     area = u[:, None, :] + torch.einsum("nij,sj->nsi", g, torch.stack([dx, dy], -1))  # (n, S, 2)
-    disc = _disc_points(_DISC)  # (K, 2)
+    disc = disc_points(_DISC)  # (K, 2)
     error = torch.zeros(u.shape[0], _DIAMETERS.numel())
     for i, diameter in enumerate(_DIAMETERS.tolist()):
         points = area[:, :, None, :] + diameter * disc  # (n, S, K, 2)

@@ -27,6 +27,7 @@ from kornia.geometry.calibration import undistort_points
 
 from ..core.checks import check, check_device, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
+from ..core.lens import DISC_POINTS, GOLDEN_ANGLE, disc_points
 from ..core.sparse import csr_tensor
 from ..scene.config import Projector, Scene, Surface
 from .camera import apply_camera
@@ -97,25 +98,6 @@ def _lit_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor) -> tuple[torch
     return cell[:, 1] * proj.width + cell[:, 0], inside
 
 
-# The circle of confusion of each surface sample is sampled at points of a Vogel spiral, which covers
-# the disc evenly (its mean squared radius is exactly the disc's); turning the spiral by the golden
-# angle from one ray to the next spreads a camera pixel's samples over different points of the disc.
-# How many points a sample gets grows with its blur (a diameter in cells below each bound gets that
-# many): a disc under a twentieth of a cell is taken as its centre, one under a cell needs few points
-# to share its light between the cells it straddles, and 16 points times a pixel's 4-9 samples cover
-# a disc several cells wide.
-_DISC_POINTS = ((0.05, 1), (1.0, 4), (math.inf, 16))
-_GOLDEN_ANGLE = math.pi * (3 - math.sqrt(5))
-
-
-def _disc(points: int, device) -> torch.Tensor:
-    """:math:`(K, 2)` points of the unit-diameter disc, a Vogel spiral (the centre for K = 1)."""
-    k = torch.arange(points, dtype=torch.float64, device=device)
-    radius = ((k + 0.5) / points).sqrt() / 2 if points > 1 else torch.zeros(1, dtype=torch.float64, device=device)
-    angle = k * _GOLDEN_ANGLE
-    return torch.stack([radius * angle.cos(), radius * angle.sin()], -1).float()
-
-
 def _footprint_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor, depth: torch.Tensor,
                      ray: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Which LCD cells light each point, and what share of the point's light each gives.
@@ -123,7 +105,7 @@ def _footprint_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor, depth: t
     A pinhole projector lights a point from the one cell its coordinate falls in. Through a thin
     lens focused elsewhere (:class:`~torchproj.scene.Projector`) the point sees a disc of the LCD,
     the circle of confusion at its depth, every part of it equally: the disc is sampled at the points
-    ``_DISC_POINTS`` gives its size, turned by the golden angle per ray.
+    ``DISC_POINTS`` gives its size (:mod:`torchproj.core.lens`), turned by the golden angle per ray.
 
     Args:
         u: :math:`(M, 2)` projector coordinates; g: :math:`(M,)` geometric factors (0: unlit);
@@ -141,14 +123,16 @@ def _footprint_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor, depth: t
     across, down = proj.blur_diameter(depth)
     size = torch.maximum(across, down)
     entries, low = [], 0.0
-    for high, count in _DISC_POINTS:
+    for high, count in DISC_POINTS:
         point = torch.nonzero((size >= low) & (size < high) & (g > 0))[:, 0]
         low = high
         if point.numel() == 0:
             continue
-        turn = (ray[point].double() * _GOLDEN_ANGLE).remainder(2 * math.pi).float()
+        # The spiral turned by the golden angle from one ray to the next: a camera pixel's samples see
+        # different points of their circles of confusion.
+        turn = (ray[point].double() * GOLDEN_ANGLE).remainder(2 * math.pi).float()
         cos, sin = turn.cos()[:, None], turn.sin()[:, None]
-        disc = _disc(count, u.device)
+        disc = disc_points(count, u.device)
         dx, dy = disc[:, 0], disc[:, 1]
         spots = torch.stack([u[point, 0, None] + (cos * dx - sin * dy) * across[point, None],
                              u[point, 1, None] + (sin * dx + cos * dy) * down[point, None]], -1)  # (m, K, 2)

@@ -28,6 +28,7 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope
+from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor
 from .operator import TransportOperator
 
@@ -35,8 +36,8 @@ __all__ = ["DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "tar
 
 FOOTPRINTS = ("nearest", "bilinear", "area")  # the cells a camera pixel's light is modelled on (build_transport)
 # What run, solve and position model by default: the footprint closest to the exact-light ceiling on
-# the shipped scenes, for a few seconds more than nearest (benchmarks/models.py, README "Transport
-# models"). build_transport's own default stays the paper's nearest cell, whose rows merge.
+# the shipped scenes, for a few seconds more than nearest (benchmarks/models.py, README "The
+# ceiling"). build_transport's own default stays the paper's nearest cell, whose rows merge.
 DEFAULT_FOOTPRINT = "area"
 
 # Points per axis at which a camera pixel's area is carried onto the projector by the ``area``
@@ -47,18 +48,7 @@ _AREA_SAMPLES = 4
 # shipped scenes stay under 2.5; on box_cylinders the 0.5% of lit pixels above 4 sit on the objects'
 # outlines, and there the area model missed the simulated capture 4x more than elsewhere.
 _EDGE_SLOPE = 4.0
-# Points of a defocused lens's disc (Vogel spiral) added to each area sample, by the widest blur in
-# the rows at hand: as the virtual rig samples a circle of confusion (torchproj.sim.rig).
-_BLUR_POINTS = ((0.05, 1), (1.0, 4), (float("inf"), 16))
 _AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
-
-
-def _disc_points(count: int, dtype, device) -> torch.Tensor:
-    """:math:`(K, 2)` points spread evenly over the unit-diameter disc (a Vogel spiral)."""
-    k = torch.arange(count, dtype=dtype, device=device)
-    radius = 0.5 * torch.sqrt((k + 0.5) / count)
-    angle = k * (torch.pi * (3 - 5 ** 0.5))
-    return torch.stack([radius * torch.cos(angle), radius * torch.sin(angle)], -1)
 
 
 @dataclass
@@ -227,10 +217,9 @@ def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tu
     # (exact for any projector size) and turned to int32 once, for a fast sort.
     points = torch.einsum("nij,sj->nsi", torch.nan_to_num(slope), offset).add_(u[:, None, :] + 0.5)
     if blur is not None and blur.numel():
-        widest = float(blur.max())
-        count = next(n for limit, n in _BLUR_POINTS if widest <= limit)
+        count = points_for_diameter(float(blur.max()))  # as the virtual rig samples a circle of confusion
         if count > 1:
-            disc = _disc_points(count, u.dtype, u.device)  # (K, 2)
+            disc = disc_points(count, u.device).to(u.dtype)  # (K, 2)
             spread = blur[:, None, None, None] * disc  # (N, 1, K, 2)
             points = (points[:, :, None, :] + spread).reshape(u.shape[0], -1, 2)
             offset = offset.repeat_interleave(count, 0)
