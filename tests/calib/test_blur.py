@@ -4,10 +4,11 @@ import pytest
 import torch
 
 from torchproj.calib import calibrate_projector, measure_blur
+from torchproj.core.errors import InputError
 from torchproj.pipeline import simulate_calibration
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
-from torchproj.transport import StateCalibration
+from torchproj.transport import StateCalibration, Target, build_transport
 
 PROJECTOR = (128, 96)
 
@@ -66,3 +67,18 @@ def test_a_model_with_the_measured_blur_predicts_a_defocused_capture():
     # cells: the measured disc cuts the miss several times (0.008 against 0.058 when written).
     assert miss["blurred"] < 0.25 * miss["sharp"]
     assert miss["blurred"] < 0.5 * float((shot - dark)[:, mapped].std())
+
+
+def test_bad_inputs_name_what_is_wrong():
+    patterns = torch.rand(2 * (7 + 7), 30, 40)
+    white, black, nowhere = torch.ones(30, 40), torch.zeros(30, 40), torch.full((30, 40, 2), float("nan"))
+    with pytest.raises(InputError, match="full Gray-code sequence of a 128x96 projector: 28 .* got 24"):
+        measure_blur(patterns[:24], white, black, nowhere, PROJECTOR)
+    with pytest.raises(InputError, match="prj_xy"):
+        measure_blur(patterns, white, black, nowhere[:10], PROJECTOR)
+    # Nothing mapped: nothing to judge, and no pixel gets a diameter.
+    assert not torch.isfinite(measure_blur(patterns, white, black, nowhere, PROJECTOR)).any()
+    ys, xs = torch.meshgrid(torch.arange(30.0), torch.arange(40.0), indexing="ij")
+    state = StateCalibration([torch.stack([xs, ys], -1)], [torch.ones(30, 40)], [PROJECTOR], [torch.zeros(10, 40)])
+    with pytest.raises(InputError, match=r"blur\[0\] of state 's'"):
+        build_transport({"s": state}, [Target("s", torch.rand(1, 8, 8))], footprint="area")

@@ -67,6 +67,10 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     width, height = projector_size
     nx, ny = graycode_bits(width, height)
     grey = _grey(patterns)
+    check(grey.dim() == 3 and grey.shape[0] == 2 * (nx + ny),
+          f"measure_blur needs the full Gray-code sequence of a {width}x{height} projector: {2 * (nx + ny)} "
+          f"pattern/inverse captures, got {grey.shape[0] if grey.dim() == 3 else tuple(patterns.shape)} (a shortened "
+          "sequence, --bits, lacks the finest stripes that show the blur)")
     sizes = check_shape(grey, "patterns", [2 * (nx + ny), "H", "W"])
     check_shape(prj_xy, "prj_xy", [sizes["H"], sizes["W"], 2])
     check(1 <= finest <= min(nx, ny), f"finest must be 1..{min(nx, ny)}, got {finest}")

@@ -379,6 +379,10 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         offset = 0
         for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
             check_finite(weight, f"weight[{j}] of state {target.state!r}")
+            if cal.blur is not None:
+                check(len(cal.blur) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.blur)} blur maps for "
+                                                        f"{len(cal.prj_xy)} projectors: give one per projector")
+                check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
             slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
             blur = None if cal.blur is None or footprint != "area" else cal.blur[j].reshape(-1)[rows]
             c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope, blur)
