@@ -33,9 +33,9 @@ _AREA = 4  # points per axis across a camera pixel's square, as the area footpri
 _DISC = 16  # points of the disc (Vogel spiral), as the virtual rig samples a circle of confusion
 
 
-def _stripes(position: torch.Tensor, bits: int, finest: int, size: int) -> torch.Tensor:
-    """Sign (+1 white, -1 black, 0 off the projector) of the ``finest`` last Gray-code bits of
-    ``bits`` at projector coordinates ``position`` (cell centres at integers): ``(..., finest)``."""
+def _stripes(position: torch.Tensor, finest: int, size: int) -> torch.Tensor:
+    """Sign (+1 white, -1 black, 0 off the projector) of the ``finest`` last Gray-code bits at
+    projector coordinates ``position`` (cell centres at integers): ``(..., finest)``."""
     cell = torch.floor(position + 0.5).long()
     inside = (cell >= 0) & (cell < size)
     gray = cell.clamp(0, size - 1)
@@ -78,8 +78,9 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     contrast = _grey(white[None] if white.dim() <= 3 else white)[0] - _grey(black[None] if black.dim() <= 3 else black)[0]
     slope = map_slope(prj_xy)
     # Samples on a grid, at pixel centres, where everything the prediction needs is known.
-    ys = torch.arange(step // 2, sizes["H"], step)
-    xs = torch.arange(step // 2, sizes["W"], step)
+    device = prj_xy.device
+    ys = torch.arange(step // 2, sizes["H"], step, device=device)
+    xs = torch.arange(step // 2, sizes["W"], step, device=device)
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     u, g, c = prj_xy[gy, gx], slope[gy, gx], contrast[gy, gx]
     ok = torch.isfinite(u).all(-1) & torch.isfinite(g).all(-1).all(-1) & (c > min_contrast)
@@ -88,25 +89,26 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     for first, bits in ((0, nx), (nx, ny)):
         pairs = range(first + bits - finest, first + bits)
         observed.append(torch.stack([(grey[2 * k] - grey[2 * k + 1])[gy, gx][ok] for k in pairs], -1) / c[:, None])
-    steps = (torch.arange(_AREA, dtype=torch.float32) + 0.5) / _AREA - 0.5
+    steps = (torch.arange(_AREA, dtype=torch.float32, device=device) + 0.5) / _AREA - 0.5
     dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
     area = u[:, None, :] + torch.einsum("nij,sj->nsi", g, torch.stack([dx, dy], -1))  # (n, S, 2)
-    disc = disc_points(_DISC)  # (K, 2)
-    error = torch.zeros(u.shape[0], _DIAMETERS.numel())
+    disc = disc_points(_DISC, device)  # (K, 2)
+    diameters = _DIAMETERS.to(device)
+    error = torch.zeros(u.shape[0], diameters.numel(), device=device)
     for i, diameter in enumerate(_DIAMETERS.tolist()):
         points = area[:, :, None, :] + diameter * disc  # (n, S, K, 2)
-        for axis, (bits, size) in enumerate(((nx, width), (ny, height))):
-            predicted = _stripes(points[..., axis], bits, finest, size).mean((1, 2))
+        for axis, size in enumerate((width, height)):
+            predicted = _stripes(points[..., axis], finest, size).mean((1, 2))
             error[:, i] += (predicted - observed[axis]).square().sum(-1)
-    best = _DIAMETERS[error.argmin(1)]
+    best = diameters[error.argmin(1)]
     # The median over each sample's 3 x 3 neighbours: the blur follows depth, smooth on a surface,
     # and one noisy sample should not set its block's model.
-    grid = torch.full(gy.shape, float("nan"))
+    grid = torch.full(gy.shape, float("nan"), device=device)
     grid[ok] = best
     padded = F.pad(grid[None, None], (1, 1, 1, 1), value=float("nan"))
     grid = torch.nanmedian(F.unfold(padded, 3).reshape(9, *gy.shape), 0).values
     # Every pixel takes its nearest sample's diameter.
-    rows = torch.clamp(torch.arange(sizes["H"]) // step, max=gy.shape[0] - 1)
-    cols = torch.clamp(torch.arange(sizes["W"]) // step, max=gy.shape[1] - 1)
+    rows = torch.clamp(torch.arange(sizes["H"], device=device) // step, max=gy.shape[0] - 1)
+    cols = torch.clamp(torch.arange(sizes["W"], device=device) // step, max=gy.shape[1] - 1)
     blur = grid[rows[:, None], cols[None, :]]
     return torch.where(torch.isfinite(prj_xy).all(-1), blur, float("nan")).to(torch.float32)
