@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from ..core.checks import check, check_shape
 from ..core.lens import disc_points
 from .graycode import _grey, graycode_bits
-from .maps import map_slope
+from .maps import map_slope, pixel_square
 
 __all__ = ["measure_blur"]
 
@@ -89,9 +89,7 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     for first, bits in ((0, nx), (nx, ny)):
         pairs = range(first + bits - finest, first + bits)
         observed.append(torch.stack([(grey[2 * k] - grey[2 * k + 1])[gy, gx][ok] for k in pairs], -1) / c[:, None])
-    steps = (torch.arange(_AREA, dtype=torch.float32, device=device) + 0.5) / _AREA - 0.5
-    dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
-    area = u[:, None, :] + torch.einsum("nij,sj->nsi", g, torch.stack([dx, dy], -1))  # (n, S, 2)
+    area = u[:, None, :] + torch.einsum("nij,sj->nsi", g, pixel_square(_AREA, device=device))  # (n, S, 2)
     disc = disc_points(_DISC, device)  # (K, 2)
     diameters = _DIAMETERS.to(device)
     error = torch.zeros(u.shape[0], diameters.numel(), device=device)

@@ -14,7 +14,7 @@ from scipy import ndimage
 from ..core.checks import check, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
 
-__all__ = ["inverse_map", "fill_holes", "map_slope"]
+__all__ = ["inverse_map", "fill_holes", "map_slope", "pixel_square"]
 
 
 def inverse_map(prj_xy: torch.Tensor, projector_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -112,3 +112,11 @@ def map_slope(prj_xy: torch.Tensor) -> torch.Tensor:
             ok = torch.isfinite(diff).all(-1) & inner
             slope[..., axis][ok] = diff[ok]
     return slope
+
+
+def pixel_square(samples: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """:math:`(S^2, 2)` ``(dx, dy)`` offsets from a camera pixel's centre, a ``samples x samples`` grid
+    of the centres of equal parts of its square: what a pixel's area carries through :func:`map_slope`."""
+    steps = (torch.arange(samples, dtype=dtype, device=device) + 0.5) / samples - 0.5
+    dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
+    return torch.stack([dx, dy], -1)

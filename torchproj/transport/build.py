@@ -27,7 +27,7 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 
 from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
-from ..calib.maps import map_slope
+from ..calib.maps import map_slope, pixel_square
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor
 from .operator import TransportOperator
@@ -210,9 +210,7 @@ def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tu
     With ``blur`` :math:`(N,)` (disc diameters in cells), each sample also spreads over its disc:
     the light a pixel sees through a defocused lens is the mean of the cells within that circle."""
     w, h = size
-    steps = (torch.arange(_AREA_SAMPLES, dtype=u.dtype, device=u.device) + 0.5) / _AREA_SAMPLES - 0.5
-    dy, dx = (t.reshape(-1) for t in torch.meshgrid(steps, steps, indexing="ij"))
-    offset = torch.stack([dx, dy], -1)  # (S, 2) camera-pixel offsets from the centre
+    offset = pixel_square(_AREA_SAMPLES, u.dtype, u.device)  # (S, 2) camera-pixel offsets from the centre
     # Cell centres at integers (conventions module): a point's cell is floor(u + 0.5), kept in float
     # (exact for any projector size) and turned to int32 once, for a fast sort.
     points = torch.einsum("nij,sj->nsi", torch.nan_to_num(slope), offset).add_(u[:, None, :] + 0.5)
@@ -238,6 +236,14 @@ def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tu
     return cells, share
 
 
+def _stack_rows(cells: list[torch.Tensor], values: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Blocks of rows with different numbers of slots, one below the other: each padded to the widest
+    with empty slots (cell -1, value 0)."""
+    width = max(c.shape[1] for c in cells)
+    return (torch.cat([torch.nn.functional.pad(c, (0, width - c.shape[1]), value=-1) for c in cells]),
+            torch.cat([torch.nn.functional.pad(v, (0, width - v.shape[1])) for v in values]))
+
+
 def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], model: str,
                slope: torch.Tensor | None = None, blur: torch.Tensor | None = None):
     """Cells and weights of one projector for rows: :math:`(N, s)` flat cells (-1 = none), weights.
@@ -257,9 +263,7 @@ def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int]
         step = _AREA_CHUNK if blur is None else _BLUR_CHUNK
         parts = [_area_cells(u[i:i + step], slope[i:i + step], ok[i:i + step], size,
                              None if blur is None else blur[i:i + step]) for i in range(0, max(u.shape[0], 1), step)]
-        width = max(c.shape[1] for c, _ in parts)
-        cells = torch.cat([torch.nn.functional.pad(c, (0, width - c.shape[1]), value=-1) for c, _ in parts])
-        share = torch.cat([torch.nn.functional.pad(v, (0, width - v.shape[1])) for _, v in parts])
+        cells, share = _stack_rows([c for c, _ in parts], [v for _, v in parts])
         return cells, share * torch.where(ok, weight, 0.0)[:, None]
     if model == "nearest":
         cell = round_to_pixel(torch.nan_to_num(prj_xy, nan=-10.0))
@@ -377,11 +381,12 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         rows = torch.nonzero(covered.reshape(-1))[:, 0]
         cols, vals = [], []
         offset = 0
+        if cal.blur is not None:
+            check(len(cal.blur) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.blur)} blur maps for "
+                                                    f"{len(cal.prj_xy)} projectors: give one per projector")
         for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
             check_finite(weight, f"weight[{j}] of state {target.state!r}")
             if cal.blur is not None:
-                check(len(cal.blur) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.blur)} blur maps for "
-                                                        f"{len(cal.prj_xy)} projectors: give one per projector")
                 check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
             slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
             blur = None if cal.blur is None or footprint != "area" else cal.blur[j].reshape(-1)[rows]
@@ -396,11 +401,9 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
         row_rhs.append(values.reshape(n_ch, -1)[:, rows[lit_rows]].T)
         row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64))
         row_pix.append(rows[lit_rows])
-    # The area footprint gives each target as many slots as its widest row needs: pad to the widest.
-    width = max(c.shape[1] for c in row_cols)
-    row_cols = [torch.nn.functional.pad(c, (0, width - c.shape[1]), value=-1) for c in row_cols]
-    row_vals = [torch.nn.functional.pad(v, (0, width - v.shape[1])) for v in row_vals]
-    cols, vals = torch.cat(row_cols), torch.cat(row_vals).float()
+    # The area footprint gives each target as many slots as its widest row needs.
+    cols, vals = _stack_rows(row_cols, row_vals)
+    vals = vals.float()
     targets_rhs, tgt = torch.cat(row_rhs).float(), torch.cat(row_tgt)
     if scale is None:
         scale = 0.5 * float(vals.sum(1).median())
