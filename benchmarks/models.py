@@ -1,15 +1,17 @@
 """Transport models against the exact-light ceiling: captured quality, model size and time.
 
-    python benchmarks/models.py --out benchmarks/results/models [--scenes paper_two_planes box_cylinders ...]
+    python benchmarks/models.py --out benchmarks/results/models [--scenes paper_two_planes box_cylinders ...] [--update]
 
 Each scene is calibrated once from simulated captures. For each model of a camera pixel's light
 (the nearest cell, as the paper; the four cells around its sub-pixel coordinate, ``bilinear``; the
 cells the pixel's own area covers through the map's local slope, ``area``, the default of ``run``)
 and, with ``--blur``, ``area+blur``: the area footprint spread over each projector's defocus disc as
 measured from the Gray-code captures by :func:`torchproj.calib.measure_blur`)
-the operator is built on that calibration, solved with FISTA (least squares, bounds 0..255) and the
-patterns scored on the virtual rig's captures as ``torchproj run`` scores them. The top line is the
-ceiling: the same rows solved on the simulator's own light transport
+the operator is built on that calibration; on a scene with a colour camera, ``area+channel`` too
+(each channel with its own white minus black, solved apart: what ``run`` does there by default).
+Each is solved with FISTA (least squares, bounds 0..255) and the patterns scored on the virtual
+rig's captures as ``torchproj run`` scores them. The top line is the ceiling: the same rows solved
+on the simulator's own light transport
 (:func:`torchproj.pipeline.light_transport`), the best any calibration could give. Times are this
 machine's, on its CPU threads; ``build`` includes merging rows where the run merges them.
 
@@ -33,7 +35,7 @@ from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_
                                 scene_targets, simulate_calibration, solve_on_light_transport)
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
-from torchproj.transport import build_transport
+from torchproj.transport import build_channel_transports, build_transport, has_colour_weights
 
 BOUNDS = (0.0, 1.0)
 
@@ -60,23 +62,28 @@ def measure(name: str, scale: float, log=print, blur: bool = False) -> list[dict
     cal = calibrate_virtual(scene, progress=False)
     targets = scene_targets(scene, None, cal.rig)
     rows = []
-    for model in ("nearest", "bilinear", "area", *(("area+blur",) if blur else ()), "ceiling"):
+    colour = ("area+channel",) if has_colour_weights(cal.states, targets) else ()
+    for model in ("nearest", "bilinear", "area", *colour, *(("area+blur",) if blur else ()), "ceiling"):
         extra, states = {}, cal.states
         if model == "area+blur":
             states, seconds, medians = measured_blur(cal)
             extra = {"measure_blur_s": round(seconds, 2), "blur_median_cells": medians}
             log(f"{name} measured blur (median cells): {medians} in {seconds:.1f} s")
         t0 = time.perf_counter()
-        footprint = {"ceiling": "nearest", "area+blur": "area"}.get(model, model)
-        op = build_transport(states, targets, footprint=footprint,
-                             merge=model == "nearest")  # as run_virtual: bilinear and area rows do not repeat
-        ops = light_transport(cal.rig, targets, op) if model == "ceiling" else [op]
+        footprint = {"ceiling": "nearest", "area+blur": "area", "area+channel": "area"}.get(model, model)
+        if model == "area+channel":
+            ops = build_channel_transports(states, targets, footprint=footprint)
+            op = ops[0]
+        else:
+            op = build_transport(states, targets, footprint=footprint,
+                                 merge=model == "nearest")  # as run_virtual: bilinear and area rows do not repeat
+            ops = light_transport(cal.rig, targets, op) if model == "ceiling" else [op]
         built = time.perf_counter() - t0
         t0 = time.perf_counter()
         if model == "ceiling":
             result, _, patterns = solve_on_light_transport(ops, BOUNDS, cal.responses, max_iter=CEILING_ITERATIONS)
         else:
-            result, _, patterns = make_patterns(op, "fista", BOUNDS, cal.responses, progress=False)
+            result, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False)
         solved = time.perf_counter() - t0
         scores = evaluate_patterns(cal, patterns, targets, scale=op.scale).targets
         row = {"scene": name, "model": model, **extra, "variables": ops[0].shape[1], "rows": ops[0].shape[0],
@@ -130,11 +137,16 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="resolution scale of every scene (default 1)")
     ap.add_argument("--chart-only", action="store_true", help="redraw models.png from --out's results.json")
     ap.add_argument("--blur", action="store_true", help="also the area footprint with the defocus measured from captures")
+    ap.add_argument("--update", action="store_true", help="keep --out's rows of the scenes not measured now")
     args = ap.parse_args()
     if args.chart_only:
         chart(args.out / "models.png", json.loads((args.out / "results.json").read_text())["rows"])
         return
     rows = [r for name in args.scenes for r in measure(name, args.scale, blur=args.blur)]
+    if args.update:
+        kept = [r for r in json.loads((args.out / "results.json").read_text())["rows"] if r["scene"] not in args.scenes]
+        order = list(dict.fromkeys([r["scene"] for r in kept] + args.scenes))
+        rows = sorted(kept + rows, key=lambda r: order.index(r["scene"]))  # stable: models stay in order
     args.out.mkdir(parents=True, exist_ok=True)
     write_results(args.out, {"machine": machine(), "scale": args.scale, "rows": rows}, markdown(rows, args.scale))
     chart(args.out / "models.png", rows)

@@ -31,9 +31,9 @@ SURFACE = {
         "read_opencv_calibration", "refine_subpixel", "sequence_bits", "triangulate", "triangulate_map",
         "warn_if_few_decoded", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [
-        "DEFAULT_FOOTPRINT", "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target", "TransportOperator",
-        "build_transport", "cell_blocks", "csr_from_coo", "fit_homography", "geometric_weights", "group_rows",
-        "homography_map", "map_slope", "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera",
+        "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target",
+        "TransportOperator", "build_channel_transports", "build_transport", "cell_blocks", "csr_from_coo",
+        "fit_homography", "geometric_weights", "group_rows", "has_colour_weights", "homography_map", "map_slope", "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera",
         "triangulate_rays"],
     "metrics": [
         "SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"],

@@ -242,3 +242,32 @@ def test_capture_helper_with_a_fake_display_and_camera(scene, tmp_path):
         assert float(response.b[0]) == pytest.approx(scene.projectors[j].response_b[0], abs=0.05)
     with pytest.raises(CaptureError, match="sequence.json"):
         capture_sequence(tmp_path, tmp_path / "x", _RigDisplay(), None)
+
+
+def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
+    """A colour camera's bundle stores white minus black per channel; solve then models each channel
+    with its own weight. A bundle without it (written before, or edited) falls back to the grey
+    weight, and one whose per-channel array has the wrong shape is refused."""
+    scene = parse_scene(small_config("colour_two_planes", camera=(200, 150), projector=(128, 96)), name="colour")
+    rig, root = VirtualRig(scene), tmp_path / "captures"
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            write_graycode_folder(root / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
+    calib = tmp_path / "calib"
+    assert main(["calibrate", str(root), "--projector", "128x96", "--out", str(calib)]) == 0
+    capture = read_graycode_folder(root / "near" / "upper", (128, 96))
+    stored = np.load(calib / "near" / "upper.npz")
+    np.testing.assert_allclose(stored["colour_contrast"], (capture.white - capture.black).numpy(), atol=1e-6)
+    np.testing.assert_allclose(stored["colour_contrast"].mean(0), stored["contrast"], atol=1e-6)
+    args = ["solve", str(calib), "--targets", "far=astronaut", "near=chelsea"]
+    assert main([*args, "--out", str(tmp_path / "channel")]) == 0
+    assert json.loads((tmp_path / "channel" / "report.json").read_text())["colour_weights"] == "channel"
+    assert main([*args, "--colour-weights", "grey", "--out", str(tmp_path / "grey")]) == 0
+    assert json.loads((tmp_path / "grey" / "report.json").read_text())["colour_weights"] == "grey"
+    arrays = {k: stored[k] for k in stored.files}
+    np.savez_compressed(calib / "near" / "upper.npz", **{k: v for k, v in arrays.items() if k != "colour_contrast"})
+    assert main([*args, "--out", str(tmp_path / "old")]) == 0
+    assert json.loads((tmp_path / "old" / "report.json").read_text())["colour_weights"] == "grey"
+    np.savez_compressed(calib / "near" / "upper.npz", **{**arrays, "colour_contrast": arrays["colour_contrast"][:2]})
+    assert main([*args, "--out", str(tmp_path / "bad")]) == 2
+    assert "'colour_contrast' has shape (2, 150, 200)" in capsys.readouterr().err and not (tmp_path / "bad").exists()

@@ -70,7 +70,7 @@ def cmd_run(args) -> int:
     result = run_virtual(_scene(args), **_solver_args(args), device=args.device, max_iter=args.max_iter,
                          oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
                          plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
-                         footprint=args.footprint, ceiling=args.ceiling)
+                         footprint=args.footprint, ceiling=args.ceiling, colour_weights=args.colour_weights)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0
 
@@ -139,7 +139,7 @@ def cmd_solve(args) -> int:
     from .pipeline import solve_bundle
 
     solution = solve_bundle(args.bundle, args.targets, **_solver_args(args), objective=_objective(args),
-                            footprint=args.footprint, maps=args.maps,
+                            footprint=args.footprint, colour_weights=args.colour_weights, maps=args.maps,
                             plane_tolerance=args.plane_tolerance, max_iter=args.max_iter, device=args.device)
     solution.report["bundle"] = str(args.bundle)
     print(f"solved {len(solution.predicted)} target(s) with {args.solver} ({args.objective}): "

@@ -133,7 +133,7 @@ def solver_options(p) -> None:
 def solve_options(p) -> None:
     """The options of every command that solves patterns (``run``, ``solve``)."""
     from .solve import OBJECTIVES, PSNR_DROP_DB
-    from .transport import DEFAULT_FOOTPRINT, FOOTPRINTS
+    from .transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, FOOTPRINTS
 
     solver_options(p)
     p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
@@ -147,6 +147,9 @@ def solve_options(p) -> None:
     p.add_argument("--footprint", default=DEFAULT_FOOTPRINT, choices=list(FOOTPRINTS), help="the projector cells a "
                    "camera pixel's light is modelled on: nearest (one per projector, as the paper), bilinear (the four "
                    f"around its sub-pixel coordinate) or area (those its area covers); default {DEFAULT_FOOTPRINT}")
+    p.add_argument("--colour-weights", default="channel", choices=list(COLOUR_WEIGHTS), help="colour camera and "
+                   "targets: model each channel with its own white minus black and solve the channels apart (channel, "
+                   "default), or give every channel their mean (grey); image objectives use grey")
     device_options(p)
 
 

@@ -261,3 +261,33 @@ def test_pipeline_iteration_limits():
     assert iteration_limit(7, "eo") == {"max_iter": 7}
     with pytest.raises(InputError, match="max_iter"):
         iteration_limit(0, "fista")
+
+
+@pytest.mark.filterwarnings("ignore:the patterns leave")  # random weights: no scene, nothing to show apart
+def test_channel_operators_reach_each_channels_bounded_optimum():
+    """make_patterns on one operator per colour channel: channel c of the joined solution is scipy's
+    bounded least squares on channel c's own matrix; the joined objective is their sum. An image
+    objective, which couples the channels, and operators of different columns are refused."""
+    from torchproj.solve import make_patterns
+    from torchproj.transport import build_channel_transports
+
+    cals = synthetic_calibration(shape=(30, 40))
+    g = torch.Generator().manual_seed(5)
+    for cal in cals.values():
+        cal.colour_weight = [w * (0.5 + torch.rand(3, *w.shape, generator=g)) for w in cal.weight]
+    ops = [op.double() for op in build_channel_transports(cals, targets(channels=3), scale=0.9)]
+    linear = [ResponseCurve(torch.ones(3), torch.ones(3), torch.zeros(3))] * 2
+    result, light, patterns = make_patterns(ops, "fista", (0.0, 1.0), linear, max_iter=20000,
+                                            solver_options={"tol": 1e-14})
+    total = 0.0
+    for c, op in enumerate(ops):
+        A, b = op.dense().numpy(), op.rhs.numpy()
+        ref = reference(A, b, (0.0, 1.0))
+        total += objective(op, A, b, ref)
+        np.testing.assert_allclose(result.patterns[:, c:c + 1].numpy(), ref, atol=2e-3)
+    assert result.objective == pytest.approx(total, rel=1e-6) and result.info["channels_solved_apart"] == 3
+    assert [p.shape[0] for p in patterns] == [3, 3] and result.converged
+    with pytest.raises(InputError, match="an image objective couples the colour channels"):
+        make_patterns(ops, "fista", (0.0, 1.0), linear, objective="ssim")
+    with pytest.raises(InputError, match="one single-channel operator per colour channel"):
+        make_patterns([ops[0], build_transport(cals, targets(channels=3), merge=False)], "fista", (0.0, 1.0), linear)

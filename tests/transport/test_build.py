@@ -1,5 +1,6 @@
 """The operator against brute-force dense construction, and its algebra."""
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -9,7 +10,8 @@ import torch
 from torchproj.core import InputError
 from torchproj.pipeline import calibrate_virtual
 from torchproj.scene import parse_scene
-from torchproj.transport import StateCalibration, Target, TransportOperator, build_transport, csr_from_coo, group_rows, map_slope
+from torchproj.transport import (StateCalibration, Target, TransportOperator, build_channel_transports, build_transport,
+                                 csr_from_coo, group_rows, has_colour_weights, map_slope)
 from torchproj.transport.build import target_on_camera
 
 from ..helpers import LARGE, SIZES, dense_reference, small_config, synthetic_calibration, targets
@@ -231,3 +233,86 @@ def test_area_rows_keep_each_pixels_light_whatever_their_width():
     ones = torch.ones(area.shape[1], 1)
     torch.testing.assert_close(area.A(ones), nearest.A(torch.ones(nearest.shape[1], 1)))
     assert area.nnz > 2 * nearest.nnz  # the steep state's pixels spread over several cells
+
+
+def _tinted(cals, seed=5):
+    """Each projector's weight split into three channels whose mean is that weight: a tint that differs
+    per pixel and per projector (a surface's albedo, each projector's white balance)."""
+    g = torch.Generator().manual_seed(seed)
+    for cal in cals.values():
+        tint = [0.4 + torch.rand(3, *w.shape, generator=g) for w in cal.weight]
+        cal.colour_weight = [t / t.mean(0) * w for t, w in zip(tint, cal.weight)]
+    return cals
+
+
+@pytest.mark.parametrize("footprint", ["nearest", "area"])
+def test_channel_operators_carry_each_channels_weight(footprint):
+    """Channel c's operator is the grey builder's with that channel's weight in place of the grey one:
+    the same rows, cells and scale, channel c's right-hand side."""
+    cals, tgts = _tinted(synthetic_calibration(shape=(30, 40), sizes=LARGE)), targets(channels=3)
+    assert has_colour_weights(cals, tgts) and not has_colour_weights(cals, targets(channels=1))
+    ops = build_channel_transports(cals, tgts, footprint=footprint, scale=0.7)
+    grey = build_transport(cals, tgts, footprint=footprint, merge=False, scale=0.7)
+    assert len(ops) == 3
+    for c, op in enumerate(ops):
+        alone = {name: StateCalibration(cal.prj_xy, [w[c] for w in cal.colour_weight], cal.projector_sizes)
+                 for name, cal in cals.items()}
+        want = build_transport(alone, tgts, footprint=footprint, merge=False, scale=0.7)
+        assert torch.equal(op.column_cell, want.column_cell) and torch.equal(op.row_pixel, want.row_pixel)
+        torch.testing.assert_close(op.dense(), want.dense(), rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(op.rhs, grey.rhs[:, c:c + 1])
+        assert op.scale == grey.scale and not torch.allclose(op.dense(), grey.dense(), rtol=0.05)
+    # Grey weights in every channel give the grey operator three times.
+    for cal in cals.values():
+        cal.colour_weight = [w.expand(3, -1, -1) for w in cal.weight]
+    for op in build_channel_transports(cals, tgts, footprint=footprint, scale=0.7):
+        torch.testing.assert_close(op.dense(), grey.dense())
+
+
+def test_channel_operators_need_colour_weights():
+    cals, tgts = synthetic_calibration(), targets(channels=3)
+    with pytest.raises(InputError, match="no white minus black per colour channel"):
+        build_channel_transports(cals, tgts)
+    _tinted(cals)
+    cals["far"].colour_weight = [w[:2] for w in cals["far"].colour_weight]
+    assert not has_colour_weights(cals, tgts)
+    with pytest.raises(InputError, match=r"colour_weight\[0\] of state 'far'"):
+        build_channel_transports(cals, tgts)
+
+
+def test_prediction_uses_each_channels_weight():
+    """``predict`` with colour weights is black plus each channel's operator's product."""
+    cals, tgts = _tinted(synthetic_calibration()), targets(channels=3)
+    ops = build_channel_transports(cals, tgts, scale=1.0)
+    p = torch.rand(ops[0].shape[1], 3, generator=torch.Generator().manual_seed(3))
+    light = ops[0].to_images(p)
+    for k, t in enumerate(tgts):
+        black = torch.zeros(3, *cals[t.state].lit().shape)
+        view = cals[t.state].predict(light, black).reshape(3, -1)
+        for c, op in enumerate(ops):
+            mine = op.row_target == k
+            torch.testing.assert_close(view[c, op.row_pixel[mine]], op.A(p[:, c:c + 1])[mine, 0], rtol=1e-5, atol=1e-6)
+
+
+def test_colour_weights_predict_a_tinted_capture():
+    """colour_two_planes' planes are tinted (albedo 0.85 / 0.8 / 0.7 and 0.75 / 0.8 / 0.85) and its
+    projectors' primaries differ: one grey weight misses each channel's light by its tint, the
+    channel's own weight does not. Uniform light, so that only the weights are judged."""
+    scene = parse_scene(small_config("colour_two_planes", camera=(200, 150), projector=(128, 96)), name="tinted")
+    cal = calibrate_virtual(scene, progress=False)
+    g = torch.Generator().manual_seed(0)
+    for name, state in cal.states.items():
+        assert len(state.colour_weight) == 2 and state.colour_weight[0].shape == (3, 150, 200)
+        light = [torch.rand(3, 1, 1, generator=g).expand(3, 96, 128) for _ in scene.projectors]
+        shown = {j: cal.responses[j].to_pattern(level)[None] for j, level in enumerate(light)}
+        shot = cal.rig.capture(name, shown, noise=False, quantise=False)[0]
+        lit = state.lit()
+        miss = {}
+        for model, s in (("channel", state), ("grey", dataclasses.replace(state, colour_weight=None))):
+            error = (s.predict(light, cal.black[name]) - shot)[:, lit]
+            miss[model] = error.pow(2).mean(1).sqrt()
+            if model == "channel":
+                assert float(error.mean(1).abs().max()) < 2e-3  # no channel's light is biased
+        assert bool((miss["channel"][[0, 2]] < 0.5 * miss["grey"][[0, 2]]).all()), (name, miss)
+    oracle = calibrate_virtual(scene, oracle=True)  # the expected white minus black, per channel too
+    torch.testing.assert_close(oracle.states["near"].colour_weight[0].mean(0), oracle.states["near"].weight[0])

@@ -24,7 +24,9 @@ of ``shared/data/procam_chessboard``).
 Bundle (``write_bundle`` / ``load_bundle``), format version 1: ``bundle.json`` (camera size and
 channels, projectors and sizes, states, response curves, decoded fractions, files) and per state
 ``STATE/PROJECTOR.npz`` (``prj_xy`` refined and filled, ``prj_xy_integer``, ``valid``, ``contrast``
-(white minus black, [0, 1] units: the radiometric weight), ``cam_xy`` inverse map, ``count``) and
+(white minus black, [0, 1] units: the radiometric weight), ``cam_xy`` inverse map, ``count``; from a
+colour camera also ``colour_contrast``, white minus black per channel ``(C, H, W)``, whose mean is
+``contrast``; bundles without it give every channel the grey weight) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
 Bundles from shortened sequences also record ``graycode_bits`` (per projector) and ``homographies``
 (per state and projector, :meth:`~torchproj.calib.HomographyFit.as_dict`).
@@ -274,8 +276,11 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
 
 
 def _maps(cal: ProjectorCalibration) -> dict:
-    return {"prj_xy": cal.prj_xy, "prj_xy_integer": cal.decoding.prj_xy, "valid": cal.decoding.valid,
+    maps = {"prj_xy": cal.prj_xy, "prj_xy_integer": cal.decoding.prj_xy, "valid": cal.decoding.valid,
             "contrast": cal.decoding.contrast.float(), "cam_xy": cal.cam_xy, "count": cal.count}
+    if cal.colour_contrast is not None:
+        maps["colour_contrast"] = cal.colour_contrast.float()
+    return maps
 
 
 def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:
@@ -360,7 +365,8 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
         maps = []
         for name, w, h in projectors:
             arrays = _read_npz(folder / meta["files"][state][name], {"prj_xy": (*camera, 2), "valid": camera,
-                                                                     "contrast": camera})
+                                                                     "contrast": camera},
+                               optional={"colour_contrast": (channels, *camera)})
             xy = arrays["prj_xy"]
             inside = (xy[..., 0] >= -1) & (xy[..., 0] <= w) & (xy[..., 1] >= -1) & (xy[..., 1] <= h)
             if not (inside | ~torch.isfinite(xy).all(-1)).all():
@@ -394,9 +400,11 @@ def _size(value, where: str) -> tuple[int, int]:
     return value[0], value[1]
 
 
-def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:
-    """The arrays of a bundle's ``.npz`` file, each array named in ``shapes`` checked (shape, finite
-    where it is not a map that marks undecoded pixels with NaN)."""
+def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]],
+              optional: dict[str, tuple[int, ...]] | None = None) -> dict[str, torch.Tensor]:
+    """The arrays of a bundle's ``.npz`` file, each array named in ``shapes`` (and each of ``optional``
+    that the file holds) checked: shape, finite where it is not a map that marks undecoded pixels
+    with NaN."""
     if not path.is_file():
         raise CaptureError(f"{path}: missing from the bundle; calibrate again")
     try:
@@ -405,6 +413,7 @@ def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]]) -> dict[str, torch
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise CaptureError(f"{path}: unreadable ({type(exc).__name__}: truncated or not a .npz file); "
                            "calibrate again") from None
+    shapes = {**shapes, **{k: v for k, v in (optional or {}).items() if k in arrays}}
     for key, shape in shapes.items():
         if key not in arrays:
             raise CaptureError(f"{path}: lacks the array {key!r}; calibrate again")

@@ -50,6 +50,9 @@ class ProjectorCalibration:
         ramp: ``(levels (L,), measured (L, C))``, the points the curve was fitted to, or None.
         timings_s: seconds spent in each step.
         homography: for a shortened sequence, the homography ``prj_xy`` comes from; else None.
+        colour_contrast: for a colour camera, :math:`(C, H, W)` white minus black per camera
+            channel (the decoding's ``contrast`` is their mean); None for a grey one. A tinted
+            surface or projectors of different white balance make the channels differ.
     """
 
     decoding: GrayDecoding
@@ -60,6 +63,7 @@ class ProjectorCalibration:
     ramp: tuple[torch.Tensor, torch.Tensor] | None
     timings_s: dict
     homography: HomographyFit | None = None
+    colour_contrast: torch.Tensor | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
@@ -123,8 +127,9 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         response = fit_response(levels, measured)
         ramp = (levels, measured)
         timings["response"] = time.perf_counter() - t0
+    colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
-                                ramp=ramp, timings_s=timings, homography=fit)
+                                ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour)
 
 
 @dataclass

@@ -18,8 +18,6 @@ that fall in the cell). Calibration's weight ``w_j(r)`` is this row's sum over t
 
 from __future__ import annotations
 
-import dataclasses
-
 import torch
 
 from ..core.checks import check
@@ -120,18 +118,8 @@ def solve_on_light_transport(ops: list[TransportOperator], bounds: tuple[float, 
         ``(result, light, patterns)`` as :func:`~torchproj.solve.make_patterns`; ``result`` joins
         the channels' results (objective summed, iterations the most any channel took).
     """
-    from ..solve import make_patterns, projectable_patterns
-    from ..solve.objectives import image_objective
+    from ..solve import make_patterns
 
     check(solver != "eo", "the exact light transport has no epipolar chains for eo to walk: choose another solver")
-    if len(ops) == 1:
-        return make_patterns(ops[0], solver, bounds, responses, max_iter=max_iter, progress=progress,
-                             objective=objective, outside=outside)
-    check(image_objective(objective) is None, "an image objective on the exact light transport needs surfaces whose "
-                                              "albedo is the same in every colour channel; use --objective l2")
-    results = [make_patterns(op, solver, bounds, responses, max_iter=max_iter, progress=progress)[0] for op in ops]
-    joined = dataclasses.replace(
-        results[0], patterns=torch.cat([r.patterns for r in results], 1), history=[],
-        iterations=max(r.iterations for r in results), objective=sum(r.objective for r in results),
-        time_s=sum(r.time_s for r in results), converged=all(r.converged for r in results))
-    return (joined, *projectable_patterns(ops[0], joined.patterns, bounds, responses, outside))
+    return make_patterns(ops, solver, bounds, responses, max_iter=max_iter, progress=progress, objective=objective,
+                         outside=outside)

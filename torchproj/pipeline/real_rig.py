@@ -7,6 +7,7 @@ is what measures.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,8 +17,8 @@ import torch
 from ..calib import CalibrationBundle, load_bundle
 from ..core.checks import check
 from ..solve import SolveResult, check_solve_options, image_objective, make_patterns
-from ..transport import DEFAULT_FOOTPRINT, StateCalibration, Target, build_transport, select_maps, target_on_camera
-from .run import image_objective_report
+from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, StateCalibration, Target, select_maps, target_on_camera
+from .run import build_operators, image_objective_report
 from .scoring import score_image
 from .targets import target_image
 
@@ -68,7 +69,7 @@ def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
 def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
                  objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT,
                  plane_tolerance: float = 1.0, max_iter: int | None = None, device="cpu", progress=None,
-                 outside: str = "clip", chains: str = "epipolar") -> BundleSolution:
+                 outside: str = "clip", chains: str = "epipolar", colour_weights: str = "channel") -> BundleSolution:
     """Solve the patterns that show each image in its state, from a bench's calibration.
 
     Args:
@@ -76,20 +77,27 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
         targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
             scikit-image test-image name per state.
         solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
-        device, outside, chains: as :func:`~torchproj.pipeline.run_virtual`.
+        device, outside, chains, colour_weights: as :func:`~torchproj.pipeline.run_virtual`; the
+        predicted views use the weights the solve used.
     """
     t0 = time.perf_counter()
     image = image_objective(objective)
+    check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     bundle = bundle if isinstance(bundle, CalibrationBundle) else load_bundle(bundle)
     lo, hi = check_solve_options(solver, bounds_8bit, len(bundle.projectors), outside, chains)
     wanted = _bundle_targets(bundle, targets)
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
     states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
+    if image is not None:
+        colour_weights = "grey"  # an image objective couples the channels (run_virtual)
     # Bilinear rows almost never repeat: merging them costs time and saves nothing (run_virtual).
-    op = build_transport(states, wanted, merge=image is None and footprint == "nearest", footprint=footprint,
-                         device=device)
-    result, light, patterns = make_patterns(op, solver, (lo, hi), bundle.response_curves(), calibrations=states,
+    ops = build_operators(states, wanted, merge=image is None and footprint == "nearest", footprint=footprint,
+                          colour_weights=colour_weights, device=device)
+    if len(ops) == 1:  # the predicted views follow the weights solved with
+        states = {name: dataclasses.replace(s, colour_weight=None) for name, s in states.items()}
+    op = ops[0]
+    result, light, patterns = make_patterns(ops, solver, (lo, hi), bundle.response_curves(), calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
                                             chains=chains)
     rows, predicted = [], {}
@@ -106,6 +114,7 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
               "iterations": result.iterations, "scale": op.scale,
               "timings_s": {"total": round(time.perf_counter() - t0, 3), "solve": round(result.time_s, 3)},
               "predicted": PREDICTED, "targets": rows, "maps": maps, "footprint": footprint,
+              "colour_weights": "channel" if len(ops) > 1 else "grey",
               "graycode_bits": {name: list(b) for (name, _, _), b in zip(bundle.projectors, bundle.bits)}}
     if image is not None:
         report["image_objective"] = image_objective_report(result)

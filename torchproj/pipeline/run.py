@@ -18,8 +18,9 @@ from ..core.checks import check
 from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
-from ..solve.compensate import iteration_limit
-from ..transport import DEFAULT_FOOTPRINT, MAPS, build_transport, select_maps
+from ..solve.compensate import iteration_limit, unexplained
+from ..transport import (COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, build_channel_transports, build_transport,
+                         has_colour_weights, select_maps)
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
@@ -71,7 +72,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 oracle: bool | str = False, gain_offset: tuple[tuple[float, float], tuple[float, float]] | None = None,
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
                 objective="l2", footprint: str = DEFAULT_FOOTPRINT, ceiling: bool = False, outside: str = "clip",
-                chains: str = "epipolar", solver_options: dict | None = None) -> RunResult:
+                chains: str = "epipolar", solver_options: dict | None = None,
+                colour_weights: str = "channel") -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -120,9 +122,15 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             ``components`` (connected components of the transport; any number of projectors).
         solver_options: further keywords for the solver (e.g. ``{"normalise": "projector"}`` for
             ``lf``, :func:`~torchproj.solve.solve_lf`); the report keeps them.
+        colour_weights: with a colour camera and colour targets, ``"channel"`` (default) models
+            each channel with its own white minus black and solves the channels apart
+            (:func:`~torchproj.transport.build_channel_transports`); ``"grey"`` gives every
+            channel their mean. Image objectives and gain/offset couple the channels and use grey;
+            report.json ``colour_weights`` says which was used.
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains)
+    check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
@@ -133,10 +141,13 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         timings["homography"] = time.perf_counter() - t0
     targets = scene_targets(scene, images, cal.rig)
 
-    solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=oracle == "transport",
+    exact = oracle == "transport"
+    if image is not None or gain_offset is not None or exact:
+        colour_weights = "grey"  # these couple the channels (the transport oracle has its own per-channel light)
+    solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=exact,
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
                               device=device, timings=timings, outside=outside, chains=chains,
-                              solver_options=solver_options)
+                              solver_options=solver_options, colour_weights=colour_weights)
     t0 = time.perf_counter()
     evaluation = evaluate_patterns(cal, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
     scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
@@ -149,6 +160,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
     report["footprint"] = footprint
+    report["colour_weights"] = "channel" if len(solved.ops) > 1 and not exact else "grey"
     report["outside"] = outside
     if solver == "eo":
         report["chains"] = chains
@@ -185,22 +197,35 @@ class _Solved:
     """What :func:`_build_and_solve` gives the rest of a run."""
 
     result: SolveResult
-    ops: list  # the operator(s) the patterns were solved on: one, or one per colour channel (exact light)
+    ops: list  # the operator(s) the patterns were solved on: one, or one per colour channel
     patterns: list[torch.Tensor]  # per projector, 8-bit
     model: dict  # the size report of the operator solved (before gain/offset's extra variables)
 
 
+def build_operators(states, targets, *, footprint: str, merge: bool, colour_weights: str, device) -> list:
+    """The operator(s) a solve runs on: one per colour channel where ``colour_weights`` is ``"channel"``
+    and calibration measured each channel's weight
+    (:func:`~torchproj.transport.has_colour_weights`), else one with the grey weight."""
+    if colour_weights == "channel" and has_colour_weights(states, targets):
+        return build_channel_transports(states, targets, footprint=footprint, device=device)
+    return [build_transport(states, targets, merge=merge, footprint=footprint, device=device)]
+
+
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
-                     progress, device, timings, outside, chains, solver_options=None) -> _Solved:
+                     progress, device, timings, outside, chains, solver_options=None,
+                     colour_weights: str = "grey") -> _Solved:
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A), and with the bilinear or area footprint,
     # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
     # merged otherwise (exact, smaller).
-    op = build_transport(states, targets, merge=gain_offset is None and image is None and not exact
-                         and footprint == "nearest", footprint=footprint, device=device)
-    ops = light_transport(cal.rig, targets, op) if exact else [op]
+    ops = build_operators(states, targets, merge=gain_offset is None and image is None and not exact
+                          and footprint == "nearest", footprint=footprint, colour_weights=colour_weights,
+                          device=device)
+    op = ops[0]
+    if exact:
+        ops = light_transport(cal.rig, targets, op)
     model = ops[0].size_report()
     timings["transport"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -212,7 +237,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
                                                   max_iter, progress, device, footprint, outside)
         ops = [op]
     else:
-        result, _, patterns = make_patterns(op, solver, bounds, cal.responses, calibrations=states,
+        result, _, patterns = make_patterns(ops, solver, bounds, cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
                                             chains=chains, solver_options=solver_options)
     timings["solve"] = time.perf_counter() - t0
@@ -254,14 +279,6 @@ def _ceiling(cal, states, targets, bounds, footprint, progress, device, outside)
     return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states, paper=False).targets
 
 
-def _unexplained(ops, p: torch.Tensor) -> float:
-    """:meth:`~torchproj.transport.TransportOperator.unexplained` over one operator or one per channel."""
-    if len(ops) == 1:
-        return ops[0].unexplained(p)
-    energy = sum(float(op.rhs.pow(2).sum() + op.constant.sum()) for op in ops)
-    return sum(float(op.objective(p[:, c:c + 1])) for c, op in enumerate(ops)) / energy if energy > 0 else 0.0
-
-
 _CALIBRATION = {None: "Gray code on the virtual rig", "geometry": "oracle (the simulator's exact geometry)",
                 "transport": "oracle (the simulator's own light transport)"}
 
@@ -279,7 +296,7 @@ def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solve
         "maps": maps, "graycode": _graycode_report(scene, cal), "decoded_fraction": cal.decoded,
         "decode": cal.decode,
         "model": model, "objective": least_squares,
-        "unexplained_fraction": round(_unexplained(ops, result.patterns), 5),
+        "unexplained_fraction": round(unexplained(ops, result.patterns), 5),
         "iterations": result.iterations, "scale": op.scale,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "evaluation": EVALUATION + ("; with gain/offset, psnr_db and ssim compare with the adjusted image g t + o, "
@@ -359,7 +376,9 @@ def run_markdown(report: dict) -> str:
              + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
                  f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"
                  for name, g in report["graycode"].items())) + ".", "",
-             f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros; objective "
+             f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros"
+             + (" per colour channel, each channel with its own weights and solved apart"
+                if report.get("colour_weights") == "channel" else "") + "; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
              *_image_objective_lines(report.get("image_objective")),

@@ -199,16 +199,18 @@ def _oracle_calibration(scene: Scene, device, black_threshold: float = 40) -> Vi
     for st in scene.states:
         geo = rig.geometry(st.name)
         dark = rig.capture(st.name, {}, noise=False, quantise=False)[0]
-        weight, prj_xy = [], []
+        weight, prj_xy, colour = [], [], []
         for j, proj in enumerate(scene.projectors):
             white = rig.capture(st.name, {j: torch.ones(1, 1, proj.height, proj.width)}, noise=False, quantise=False)[0]
-            weight.append((white - dark).mean(0).cpu())
+            colour.append((white - dark).cpu())
+            weight.append(colour[-1].mean(0))
             # Exact coordinates where a decoder could see the projector at all (the shadow mask's
             # threshold), so that oracle and calibration solve for the same pixels.
             xy = geo.prj_xy[j].cpu().clone()
             xy[weight[-1] <= black_threshold / 255] = float("nan")
             prj_xy.append(xy)
-        states[st.name] = StateCalibration(prj_xy, weight, [(p.width, p.height) for p in scene.projectors])
+        states[st.name] = StateCalibration(prj_xy, weight, [(p.width, p.height) for p in scene.projectors],
+                                           colour_weight=colour if dark.shape[0] > 1 else None)
         black[st.name] = dark.cpu()
     responses = [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
                  for p in scene.projectors]

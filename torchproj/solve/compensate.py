@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import torch
@@ -39,14 +40,26 @@ def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> li
 UNEXPLAINED_WARNING = 0.1
 
 
+def unexplained(ops, p: torch.Tensor) -> float:
+    """:meth:`~torchproj.transport.TransportOperator.unexplained` over one operator, or over one per
+    colour channel (``p``'s column ``c`` on operator ``c``) as one problem."""
+    if not isinstance(ops, (list, tuple)):
+        return ops.unexplained(p)
+    if len(ops) == 1:
+        return ops[0].unexplained(p)
+    energy = sum(float(op.rhs.pow(2).sum() + op.constant.sum()) for op in ops)
+    return sum(float(op.objective(p[:, c:c + 1])) for c, op in enumerate(ops)) / energy if energy > 0 else 0.0
+
+
 def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WARNING) -> float:
     """Warn when the patterns leave more than ``limit`` of the targets' energy unexplained.
 
     Shipped scenes stay under 0.07 (``benchmarks/stability.py``); past 0.1 the targets cannot be shown
     apart: no projector baseline, targets asking opposite light along the same rays, more targets
-    than the projectors can carry, or a calibration drowned in noise. Returns the share.
+    than the projectors can carry, or a calibration drowned in noise. Returns the share. ``op`` may
+    be one operator per colour channel (:func:`unexplained`).
     """
-    share = op.unexplained(patterns)
+    share = unexplained(op, patterns)
     if share > limit:
         warnings.warn(f"the patterns leave {share:.0%} of the targets' energy unexplained (over {limit:.0%}): expect "
                       "faint images and crosstalk. The scene may be ill-posed: projectors too close together, targets "
@@ -113,7 +126,10 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
     Args:
-        op: the transport operator (rows on camera pixels, ``merge=False``, for an image-space objective).
+        op: the transport operator (rows on camera pixels, ``merge=False``, for an image-space
+            objective), or a list of one per colour channel with the same columns
+            (:func:`~torchproj.transport.build_channel_transports`): least squares in a box
+            separates over channels, so each is solved alone and the solutions joined.
         solver: a name of :data:`~torchproj.solve.SOLVERS`; ``eo`` needs ``calibrations``.
         bounds: the solver's box, linear light (the paper's 8-bit bounds over 255).
         responses: per projector, its response curve.
@@ -138,10 +154,30 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
 
     image = image_objective(objective)
     limit = {**iteration_limit(max_iter, solver), **(solver_options or {})}
-    if solver == "eo":
-        result = solve_eo(op, bounds, chains=chains, calibrations=calibrations, progress=progress, **limit)
+
+    def solve(one):
+        if solver == "eo":
+            return solve_eo(one, bounds, chains=chains, calibrations=calibrations, progress=progress, **limit)
+        return solve_patterns(one, solver, bounds, progress=progress, **limit)
+
+    if isinstance(op, (list, tuple)):
+        check(len(op) == 1 or (len({o.shape[1] for o in op}) == 1 and all(o.channels == 1 for o in op)),
+              "give one operator, or one single-channel operator per colour channel with the same columns "
+              "(build_channel_transports)")
+        check(image is None or len(op) == 1, "an image objective couples the colour channels (SSIM and the PSNR "
+                                             "limit are over the whole image): solve it on one operator with one "
+                                             "grey weight (build_transport), or use objective 'l2'")
+        if len(op) > 1:
+            results = []
+            for one in op:
+                results.append(solve(one))
+                one.forget_normal_equations()  # one channel's Q at a time
+            result = _join_channels(results)
+        else:
+            result = solve(op[0])
+        op = op if len(op) > 1 else op[0]
     else:
-        result = solve_patterns(op, solver, bounds, progress=progress, **limit)
+        result = solve(op)
     # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
     # threshold is calibrated on it); an image objective departs from it on purpose.
     warn_if_ill_posed(op, result.patterns)
@@ -152,7 +188,18 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         result.info["start"] = start
         result.info["objective"] = image
         result.time_s += start.time_s
-    return (result, *projectable_patterns(op, result.patterns, bounds, responses, outside))
+    return (result, *projectable_patterns(op[0] if isinstance(op, list) else op, result.patterns, bounds, responses,
+                                          outside))
+
+
+def _join_channels(results):
+    """One :class:`SolveResult` from each colour channel's: values side by side, objectives and times
+    summed, iterations the most any channel took, converged where every channel did."""
+    return dataclasses.replace(
+        results[0], patterns=torch.cat([r.patterns for r in results], 1), history=[],
+        iterations=max(r.iterations for r in results), objective=sum(r.objective for r in results),
+        time_s=sum(r.time_s for r in results), converged=all(r.converged for r in results),
+        info={**results[0].info, "channels_solved_apart": len(results)})
 
 
 def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], responses: list[ResponseCurve],

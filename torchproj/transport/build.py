@@ -32,8 +32,14 @@ from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor
 from .operator import TransportOperator
 
-__all__ = ["DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera", "build_transport", "group_rows", "map_slope"]
+__all__ = ["COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
+           "build_transport", "build_channel_transports", "group_rows", "has_colour_weights", "map_slope"]
 
+# A colour camera's weights: one white minus black per channel (build_channel_transports), or their
+# mean for every channel (build_transport). Per channel is what run and solve use where calibration
+# has it: on colour_two_planes it lifts the near target 0.9 dB, to the ceiling's colour balance
+# (benchmarks/models.py, README "The ceiling").
+COLOUR_WEIGHTS = ("channel", "grey")
 FOOTPRINTS = ("nearest", "bilinear", "area")  # the cells a camera pixel's light is modelled on (build_transport)
 # What run, solve and position model by default: the footprint closest to the exact-light ceiling on
 # the shipped scenes, for a few seconds more than nearest (benchmarks/models.py, README "The
@@ -64,12 +70,18 @@ class StateCalibration:
             defocused lens spreads each cell's light where that pixel looks (0 = in focus; NaN
             where unknown, taken as 0), e.g. :func:`torchproj.calib.measure_blur`. Only the
             ``area`` footprint uses it.
+        colour_weight: None, or per projector :math:`(C, H, W)` white minus black per camera
+            channel (``weight`` is their mean), e.g.
+            :attr:`torchproj.calib.ProjectorCalibration.colour_contrast`. Where the surfaces are
+            tinted or the projectors' white balance differs, one grey weight is wrong in every
+            channel; :func:`build_channel_transports` gives each channel its own.
     """
 
     prj_xy: list[torch.Tensor]
     weight: list[torch.Tensor]
     projector_sizes: list[tuple[int, int]]
     blur: list[torch.Tensor] | None = None
+    colour_weight: list[torch.Tensor] | None = None
 
     @classmethod
     def from_calibrations(cls, calibrations, weighting: str = "radiometric", camera=None,
@@ -87,21 +99,28 @@ class StateCalibration:
               f"weighting must be 'radiometric' or 'geometric', got {weighting!r}")
         prj_xy = [c.prj_xy for c in calibrations]
         sizes = [(c.cam_xy.shape[1], c.cam_xy.shape[0]) for c in calibrations]
+        colour = None
         if weighting == "radiometric":
             weight = [c.decoding.contrast.clamp_min(0) for c in calibrations]
+            if all(getattr(c, "colour_contrast", None) is not None for c in calibrations):
+                colour = [c.colour_contrast.clamp_min(0) for c in calibrations]
         else:
             check(camera is not None and projectors is not None,
                   "geometric weighting needs the camera and projectors (intrinsics and poses) to triangulate")
             from .geometric import geometric_weights
 
             weight = geometric_weights(prj_xy, camera, projectors)
-        return cls(prj_xy, weight, sizes)
+        return cls(prj_xy, weight, sizes, colour_weight=colour)
 
     @classmethod
     def from_bundle(cls, bundle) -> dict[str, "StateCalibration"]:
         """State name -> calibration, from a :class:`~torchproj.calib.CalibrationBundle` (radiometric)."""
         sizes = [(w, h) for _, w, h in bundle.projectors]
-        return {name: cls([m["prj_xy"] for m in maps], [m["contrast"].clamp_min(0) for m in maps], sizes)
+        def colour(maps):  # bundles written before per-channel contrast, or from a grey camera, have none
+            return [m["colour_contrast"].clamp_min(0) for m in maps] if all("colour_contrast" in m for m in maps) else None
+
+        return {name: cls([m["prj_xy"] for m in maps], [m["contrast"].clamp_min(0) for m in maps], sizes,
+                          colour_weight=colour(maps))
                 for name, maps in bundle.states.items()}
 
     def predict(self, light: list[torch.Tensor], black: torch.Tensor, footprint: str = "nearest") -> torch.Tensor:
@@ -114,7 +133,8 @@ class StateCalibration:
 
         Returns:
             :math:`(C, H, W)`: black plus, per projector, its weight times the light of the cell(s)
-            each pixel decoded to.
+            each pixel decoded to; each channel's own weight where :attr:`colour_weight` has as
+            many channels as ``light``.
         """
         check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
         out = black.float().clone()
@@ -125,7 +145,10 @@ class StateCalibration:
             blur = None if self.blur is None else self.blur[j].reshape(-1)
             cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint, slope, blur)
             flat = img.reshape(img.shape[0], -1)[:, cells.clamp_min(0)]  # (C, N, s); unused slots weigh 0
-            out += (flat * weights).sum(-1).reshape(out.shape)
+            seen = (flat * weights).sum(-1)
+            if self.colour_weight is not None and self.colour_weight[j].shape[0] == img.shape[0] > 1:
+                seen = seen * _channel_ratio(self.colour_weight[j].reshape(img.shape[0], -1), weight.reshape(-1))
+            out += seen.reshape(out.shape)
         return out
 
     def lit(self) -> torch.Tensor:
@@ -335,6 +358,121 @@ def _merge_groups(columns, values, rhs, target, group, n_groups):
     return new_cols, new_vals, new_rhs.to(rhs.dtype), target[first][g_idx], g_idx, constant.to(rhs.dtype)
 
 
+def _channel_ratio(colour: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """:math:`(C, N)` each channel's white minus black over the grey one (their mean), 0 where the grey
+    one is not positive (no light modelled there)."""
+    return torch.where(weight > 0, colour / torch.where(weight > 0, weight, 1.0), 0.0)
+
+
+@dataclass
+class _Rows:
+    """The rows of an unmerged operator, before assembly: one per covered, lit camera pixel."""
+
+    cols: torch.Tensor  # (N, s) global cell per slot (projectors' cells offset apart), -1 for none
+    vals: torch.Tensor  # (N, s) float32, the grey weight's entries
+    values: torch.Tensor  # (N, C) the targets' values
+    target: torch.Tensor  # (N,) target index
+    pixel: torch.Tensor  # (N,) flat camera pixel
+    camera: tuple[int, int]  # (H, W)
+    sizes: list[tuple[int, int]]  # per projector (width, height)
+    ratio: torch.Tensor | None  # (N, P, C) per projector, each channel's weight over the grey one
+
+
+def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target], footprint: str,
+                 colour: bool) -> _Rows:
+    """Every target's rows (:func:`build_transport`'s checks, in the user's terms); with ``colour`` also
+    each row's per-channel ratios (every state needs :attr:`StateCalibration.colour_weight`)."""
+    check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
+    check(len(targets) >= 1, "targets must hold at least one Target")
+    channels = {t.image.shape[0] for t in targets}
+    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
+    n_ch = channels.pop()
+    sizes = camera = None
+    row_cols, row_vals, row_values, row_tgt, row_pix, row_ratio = [], [], [], [], [], []
+    for ti, target in enumerate(targets):
+        check(target.state in calibrations, f"target {target.name or ti!r} names state {target.state!r}, which was "
+                                            f"not calibrated; calibrated states: {sorted(calibrations)}")
+        cal = calibrations[target.state]
+        sizes = sizes or cal.projector_sizes
+        check(cal.projector_sizes == sizes, "every state must be calibrated with the same projectors")
+        lit = cal.lit()
+        camera = camera or lit.shape
+        check(lit.shape == camera, f"state {target.state!r} is calibrated with a {lit.shape[1]}x{lit.shape[0]} camera, "
+                                   f"another state with {camera[1]}x{camera[0]}: calibrate every state with one camera")
+        if colour:
+            check(cal.colour_weight is not None and len(cal.colour_weight) == len(cal.prj_xy),
+                  f"state {target.state!r} has no white minus black per colour channel for every projector: "
+                  f"calibrate it with a colour camera, or use build_transport's one grey weight")
+            for j, c in enumerate(cal.colour_weight):
+                check_shape(c, f"colour_weight[{j}] of state {target.state!r}", [n_ch, *lit.shape])
+        mask = lit if target.mask is None else target.mask.to(torch.bool)
+        check_shape(mask, f"target {target.name!r} mask", list(lit.shape))
+        check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
+                                        f"{target.state!r}: no pixel of its mask is lit by any projector")
+        values, covered = target_on_camera(target, mask & lit)
+        rows = torch.nonzero(covered.reshape(-1))[:, 0]
+        cols, vals, ratio = [], [], []
+        offset = 0
+        if cal.blur is not None:
+            check(len(cal.blur) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.blur)} blur maps for "
+                                                    f"{len(cal.prj_xy)} projectors: give one per projector")
+        for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
+            check_finite(weight, f"weight[{j}] of state {target.state!r}")
+            if cal.blur is not None:
+                check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
+            slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
+            blur = None if cal.blur is None or footprint != "area" else cal.blur[j].reshape(-1)[rows]
+            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope, blur)
+            cols.append(torch.where(c >= 0, c + offset, -1))
+            vals.append(v)
+            if colour:
+                ratio.append(_channel_ratio(cal.colour_weight[j].reshape(n_ch, -1)[:, rows].float(),
+                                            weight.reshape(-1)[rows].float()).T)
+            offset += sizes[j][0] * sizes[j][1]
+        cols, vals = torch.cat(cols, 1), torch.cat(vals, 1)
+        lit_rows = (vals > 0).any(1)
+        row_cols.append(cols[lit_rows])
+        row_vals.append(vals[lit_rows])
+        row_values.append(values.reshape(n_ch, -1)[:, rows[lit_rows]].T)
+        row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64))
+        row_pix.append(rows[lit_rows])
+        if colour:
+            row_ratio.append(torch.stack(ratio, 1)[lit_rows])
+    # The area footprint gives each target as many slots as its widest row needs.
+    cols, vals = _stack_rows(row_cols, row_vals)
+    return _Rows(cols, vals.float(), torch.cat(row_values).float(), torch.cat(row_tgt), torch.cat(row_pix),
+                 tuple(camera), sizes, torch.cat(row_ratio) if colour else None)
+
+
+def _scale(vals: torch.Tensor, scale: float | None) -> float:
+    """The camera value asked for a target value of 1 (:func:`build_transport`'s ``scale``)."""
+    if scale is None:
+        scale = 0.5 * float(vals.sum(1).median())
+    check(scale > 0, f"scale must be positive, got {scale}")
+    return scale
+
+
+def _assemble(cols: torch.Tensor, vals: torch.Tensor, sizes: list[tuple[int, int]]):
+    """CSR pieces of rows' slots: ``crow``, each nonzero's variable, its value, its slot's place
+    (``order``, ``used``: for the per-channel values), the variables' global cells and projectors."""
+    # Variables only for the cells that light at least one row, numbered in cell order through a
+    # table over all cells (a few million), not a sort of every nonzero. Each row names a cell at most
+    # once (projectors' cells are offset apart), so sorting each row's slots gives CSR directly.
+    starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
+    cols, order = torch.sort(cols, dim=1)
+    vals = vals.gather(1, order)
+    used = cols >= 0
+    check(not bool((used[:, 1:] & (cols[:, 1:] == cols[:, :-1])).any()), "a row names one cell twice")
+    lights = torch.zeros(int(starts[-1]), dtype=torch.bool)
+    lights[cols[used]] = True
+    global_cols = torch.nonzero(lights)[:, 0]
+    number = torch.cumsum(lights, 0) - 1
+    crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64)
+    crow[1:] = torch.cumsum(used.sum(1), 0)
+    projector = torch.searchsorted(starts, global_cols, right=True) - 1
+    return crow, number[cols[used]], vals[used], (cols, used), global_cols - starts[projector], projector
+
+
 def build_transport(calibrations: dict[str, StateCalibration], targets: list[Target], *,
                     footprint: str = "nearest", merge: bool = True, scale: float | None = None,
                     device="cpu") -> TransportOperator:
@@ -355,79 +493,63 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     Returns:
         a :class:`TransportOperator` with ``rhs`` = scale * targets.
     """
-    check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
     device = check_device(device)
-    check(len(targets) >= 1, "targets must hold at least one Target")
-    channels = {t.image.shape[0] for t in targets}
-    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
-    n_ch = channels.pop()
-    sizes = camera = None
-    row_cols, row_vals, row_rhs, row_tgt, row_pix = [], [], [], [], []
-    for ti, target in enumerate(targets):
-        check(target.state in calibrations, f"target {target.name or ti!r} names state {target.state!r}, which was "
-                                            f"not calibrated; calibrated states: {sorted(calibrations)}")
-        cal = calibrations[target.state]
-        sizes = sizes or cal.projector_sizes
-        check(cal.projector_sizes == sizes, "every state must be calibrated with the same projectors")
-        lit = cal.lit()
-        camera = camera or lit.shape
-        check(lit.shape == camera, f"state {target.state!r} is calibrated with a {lit.shape[1]}x{lit.shape[0]} camera, "
-                                   f"another state with {camera[1]}x{camera[0]}: calibrate every state with one camera")
-        mask = lit if target.mask is None else target.mask.to(torch.bool)
-        check_shape(mask, f"target {target.name!r} mask", list(lit.shape))
-        check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
-                                        f"{target.state!r}: no pixel of its mask is lit by any projector")
-        values, covered = target_on_camera(target, mask & lit)
-        rows = torch.nonzero(covered.reshape(-1))[:, 0]
-        cols, vals = [], []
-        offset = 0
-        if cal.blur is not None:
-            check(len(cal.blur) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.blur)} blur maps for "
-                                                    f"{len(cal.prj_xy)} projectors: give one per projector")
-        for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
-            check_finite(weight, f"weight[{j}] of state {target.state!r}")
-            if cal.blur is not None:
-                check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
-            slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
-            blur = None if cal.blur is None or footprint != "area" else cal.blur[j].reshape(-1)[rows]
-            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope, blur)
-            cols.append(torch.where(c >= 0, c + offset, -1))
-            vals.append(v)
-            offset += sizes[j][0] * sizes[j][1]
-        cols, vals = torch.cat(cols, 1), torch.cat(vals, 1)
-        lit_rows = (vals > 0).any(1)
-        row_cols.append(cols[lit_rows])
-        row_vals.append(vals[lit_rows])
-        row_rhs.append(values.reshape(n_ch, -1)[:, rows[lit_rows]].T)
-        row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64))
-        row_pix.append(rows[lit_rows])
-    # The area footprint gives each target as many slots as its widest row needs.
-    cols, vals = _stack_rows(row_cols, row_vals)
-    vals = vals.float()
-    targets_rhs, tgt = torch.cat(row_rhs).float(), torch.cat(row_tgt)
-    if scale is None:
-        scale = 0.5 * float(vals.sum(1).median())
-    check(scale > 0, f"scale must be positive, got {scale}")
-    rhs = targets_rhs * scale
-    constant, pixels = None, {"row_pixel": torch.cat(row_pix), "camera_size": (camera[1], camera[0])}
+    rows = _target_rows(calibrations, targets, footprint, colour=False)
+    scale = _scale(rows.vals, scale)
+    cols, vals, rhs, tgt = rows.cols, rows.vals, rows.values * scale, rows.target
+    constant, pixels = None, {"row_pixel": rows.pixel, "camera_size": (rows.camera[1], rows.camera[0])}
     if merge:
         cols, vals, rhs, tgt, constant = _merge(cols, vals, rhs, tgt)
         pixels = {}  # merged rows mix pixels
-    # Variables only for the cells that light at least one row, numbered in cell order through a
-    # table over all cells (a few million), not a sort of every nonzero. Each row names a cell at most
-    # once (projectors' cells are offset apart), so sorting each row's slots gives CSR directly.
-    starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
-    cols, order = torch.sort(cols, dim=1)
-    vals = vals.gather(1, order)
-    used = cols >= 0
-    check(not bool((used[:, 1:] & (cols[:, 1:] == cols[:, :-1])).any()), "a row names one cell twice")
-    lights = torch.zeros(int(starts[-1]), dtype=torch.bool)
-    lights[cols[used]] = True
-    global_cols = torch.nonzero(lights)[:, 0]
-    number = torch.cumsum(lights, 0) - 1
-    crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64)
-    crow[1:] = torch.cumsum(used.sum(1), 0)
-    matrix = csr_tensor(crow, number[cols[used]], vals[used], (cols.shape[0], global_cols.numel()))
-    projector = torch.searchsorted(starts, global_cols, right=True) - 1
-    return TransportOperator(matrix, rhs, projector, global_cols - starts[projector], sizes, constant, tgt,
-                             scale, target_count=len(targets), **pixels).to(device)
+    crow, variable, value, _, cell, projector = _assemble(cols, vals, rows.sizes)
+    matrix = csr_tensor(crow, variable, value, (cols.shape[0], cell.numel()))
+    return TransportOperator(matrix, rhs, projector, cell, rows.sizes, constant, tgt, scale,
+                             target_count=len(targets), **pixels).to(device)
+
+
+def has_colour_weights(calibrations: dict[str, StateCalibration], targets: list[Target]) -> bool:
+    """Whether :func:`build_channel_transports` applies: colour targets, and every target's state
+    calibrated with a white minus black per channel of each projector."""
+    n_ch = targets[0].image.shape[0] if targets else 1
+    return n_ch > 1 and all(
+        t.state in calibrations and calibrations[t.state].colour_weight is not None
+        and all(c.shape[0] == n_ch for c in calibrations[t.state].colour_weight) for t in targets)
+
+
+def build_channel_transports(calibrations: dict[str, StateCalibration], targets: list[Target], *,
+                             footprint: str = "nearest", scale: float | None = None,
+                             device="cpu") -> list[TransportOperator]:
+    """One operator per colour channel, each with that channel's own white minus black.
+
+    A camera channel sees each projector's primary of that channel through the surface's albedo in
+    that channel (the physics contract of ``DESIGN.md``: colour channels do not mix), so channel
+    ``c``'s entries are :func:`build_transport`'s with :attr:`StateCalibration.colour_weight`'s
+    channel ``c`` in place of the grey weight. The cells, rows and ``scale`` are the grey model's,
+    shared by every channel; least squares in a box then separates over channels, and each channel
+    is solved alone (:func:`~torchproj.solve.make_patterns` with a list of operators). Rows stay
+    camera pixels (no merging: the channels' rows would merge differently).
+
+    Args:
+        calibrations: as :func:`build_transport`; every state needs ``colour_weight`` with as many
+            channels as the targets.
+        targets, footprint, scale, device: as :func:`build_transport`.
+
+    Returns:
+        one :class:`TransportOperator` per target channel, each with that channel's right-hand side
+        :math:`(N, 1)`.
+    """
+    device = check_device(device)
+    rows = _target_rows(calibrations, targets, footprint, colour=True)
+    scale = _scale(rows.vals, scale)
+    crow, variable, value, (cols, used), cell, projector = _assemble(rows.cols, rows.vals, rows.sizes)
+    starts = torch.tensor([0] + [w * h for w, h in rows.sizes]).cumsum(0)
+    slot_projector = (torch.searchsorted(starts, cols[used], right=True) - 1)
+    slot_row = torch.repeat_interleave(torch.arange(cols.shape[0]), used.sum(1))
+    ops = []
+    for c in range(rows.values.shape[1]):
+        matrix = csr_tensor(crow, variable, value * rows.ratio[slot_row, slot_projector, c],
+                            (cols.shape[0], cell.numel()))
+        ops.append(TransportOperator(matrix, rows.values[:, c:c + 1] * scale, projector, cell, rows.sizes, None,
+                                     rows.target, scale, target_count=len(targets), row_pixel=rows.pixel,
+                                     camera_size=(rows.camera[1], rows.camera[0])).to(device))
+    return ops

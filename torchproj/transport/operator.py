@@ -268,6 +268,12 @@ class TransportOperator(nn.Module):
             self._normal = NormalEquations.from_operator(self)
         return self._normal
 
+    def forget_normal_equations(self) -> None:
+        """Drop the cached ``Q`` (:meth:`normal_equations` builds it again when asked): a solve over one
+        operator per colour channel then holds one ``Q`` at a time (0.2 GB each on the full-size RGB rig
+        with the area footprint)."""
+        self._normal = None
+
     def coarse_levels(self, levels: int) -> list[tuple["NormalEquations", torch.Tensor]]:
         """The normal equations of the same rig with projector cells tied in 2x2, 4x4, ... blocks.
 

@@ -7,10 +7,11 @@ columns as with the decoded maps.
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from ..calib.homography import HomographyFit, check_plane, fit_homography, homography_map
-from .build import StateCalibration
 
 __all__ = ["HomographyFit", "MAPS", "fit_homography", "homography_map", "planar_calibration", "select_maps"]
 
@@ -41,7 +42,7 @@ def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> t
             check_plane(fit, tolerance, f"state {name!r}, projector {j}", "keep the decoded maps for this scene")
         maps = [homography_map(fit.matrix, torch.isfinite(xy).all(-1), size)
                 for fit, xy, size in zip(fits[name], state.prj_xy, state.projector_sizes)]
-        planar[name] = StateCalibration(maps, state.weight, state.projector_sizes)
+        planar[name] = dataclasses.replace(state, prj_xy=maps)  # the same weights (grey and per channel) and blur
     return planar, fits
 
 
