@@ -522,8 +522,9 @@ def build_channel_transports(calibrations: dict[str, StateCalibration], targets:
     """One operator per colour channel, each with that channel's own white minus black.
 
     A camera channel sees each projector's primary of that channel through the surface's albedo in
-    that channel (the physics contract of ``DESIGN.md``: colour channels do not mix), so channel
-    ``c``'s entries are :func:`build_transport`'s with :attr:`StateCalibration.colour_weight`'s
+    that channel (as the virtual rig renders it, :mod:`torchproj.sim.rig`; a camera whose channels
+    also see the other primaries breaks this model, as it breaks the grey one), so channel ``c``'s
+    entries are :func:`build_transport`'s with :attr:`StateCalibration.colour_weight`'s
     channel ``c`` in place of the grey weight. The cells, rows and ``scale`` are the grey model's,
     shared by every channel; least squares in a box then separates over channels, and each channel
     is solved alone (:func:`~torchproj.solve.make_patterns` with a list of operators). Rows stay
