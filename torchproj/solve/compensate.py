@@ -160,36 +160,32 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
             return solve_eo(one, bounds, chains=chains, calibrations=calibrations, progress=progress, **limit)
         return solve_patterns(one, solver, bounds, progress=progress, **limit)
 
-    if isinstance(op, (list, tuple)):
-        check(len(op) == 1 or (len({o.shape[1] for o in op}) == 1 and all(o.channels == 1 for o in op)),
+    ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    if len(ops) > 1:
+        check(len({o.shape[1] for o in ops}) == 1 and all(o.channels == 1 for o in ops),
               "give one operator, or one single-channel operator per colour channel with the same columns "
               "(build_channel_transports)")
-        check(image is None or len(op) == 1, "an image objective couples the colour channels (SSIM and the PSNR "
-                                             "limit are over the whole image): solve it on one operator with one "
-                                             "grey weight (build_transport), or use objective 'l2'")
-        if len(op) > 1:
-            results = []
-            for one in op:
-                results.append(solve(one))
-                one.forget_normal_equations()  # one channel's Q at a time
-            result = _join_channels(results)
-        else:
-            result = solve(op[0])
-        op = op if len(op) > 1 else op[0]
+        check(image is None, "an image objective couples the colour channels (SSIM and the PSNR limit are over the "
+                             "whole image): solve it on one operator with one grey weight (build_transport), or use "
+                             "objective 'l2'")
+        results = []
+        for one in ops:
+            results.append(solve(one))
+            one.forget_normal_equations()  # one channel's Q at a time
+        result = _join_channels(results)
     else:
-        result = solve(op)
+        result = solve(ops[0])
     # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
     # threshold is calibrated on it); an image objective departs from it on purpose.
-    warn_if_ill_posed(op, result.patterns)
+    warn_if_ill_posed(ops, result.patterns)
     if image is not None:
         start = result
-        result = solve_ssim(op, bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=start.patterns,
+        result = solve_ssim(ops[0], bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=start.patterns,
                             max_iter=image.iterations, progress=progress)
         result.info["start"] = start
         result.info["objective"] = image
         result.time_s += start.time_s
-    return (result, *projectable_patterns(op[0] if isinstance(op, list) else op, result.patterns, bounds, responses,
-                                          outside))
+    return (result, *projectable_patterns(ops[0], result.patterns, bounds, responses, outside))
 
 
 def _join_channels(results):

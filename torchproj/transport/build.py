@@ -453,8 +453,8 @@ def _scale(vals: torch.Tensor, scale: float | None) -> float:
 
 
 def _assemble(cols: torch.Tensor, vals: torch.Tensor, sizes: list[tuple[int, int]]):
-    """CSR pieces of rows' slots: ``crow``, each nonzero's variable, its value, its slot's place
-    (``order``, ``used``: for the per-channel values), the variables' global cells and projectors."""
+    """CSR pieces of rows' slots: ``crow``, each nonzero's variable and value, and each variable's cell
+    and projector."""
     # Variables only for the cells that light at least one row, numbered in cell order through a
     # table over all cells (a few million), not a sort of every nonzero. Each row names a cell at most
     # once (projectors' cells are offset apart), so sorting each row's slots gives CSR directly.
@@ -470,7 +470,7 @@ def _assemble(cols: torch.Tensor, vals: torch.Tensor, sizes: list[tuple[int, int
     crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64)
     crow[1:] = torch.cumsum(used.sum(1), 0)
     projector = torch.searchsorted(starts, global_cols, right=True) - 1
-    return crow, number[cols[used]], vals[used], (cols, used), global_cols - starts[projector], projector
+    return crow, number[cols[used]], vals[used], global_cols - starts[projector], projector
 
 
 def build_transport(calibrations: dict[str, StateCalibration], targets: list[Target], *,
@@ -501,7 +501,7 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
     if merge:
         cols, vals, rhs, tgt, constant = _merge(cols, vals, rhs, tgt)
         pixels = {}  # merged rows mix pixels
-    crow, variable, value, _, cell, projector = _assemble(cols, vals, rows.sizes)
+    crow, variable, value, cell, projector = _assemble(cols, vals, rows.sizes)
     matrix = csr_tensor(crow, variable, value, (cols.shape[0], cell.numel()))
     return TransportOperator(matrix, rhs, projector, cell, rows.sizes, constant, tgt, scale,
                              target_count=len(targets), **pixels).to(device)
@@ -542,14 +542,13 @@ def build_channel_transports(calibrations: dict[str, StateCalibration], targets:
     device = check_device(device)
     rows = _target_rows(calibrations, targets, footprint, colour=True)
     scale = _scale(rows.vals, scale)
-    crow, variable, value, (cols, used), cell, projector = _assemble(rows.cols, rows.vals, rows.sizes)
-    starts = torch.tensor([0] + [w * h for w, h in rows.sizes]).cumsum(0)
-    slot_projector = (torch.searchsorted(starts, cols[used], right=True) - 1)
-    slot_row = torch.repeat_interleave(torch.arange(cols.shape[0]), used.sum(1))
+    crow, variable, value, cell, projector = _assemble(rows.cols, rows.vals, rows.sizes)
+    n_rows = rows.cols.shape[0]
+    # Each nonzero's row and projector, to pick its ratio.
+    nonzero_row, nonzero_projector = torch.repeat_interleave(torch.arange(n_rows), crow.diff()), projector[variable]
     ops = []
     for c in range(rows.values.shape[1]):
-        matrix = csr_tensor(crow, variable, value * rows.ratio[slot_row, slot_projector, c],
-                            (cols.shape[0], cell.numel()))
+        matrix = csr_tensor(crow, variable, value * rows.ratio[nonzero_row, nonzero_projector, c], (n_rows, cell.numel()))
         ops.append(TransportOperator(matrix, rows.values[:, c:c + 1] * scale, projector, cell, rows.sizes, None,
                                      rows.target, scale, target_count=len(targets), row_pixel=rows.pixel,
                                      camera_size=(rows.camera[1], rows.camera[0])).to(device))
