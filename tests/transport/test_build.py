@@ -12,6 +12,7 @@ from torchproj.pipeline import calibrate_virtual
 from torchproj.scene import parse_scene
 from torchproj.transport import (StateCalibration, Target, TransportOperator, build_channel_transports, build_transport,
                                  csr_from_coo, group_rows, has_colour_weights, map_slope)
+from torchproj.calib.maps import depth_edges
 from torchproj.transport.build import target_on_camera
 
 from ..helpers import LARGE, SIZES, dense_reference, small_config, synthetic_calibration, targets
@@ -183,12 +184,28 @@ def test_prediction_is_the_operators_product(footprint):
 def test_map_slope_of_an_affine_map_is_its_matrix():
     ys, xs = torch.meshgrid(torch.arange(20.0), torch.arange(30.0), indexing="ij")
     prj_xy = torch.stack([0.6 * xs - 0.2 * ys + 5, 0.1 * xs + 0.7 * ys + 2], -1)
-    prj_xy[8, 10] = float("nan")  # a hole: its neighbours fall back to the narrower difference
+    prj_xy[8, 10] = float("nan")  # a hole: its neighbours take the steps on their own side of it
     slope = map_slope(prj_xy)
     known = torch.isfinite(slope).all(-1).all(-1)
     want = torch.tensor([[0.6, -0.2], [0.1, 0.7]])
-    assert known[2:-2, 2:-2].sum() >= (16 * 26 - 9) and not known[0].any()
+    assert bool(known.sum() == 20 * 30 - 1) and not known[8, 10]  # the image's border too, from one side
     torch.testing.assert_close(slope[known], want.expand(int(known.sum()), 2, 2), atol=1e-5, rtol=0)
+
+
+def test_map_slope_stops_at_a_depth_edge():
+    """Two surfaces meet between columns 11 and 12 (the projector coordinate jumps 40 cells there):
+    each side's slope is its own surface's, never a difference across the step, and the two columns
+    beside the step are the depth edge."""
+    ys, xs = torch.meshgrid(torch.arange(12.0), torch.arange(24.0), indexing="ij")
+    left = torch.stack([0.6 * xs + 5, 0.7 * ys + 2], -1)
+    right = torch.stack([1.8 * xs + 45, 0.1 * xs + 0.7 * ys + 2], -1)
+    beyond = (xs >= 12)[..., None]
+    prj_xy = torch.where(beyond, right, left)
+    slope = map_slope(prj_xy)
+    torch.testing.assert_close(slope[:, :12], torch.tensor([[0.6, 0.0], [0.0, 0.7]]).expand(12, 12, 2, 2))
+    torch.testing.assert_close(slope[:, 12:], torch.tensor([[1.8, 0.0], [0.1, 0.7]]).expand(12, 12, 2, 2))
+    edge = depth_edges(prj_xy)
+    assert edge[:, 11:13].all() and int(edge.sum()) == 24
 
 
 @pytest.mark.parametrize("camera, oracle, gain", [((100, 75), False, 0.35), ((400, 300), True, 0.15)])

@@ -14,7 +14,7 @@ from scipy import ndimage
 from ..core.checks import check, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
 
-__all__ = ["inverse_map", "fill_holes", "map_slope", "pixel_square"]
+__all__ = ["EDGE_STEP", "inverse_map", "fill_holes", "map_slope", "depth_edges", "pixel_square"]
 
 
 def inverse_map(prj_xy: torch.Tensor, projector_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -91,27 +91,57 @@ def fill_holes(values: torch.Tensor, max_area: int = 16) -> torch.Tensor:
 # Camera pixels either side over which the map's slope is taken: a wider difference averages the
 # refined coordinates' own error (about a tenth of a cell) over more pixels.
 _SLOPE_REACH = 2
+# A step between neighbouring pixels over this many cells (on either projector axis) is a depth edge,
+# not a surface: the two pixels see different surfaces, and no slope is taken across it.
+EDGE_STEP = 4.0
+
+
+def _steps(prj_xy: torch.Tensor, dim: int, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The step ``u[p + k + 1] - u[p + k]`` along ``dim`` at every pixel ``p`` and whether both ends
+    are mapped (inside the image)."""
+    ahead, here = (torch.roll(prj_xy, -(k + 1), dim), torch.roll(prj_xy, -k, dim))
+    step = ahead - here
+    inner = torch.zeros(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
+    lo, hi = max(0, -k), prj_xy.shape[dim] - max(0, k + 1)  # roll wraps round
+    inner.narrow(dim, lo, max(hi - lo, 0)).fill_(True)
+    return step, inner & torch.isfinite(step).all(-1)
 
 
 def map_slope(prj_xy: torch.Tensor) -> torch.Tensor:
     """:math:`(H, W, 2, 2)` the map's local slope, projector cells per camera pixel:
     ``[..., i, 0] = d u_i / d x``, ``[..., i, 1] = d u_i / d y``.
 
-    A central difference over ``_SLOPE_REACH`` pixels either side where both ends are mapped, over
-    one pixel where only those are, else NaN (an edge pixel with no mapped neighbours on an axis).
+    Per axis, the mean of the steps between neighbouring mapped pixels within ``_SLOPE_REACH``
+    pixels either side, taken outwards from the pixel and stopped at a depth edge (a step over
+    :data:`EDGE_STEP` cells): on a surface, the central difference over ``2 _SLOPE_REACH`` pixels;
+    beside an object's outline, the steps on the pixel's own side only. NaN where no step is known.
     """
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
     slope = torch.full((*prj_xy.shape[:2], 2, 2), float("nan"), dtype=prj_xy.dtype, device=prj_xy.device)
     for axis, dim in ((0, 1), (1, 0)):  # x runs along dim 1 (columns), y along dim 0 (rows)
-        for reach in (1, _SLOPE_REACH):  # the wider difference, where it exists, wins
-            ahead = torch.roll(prj_xy, -reach, dim)
-            behind = torch.roll(prj_xy, reach, dim)
-            diff = (ahead - behind) / (2 * reach)
-            inner = torch.zeros(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
-            inner.narrow(dim, reach, max(prj_xy.shape[dim] - 2 * reach, 0)).fill_(True)  # roll wraps round
-            ok = torch.isfinite(diff).all(-1) & inner
-            slope[..., axis][ok] = diff[ok]
+        total = torch.zeros_like(prj_xy)
+        count = torch.zeros(prj_xy.shape[:2], dtype=prj_xy.dtype, device=prj_xy.device)
+        for side in (1, -1):  # ahead: steps 0, 1, ...; behind: steps -1, -2, ...
+            open_ = torch.ones(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
+            for i in range(_SLOPE_REACH):
+                step, ok = _steps(prj_xy, dim, i if side == 1 else -1 - i)
+                open_ &= ok & (step.abs().amax(-1) <= EDGE_STEP)
+                total += torch.where(open_[..., None], step, 0.0)
+                count += open_
+        slope[..., axis] = torch.where(count[..., None] > 0, total / count.clamp_min(1)[..., None], float("nan"))
     return slope
+
+
+def depth_edges(prj_xy: torch.Tensor) -> torch.Tensor:
+    """:math:`(H, W)` bool: mapped pixels beside a depth edge, a step over :data:`EDGE_STEP` cells to a
+    mapped 4-neighbour (the pixel, or the one beyond the step, may see both surfaces at once)."""
+    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    edge = torch.zeros(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
+    for dim in (0, 1):
+        for k in (0, -1):
+            step, ok = _steps(prj_xy, dim, k)
+            edge |= ok & (step.abs().amax(-1) > EDGE_STEP)
+    return edge
 
 
 def pixel_square(samples: int, dtype=torch.float32, device=None) -> torch.Tensor:
