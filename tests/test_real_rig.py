@@ -271,3 +271,32 @@ def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
     np.savez_compressed(calib / "near" / "upper.npz", **{**arrays, "colour_contrast": arrays["colour_contrast"][:2]})
     assert main([*args, "--out", str(tmp_path / "bad")]) == 2
     assert "'colour_contrast' has shape (2, 150, 200)" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_a_bench_bundle_keeps_its_edge_pixels(tmp_path, capsys):
+    """Calibrating a bench with an object in front of another stores each map's edge pixels; the bundle
+    gives the transport model the same ones as calibrating the captures directly. A bundle without
+    them (older) models none; one with a pixel outside the camera is refused, naming the file."""
+    from torchproj.calib import calibrate_projector
+    from torchproj.transport import StateCalibration
+
+    scene = parse_scene(small_config("box_cylinders", camera=(320, 240), projector=(256, 192)), name="edges")
+    rig, root = VirtualRig(scene), tmp_path / "captures"
+    for j, p in enumerate(scene.projectors):
+        write_graycode_folder(root / "together" / p.name, simulate_calibration(rig, "together", j), bits=8)
+    calib = tmp_path / "calib"
+    assert main(["calibrate", str(root), "--projector", "256x192", "--out", str(calib)]) == 0
+    state = StateCalibration.from_bundle(load_bundle(calib))["together"]
+    names = [p.name for p in scene.projectors]
+    for (name, _, _), edges in zip(load_bundle(calib).projectors, state.edges):
+        direct = calibrate_projector(read_graycode_folder(root / "together" / name, (256, 192)), (256, 192)).edges
+        assert len(edges) > 20 and name in names
+        for field in ("pixel", "xy", "slope", "share"):
+            torch.testing.assert_close(getattr(edges, field), getattr(direct, field))
+    path = calib / "together" / f"{names[0]}.npz"
+    arrays = dict(np.load(path))
+    np.savez_compressed(path, **{k: v for k, v in arrays.items() if not k.startswith("edge_")})
+    assert StateCalibration.from_bundle(load_bundle(calib))["together"].edges is None
+    np.savez_compressed(path, **{**arrays, "edge_pixel": arrays["edge_pixel"] + 320 * 240})
+    with pytest.raises(CaptureError, match=f"{names[0]}.npz: an edge pixel lies outside the 320x240 camera"):
+        load_bundle(calib)

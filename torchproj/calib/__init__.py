@@ -19,6 +19,7 @@ from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write
 from .graycode import GrayDecoding, decode_gray, graycode_bits, graycode_patterns, refine_subpixel, sequence_bits
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
+from .edges import EdgePixels, find_edge_pixels
 from .pipeline import (FEW_DECODED, DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder,
                        warn_if_few_decoded)
 from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
@@ -32,6 +33,7 @@ __all__ = [
     "FEW_DECODED",
     "GrayDecoding",
     "GraycodeCapture",
+    "EdgePixels",
     "HomographyFit",
     "ProCamCalibration",
     "ProjectorCalibration",
@@ -42,6 +44,7 @@ __all__ = [
     "decode_folder",
     "decode_gray",
     "fill_holes",
+    "find_edge_pixels",
     "fit_homography",
     "fit_plane",
     "fit_response",

@@ -26,7 +26,9 @@ channels, projectors and sizes, states, response curves, decoded fractions, file
 ``STATE/PROJECTOR.npz`` (``prj_xy`` refined and filled, ``prj_xy_integer``, ``valid``, ``contrast``
 (white minus black, [0, 1] units: the radiometric weight), ``cam_xy`` inverse map, ``count``; from a
 colour camera also ``colour_contrast``, white minus black per channel ``(C, H, W)``, whose mean is
-``contrast``; bundles without it give every channel the grey weight) and
+``contrast``; bundles without it give every channel the grey weight; from a full sequence also
+``edge_pixel``, ``edge_xy``, ``edge_slope``, ``edge_share``, the :class:`~torchproj.calib.EdgePixels`;
+bundles without them model no edge pixel) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
 Bundles from shortened sequences also record ``graycode_bits`` (per projector) and ``homographies``
 (per state and projector, :meth:`~torchproj.calib.HomographyFit.as_dict`).
@@ -49,6 +51,7 @@ from ..core.checks import SIZE_LIMIT
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
+from .edges import EdgePixels
 from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
 from .graycode import graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import ProjectorCalibration, calibrate_projector, warn_if_few_decoded
@@ -280,7 +283,20 @@ def _maps(cal: ProjectorCalibration) -> dict:
             "contrast": cal.decoding.contrast.float(), "cam_xy": cal.cam_xy, "count": cal.count}
     if cal.colour_contrast is not None:
         maps["colour_contrast"] = cal.colour_contrast.float()
+    if cal.edges is not None:
+        maps.update({f"edge_{k}": getattr(cal.edges, k) for k in EDGE_FIELDS})
     return maps
+
+
+EDGE_FIELDS = ("pixel", "xy", "slope", "share")  # EdgePixels' arrays, stored as edge_pixel, edge_xy, ...
+
+
+def edge_pixels(maps: dict) -> EdgePixels | None:
+    """A bundle map's :class:`EdgePixels`, or None where it has none (a shortened sequence, an
+    older bundle)."""
+    if "edge_pixel" not in maps:
+        return None
+    return EdgePixels(*(maps[f"edge_{k}"] for k in EDGE_FIELDS))
 
 
 def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:
@@ -367,6 +383,7 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
             arrays = _read_npz(folder / meta["files"][state][name], {"prj_xy": (*camera, 2), "valid": camera,
                                                                      "contrast": camera},
                                optional={"colour_contrast": (channels, *camera)})
+            _check_edges(arrays, camera, folder / meta["files"][state][name])
             xy = arrays["prj_xy"]
             inside = (xy[..., 0] >= -1) & (xy[..., 0] <= w) & (xy[..., 1] >= -1) & (xy[..., 1] <= h)
             if not (inside | ~torch.isfinite(xy).all(-1)).all():
@@ -388,6 +405,20 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
                              procam_calibration=None if xml is None else folder / xml,
                              bits=[tuple(shown.get(n, graycode_bits(w, h))) for n, w, h in projectors],
                              homographies=meta.get("homographies", {}))
+
+
+def _check_edges(arrays: dict, camera: tuple[int, int], path: Path) -> None:
+    """A projector map's edge pixels (all four arrays or none), in the bundle's terms."""
+    present = [f"edge_{k}" for k in EDGE_FIELDS if f"edge_{k}" in arrays]
+    if not present:
+        return
+    if len(present) < len(EDGE_FIELDS):
+        raise CaptureError(f"{path}: holds {present} but not every edge_* array ({[f'edge_{k}' for k in EDGE_FIELDS]}); "
+                           "calibrate again")
+    try:
+        edge_pixels(arrays).check(camera, str(path))
+    except InputError as exc:
+        raise CaptureError(f"{exc}; calibrate again") from None
 
 
 def _size(value, where: str) -> tuple[int, int]:

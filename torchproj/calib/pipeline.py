@@ -13,6 +13,7 @@ from .capture import GraycodeCapture
 from .graycode import GrayDecoding, decode_gray, refine_subpixel
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
+from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_response, measure_ramp
 
 __all__ = ["FEW_DECODED", "DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder",
@@ -53,6 +54,9 @@ class ProjectorCalibration:
         colour_contrast: for a colour camera, :math:`(C, H, W)` white minus black per camera
             channel (the decoding's ``contrast`` is their mean); None for a grey one. A tinted
             surface or projectors of different white balance make the channels differ.
+        edges: the pixels beside depth edges and the lit ones the map misses, each on one or two
+            surfaces (:func:`find_edge_pixels`), from a full sequence; None for a shortened one (its
+            map is one plane).
     """
 
     decoding: GrayDecoding
@@ -64,6 +68,7 @@ class ProjectorCalibration:
     timings_s: dict
     homography: HomographyFit | None = None
     colour_contrast: torch.Tensor | None = None
+    edges: EdgePixels | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
@@ -116,6 +121,11 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     if max_hole:
         cam_xy = fill_holes(cam_xy, max_hole)
     timings["maps"] = time.perf_counter() - t0
+    edges = None
+    if fit is None:
+        t0 = time.perf_counter()
+        edges = find_edge_pixels(capture.patterns, capture.white, capture.black, prj_xy, projector_size)
+        timings["edges"] = time.perf_counter() - t0
     response = ramp = None
     if capture.ramp is not None:
         t0 = time.perf_counter()
@@ -129,7 +139,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         timings["response"] = time.perf_counter() - t0
     colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
-                                ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour)
+                                ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
+                                edges=edges)
 
 
 @dataclass

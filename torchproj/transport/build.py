@@ -28,6 +28,8 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope, pixel_square
+from ..calib.bundle import edge_pixels
+from ..calib.edges import EdgePixels
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor
 from .operator import TransportOperator
@@ -70,6 +72,10 @@ class StateCalibration:
             :attr:`torchproj.calib.ProjectorCalibration.colour_contrast`. Where the surfaces are
             tinted or the projectors' white balance differs, one grey weight is wrong in every
             channel; :func:`build_channel_transports` gives each channel its own.
+        edges: None, or per projector the :class:`~torchproj.calib.EdgePixels` beside depth edges
+            and at the fringe of its map, e.g. :attr:`torchproj.calib.ProjectorCalibration.edges`.
+            The ``area`` footprint gives such a pixel its surfaces' cells (two where it sees an
+            object's outline and what lies behind), each by its share.
     """
 
     prj_xy: list[torch.Tensor]
@@ -77,6 +83,7 @@ class StateCalibration:
     projector_sizes: list[tuple[int, int]]
     blur: list[torch.Tensor] | None = None
     colour_weight: list[torch.Tensor] | None = None
+    edges: list[EdgePixels] | None = None
 
     @classmethod
     def from_calibrations(cls, calibrations, weighting: str = "radiometric", camera=None,
@@ -95,6 +102,8 @@ class StateCalibration:
         prj_xy = [c.prj_xy for c in calibrations]
         sizes = [(c.cam_xy.shape[1], c.cam_xy.shape[0]) for c in calibrations]
         colour = None
+        edges = [c.edges for c in calibrations] if all(getattr(c, "edges", None) is not None
+                                                        for c in calibrations) else None
         if weighting == "radiometric":
             weight = [c.decoding.contrast.clamp_min(0) for c in calibrations]
             if all(getattr(c, "colour_contrast", None) is not None for c in calibrations):
@@ -105,7 +114,7 @@ class StateCalibration:
             from .geometric import geometric_weights
 
             weight = geometric_weights(prj_xy, camera, projectors)
-        return cls(prj_xy, weight, sizes, colour_weight=colour)
+        return cls(prj_xy, weight, sizes, colour_weight=colour, edges=edges)
 
     @classmethod
     def from_bundle(cls, bundle) -> dict[str, "StateCalibration"]:
@@ -114,8 +123,12 @@ class StateCalibration:
         def colour(maps):  # bundles written before per-channel contrast, or from a grey camera, have none
             return [m["colour_contrast"].clamp_min(0) for m in maps] if all("colour_contrast" in m for m in maps) else None
 
+        def edges(maps):  # bundles from shortened sequences, or written before edge pixels, have none
+            found = [edge_pixels(m) for m in maps]
+            return found if all(e is not None for e in found) else None
+
         return {name: cls([m["prj_xy"] for m in maps], [m["contrast"].clamp_min(0) for m in maps], sizes,
-                          colour_weight=colour(maps))
+                          colour_weight=colour(maps), edges=edges(maps))
                 for name, maps in bundle.states.items()}
 
     def predict(self, light: list[torch.Tensor], black: torch.Tensor, footprint: str = "nearest") -> torch.Tensor:
@@ -139,6 +152,9 @@ class StateCalibration:
             slope = map_slope(xy).reshape(-1, 2, 2) if footprint == "area" else None
             blur = None if self.blur is None else self.blur[j].reshape(-1)
             cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint, slope, blur)
+            if footprint == "area" and self.edges is not None:
+                cells, weights = _edge_rows(cells, weights, self.edges[j], torch.arange(xy.shape[0] * xy.shape[1]),
+                                            weight.reshape(-1), (w, h), blur)
             flat = img.reshape(img.shape[0], -1)[:, cells.clamp_min(0)]  # (C, N, s); unused slots weigh 0
             seen = (flat * weights).sum(-1)
             if self.colour_weight is not None and self.colour_weight[j].shape[0] == img.shape[0] > 1:
@@ -243,23 +259,60 @@ def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tu
     x, y = points.unbind(-1)
     inside = ok[:, None] & (x >= 0) & (x < w) & (y >= 0) & (y < h)
     flat = torch.where(inside, y.mul_(w).add_(x), -1.0).to(torch.int32)
-    # A row's distinct cells, each with its count of samples: sort the samples, number the runs.
-    flat, _ = torch.sort(flat, dim=1)
-    run = torch.zeros_like(flat)
-    run[:, 1:] = (flat[:, 1:] != flat[:, :-1]).cumsum(1)
+    return _combine(flat, (flat >= 0).to(u.dtype) / offset.shape[0])
+
+
+def _combine(cells: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each row's distinct cells (int64, -1 = none) and their values summed: :math:`(N, s)` each, from
+    rows of cells that may repeat :math:`(N, k)` (int32 sorts faster, where the cells fit)."""
+    cells, order = torch.sort(cells, dim=1)
+    values = values.gather(1, order)
+    run = torch.zeros_like(cells)
+    run[:, 1:] = (cells[:, 1:] != cells[:, :-1]).cumsum(1)
     slots = int(run.max()) + 1 if run.numel() else 1
-    cells = torch.full((flat.shape[0], slots), -1, dtype=torch.int64, device=flat.device).scatter_(1, run, flat.long())
-    share = torch.zeros(flat.shape[0], slots, dtype=u.dtype, device=u.device).scatter_add_(
-        1, run, (flat >= 0).to(u.dtype) / offset.shape[0])
-    return cells, share
+    out = torch.full((cells.shape[0], slots), -1, dtype=torch.int64, device=cells.device).scatter_(1, run, cells.long())
+    total = torch.zeros(cells.shape[0], slots, dtype=values.dtype, device=values.device).scatter_add_(
+        1, run, torch.where(cells >= 0, values, 0))
+    return out, total
+
+
+def _edge_rows(cells: torch.Tensor, values: torch.Tensor, edges: EdgePixels, pixels: torch.Tensor,
+               weight: torch.Tensor, size: tuple[int, int], blur: torch.Tensor | None = None):
+    """The ``area`` rows of those camera ``pixels`` :math:`(N,)` that are ``edges``: each surface's
+    cells, the pixel's square carried through that surface's slope, by its share of the pixel's
+    ``weight``. Other rows stay as they are."""
+    if not len(edges) or not pixels.numel():
+        return cells, values
+    order = torch.argsort(edges.pixel)
+    known = edges.pixel[order]
+    at = torch.searchsorted(known, pixels).clamp(max=known.numel() - 1)
+    hit = torch.nonzero(known[at] == pixels)[:, 0]
+    if not hit.numel():
+        return cells, values
+    entry = order[at[hit]]
+    lit = weight[hit] > 0
+    parts = [_area_cells(edges.xy[entry, k].to(values.dtype), edges.slope[entry, k].to(values.dtype), lit, size,
+                         None if blur is None else blur[hit]) for k in (0, 1)]
+    share = edges.share[entry].to(values.dtype) * torch.where(lit, weight[hit], 0.0)[:, None]
+    two_cells, two_values = _combine(torch.cat([parts[0][0], parts[1][0]], 1),
+                                     torch.cat([parts[0][1] * share[:, :1], parts[1][1] * share[:, 1:]], 1))
+    width = max(cells.shape[1], two_cells.shape[1])
+    cells, values = _widen(cells, values, width)
+    cells[hit], values[hit] = _widen(two_cells, two_values, width)
+    return cells, values
+
+
+def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows padded to ``width`` slots with empty ones (cell -1, value 0)."""
+    pad = (0, width - cells.shape[1])
+    return torch.nn.functional.pad(cells, pad, value=-1), torch.nn.functional.pad(values, pad)
 
 
 def _stack_rows(cells: list[torch.Tensor], values: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Blocks of rows with different numbers of slots, one below the other: each padded to the widest
-    with empty slots (cell -1, value 0)."""
+    """Blocks of rows with different numbers of slots, one below the other, each widened to the widest."""
     width = max(c.shape[1] for c in cells)
-    return (torch.cat([torch.nn.functional.pad(c, (0, width - c.shape[1]), value=-1) for c in cells]),
-            torch.cat([torch.nn.functional.pad(v, (0, width - v.shape[1])) for v in values]))
+    blocks = [_widen(c, v, width) for c, v in zip(cells, values)]
+    return torch.cat([c for c, _ in blocks]), torch.cat([v for _, v in blocks])
 
 
 def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], model: str,
@@ -411,13 +464,20 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         if cal.blur is not None:
             check(len(cal.blur) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.blur)} blur maps for "
                                                     f"{len(cal.prj_xy)} projectors: give one per projector")
+        if cal.edges is not None:
+            check(len(cal.edges) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.edges)} edge-pixel sets "
+                                                      f"for {len(cal.prj_xy)} projectors: give one per projector")
         for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
             check_finite(weight, f"weight[{j}] of state {target.state!r}")
+            if cal.edges is not None:
+                cal.edges[j].check(tuple(lit.shape), f"edges[{j}] of state {target.state!r}")
             if cal.blur is not None:
                 check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
             slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
             blur = None if cal.blur is None or footprint != "area" else cal.blur[j].reshape(-1)[rows]
             c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope, blur)
+            if footprint == "area" and cal.edges is not None:
+                c, v = _edge_rows(c, v, cal.edges[j], rows, weight.reshape(-1)[rows], sizes[j], blur)
             cols.append(torch.where(c >= 0, c + offset, -1))
             vals.append(v)
             if colour:
