@@ -163,7 +163,6 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
                                _stripes(points[..., 1], ny, height).mean(2)], -1)
         observed = torch.stack([difference(k, y, x) for k in range(nx + ny)], -1) / contrast[y, x, None].clamp_min(1e-3)
         single = (predicted - observed[:, None]).square().sum(-1).masked_fill(~ok, float("inf"))  # (n, K)
-        best_single = single.min(1).values
         a, b = predicted[:, pairs[0]], predicted[:, pairs[1]]  # (n, P, bits)
         apart = a - b
         span = apart.square().sum(-1)
