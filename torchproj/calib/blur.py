@@ -21,7 +21,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 from ..core.lens import disc_points
-from .graycode import _grey, graycode_bits
+from .graycode import _grey, graycode_bits, stripe_signs
 from .maps import map_slope, pixel_square
 
 __all__ = ["measure_blur"]
@@ -31,18 +31,6 @@ __all__ = ["measure_blur"]
 _DIAMETERS = torch.arange(0, 12.25, 0.5)
 _AREA = 4  # points per axis across a camera pixel's square, as the area footprint
 _DISC = 16  # points of the disc (Vogel spiral), as the virtual rig samples a circle of confusion
-
-
-def _stripes(position: torch.Tensor, finest: int, size: int) -> torch.Tensor:
-    """Sign (+1 white, -1 black, 0 off the projector) of the ``finest`` last Gray-code bits at
-    projector coordinates ``position`` (cell centres at integers): ``(..., finest)``."""
-    cell = torch.floor(position + 0.5).long()
-    inside = (cell >= 0) & (cell < size)
-    gray = cell.clamp(0, size - 1)
-    gray = gray ^ (gray >> 1)
-    shifts = torch.arange(finest - 1, -1, -1, device=position.device)  # finest bits, MSB first
-    sign = ((gray[..., None] >> shifts) & 1).to(position.dtype) * 2 - 1
-    return sign * inside[..., None].to(position.dtype)
 
 
 def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
@@ -96,7 +84,7 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     for i, diameter in enumerate(_DIAMETERS.tolist()):
         points = area[:, :, None, :] + diameter * disc  # (n, S, K, 2)
         for axis, size in enumerate((width, height)):
-            predicted = _stripes(points[..., axis], finest, size).mean((1, 2))
+            predicted = stripe_signs(points[..., axis], finest, size).mean((1, 2))
             error[:, i] += (predicted - observed[axis]).square().sum(-1)
     best = diameters[error.argmin(1)]
     # The median over each sample's 3 x 3 neighbours: the blur follows depth, smooth on a surface,

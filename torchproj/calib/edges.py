@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import check, check_shape
-from .graycode import graycode_bits
+from .graycode import graycode_bits, stripe_signs
 from .maps import EDGE_STEP, depth_edges, map_slope, pixel_square
 
 __all__ = ["EdgePixels", "find_edge_pixels"]
@@ -87,19 +87,6 @@ class EdgePixels:
         check(bool(torch.isfinite(self.xy).all() & torch.isfinite(self.slope).all() & torch.isfinite(self.share).all()
                    & (self.share >= 0).all()),
               f"{where}: edge pixels need finite coordinates and slopes, and shares of at least 0")
-
-
-def _stripes(points: torch.Tensor, bits: int, size: int) -> torch.Tensor:
-    """Gray-code stripe signs (+1 white, -1 black, 0 off the projector) of an axis' ``bits`` pattern
-    pairs, most significant first, at projector coordinates ``points`` (cell centres at integers):
-    ``(..., bits)``."""
-    cell = torch.floor(points + 0.5).long()
-    inside = (cell >= 0) & (cell < size)
-    gray = cell.clamp(0, size - 1)
-    gray = gray ^ (gray >> 1)
-    shifts = torch.arange(bits - 1, -1, -1, device=points.device)
-    sign = ((gray[..., None] >> shifts) & 1).to(points.dtype) * 2 - 1
-    return sign * inside[..., None].to(points.dtype)
 
 
 def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
@@ -159,8 +146,8 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         xy = torch.nan_to_num(prj_xy[cy, cx]) + torch.einsum("nkij,nkj->nki", g, offset)
         # Each candidate's stripes, averaged over the pixel's square through its slope: (n, K, bits).
         points = xy[:, :, None, :] + torch.einsum("nkij,sj->nksi", g, square)
-        predicted = torch.cat([_stripes(points[..., 0], nx, width).mean(2),
-                               _stripes(points[..., 1], ny, height).mean(2)], -1)
+        predicted = torch.cat([stripe_signs(points[..., 0], nx, width).mean(2),
+                               stripe_signs(points[..., 1], ny, height).mean(2)], -1)
         observed = torch.stack([difference(k, y, x) for k in range(nx + ny)], -1) / contrast[y, x, None].clamp_min(1e-3)
         single = (predicted - observed[:, None]).square().sum(-1).masked_fill(~ok, float("inf"))  # (n, K)
         a, b = predicted[:, pairs[0]], predicted[:, pairs[1]]  # (n, P, bits)

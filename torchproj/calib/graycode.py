@@ -169,6 +169,20 @@ class GrayDecoding:
         return float((self.valid & self.lit).sum()) / max(int(self.lit.sum()), 1)
 
 
+def stripe_signs(position: torch.Tensor, bits: int, size: int) -> torch.Tensor:
+    """What the last ``bits`` pattern pairs of an axis' Gray code show at projector coordinates
+    ``position`` (cell centres at integers): +1 white, -1 black, 0 off the projector, most
+    significant first, ``(..., bits)``. What a sharp point there sees as pattern minus inverse, in
+    units of white minus black."""
+    cell = torch.floor(position + 0.5).long()
+    inside = (cell >= 0) & (cell < size)
+    gray = cell.clamp(0, size - 1)
+    gray = gray ^ (gray >> 1)
+    shifts = torch.arange(bits - 1, -1, -1, device=position.device)
+    sign = ((gray[..., None] >> shifts) & 1).to(position.dtype) * 2 - 1
+    return sign * inside[..., None].to(position.dtype)
+
+
 def _grey(images: torch.Tensor) -> torch.Tensor:
     """(N, C, H, W) or (N, H, W) -> (N, H, W); colour averaged (OpenCV decodes grey images)."""
     if images.dim() == 4:
