@@ -19,9 +19,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_shape
+from ..core.checks import check
 from ..core.lens import disc_points
-from .graycode import _grey, graycode_bits, stripe_signs
+from .graycode import _grey, check_full_sequence, stripe_signs
 from .maps import map_slope, pixel_square
 
 __all__ = ["measure_blur"]
@@ -53,22 +53,17 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
         near it could be judged.
     """
     width, height = projector_size
-    nx, ny = graycode_bits(width, height)
+    nx, ny, contrast = check_full_sequence(patterns, white, black, prj_xy, projector_size, "measure_blur",
+                                           " (a shortened sequence, --bits, lacks the finest stripes that show the blur)")
     grey = _grey(patterns)
-    check(grey.dim() == 3 and grey.shape[0] == 2 * (nx + ny),
-          f"measure_blur needs the full Gray-code sequence of a {width}x{height} projector: {2 * (nx + ny)} "
-          f"pattern/inverse captures, got {grey.shape[0] if grey.dim() == 3 else tuple(patterns.shape)} (a shortened "
-          "sequence, --bits, lacks the finest stripes that show the blur)")
-    sizes = check_shape(grey, "patterns", [2 * (nx + ny), "H", "W"])
-    check_shape(prj_xy, "prj_xy", [sizes["H"], sizes["W"], 2])
+    H, W = contrast.shape
     check(1 <= finest <= min(nx, ny), f"finest must be 1..{min(nx, ny)}, got {finest}")
     check(step >= 1, f"step must be >= 1, got {step}")
-    contrast = _grey(white[None] if white.dim() <= 3 else white)[0] - _grey(black[None] if black.dim() <= 3 else black)[0]
     slope = map_slope(prj_xy)
     # Samples on a grid, at pixel centres, where everything the prediction needs is known.
     device = prj_xy.device
-    ys = torch.arange(step // 2, sizes["H"], step, device=device)
-    xs = torch.arange(step // 2, sizes["W"], step, device=device)
+    ys = torch.arange(step // 2, H, step, device=device)
+    xs = torch.arange(step // 2, W, step, device=device)
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     u, g, c = prj_xy[gy, gx], slope[gy, gx], contrast[gy, gx]
     ok = torch.isfinite(u).all(-1) & torch.isfinite(g).all(-1).all(-1) & (c > min_contrast)
@@ -94,7 +89,7 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     padded = F.pad(grid[None, None], (1, 1, 1, 1), value=float("nan"))
     grid = torch.nanmedian(F.unfold(padded, 3).reshape(9, *gy.shape), 0).values
     # Every pixel takes its nearest sample's diameter.
-    rows = torch.clamp(torch.arange(sizes["H"], device=device) // step, max=gy.shape[0] - 1)
-    cols = torch.clamp(torch.arange(sizes["W"], device=device) // step, max=gy.shape[1] - 1)
+    rows = torch.clamp(torch.arange(H, device=device) // step, max=gy.shape[0] - 1)
+    cols = torch.clamp(torch.arange(W, device=device) // step, max=gy.shape[1] - 1)
     blur = grid[rows[:, None], cols[None, :]]
     return torch.where(torch.isfinite(prj_xy).all(-1), blur, float("nan")).to(torch.float32)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import check, check_shape
-from .graycode import graycode_bits, stripe_signs
+from .graycode import check_full_sequence, stripe_signs
 from .maps import EDGE_STEP, depth_edges, map_slope, pixel_square
 
 __all__ = ["EdgePixels", "find_edge_pixels"]
@@ -106,38 +106,29 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         a mapped pixel within two pixels.
     """
     width, height = projector_size
-    nx, ny = graycode_bits(width, height)
-    check(patterns.shape[0] == 2 * (nx + ny),
-          f"find_edge_pixels needs the full Gray-code sequence of a {width}x{height} projector: {2 * (nx + ny)} "
-          f"pattern/inverse captures, got {patterns.shape[0]}")
-    H, W = patterns.shape[-2:]
-    check_shape(prj_xy, "prj_xy", [H, W, 2])
+    nx, ny, contrast = check_full_sequence(patterns, white, black, prj_xy, projector_size, "find_edge_pixels")
+    H, W = contrast.shape
     device = prj_xy.device
 
-    def grey(image):  # (H, W) or (C, H, W) -> (H, W); colour averaged, as the decoder reads it
-        return (image if image.dim() == 2 else image.mean(0)).float()
-
-    def difference(k, y, x):  # pattern pair k's pattern minus inverse at pixels (y, x)
+    def difference(k, y, x):  # pattern pair k's pattern minus inverse at pixels (y, x), colour averaged
         pair = patterns[2 * k:2 * k + 2][..., y, x].float()  # (2, n) or (2, C, n)
         return (pair if pair.dim() == 2 else pair.mean(1)).diff(dim=0).neg()[0]
 
-    contrast = grey(white) - grey(black)
-    check_shape(contrast, "white - black", [H, W])
     lit = contrast > _MIN_CONTRAST
     slope = map_slope(prj_xy)
     known = torch.isfinite(prj_xy).all(-1)
     source = known & torch.isfinite(slope).all(-1).all(-1)  # pixels whose surface can be carried over
     examine = lit & (depth_edges(prj_xy) | ~known)
     ys, xs = torch.nonzero(examine, as_tuple=True)
-    window = [(dy, dx) for dy in range(-_REACH, _REACH + 1) for dx in range(-_REACH, _REACH + 1)]
+    step = torch.arange(-_REACH, _REACH + 1, device=device)
+    window_y, window_x = (t.reshape(-1) for t in torch.meshgrid(step, step, indexing="ij"))  # the 5 x 5 window
     square = pixel_square(_SAMPLES, device=device)
-    pairs = torch.triu_indices(len(window), len(window), 1, device=device)
+    pairs = torch.triu_indices(window_y.numel(), window_y.numel(), 1, device=device)
     found = []
     for start in range(0, ys.numel(), _CHUNK):
         y, x = ys[start:start + _CHUNK], xs[start:start + _CHUNK]
         # Candidates: each window pixel's coordinate carried to this pixel through its slope.
-        cy = y[:, None] + torch.tensor([d[0] for d in window], device=device)
-        cx = x[:, None] + torch.tensor([d[1] for d in window], device=device)
+        cy, cx = y[:, None] + window_y, x[:, None] + window_x
         inside = (cy >= 0) & (cy < H) & (cx >= 0) & (cx < W)
         cy, cx = cy.clamp(0, H - 1), cx.clamp(0, W - 1)
         ok = inside & source[cy, cx]  # the pixel itself among them, if mapped

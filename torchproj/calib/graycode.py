@@ -190,6 +190,33 @@ def _grey(images: torch.Tensor) -> torch.Tensor:
     return images
 
 
+def _grey_image(image: torch.Tensor) -> torch.Tensor:
+    """One capture, (C, H, W) or (H, W) -> (H, W), as :func:`_grey`."""
+    return _grey(image[None] if image.dim() <= 3 else image)[0]
+
+
+def check_full_sequence(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
+                        projector_size: tuple[int, int], who: str, why: str = "") -> tuple[int, int, torch.Tensor]:
+    """What the estimators that read the captures beyond the decoder check first (:func:`~torchproj.calib.measure_blur`,
+    :func:`~torchproj.calib.find_edge_pixels`): ``patterns`` hold the full Gray-code sequence of the
+    projector, and ``prj_xy`` and ``white - black`` are the captures' size.
+
+    Returns:
+        the column and row bits ``(nx, ny)`` and the grey white minus black :math:`(H, W)` float.
+    """
+    width, height = projector_size
+    nx, ny = graycode_bits(width, height)
+    stack = patterns.dim() in (3, 4)
+    check(stack and patterns.shape[0] == 2 * (nx + ny),
+          f"{who} needs the full Gray-code sequence of a {width}x{height} projector: {2 * (nx + ny)} pattern/inverse "
+          f"captures, got {patterns.shape[0] if stack else tuple(patterns.shape)}{why}")
+    H, W = patterns.shape[-2:]
+    check_shape(prj_xy, "prj_xy", [H, W, 2])
+    contrast = _grey_image(white).float() - _grey_image(black).float()
+    check_shape(contrast, "white - black", [H, W])
+    return nx, ny, contrast
+
+
 def _decode_axis(images: torch.Tensor, pairs: range, threshold: float):
     """Decode the Gray code that ``pairs`` of the pattern/inverse captures spell, MSB first.
 
@@ -262,8 +289,7 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     width, height = projector_size
     nx, ny = graycode_bits(width, height)
     kx, ky = sequence_bits(width, height, bits)
-    white = _grey(white[None] if white.dim() <= 3 else white)[0]
-    black = _grey(black[None] if black.dim() <= 3 else black)[0]
+    white, black = _grey_image(white), _grey_image(black)
     sizes = check_shape(patterns[:, 0] if patterns.dim() == 4 else patterns, "patterns", ["N", "H", "W"])
     check(sizes["N"] == 2 * (kx + ky),
           f"patterns must hold {2 * (kx + ky)} images for a {width}x{height} projector "
