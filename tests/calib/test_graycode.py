@@ -6,7 +6,9 @@ import pytest
 import torch
 
 from torchproj.calib import warn_if_few_decoded
-from torchproj.calib import decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder
+from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, decode_gray, graycode_bits,
+                             graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
+from torchproj.calib.maps import pixel_square
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
 from torchproj.core import InputError
 from torchproj.sim import VirtualRig
@@ -122,6 +124,74 @@ def test_refine_recovers_an_affine_map_exactly():
     inner = refined[6:-6, 6:-6] - true[6:-6, 6:-6]
     assert float(inner.abs().max()) < 0.06
     assert float((decoded - true).abs().max()) > 0.4
+
+
+def _area_captures(true_map, camera, projector, samples=8):
+    """Noise-free captures of the full sequence: each camera pixel the mean of ``samples`` x
+    ``samples`` points of its square, each lit by the cell it falls in. Returns the captures and the
+    mean cell centre of each pixel's points."""
+    h, w = camera
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    offset = pixel_square(samples, dtype=torch.float64)
+    cell = torch.floor(true_map(xs[..., None] + offset[:, 0], ys[..., None] + offset[:, 1]) + 0.5).long()
+    seq = graycode_patterns(*projector)[:, 0].double()
+    images = (0.05 + 0.8 * seq[:, cell[..., 1], cell[..., 0]].mean(-1))[:, None].float()  # (N + 2, 1, H, W)
+    return images[:-2], images[-2], images[-1], cell.double().mean(-2)
+
+
+def _curved(x, y):
+    """A smooth, slightly curved map at 0.55-0.95 cells per camera pixel."""
+    return torch.stack([0.55 * x + 0.004 * x * x + 0.07 * y + 3.3, 0.6 * y + 0.003 * y * y - 0.05 * x + 5.1], -1)
+
+
+def test_cell_means_are_the_mean_cell_of_each_pixel_light():
+    """Against the mean cell of each pixel's 64 lit points, and, refined, three times as close to the
+    true map as the fit over integer cells (0.024 against 0.094 cells rms)."""
+    camera, projector = (60, 70), (80, 64)
+    patterns, white, black, mean_cell = _area_captures(_curved, camera, projector)
+    dec = decode_gray(patterns, white, black, projector)
+    assert dec.valid.float().mean() > 0.85  # a pixel split evenly across a cell edge is partly decoded
+    means = cell_means(patterns, white, black, dec, projector)
+    assert torch.isnan(means[~dec.valid]).all()
+    torch.testing.assert_close(means[dec.valid].double(), mean_cell[dec.valid], atol=1e-4, rtol=0)
+    ys, xs = torch.meshgrid(torch.arange(60.0), torch.arange(70.0), indexing="ij")
+    truth = _curved(xs, ys)
+    inner = torch.zeros(camera, dtype=torch.bool)
+    inner[4:-4, 4:-4] = True
+    inner &= dec.valid
+    rms = {name: float((refine_subpixel(m, dec.valid) - truth)[inner].norm(dim=-1).pow(2).mean().sqrt())
+           for name, m in (("integer", dec.prj_xy), ("means", means))}
+    assert rms["means"] < rms["integer"] / 3, rms
+    # calibrate_projector refines over the means, and the partly decoded pixels' open cells
+    cal = calibrate_projector(GraycodeCapture(patterns, white, black, ramp=None), projector)
+    want = refine_subpixel(torch.where(dec.valid[..., None], means, dec.coarse_xy), dec.valid | dec.partial,
+                           spread=dec.spread)
+    torch.testing.assert_close(cal.prj_xy[dec.valid], want[dec.valid], atol=1e-5, rtol=0)
+
+
+def test_cell_means_of_a_noisy_virtual_capture_beat_the_integer_cells():
+    """The virtual rig's noisy, 3 x 3-sampled captures of a plane: the refined means are at least twice
+    as close to the simulator's truth as the refinement of integer cells (0.042 against 0.117 cells)."""
+    scene = small_scene(camera=(480, 360))
+    rig = VirtualRig(scene)
+    cap = simulate_calibration(rig, "near", 1)
+    dec = decode_gray(cap.patterns, cap.white, cap.black, (256, 192))
+    truth = rig.geometry("near").prj_xy[1]
+    integer = decoding_accuracy(refine_subpixel(dec.prj_xy, dec.valid), truth)
+    means = decoding_accuracy(refine_subpixel(cell_means(cap.patterns, cap.white, cap.black, dec, (256, 192)),
+                                              dec.valid), truth)
+    assert means.rms_px < integer.rms_px / 2, (means.rms_px, integer.rms_px)
+
+
+def test_cell_means_need_the_full_sequence():
+    patterns, white, black, _ = _area_captures(_curved, (20, 24), (80, 64))
+    dec = decode_gray(patterns, white, black, (80, 64))
+    with pytest.raises(InputError, match="full Gray-code sequence"):
+        cell_means(patterns[:-2], white, black, dec, (80, 64))
+    short = graycode_patterns(80, 64, bits=4)[:, 0:1, :20, :24]
+    with pytest.raises(InputError, match="decoding.block"):
+        cell_means(short[:-2], short[-2], short[-1], decode_gray(short[:-2], short[-2], short[-1], (80, 64), bits=4),
+                   (80, 64))
 
 
 def test_folder_round_trip_decodes_identically(tmp_path):

@@ -140,7 +140,8 @@ def test_a_shortened_capture_maps_the_plane_better_than_the_full_decoding(planes
     coarse = calibrate_projector(simulate_calibration(rig, state, 0, bits=3), size, bits=3)
     assert coarse.decoding.block == (32, 32) and coarse.homography is not None
     assert error(coarse.decoding.prj_xy) > 5  # the blocks themselves are coarse
-    assert error(coarse.prj_xy) < 0.05 < error(full.prj_xy)
+    # 0.003 against 0.027 cells (median): eight parameters from the whole plane beat any local fit
+    assert error(coarse.prj_xy) < min(0.005, error(full.prj_xy) / 5)
     # The fitted map covers the decoded pixels, and the response is fitted from 16 images, not 40.
     assert int(torch.isfinite(coarse.prj_xy).all(-1).sum()) >= int(coarse.decoding.valid.sum())
     assert coarse.response.b[0] == pytest.approx(float(full.response.b[0]), abs=0.02)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (decode_gray, fit_plane, read_graycode_folder, read_opencv_calibration, refine_subpixel,
+from torchproj.calib import (cell_means, decode_gray, fit_plane, read_graycode_folder, read_opencv_calibration, refine_subpixel,
                              triangulate)
 from torchproj.cli import main
 
@@ -97,8 +97,11 @@ def test_triangulated_board_is_as_flat_as_the_opencv_pipeline(decoded, name, rea
     integer = _plane_rms(triangulate(cam, dec.prj_xy[sel].double(), calib).numpy())
     refined_xy = refine_subpixel(dec.prj_xy, dec.valid)
     refined = _plane_rms(triangulate(cam, refined_xy[sel].double(), calib).numpy())
+    means_xy = refine_subpixel(cell_means(cap.patterns, cap.white, cap.black, dec, (1024, 768)), dec.valid)
+    means = _plane_rms(triangulate(cam, means_xy[sel].double(), calib).numpy())
     assert integer == pytest.approx(reference, rel=0.05)  # same decoding, same geometry
     assert refined < reference  # sub-pixel refinement helps on real data
+    assert means < refined  # and more over the cells' mean than over the integer cells
 
 
 @pytest.mark.slow

@@ -42,7 +42,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 
-__all__ = ["GrayDecoding", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel"]
+__all__ = ["GrayDecoding", "cell_means", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
 
@@ -341,6 +341,64 @@ def _warn_if_codes_beyond(decoded: torch.Tensor, inside: torch.Tensor, first: li
                       "--projector (or sequence.json)", stacklevel=3)
 
 
+def cell_means(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, decoding: GrayDecoding,
+               projector_size: tuple[int, int]) -> torch.Tensor:
+    """The mean cell centre of the light each fully decoded pixel saw, from its Gray-code differences.
+
+    A camera pixel covers an area, so its footprint on the LCD often straddles the edge between
+    its decoded cell ``n`` and a neighbour. Each cell edge is the stripe edge of exactly one
+    pattern pair (neighbouring Gray codes differ in one bit), and that pair's difference, in units
+    of white minus black, is ``+-1`` where all the light came from one side and ``1 - 2 f`` where a
+    share ``f`` came from the other side: it measures the share of the pixel's light from across
+    that edge. With the shares ``f_left``, ``f_right`` from cells ``n - 1`` and ``n + 1``, the light's
+    mean cell centre is ``n - f_left + f_right``, per axis. A decoder that picked the neighbour
+    (the pixel straddles the edge about evenly) gives the same mean.
+
+    Fitted over neighbouring pixels (:func:`refine_subpixel`), these means place a pixel between
+    cells two to four times as closely as the integer cells do (0.042 against 0.117 cells rms on a
+    noisy virtual plane, ``tests/calib/test_graycode.py``): the cell staircase is quantised to whole
+    cells, the means only by the pixel's own shares. Footprints
+    wider than a cell or two (steep faces, defocus) reach cells the two edges do not see, and their
+    mean leans towards ``n``; the fit is unbiased on a symmetric footprint all the same.
+
+    Args:
+        patterns, white, black: the full-sequence captures :func:`decode_gray` read.
+        decoding: its result.
+        projector_size: ``(width, height)``.
+
+    Returns:
+        :math:`(H, W, 2)` projector ``(x, y)``: the mean where the pixel decoded fully, NaN elsewhere.
+    """
+    check(decoding.block == (1, 1), "cell_means needs the full Gray-code sequence (decoding.block is "
+                                    f"{decoding.block}): a shortened one shows no stripe at the cells' edges")
+    nx, ny, contrast = check_full_sequence(patterns, white, black, decoding.prj_xy, projector_size, "cell_means")
+    span = contrast.clamp_min(_EPS)
+    out = torch.full_like(decoding.prj_xy, float("nan"))
+    for axis, (bits, first, size) in enumerate(((nx, 0, projector_size[0]), (ny, nx, projector_size[1]))):
+        cell = torch.nan_to_num(decoding.prj_xy[..., axis]).round().long().clamp(0, size - 1)
+        gray = cell ^ (cell >> 1)
+        sides = []
+        for step in (-1, 1):
+            other = cell + step
+            beyond = (other < 0) | (other >= size)  # the projector lights nothing past its edge
+            other = other.clamp(0, size - 1)
+            flip = (gray ^ (other ^ (other >> 1))).clamp_min(1)  # the one Gray bit the two cells differ in
+            bit = torch.log2(flip.to(torch.float32)).round().long()
+            own = ((gray >> bit) & 1).to(torch.float32) * 2 - 1  # what that pair shows on cell n
+            sides.append((step, beyond, bits - 1 - bit, own, torch.zeros_like(own)))
+        for i in range(bits):  # one pair at a time, as the decoder: the stack is tens of images
+            shown = _grey(patterns[2 * (first + i):2 * (first + i) + 2]).float()
+            diff = (shown[0] - shown[1]) / span
+            for _, _, pair, _, seen in sides:
+                torch.where(pair == i, diff, seen, out=seen)
+        mean = cell.to(torch.float32)
+        for step, beyond, _, own, seen in sides:
+            share = ((1 - seen * own) / 2).clamp(0, 1)
+            mean = mean + step * share.masked_fill(beyond, 0)
+        out[..., axis] = torch.where(decoding.valid, mean, float("nan"))
+    return out
+
+
 def _offset_kernels(window: int, dtype, device) -> torch.Tensor:
     r = window // 2
     d = torch.arange(-r, r + 1, dtype=dtype, device=device)
@@ -359,12 +417,14 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     Gray code quantises each coordinate to whole LCD cells, a staircase across the camera image.
     On a smooth surface, the projector coordinate is locally an affine function of the camera
     coordinate; a least-squares plane through the decoded values in a ``window x window``
-    neighbourhood, evaluated at the centre, recovers the position between the steps. Where the
+    neighbourhood, evaluated at the centre, recovers the position between the steps. The values may
+    be the integer cells or, closer, the mean cell of each pixel's light (:func:`cell_means`, what
+    :func:`~torchproj.calib.calibrate_projector` fits). Where the
     fit is not trustworthy (too few valid neighbours, or it lands more than ``max_shift`` from the
     decoded cell centre, as at depth edges) the integer value is kept.
 
     Args:
-        prj_xy: :math:`(H, W, 2)` decoded coordinates (NaN where invalid).
+        prj_xy: :math:`(H, W, 2)` decoded coordinates (NaN where invalid): cells, or their means.
         valid: :math:`(H, W)` bool.
         window: odd neighbourhood size in camera pixels.
         min_fill: minimum fraction of valid pixels in the window.

@@ -10,7 +10,7 @@ import torch
 
 from ..core.checks import check
 from .capture import GraycodeCapture
-from .graycode import GrayDecoding, decode_gray, refine_subpixel
+from .graycode import GrayDecoding, cell_means, decode_gray, refine_subpixel
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
@@ -85,7 +85,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         capture: the images (:func:`~torchproj.calib.read_graycode_folder` or the virtual rig).
         projector_size: ``(width, height)``.
         white_threshold, black_threshold: decoder thresholds, 8-bit units (OpenCV's defaults).
-        subpixel: refine coordinates by the local affine fit (:func:`refine_subpixel`).
+        subpixel: refine coordinates by the local affine fit (:func:`refine_subpixel`) over the mean
+            cell of each pixel's light (:func:`~torchproj.calib.cell_means`); False: the decoded cells.
         max_hole: largest hole (pixels) filled in the forward and inverse maps; 0 disables.
         ramp_steps: bars in the ramp pattern, when the capture holds one.
         bits: pattern pairs per axis the capture holds (:func:`~torchproj.calib.sequence_bits`);
@@ -114,7 +115,12 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         # Partly decoded pixels join the fit: their open cells' centre is within half a block of the
         # truth, and the fit over their neighbours places them between the cells.
         located = dec.valid | dec.partial
-        prj_xy = refine_subpixel(dec.coarse_xy, located, spread=dec.spread) if subpixel else dec.coarse_xy.clone()
+        if subpixel:
+            coarse = torch.where(dec.valid[..., None], cell_means(capture.patterns, capture.white, capture.black, dec,
+                                                                  projector_size), dec.coarse_xy)
+            prj_xy = refine_subpixel(coarse, located, spread=dec.spread)
+        else:
+            prj_xy = dec.coarse_xy.clone()
         if max_hole:
             prj_xy = fill_holes(prj_xy, max_hole)
     cam_xy, count = inverse_map(prj_xy, projector_size)
