@@ -140,7 +140,7 @@ def _area_captures(true_map, camera, projector, samples=8):
 
 
 def _curved(x, y):
-    """A smooth, slightly curved map at 0.55-0.95 cells per camera pixel."""
+    """A smooth, slightly curved map at 0.55-1.1 cells per camera pixel."""
     return torch.stack([0.55 * x + 0.004 * x * x + 0.07 * y + 3.3, 0.6 * y + 0.003 * y * y - 0.05 * x + 5.1], -1)
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (cell_means, decode_gray, fit_plane, read_graycode_folder, read_opencv_calibration, refine_subpixel,
-                             triangulate)
+from torchproj.calib import (cell_means, decode_gray, fit_plane, read_graycode_folder, read_opencv_calibration,
+                             refine_subpixel, triangulate)
 from torchproj.cli import main
 
 

@@ -16,7 +16,8 @@ The calibration types, and how they relate:
 from .blur import measure_blur
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
-from .graycode import GrayDecoding, cell_means, decode_gray, graycode_bits, graycode_patterns, refine_subpixel, sequence_bits
+from .graycode import (GrayDecoding, cell_means, decode_gray, graycode_bits, graycode_patterns, refine_subpixel,
+                       sequence_bits)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels

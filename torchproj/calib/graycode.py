@@ -42,7 +42,8 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 
-__all__ = ["GrayDecoding", "cell_means", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel"]
+__all__ = ["GrayDecoding", "cell_means", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray",
+           "refine_subpixel"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
 
@@ -357,9 +358,9 @@ def cell_means(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor,
     Fitted over neighbouring pixels (:func:`refine_subpixel`), these means place a pixel between
     cells two to four times as closely as the integer cells do (0.042 against 0.117 cells rms on a
     noisy virtual plane, ``tests/calib/test_graycode.py``): the cell staircase is quantised to whole
-    cells, the means only by the pixel's own shares. Footprints
-    wider than a cell or two (steep faces, defocus) reach cells the two edges do not see, and their
-    mean leans towards ``n``; the fit is unbiased on a symmetric footprint all the same.
+    cells, the means only by the pixel's own shares. Footprints wider than a cell or two (steep
+    faces, defocus) reach cells the two edges do not see, and their mean leans towards ``n``; the
+    fit is unbiased on a symmetric footprint all the same.
 
     Args:
         patterns, white, black: the full-sequence captures :func:`decode_gray` read.
@@ -419,9 +420,9 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     coordinate; a least-squares plane through the decoded values in a ``window x window``
     neighbourhood, evaluated at the centre, recovers the position between the steps. The values may
     be the integer cells or, closer, the mean cell of each pixel's light (:func:`cell_means`, what
-    :func:`~torchproj.calib.calibrate_projector` fits). Where the
-    fit is not trustworthy (too few valid neighbours, or it lands more than ``max_shift`` from the
-    decoded cell centre, as at depth edges) the integer value is kept.
+    :func:`~torchproj.calib.calibrate_projector` fits). Where the fit is not trustworthy (too few
+    valid neighbours, or it lands more than ``max_shift`` from the pixel's own value, as at depth
+    edges) that value is kept.
 
     Args:
         prj_xy: :math:`(H, W, 2)` decoded coordinates (NaN where invalid): cells, or their means.
