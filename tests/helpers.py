@@ -8,6 +8,8 @@ import numpy as np
 import torch
 import yaml
 
+from torchproj.calib import graycode_patterns
+from torchproj.calib.maps import pixel_square
 from torchproj.scene import builtin_config, parse_scene, scale_config
 from torchproj.transport import StateCalibration, Target
 from torchproj.transport.build import target_on_camera
@@ -91,3 +93,21 @@ def dense_reference(cals, tgts, scale, bilinear=False):
         for c, v in r.items():
             A[i, index[c]] = v
     return A, np.array(rhs), np.array(cols)
+
+
+def area_captures(true_map, camera, projector, samples=8):
+    """Noise-free captures of the full Gray-code sequence: each camera pixel the mean of ``samples`` x
+    ``samples`` points of its square, each lit by the cell it falls in, at contrast 0.8 over 0.05.
+    Returns the captures and each pixel's points' cells :math:`(H, W, samples^2, 2)` int64."""
+    h, w = camera
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    offset = pixel_square(samples, dtype=torch.float64)
+    cell = torch.floor(true_map(xs[..., None] + offset[:, 0], ys[..., None] + offset[:, 1]) + 0.5).long()
+    seq = graycode_patterns(*projector)[:, 0].double()
+    images = (0.05 + 0.8 * seq[:, cell[..., 1], cell[..., 0]].mean(-1))[:, None].float()  # (N + 2, 1, H, W)
+    return images[:-2], images[-2], images[-1], cell
+
+
+def curved_map(x, y):
+    """A smooth, slightly curved map at 0.55-1.1 cells per camera pixel."""
+    return torch.stack([0.55 * x + 0.004 * x * x + 0.07 * y + 3.3, 0.6 * y + 0.003 * y * y - 0.05 * x + 5.1], -1)

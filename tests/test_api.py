@@ -23,10 +23,11 @@ SURFACE = {
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
-        "BUNDLE_VERSION", "CalibrationBundle", "DEFAULT_NAMES", "DecodedFolder", "EdgePixels", "FEW_DECODED",
-        "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration", "ResponseCurve",
-        "calibrate_folders", "calibrate_projector", "cell_means", "check_plane", "decode_folder", "decode_gray", "fill_holes",
-        "find_edge_pixels", "fit_homography", "fit_plane", "fit_response", "graycode_bits", "graycode_patterns", "homography_map",
+        "BUNDLE_VERSION", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DecodedFolder", "EdgePixels",
+        "FEW_DECODED", "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
+        "ResponseCurve", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane",
+        "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_homography", "fit_plane", "fit_response",
+        "graycode_bits", "graycode_patterns", "homography_map",
         "inverse_map", "load_bundle", "measure_blur", "measure_ramp", "ramp_pattern", "read_graycode_folder",
         "read_opencv_calibration", "refine_subpixel", "sequence_bits", "triangulate", "triangulate_map",
         "warn_if_few_decoded", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],

@@ -273,10 +273,11 @@ def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
     assert "'colour_contrast' has shape (2, 150, 200)" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
-def test_a_bench_bundle_keeps_its_edge_pixels(tmp_path, capsys):
-    """Calibrating a bench with an object in front of another stores each map's edge pixels; the bundle
-    gives the transport model the same ones as calibrating the captures directly. A bundle without
-    them (older) models none; one with a pixel outside the camera is refused, naming the file."""
+def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
+    """Calibrating a bench with an object in front of another stores each map's edge pixels and cell
+    shares; the bundle gives the transport model the same ones as calibrating the captures directly.
+    A bundle without them (older) models none; one with a pixel outside the camera, a share outside
+    [0, 1] or only some of the share arrays is refused, naming the file."""
     from torchproj.calib import calibrate_projector
     from torchproj.transport import StateCalibration
 
@@ -288,15 +289,22 @@ def test_a_bench_bundle_keeps_its_edge_pixels(tmp_path, capsys):
     assert main(["calibrate", str(root), "--projector", "256x192", "--out", str(calib)]) == 0
     state = StateCalibration.from_bundle(load_bundle(calib))["together"]
     names = [p.name for p in scene.projectors]
-    for (name, _, _), edges in zip(load_bundle(calib).projectors, state.edges):
-        direct = calibrate_projector(read_graycode_folder(root / "together" / name, (256, 192)), (256, 192)).edges
+    for (name, _, _), edges, shares in zip(load_bundle(calib).projectors, state.edges, state.shares):
+        direct = calibrate_projector(read_graycode_folder(root / "together" / name, (256, 192)), (256, 192))
         assert len(edges) > 20 and name in names
         for field in ("pixel", "xy", "slope", "share"):
-            torch.testing.assert_close(getattr(edges, field), getattr(direct, field))
+            torch.testing.assert_close(getattr(edges, field), getattr(direct.edges, field))
+        assert torch.equal((shares.cell >= 0).all(-1), direct.decoding.valid) and int(direct.decoding.valid.sum()) > 10000
+        for field in ("cell", "across", "outside"):
+            torch.testing.assert_close(getattr(shares, field), getattr(direct.shares, field), equal_nan=True)
     path = calib / "together" / f"{names[0]}.npz"
     arrays = dict(np.load(path))
-    np.savez_compressed(path, **{k: v for k, v in arrays.items() if not k.startswith("edge_")})
-    assert StateCalibration.from_bundle(load_bundle(calib))["together"].edges is None
-    np.savez_compressed(path, **{**arrays, "edge_pixel": arrays["edge_pixel"] + 320 * 240})
-    with pytest.raises(CaptureError, match=f"{names[0]}.npz: an edge pixel lies outside the 320x240 camera"):
-        load_bundle(calib)
+    np.savez_compressed(path, **{k: v for k, v in arrays.items() if not k.startswith(("edge_", "share_"))})
+    old = StateCalibration.from_bundle(load_bundle(calib))["together"]
+    assert old.edges is None and old.shares is None
+    for broken, message in (({"edge_pixel": arrays["edge_pixel"] + 320 * 240}, "an edge pixel lies outside the 320x240"),
+                            ({"share_across": arrays["share_across"] + 1.5}, "cell shares' across must lie in"),
+                            ({"share_outside": None}, "holds .* but not every share_\\* array")):
+        np.savez_compressed(path, **{k: v for k, v in {**arrays, **broken}.items() if v is not None})
+        with pytest.raises(CaptureError, match=f"{names[0]}.npz: .*{message}"):
+            load_bundle(calib)

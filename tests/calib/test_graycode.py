@@ -6,14 +6,13 @@ import pytest
 import torch
 
 from torchproj.calib import warn_if_few_decoded
-from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, decode_gray, graycode_bits,
-                             graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
-from torchproj.calib.maps import pixel_square
+from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, decode_gray,
+                             graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
 from torchproj.core import InputError
 from torchproj.sim import VirtualRig
 
-from ..helpers import small_scene
+from ..helpers import area_captures, curved_map as _curved, small_scene
 
 
 @pytest.mark.parametrize("size", [(64, 48), (100, 37), (1024, 768)])
@@ -126,29 +125,12 @@ def test_refine_recovers_an_affine_map_exactly():
     assert float((decoded - true).abs().max()) > 0.4
 
 
-def _area_captures(true_map, camera, projector, samples=8):
-    """Noise-free captures of the full sequence: each camera pixel the mean of ``samples`` x
-    ``samples`` points of its square, each lit by the cell it falls in. Returns the captures and the
-    mean cell centre of each pixel's points."""
-    h, w = camera
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
-    offset = pixel_square(samples, dtype=torch.float64)
-    cell = torch.floor(true_map(xs[..., None] + offset[:, 0], ys[..., None] + offset[:, 1]) + 0.5).long()
-    seq = graycode_patterns(*projector)[:, 0].double()
-    images = (0.05 + 0.8 * seq[:, cell[..., 1], cell[..., 0]].mean(-1))[:, None].float()  # (N + 2, 1, H, W)
-    return images[:-2], images[-2], images[-1], cell.double().mean(-2)
-
-
-def _curved(x, y):
-    """A smooth, slightly curved map at 0.55-1.1 cells per camera pixel."""
-    return torch.stack([0.55 * x + 0.004 * x * x + 0.07 * y + 3.3, 0.6 * y + 0.003 * y * y - 0.05 * x + 5.1], -1)
-
-
 def test_cell_means_are_the_mean_cell_of_each_pixel_light():
     """Against the mean cell of each pixel's 64 lit points, and, refined, three times as close to the
     true map as the fit over integer cells (0.024 against 0.094 cells rms)."""
     camera, projector = (60, 70), (80, 64)
-    patterns, white, black, mean_cell = _area_captures(_curved, camera, projector)
+    patterns, white, black, points = area_captures(_curved, camera, projector)
+    mean_cell = points.double().mean(-2)
     dec = decode_gray(patterns, white, black, projector)
     assert dec.valid.float().mean() > 0.85  # a pixel split evenly across a cell edge is partly decoded
     means = cell_means(patterns, white, black, dec, projector)
@@ -169,6 +151,54 @@ def test_cell_means_are_the_mean_cell_of_each_pixel_light():
     torch.testing.assert_close(cal.prj_xy[dec.valid], want[dec.valid], atol=1e-5, rtol=0)
 
 
+def _steep(x, y):
+    """An affine map at 3.5 cells per camera pixel: a pixel's light spans three to four cells."""
+    return torch.stack([3.5 * x + 0.3 * y + 1.2, 3.5 * y - 0.2 * x + 6.3], -1)
+
+
+@pytest.mark.parametrize("steep", [False, True])
+def test_cell_shares_are_each_pixels_light_across_its_cell_edges(steep):
+    """Against each pixel's 64 lit points: the share of them on the cell across each edge where they
+    all lie within a cell of the decoded one (0.55-1.1 cells per pixel), and on a steep map, where they
+    reach further, the share on the cells whose Gray bit of that edge differs (what the pair's stripe
+    measures) and the largest such share of the axis' other bits (``outside``)."""
+    camera, projector = ((16, 19), (80, 64)) if steep else ((60, 70), (80, 64))
+    patterns, white, black, points = area_captures(_steep if steep else _curved, camera, projector)
+    dec = decode_gray(patterns, white, black, projector)
+    shares = cell_shares(patterns, white, black, dec, projector)
+    valid = dec.valid
+    assert torch.equal((shares.cell >= 0).all(-1), valid) and int(valid.sum()) > 0.5 * valid.numel()
+    assert torch.isnan(shares.across[~valid]).all() and torch.isnan(shares.outside[~valid]).all()
+    cell = shares.cell.long()[..., None, :]  # (H, W, 1, 2) against the points' (H, W, P, 2)
+    gray, own = points ^ (points >> 1), cell ^ (cell >> 1)
+    bits = graycode_bits(*projector)
+    want = torch.full(shares.across.shape, float("nan"), dtype=torch.float64)
+    outside = torch.zeros(shares.outside.shape, dtype=torch.float64)
+    for axis in (0, 1):
+        n = cell[..., axis]
+        edge_bits = []
+        for side, step in enumerate((-1, 1)):
+            other = (n + step).clamp(0, projector[axis] - 1)
+            bit = torch.log2(((own[..., axis] ^ (other ^ (other >> 1))).clamp_min(1)).double()).round().long()
+            edge_bits.append(torch.where((n + step < 0) | (n + step >= projector[axis]), -1, bit)[..., 0])
+            differs = (((gray[..., axis] ^ own[..., axis]) >> bit) & 1).double().mean(-1)
+            want[..., axis, side] = torch.where(edge_bits[-1] >= 0, differs, float("nan"))
+            if not steep:  # every point within a cell of n: the share on the neighbour's cell itself
+                beside = (points[..., axis] == n + step).double().mean(-1)
+                inside = ((points[..., axis] - n).abs() <= 1).all(-1) & valid & (edge_bits[-1] >= 0)
+                torch.testing.assert_close(want[..., axis, side][inside], beside[inside])
+        for bit in range(bits[axis]):
+            differs = (((gray[..., axis] ^ own[..., axis]) >> bit) & 1).double().mean(-1)
+            other_bit = (edge_bits[0] != bit) & (edge_bits[1] != bit)
+            outside[..., axis] = torch.where(other_bit, torch.maximum(outside[..., axis], differs), outside[..., axis])
+    torch.testing.assert_close(shares.across[valid].double(), want[valid], atol=1e-4, rtol=0, equal_nan=True)
+    torch.testing.assert_close(shares.outside[valid].double(), outside[valid], atol=1e-4, rtol=0)
+    if steep:
+        assert float((shares.outside[valid] > 0).float().mean()) > 0.5
+    else:
+        assert float(shares.outside[valid].max()) < 1e-4 and float(shares.across[valid].nanmean()) > 0.05
+
+
 def test_cell_means_of_a_noisy_virtual_capture_beat_the_integer_cells():
     """The virtual rig's noisy, 3 x 3-sampled captures of a plane: the refined means are at least twice
     as close to the simulator's truth as the refinement of integer cells (0.042 against 0.117 cells)."""
@@ -184,7 +214,7 @@ def test_cell_means_of_a_noisy_virtual_capture_beat_the_integer_cells():
 
 
 def test_cell_means_need_the_full_sequence():
-    patterns, white, black, _ = _area_captures(_curved, (20, 24), (80, 64))
+    patterns, white, black, _ = area_captures(_curved, (20, 24), (80, 64))
     dec = decode_gray(patterns, white, black, (80, 64))
     with pytest.raises(InputError, match="full Gray-code sequence"):
         cell_means(patterns[:-2], white, black, dec, (80, 64))

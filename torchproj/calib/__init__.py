@@ -16,8 +16,8 @@ The calibration types, and how they relate:
 from .blur import measure_blur
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
-from .graycode import (GrayDecoding, cell_means, decode_gray, graycode_bits, graycode_patterns, refine_subpixel,
-                       sequence_bits)
+from .graycode import (CellShares, GrayDecoding, cell_means, cell_shares, decode_gray, graycode_bits, graycode_patterns,
+                       refine_subpixel, sequence_bits)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
@@ -29,6 +29,7 @@ from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, 
 __all__ = [
     "BUNDLE_VERSION",
     "CalibrationBundle",
+    "CellShares",
     "DEFAULT_NAMES",
     "DecodedFolder",
     "FEW_DECODED",
@@ -42,6 +43,7 @@ __all__ = [
     "calibrate_folders",
     "calibrate_projector",
     "cell_means",
+    "cell_shares",
     "check_plane",
     "decode_folder",
     "decode_gray",

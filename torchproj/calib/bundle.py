@@ -27,8 +27,9 @@ channels, projectors and sizes, states, response curves, decoded fractions, file
 (white minus black, [0, 1] units: the radiometric weight), ``cam_xy`` inverse map, ``count``; from a
 colour camera also ``colour_contrast``, white minus black per channel ``(C, H, W)``, whose mean is
 ``contrast``; bundles without it give every channel the grey weight; from a full sequence also
-``edge_pixel``, ``edge_xy``, ``edge_slope``, ``edge_share``, the :class:`~torchproj.calib.EdgePixels`;
-bundles without them model no edge pixel) and
+``edge_pixel``, ``edge_xy``, ``edge_slope``, ``edge_share``, the :class:`~torchproj.calib.EdgePixels`,
+and ``share_cell``, ``share_across``, ``share_outside``, the :class:`~torchproj.calib.CellShares`; bundles without them
+model no edge pixel and fit no row to measured shares) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
 Bundles from shortened sequences also record ``graycode_bits`` (per projector) and ``homographies``
 (per state and projector, :meth:`~torchproj.calib.HomographyFit.as_dict`).
@@ -53,7 +54,7 @@ from ..core.progress import progress_bar
 from ..core.imageio import write_image
 from .edges import EdgePixels
 from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
-from .graycode import graycode_bits, graycode_patterns, sequence_bits
+from .graycode import CellShares, graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import ProjectorCalibration, calibrate_projector, warn_if_few_decoded
 from .response import ResponseCurve, ramp_pattern
 
@@ -285,6 +286,8 @@ def _maps(cal: ProjectorCalibration) -> dict:
         maps["colour_contrast"] = cal.colour_contrast.float()
     if cal.edges is not None:
         maps.update({f"edge_{k}": getattr(cal.edges, k) for k in EDGE_FIELDS})
+    if cal.shares is not None:
+        maps.update({f"share_{k}": getattr(cal.shares, k) for k in SHARE_FIELDS})
     return maps
 
 
@@ -297,6 +300,17 @@ def edge_pixels(maps: dict) -> EdgePixels | None:
     if "edge_pixel" not in maps:
         return None
     return EdgePixels(*(maps[f"edge_{k}"] for k in EDGE_FIELDS))
+
+
+SHARE_FIELDS = ("cell", "across", "outside")  # CellShares' arrays, stored as share_cell, ...
+
+
+def cell_shares_of(maps: dict) -> CellShares | None:
+    """A bundle map's :class:`CellShares`, or None where it has none (a shortened sequence, an
+    older bundle)."""
+    if "share_cell" not in maps:
+        return None
+    return CellShares(*(maps[f"share_{k}"] for k in SHARE_FIELDS))
 
 
 def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:
@@ -383,7 +397,7 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
             arrays = _read_npz(folder / meta["files"][state][name], {"prj_xy": (*camera, 2), "valid": camera,
                                                                      "contrast": camera},
                                optional={"colour_contrast": (channels, *camera)})
-            _check_edges(arrays, camera, folder / meta["files"][state][name])
+            _check_parts(arrays, camera, (w, h), folder / meta["files"][state][name])
             xy = arrays["prj_xy"]
             inside = (xy[..., 0] >= -1) & (xy[..., 0] <= w) & (xy[..., 1] >= -1) & (xy[..., 1] <= h)
             if not (inside | ~torch.isfinite(xy).all(-1)).all():
@@ -407,18 +421,22 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
                              homographies=meta.get("homographies", {}))
 
 
-def _check_edges(arrays: dict, camera: tuple[int, int], path: Path) -> None:
-    """A projector map's edge pixels (all four arrays or none), in the bundle's terms."""
-    present = [f"edge_{k}" for k in EDGE_FIELDS if f"edge_{k}" in arrays]
-    if not present:
-        return
-    if len(present) < len(EDGE_FIELDS):
-        raise CaptureError(f"{path}: holds {present} but not every edge_* array ({[f'edge_{k}' for k in EDGE_FIELDS]}); "
-                           "calibrate again")
-    try:
-        edge_pixels(arrays).check(camera, str(path))
-    except InputError as exc:
-        raise CaptureError(f"{exc}; calibrate again") from None
+def _check_parts(arrays: dict, camera: tuple[int, int], size: tuple[int, int], path: Path) -> None:
+    """A projector map's edge pixels and cell shares (all of each one's arrays or none), in the
+    bundle's terms."""
+    for prefix, fields, read, check_part in (
+            ("edge", EDGE_FIELDS, edge_pixels, lambda part: part.check(camera, str(path))),
+            ("share", SHARE_FIELDS, cell_shares_of, lambda part: part.check(camera, size, str(path)))):
+        names = [f"{prefix}_{k}" for k in fields]
+        present = [n for n in names if n in arrays]
+        if not present:
+            continue
+        if len(present) < len(names):
+            raise CaptureError(f"{path}: holds {present} but not every {prefix}_* array ({names}); calibrate again")
+        try:
+            check_part(read(arrays))
+        except InputError as exc:
+            raise CaptureError(f"{exc}; calibrate again") from None
 
 
 def _size(value, where: str) -> tuple[int, int]:
@@ -429,6 +447,9 @@ def _size(value, where: str) -> tuple[int, int]:
         raise CaptureError(f"{where} must be [width, height] in whole pixels (at most {SIZE_LIMIT:.0e} of them), got "
                            f"{value!r}; write or calibrate it again")
     return value[0], value[1]
+
+
+_MAY_BE_NAN = ("prj_xy", "share_across", "share_outside")  # maps that mark unknown pixels with NaN
 
 
 def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]],
@@ -451,7 +472,7 @@ def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]],
         if tuple(arrays[key].shape) != shape:
             raise CaptureError(f"{path}: {key!r} has shape {tuple(arrays[key].shape)}, but bundle.json's camera "
                                f"needs {shape}; calibrate again")
-        if key != "prj_xy" and arrays[key].is_floating_point() and not torch.isfinite(arrays[key]).all():
+        if key not in _MAY_BE_NAN and arrays[key].is_floating_point() and not torch.isfinite(arrays[key]).all():
             raise CaptureError(f"{path}: {key!r} holds NaN or infinite values; calibrate again")
     return arrays
 

@@ -42,8 +42,8 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 
-__all__ = ["GrayDecoding", "cell_means", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray",
-           "refine_subpixel"]
+__all__ = ["CellShares", "GrayDecoding", "cell_means", "cell_shares", "graycode_patterns", "graycode_bits",
+           "sequence_bits", "decode_gray", "refine_subpixel"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
 
@@ -342,25 +342,112 @@ def _warn_if_codes_beyond(decoded: torch.Tensor, inside: torch.Tensor, first: li
                       "--projector (or sequence.json)", stacklevel=3)
 
 
+@dataclass
+class CellShares:
+    """How each fully decoded camera pixel's light is shared across the edges of its decoded cell,
+    as its Gray-code differences measure it (:func:`cell_shares`).
+
+    A camera pixel covers an area, so its light often comes from its decoded cell ``n`` and a
+    neighbour. Each cell edge is the stripe edge of exactly one pattern pair (neighbouring Gray codes
+    differ in one bit), and that pair's difference, in units of white minus black, is ``+-1`` where
+    all the light came from one side and ``1 - 2 f`` where a share ``f`` came from the other side.
+    Exactly, ``f`` is the share of the pixel's light from the cells on which that pair's stripe
+    differs from cell ``n``'s; for a footprint within a cell of ``n``, the share from across the edge.
+
+    Attributes:
+        cell: :math:`(H, W, 2)` int32 decoded cell ``(x, y)``; -1 where the pixel did not decode fully.
+        across: :math:`(H, W, 2, 2)` float32, per axis ``(x, y)``: ``f`` of the edge towards cell
+            ``n - 1`` and of the edge towards ``n + 1``; NaN where the pixel did not decode fully
+            or the edge is the projector's border (nothing lights the pixel from beyond it).
+        outside: :math:`(H, W, 2)` float32, per axis the largest ``f`` of the axis' other pairs: light
+            from beyond cells ``n - 1`` and ``n + 1`` (0 up to the captures' noise for a footprint
+            within a cell of ``n``; a tenth and more under defocus); NaN where not fully decoded.
+    """
+
+    cell: torch.Tensor
+    across: torch.Tensor
+    outside: torch.Tensor
+
+    def means(self) -> torch.Tensor:
+        """:math:`(H, W, 2)` projector ``(x, y)``: the mean cell centre of each pixel's light,
+        ``n - f_lower + f_upper`` per axis; NaN where the pixel did not decode fully.
+
+        Fitted over neighbouring pixels (:func:`refine_subpixel`), these means place a pixel
+        between cells two to four times as closely as the integer cells do (0.042 against 0.117
+        cells rms on a noisy virtual plane, ``tests/calib/test_graycode.py``): the cell staircase is
+        quantised to whole cells, the means only by the pixel's own shares. Footprints wider than a
+        cell or two (steep faces, defocus) reach cells the two edges do not see, and their mean
+        leans towards ``n``; the fit is unbiased on a symmetric footprint all the same. A decoder
+        that picked the neighbour (the pixel straddles the edge about evenly) gives the same mean.
+        """
+        shares = torch.nan_to_num(self.across)
+        mean = self.cell.to(torch.float32) - shares[..., 0] + shares[..., 1]
+        return torch.where((self.cell >= 0).all(-1, keepdim=True), mean, float("nan"))
+
+    def check(self, camera: tuple[int, int], projector_size: tuple[int, int], where: str) -> None:
+        """Shapes for a ``(H, W)`` camera, cells on a ``(width, height)`` projector, shares in [0, 1]."""
+        check_shape(self.cell, f"{where}: cell shares' cell", [*camera, 2])
+        check_shape(self.across, f"{where}: cell shares' across", [*camera, 2, 2])
+        check_shape(self.outside, f"{where}: cell shares' outside", [*camera, 2])
+        decoded = (self.cell >= 0).all(-1)
+        size = torch.tensor(projector_size, device=self.cell.device)
+        check(bool(((self.cell < size) & (self.cell >= -1)).all() and ((self.cell >= 0) | ~decoded[..., None]).all()),
+              f"{where}: cell shares name cells outside the {projector_size[0]}x{projector_size[1]} projector")
+        for name, share in (("across", self.across), ("outside", self.outside)):
+            share = share[torch.isfinite(share)]
+            check(bool(((share >= 0) & (share <= 1)).all()), f"{where}: cell shares' {name} must lie in [0, 1]")
+
+
+def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, decoding: GrayDecoding,
+                projector_size: tuple[int, int]) -> CellShares:
+    """The share of each fully decoded pixel's light from across each edge of its cell
+    (:class:`CellShares`), from the pattern pairs whose stripe edges they are.
+
+    Calibration fits its maps to their means (:meth:`CellShares.means`) and the ``area`` transport
+    footprint fits its rows to them (:func:`~torchproj.transport.build_transport`).
+
+    Args:
+        patterns, white, black: the full-sequence captures :func:`decode_gray` read.
+        decoding: its result.
+        projector_size: ``(width, height)``.
+    """
+    check(decoding.block == (1, 1), "cell shares need the full Gray-code sequence (decoding.block is "
+                                    f"{decoding.block}): a shortened one shows no stripe at the cells' edges")
+    nx, ny, contrast = check_full_sequence(patterns, white, black, decoding.prj_xy, projector_size, "cell_shares")
+    span = contrast.clamp_min(_EPS)
+    valid = decoding.valid
+    cells = torch.where(valid[..., None], torch.nan_to_num(decoding.prj_xy).round(), -1).to(torch.int32)
+    across = torch.full((*valid.shape, 2, 2), float("nan"))
+    outside = torch.full((*valid.shape, 2), float("nan"))
+    for axis, (bits, first, size) in enumerate(((nx, 0, projector_size[0]), (ny, nx, projector_size[1]))):
+        cell = cells[..., axis].long().clamp(0, size - 1)
+        gray = cell ^ (cell >> 1)
+        edges = []  # per side: the pair whose stripe edge it is, or -1 at the projector's border
+        for step in (-1, 1):
+            other = cell + step
+            border = (other < 0) | (other >= size)  # the projector lights nothing past its edge
+            flip = (gray ^ (other ^ (other >> 1))).clamp_min(1)  # the one Gray bit the two cells differ in
+            bit = torch.log2(flip.to(torch.float32)).round().long()
+            edges.append(torch.where(border, -1, bits - 1 - bit))
+        found = [torch.zeros(valid.shape) for _ in edges]
+        far = torch.zeros(valid.shape)
+        for i in range(bits):  # one pair at a time, as the decoder: the stack is tens of images
+            shown = _grey(patterns[2 * (first + i):2 * (first + i) + 2]).float()
+            mine = ((gray >> (bits - 1 - i)) & 1).to(torch.float32) * 2 - 1  # what pair i shows on cell n
+            share = ((1 - (shown[0] - shown[1]) / span * mine) / 2).clamp(0, 1)
+            for pair, seen in zip(edges, found):
+                torch.where(pair == i, share, seen, out=seen)
+            far = torch.where((edges[0] == i) | (edges[1] == i), far, torch.maximum(far, share))
+        for side, (pair, seen) in enumerate(zip(edges, found)):
+            across[..., axis, side] = torch.where(valid & (pair >= 0), seen, float("nan"))
+        outside[..., axis] = torch.where(valid, far, float("nan"))
+    return CellShares(cells, across, outside)
+
+
 def cell_means(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, decoding: GrayDecoding,
                projector_size: tuple[int, int]) -> torch.Tensor:
-    """The mean cell centre of the light each fully decoded pixel saw, from its Gray-code differences.
-
-    A camera pixel covers an area, so its footprint on the LCD often straddles the edge between
-    its decoded cell ``n`` and a neighbour. Each cell edge is the stripe edge of exactly one
-    pattern pair (neighbouring Gray codes differ in one bit), and that pair's difference, in units
-    of white minus black, is ``+-1`` where all the light came from one side and ``1 - 2 f`` where a
-    share ``f`` came from the other side: it measures the share of the pixel's light from across
-    that edge. With the shares ``f_left``, ``f_right`` from cells ``n - 1`` and ``n + 1``, the light's
-    mean cell centre is ``n - f_left + f_right``, per axis. A decoder that picked the neighbour
-    (the pixel straddles the edge about evenly) gives the same mean.
-
-    Fitted over neighbouring pixels (:func:`refine_subpixel`), these means place a pixel between
-    cells two to four times as closely as the integer cells do (0.042 against 0.117 cells rms on a
-    noisy virtual plane, ``tests/calib/test_graycode.py``): the cell staircase is quantised to whole
-    cells, the means only by the pixel's own shares. Footprints wider than a cell or two (steep
-    faces, defocus) reach cells the two edges do not see, and their mean leans towards ``n``; the
-    fit is unbiased on a symmetric footprint all the same.
+    """The mean cell centre of the light each fully decoded pixel saw, from its Gray-code differences
+    (:meth:`CellShares.means` of :func:`cell_shares`, which says how).
 
     Args:
         patterns, white, black: the full-sequence captures :func:`decode_gray` read.
@@ -370,34 +457,7 @@ def cell_means(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor,
     Returns:
         :math:`(H, W, 2)` projector ``(x, y)``: the mean where the pixel decoded fully, NaN elsewhere.
     """
-    check(decoding.block == (1, 1), "cell_means needs the full Gray-code sequence (decoding.block is "
-                                    f"{decoding.block}): a shortened one shows no stripe at the cells' edges")
-    nx, ny, contrast = check_full_sequence(patterns, white, black, decoding.prj_xy, projector_size, "cell_means")
-    span = contrast.clamp_min(_EPS)
-    out = torch.full_like(decoding.prj_xy, float("nan"))
-    for axis, (bits, first, size) in enumerate(((nx, 0, projector_size[0]), (ny, nx, projector_size[1]))):
-        cell = torch.nan_to_num(decoding.prj_xy[..., axis]).round().long().clamp(0, size - 1)
-        gray = cell ^ (cell >> 1)
-        sides = []
-        for step in (-1, 1):
-            other = cell + step
-            beyond = (other < 0) | (other >= size)  # the projector lights nothing past its edge
-            other = other.clamp(0, size - 1)
-            flip = (gray ^ (other ^ (other >> 1))).clamp_min(1)  # the one Gray bit the two cells differ in
-            bit = torch.log2(flip.to(torch.float32)).round().long()
-            own = ((gray >> bit) & 1).to(torch.float32) * 2 - 1  # what that pair shows on cell n
-            sides.append((step, beyond, bits - 1 - bit, own, torch.zeros_like(own)))
-        for i in range(bits):  # one pair at a time, as the decoder: the stack is tens of images
-            shown = _grey(patterns[2 * (first + i):2 * (first + i) + 2]).float()
-            diff = (shown[0] - shown[1]) / span
-            for _, _, pair, _, seen in sides:
-                torch.where(pair == i, diff, seen, out=seen)
-        mean = cell.to(torch.float32)
-        for step, beyond, _, own, seen in sides:
-            share = ((1 - seen * own) / 2).clamp(0, 1)
-            mean = mean + step * share.masked_fill(beyond, 0)
-        out[..., axis] = torch.where(decoding.valid, mean, float("nan"))
-    return out
+    return cell_shares(patterns, white, black, decoding, projector_size).means()
 
 
 def _offset_kernels(window: int, dtype, device) -> torch.Tensor:

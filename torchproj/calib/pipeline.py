@@ -10,7 +10,7 @@ import torch
 
 from ..core.checks import check
 from .capture import GraycodeCapture
-from .graycode import GrayDecoding, cell_means, decode_gray, refine_subpixel
+from .graycode import CellShares, GrayDecoding, cell_shares, decode_gray, refine_subpixel
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
@@ -57,6 +57,8 @@ class ProjectorCalibration:
         edges: the pixels beside depth edges and the lit ones the map misses, each on one or two
             surfaces (:func:`find_edge_pixels`), from a full sequence; None for a shortened one (its
             map is one plane).
+        shares: how each fully decoded pixel's light is shared across the edges of its cell
+            (:func:`~torchproj.calib.cell_shares`), from a full sequence; None for a shortened one.
     """
 
     decoding: GrayDecoding
@@ -69,6 +71,7 @@ class ProjectorCalibration:
     homography: HomographyFit | None = None
     colour_contrast: torch.Tensor | None = None
     edges: EdgePixels | None = None
+    shares: CellShares | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
@@ -101,7 +104,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
                       white_threshold=white_threshold, black_threshold=black_threshold, bits=bits)
     timings["decode"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    fit = None
+    fit = shares = None
     if dec.block != (1, 1):
         fit = fit_homography(dec.prj_xy, block=dec.block)
         check_plane(fit, plane_tolerance, f"a {dec.block[0]}x{dec.block[1]}-cell Gray-code block map",
@@ -115,9 +118,9 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         # Partly decoded pixels join the fit: their open cells' centre is within half a block of the
         # truth, and the fit over their neighbours places them between the cells.
         located = dec.valid | dec.partial
+        shares = cell_shares(capture.patterns, capture.white, capture.black, dec, projector_size)
         if subpixel:
-            coarse = torch.where(dec.valid[..., None], cell_means(capture.patterns, capture.white, capture.black, dec,
-                                                                  projector_size), dec.coarse_xy)
+            coarse = torch.where(dec.valid[..., None], shares.means(), dec.coarse_xy)
             prj_xy = refine_subpixel(coarse, located, spread=dec.spread)
         else:
             prj_xy = dec.coarse_xy.clone()
@@ -146,7 +149,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
-                                edges=edges)
+                                edges=edges, shares=shares)
 
 
 @dataclass
