@@ -10,7 +10,10 @@ spreads its weight over the four cells around its sub-pixel coordinate. With the
 it spreads it over the cells its own area covers on the projector: the square pixel carried through
 the map's local slope (a parallelogram, from the calibrated map alone), each cell weighted by the
 share of the pixel it lights. That is the light a camera pixel integrates when it is as large as a
-few projector cells (a camera coarser than the projectors, a steep surface).
+few projector cells (a camera coarser than the projectors, a steep surface). Where calibration
+measured how each pixel's light is shared across the edges of its cell (:func:`~torchproj.calib.cell_shares`),
+the ``area`` row is then fitted to those shares (:func:`_fit_shares`): the parallelogram is only the
+map's guess at the pixel's footprint, the captures measure it.
 
 Rows with the same columns merge exactly: their normal-equation blocks add, and an equivalent set
 of at most ``s`` rows (s = columns per row) replaces them (``R^T R = sum a a^T``, ``R^T b = sum i a``),
@@ -28,8 +31,9 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope, pixel_square
-from ..calib.bundle import edge_pixels
+from ..calib.bundle import cell_shares_of, edge_pixels
 from ..calib.edges import EdgePixels
+from ..calib.graycode import CellShares
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor
 from .operator import TransportOperator
@@ -52,6 +56,16 @@ DEFAULT_FOOTPRINT = "area"
 # footprint: 4 x 4 shares a pixel's light among its cells to 1/16, as the virtual rig samples it.
 _AREA_SAMPLES = 4
 _AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
+# Sweeps of _fit_shares over a row's four measured shares: the x and y conditions nearly separate,
+# so on box_cylinders and paper_two_planes a second or third sweep moves no score by more than
+# 0.02 dB or 0.001 SSIM (benchmarks/models.py --share-sweeps 2 3). A row with less than _SHARE_TOL
+# of its light on one side of an edge has none there to scale.
+_SHARE_SWEEPS, _SHARE_TOL = 1, 1e-6
+# A row is left as it is where more light than this was measured past cells n +- 1 on an axis
+# (CellShares.outside) and the row holds no cell there: its measured shares then describe a wider
+# footprint (defocus) than the row can hold. Noise alone stays below 0.035 on the virtual rig (99th
+# percentile); 0.05 against 0.1 and no limit on paper_defocus: README "The ceiling".
+_SHARE_OUTSIDE = 0.05
 
 
 @dataclass
@@ -76,6 +90,9 @@ class StateCalibration:
             and at the fringe of its map, e.g. :attr:`torchproj.calib.ProjectorCalibration.edges`.
             The ``area`` footprint gives such a pixel its surfaces' cells (two where it sees an
             object's outline and what lies behind), each by its share.
+        shares: None, or per projector the :class:`~torchproj.calib.CellShares` its captures
+            measured, e.g. :attr:`torchproj.calib.ProjectorCalibration.shares`. The ``area``
+            footprint fits each row to them.
     """
 
     prj_xy: list[torch.Tensor]
@@ -84,6 +101,7 @@ class StateCalibration:
     blur: list[torch.Tensor] | None = None
     colour_weight: list[torch.Tensor] | None = None
     edges: list[EdgePixels] | None = None
+    shares: list[CellShares] | None = None
 
     @classmethod
     def from_calibrations(cls, calibrations, weighting: str = "radiometric", camera=None,
@@ -104,6 +122,8 @@ class StateCalibration:
         colour = None
         edges = [c.edges for c in calibrations] if all(getattr(c, "edges", None) is not None
                                                         for c in calibrations) else None
+        shares = [c.shares for c in calibrations] if all(getattr(c, "shares", None) is not None
+                                                          for c in calibrations) else None
         if weighting == "radiometric":
             weight = [c.decoding.contrast.clamp_min(0) for c in calibrations]
             if all(getattr(c, "colour_contrast", None) is not None for c in calibrations):
@@ -114,7 +134,7 @@ class StateCalibration:
             from .geometric import geometric_weights
 
             weight = geometric_weights(prj_xy, camera, projectors)
-        return cls(prj_xy, weight, sizes, colour_weight=colour, edges=edges)
+        return cls(prj_xy, weight, sizes, colour_weight=colour, edges=edges, shares=shares)
 
     @classmethod
     def from_bundle(cls, bundle) -> dict[str, "StateCalibration"]:
@@ -123,12 +143,13 @@ class StateCalibration:
         def colour(maps):  # bundles written before per-channel contrast, or from a grey camera, have none
             return [m["colour_contrast"].clamp_min(0) for m in maps] if all("colour_contrast" in m for m in maps) else None
 
-        def edges(maps):  # bundles from shortened sequences, or written before edge pixels, have none
-            found = [edge_pixels(m) for m in maps]
+        def every(read, maps):  # bundles from shortened sequences, or older ones, may have none
+            found = [read(m) for m in maps]
             return found if all(e is not None for e in found) else None
 
         return {name: cls([m["prj_xy"] for m in maps], [m["contrast"].clamp_min(0) for m in maps], sizes,
-                          colour_weight=colour(maps), edges=edges(maps))
+                          colour_weight=colour(maps), edges=every(edge_pixels, maps),
+                          shares=every(cell_shares_of, maps))
                 for name, maps in bundle.states.items()}
 
     def predict(self, light: list[torch.Tensor], black: torch.Tensor, footprint: str = "nearest") -> torch.Tensor:
@@ -149,18 +170,32 @@ class StateCalibration:
         for j, (xy, weight, img) in enumerate(zip(self.prj_xy, self.weight, light)):
             w, h = self.projector_sizes[j]
             check_shape(img, f"light[{j}]", ["C", h, w])
-            slope = map_slope(xy).reshape(-1, 2, 2) if footprint == "area" else None
-            blur = None if self.blur is None else self.blur[j].reshape(-1)
-            cells, weights = _footprint(xy.reshape(-1, 2), weight.reshape(-1), (w, h), footprint, slope, blur)
-            if footprint == "area" and self.edges is not None:
-                cells, weights = _edge_rows(cells, weights, self.edges[j], torch.arange(xy.shape[0] * xy.shape[1]),
-                                            weight.reshape(-1), (w, h), blur)
+            cells, weights = self._rows(j, torch.arange(xy.shape[0] * xy.shape[1]), footprint)
             flat = img.reshape(img.shape[0], -1)[:, cells.clamp_min(0)]  # (C, N, s); unused slots weigh 0
             seen = (flat * weights).sum(-1)
             if self.colour_weight is not None and self.colour_weight[j].shape[0] == img.shape[0] > 1:
                 seen = seen * _channel_ratio(self.colour_weight[j].reshape(img.shape[0], -1), weight.reshape(-1))
             out += seen.reshape(out.shape)
         return out
+
+    def _rows(self, j: int, pixels: torch.Tensor, footprint: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """Projector ``j``'s cells and weights :math:`(N, s)` for the flat camera ``pixels``
+        :math:`(N,)`: the ``footprint``'s rows, edge pixels on their surfaces and fitted to the
+        measured shares where this calibration has them (``area``)."""
+        xy, weight = self.prj_xy[j].reshape(-1, 2)[pixels], self.weight[j].reshape(-1)[pixels]
+        size = self.projector_sizes[j]
+        if footprint != "area":
+            return _footprint(xy, weight, size, footprint)
+        slope = map_slope(self.prj_xy[j]).reshape(-1, 2, 2)[pixels]
+        blur = None
+        if self.blur is not None:  # NaN where measure_blur could not tell: taken as in focus
+            blur = torch.nan_to_num(self.blur[j].reshape(-1)[pixels].to(xy.dtype), nan=0.0).clamp_min(0)
+        cells, values = _footprint(xy, weight, size, footprint, slope, blur)
+        if self.edges is not None:
+            cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur)
+        if self.shares is not None:
+            values = _fit_shares(cells, values, self.shares[j], pixels, size)
+        return cells, values
 
     def lit(self) -> torch.Tensor:
         """:math:`(H, W)` pixels lit (decoded) by at least one projector."""
@@ -302,6 +337,62 @@ def _edge_rows(cells: torch.Tensor, values: torch.Tensor, edges: EdgePixels, pix
     return cells, values
 
 
+def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pixels: torch.Tensor,
+                size: tuple[int, int]) -> torch.Tensor:
+    """The rows' values :math:`(N, s)`, rescaled so that each row puts the measured share of its light
+    across each edge of the pixel's decoded cell (:class:`~torchproj.calib.CellShares`).
+
+    The share across an edge is exactly the share of the pixel's light on the cells where that
+    edge's pattern pair shows the other stripe than on the decoded cell; so each measured share is
+    one linear condition on the row, whatever its footprint. Iterative proportional fitting meets
+    them: per condition, the row's cells on either side are scaled to the measured split, keeping
+    the row's total (its white minus black); one sweep over the four conditions settles them
+    (``_SHARE_SWEEPS``). Cells the row does not have are never added: the parallelogram says where
+    the light may fall, the captures how it is split. A condition the row cannot meet (all its light on one side), or that
+    was not measured (not fully decoded, the projector's border), is left out; so is a row whose
+    pixel saw light past cells ``n +- 1`` (:attr:`~torchproj.calib.CellShares.outside`) where the
+    row has no cell: defocus spread that light, and its shares would pull the row's light onto the
+    wrong cells.
+
+    Our choice, not the paper's (it models one cell per pixel): the virtual rig's camera samples a
+    pixel at 3 x 3 points, a real one integrates it with its own sensitivity and lens blur; the
+    shares measure either, the parallelogram neither (README "The ceiling").
+    """
+    if not cells.numel():
+        return values
+    if cells.shape[0] > _AREA_CHUNK:  # the conditions are (N, s) masks: chunks keep them small
+        return torch.cat([_fit_shares(cells[i:i + _AREA_CHUNK], values[i:i + _AREA_CHUNK], shares,
+                                      pixels[i:i + _AREA_CHUNK], size) for i in range(0, cells.shape[0], _AREA_CHUNK)])
+    cell = shares.cell.reshape(-1, 2)[pixels]  # -1 where not fully decoded: no share was measured there
+    cells = cells.to(torch.int32)
+    across = shares.across.reshape(-1, 2, 2)[pixels].to(values.dtype)
+    outside = shares.outside.reshape(-1, 2)[pixels] > _SHARE_OUTSIDE
+    used, w = cells >= 0, size[0]
+    row = torch.div(cells, w, rounding_mode="floor")
+    conditions, wider = [], torch.zeros(cells.shape[0], dtype=torch.bool)
+    for axis, coord in enumerate((cells - row * w, row)):
+        own = cell[:, axis]
+        gray = own ^ (own >> 1)
+        stripe = coord ^ (coord >> 1)
+        reach = (used & ((coord - own[:, None]).abs() >= 2)).any(1)  # the row holds cells past n +- 1
+        wider |= outside[:, axis] & ~reach
+        for side, step in enumerate((-1, 1)):
+            other = own + step
+            bit = (gray ^ (other ^ (other >> 1))).clamp_min(1).to(torch.float64).log2().round().to(torch.int32)
+            far = used & ((((stripe ^ gray[:, None]) >> bit[:, None]) & 1) == 1)
+            conditions.append((far, across[:, axis, side]))
+    total = values.sum(1)  # each step keeps it
+    total = torch.where(total > 0, total, 1.0)
+    for _ in range(_SHARE_SWEEPS):
+        for far, share in conditions:
+            part = torch.where(far, values, 0.0).sum(1) / total
+            on = torch.isfinite(share) & ~wider & (part > _SHARE_TOL) & (part < 1 - _SHARE_TOL)
+            up = torch.where(on, share / part.clamp_min(_SHARE_TOL), 1.0)
+            down = torch.where(on, (1 - share) / (1 - part).clamp_min(_SHARE_TOL), 1.0)
+            values = values * torch.where(far, up[:, None], down[:, None])
+    return values
+
+
 def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Rows padded to ``width`` slots with empty ones (cell -1, value 0)."""
     pad = (0, width - cells.shape[1])
@@ -321,14 +412,12 @@ def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int]
 
     ``slope`` :math:`(N, 2, 2)` (:func:`map_slope` at the rows) is needed by the ``area`` model; a
     row whose slope is unknown keeps its nearest cell. ``blur`` :math:`(N,)`, the ``area`` model's
-    defocus disc per row (:attr:`StateCalibration.blur`)."""
+    defocus disc per row (:attr:`StateCalibration.blur`, NaN already taken as 0)."""
     w, h = size
     ok = torch.isfinite(prj_xy).all(-1) & (weight > 0)
     if model == "area":
         u = torch.nan_to_num(prj_xy, nan=-10.0)
         known = torch.isfinite(slope).all(-1).all(-1)
-        if blur is not None:
-            blur = torch.nan_to_num(blur.to(u.dtype), nan=0.0).clamp_min(0)
         slope = torch.where(known[:, None, None], slope, 0.0)
         # Rows go in chunks, so the samples' temporaries (16 per row, up to 16 x 16 blurred) stay small.
         step = _AREA_CHUNK if blur is None else _BLUR_CHUNK
@@ -461,23 +550,21 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         rows = torch.nonzero(covered.reshape(-1))[:, 0]
         cols, vals, ratio = [], [], []
         offset = 0
-        if cal.blur is not None:
-            check(len(cal.blur) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.blur)} blur maps for "
-                                                    f"{len(cal.prj_xy)} projectors: give one per projector")
-        if cal.edges is not None:
-            check(len(cal.edges) == len(cal.prj_xy), f"state {target.state!r} has {len(cal.edges)} edge-pixel sets "
-                                                      f"for {len(cal.prj_xy)} projectors: give one per projector")
-        for j, (prj_xy, weight) in enumerate(zip(cal.prj_xy, cal.weight)):
+        for name, per in (("blur maps", cal.blur), ("edge-pixel sets", cal.edges), ("cell-share sets", cal.shares)):
+            check(per is None or len(per) == len(cal.prj_xy),
+                  f"state {target.state!r} has {len(per or [])} {name} for {len(cal.prj_xy)} projectors: "
+                  "give one per projector")
+        for j, weight in enumerate(cal.weight):
             check_finite(weight, f"weight[{j}] of state {target.state!r}")
             if cal.edges is not None:
                 cal.edges[j].check(tuple(lit.shape), f"edges[{j}] of state {target.state!r}")
+            if cal.shares is not None:
+                cal.shares[j].check(tuple(lit.shape), sizes[j], f"shares[{j}] of state {target.state!r}")
             if cal.blur is not None:
                 check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
-            slope = map_slope(prj_xy).reshape(-1, 2, 2)[rows] if footprint == "area" else None
-            blur = None if cal.blur is None or footprint != "area" else cal.blur[j].reshape(-1)[rows]
-            c, v = _footprint(prj_xy.reshape(-1, 2)[rows], weight.reshape(-1)[rows], sizes[j], footprint, slope, blur)
-            if footprint == "area" and cal.edges is not None:
-                c, v = _edge_rows(c, v, cal.edges[j], rows, weight.reshape(-1)[rows], sizes[j], blur)
+                check(not torch.isinf(cal.blur[j]).any(), f"blur[{j}] of state {target.state!r} holds infinite "
+                                                          "diameters: give them in cells, NaN where unknown")
+            c, v = cal._rows(j, rows, footprint)
             cols.append(torch.where(c >= 0, c + offset, -1))
             vals.append(v)
             if colour:

@@ -42,8 +42,9 @@ def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> t
             check_plane(fit, tolerance, f"state {name!r}, projector {j}", "keep the decoded maps for this scene")
         maps = [homography_map(fit.matrix, torch.isfinite(xy).all(-1), size)
                 for fit, xy, size in zip(fits[name], state.prj_xy, state.projector_sizes)]
-        # The same weights (grey and per channel) and blur; on one plane there is no depth edge, and the
-        # decoded map's edge pixels would not match the fitted map.
+        # The same weights (grey and per channel), blur and measured cell shares (they measure the light,
+        # whatever map places it); on one plane there is no depth edge, and the decoded map's edge
+        # pixels would not match the fitted map.
         planar[name] = dataclasses.replace(state, prj_xy=maps, edges=None)
     return planar, fits
 
