@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from common import median_time, write_results  # noqa: E402
-from torchproj.calib import (cell_means, decode_gray, fill_holes, graycode_patterns, inverse_map,  # noqa: E402
+from torchproj.calib import (cell_shares, decode_gray, fill_holes, graycode_patterns, inverse_map,  # noqa: E402
                              read_graycode_folder, refine_subpixel)
 from torchproj.scene import load_scene  # noqa: E402
 from torchproj.sim import VirtualRig  # noqa: E402
@@ -49,7 +49,7 @@ def bench_decode(results: dict, opencv_pixels: int | None) -> None:
     cap = read_graycode_folder(DATA, (1024, 768))
     dec = decode_gray(cap.patterns, cap.white, cap.black, (1024, 768))
     results["torchproj_decode_s"] = median_time(decode_gray, cap.patterns, cap.white, cap.black, (1024, 768))
-    results["torchproj_cell_means_s"] = median_time(cell_means, cap.patterns, cap.white, cap.black, dec, (1024, 768))
+    results["torchproj_cell_shares_s"] = median_time(cell_shares, cap.patterns, cap.white, cap.black, dec, (1024, 768))
     results["torchproj_refine_s"] = median_time(refine_subpixel, dec.prj_xy, dec.valid)
     results["torchproj_fill_and_inverse_s"] = median_time(lambda: inverse_map(fill_holes(dec.prj_xy), (1024, 768)))
     results["valid_fraction"] = dec.valid_fraction
@@ -157,7 +157,8 @@ def markdown(r: dict) -> str:
         f"{'' if r['opencv_pixels_timed'] == r['opencv_shadow_mask_pixels'] else ', extrapolated from ' + str(r['opencv_pixels_timed'])}) "
         f"| {r['opencv_getprojpixel_s']:.2f} |",
         f"| speed-up of the decode | {r['speedup']:.0f}x |",
-        f"| each pixel's mean cell from its Gray-code differences (cell_means) | {r['torchproj_cell_means_s']:.3f} |",
+        f"| each pixel's shares across its cell's edges, from its Gray-code differences (cell_shares; "
+        f"cell_means is their mean) | {r['torchproj_cell_shares_s']:.3f} |",
         f"| sub-pixel refinement (7x7 affine fit) | {r['torchproj_refine_s']:.3f} |",
         f"| hole filling + inverse map | {r['torchproj_fill_and_inverse_s']:.3f} |",
         f"| virtual rig: cast one state (1600x1200, 3x3 samples, 2 projectors) | {r['cast_state_s']:.2f} |",

@@ -4,9 +4,11 @@
 
 Each scene is calibrated once from simulated captures. For each model of a camera pixel's light
 (the nearest cell, as the paper; the four cells around its sub-pixel coordinate, ``bilinear``; the
-cells the pixel's own area covers through the map's local slope, ``area``, the default of ``run``)
-and, with ``--blur``, ``area+blur``: the area footprint spread over each projector's defocus disc as
-measured from the Gray-code captures by :func:`torchproj.calib.measure_blur`)
+cells the pixel's own area covers through the map's local slope, ``area-map``; those cells with
+their weights fitted to the shares the Gray-code captures measured, ``area``, the default of ``run``;
+with ``--share-limits``, ``area`` with other limits on the light measured past a row's cells, above
+which a row is not fitted; with ``--share-sweeps``, ``area`` fitted in more sweeps; and, with ``--blur``, ``area+blur``: the area footprint spread over each
+projector's defocus disc as measured from the Gray-code captures by :func:`torchproj.calib.measure_blur`)
 the operator is built on that calibration; on a scene with a colour camera, ``area+channel`` too
 (each channel with its own white minus black, solved apart: what ``run`` does there by default).
 Each is solved with FISTA (least squares, bounds 0..255) and the patterns scored on the virtual
@@ -35,7 +37,8 @@ from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_
                                 scene_targets, simulate_calibration, solve_on_light_transport)
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
-from torchproj.transport import build_channel_transports, build_transport, has_colour_weights
+from torchproj.transport import build, build_channel_transports, build_transport, has_colour_weights
+from torchproj.transport.build import _SHARE_OUTSIDE, _SHARE_SWEEPS
 
 BOUNDS = (0.0, 1.0)
 
@@ -57,20 +60,32 @@ def measured_blur(cal) -> tuple[dict, float, dict]:
     return states, seconds, medians
 
 
-def measure(name: str, scale: float, log=print, blur: bool = False) -> list[dict]:
+def measure(name: str, scale: float, log=print, blur: bool = False, share_limits: tuple[float, ...] = (),
+            share_sweeps: tuple[int, ...] = ()) -> list[dict]:
     scene = load_scene(name, scale=scale)
     cal = calibrate_virtual(scene, progress=False)
     targets = scene_targets(scene, None, cal.rig)
     rows = []
     colour = ("area+channel",) if has_colour_weights(cal.states, targets) else ()
-    for model in ("nearest", "bilinear", "area", *colour, *(("area+blur",) if blur else ()), "ceiling"):
+    limits = tuple(f"area, outside <= {limit:g}" for limit in share_limits)
+    sweeps = tuple(f"area, {n} sweeps" for n in share_sweeps)
+    for model in ("nearest", "bilinear", "area-map", "area", *limits, *sweeps, *colour,
+                  *(("area+blur",) if blur else ()), "ceiling"):
         extra, states = {}, cal.states
+        # what run uses, but where a row below names another limit or number of sweeps
+        build._SHARE_OUTSIDE, build._SHARE_SWEEPS = _SHARE_OUTSIDE, _SHARE_SWEEPS
+        if model == "area-map":
+            states = {k: dataclasses.replace(s, shares=None) for k, s in states.items()}
+        if model in limits:
+            build._SHARE_OUTSIDE = share_limits[limits.index(model)]
+        if model in sweeps:
+            build._SHARE_SWEEPS = share_sweeps[sweeps.index(model)]
         if model == "area+blur":
             states, seconds, medians = measured_blur(cal)
             extra = {"measure_blur_s": round(seconds, 2), "blur_median_cells": medians}
             log(f"{name} measured blur (median cells): {medians} in {seconds:.1f} s")
         t0 = time.perf_counter()
-        footprint = {"ceiling": "nearest", "area+blur": "area", "area+channel": "area"}.get(model, model)
+        footprint = "nearest" if model in ("nearest", "ceiling") else "bilinear" if model == "bilinear" else "area"
         if model == "area+channel":
             ops = build_channel_transports(states, targets, footprint=footprint)
             op = ops[0]
@@ -122,7 +137,7 @@ def chart(path: Path, rows: list[dict]) -> None:
         for k, name in enumerate(t["name"] for t in top["targets"]):
             colour = f"C{k}"
             ax.axhline(top["targets"][k]["ssim"], color=colour, ls="--", lw=1, label=f"{name}: ceiling")
-            for marker, r in zip("os^vD", mine):
+            for marker, r in zip("os^vDPX*", mine):
                 ax.plot(r["build_s"] + r["solve_s"], r["targets"][k]["ssim"], marker, color=colour,
                         label=f"{name}: {r['model']}")
         ax.set(title=scene, xlabel="build + solve (s)", ylabel="captured SSIM")
@@ -137,12 +152,19 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="resolution scale of every scene (default 1)")
     ap.add_argument("--chart-only", action="store_true", help="redraw models.png from --out's results.json")
     ap.add_argument("--blur", action="store_true", help="also the area footprint with the defocus measured from captures")
+    ap.add_argument("--share-limits", nargs="+", type=float, default=[],
+                    help="also the area footprint with these limits on the light measured past a row's cells "
+                         f"(default of run: {_SHARE_OUTSIDE})")
+    ap.add_argument("--share-sweeps", nargs="+", type=int, default=[],
+                    help=f"also the area footprint fitted in these numbers of sweeps (default of run: {_SHARE_SWEEPS})")
     ap.add_argument("--update", action="store_true", help="keep --out's rows of the scenes not measured now")
     args = ap.parse_args()
     if args.chart_only:
         chart(args.out / "models.png", json.loads((args.out / "results.json").read_text())["rows"])
         return
-    rows = [r for name in args.scenes for r in measure(name, args.scale, blur=args.blur)]
+    rows = [r for name in args.scenes for r in measure(name, args.scale, blur=args.blur,
+                                                       share_limits=tuple(args.share_limits),
+                                                       share_sweeps=tuple(args.share_sweeps))]
     if args.update:
         kept = [r for r in json.loads((args.out / "results.json").read_text())["rows"] if r["scene"] not in args.scenes]
         order = list(dict.fromkeys([r["scene"] for r in kept] + args.scenes))
