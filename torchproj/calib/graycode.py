@@ -417,8 +417,8 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     span = contrast.clamp_min(_EPS)
     valid = decoding.valid
     cells = torch.where(valid[..., None], torch.nan_to_num(decoding.prj_xy).round(), -1).to(torch.int32)
-    across = torch.full((*valid.shape, 2, 2), float("nan"))
-    outside = torch.full((*valid.shape, 2), float("nan"))
+    across = torch.full((*valid.shape, 2, 2), float("nan"), device=valid.device)
+    outside = torch.full((*valid.shape, 2), float("nan"), device=valid.device)
     for axis, (bits, first, size) in enumerate(((nx, 0, projector_size[0]), (ny, nx, projector_size[1]))):
         cell = cells[..., axis].long().clamp(0, size - 1)
         gray = cell ^ (cell >> 1)
@@ -429,8 +429,8 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
             flip = (gray ^ (other ^ (other >> 1))).clamp_min(1)  # the one Gray bit the two cells differ in
             bit = torch.log2(flip.to(torch.float32)).round().long()
             edges.append(torch.where(border, -1, bits - 1 - bit))
-        found = [torch.zeros(valid.shape) for _ in edges]
-        far = torch.zeros(valid.shape)
+        found = [torch.zeros(valid.shape, device=valid.device) for _ in edges]
+        far = torch.zeros(valid.shape, device=valid.device)
         for i in range(bits):  # one pair at a time, as the decoder: the stack is tens of images
             shown = _grey(patterns[2 * (first + i):2 * (first + i) + 2]).float()
             mine = ((gray >> (bits - 1 - i)) & 1).to(torch.float32) * 2 - 1  # what pair i shows on cell n

@@ -348,8 +348,9 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     them: per condition, the row's cells on either side are scaled to the measured split, keeping
     the row's total (its white minus black); one sweep over the four conditions settles them
     (``_SHARE_SWEEPS``). Cells the row does not have are never added: the parallelogram says where
-    the light may fall, the captures how it is split. A condition the row cannot meet (all its light on one side), or that
-    was not measured (not fully decoded, the projector's border), is left out; so is a row whose
+    the light may fall, the captures how it is split. A condition the row cannot meet (all its light
+    on one side), or that was not measured (not fully decoded, the projector's border), is left out;
+    so is a row whose
     pixel saw light past cells ``n +- 1`` (:attr:`~torchproj.calib.CellShares.outside`) where the
     row has no cell: defocus spread that light, and its shares would pull the row's light onto the
     wrong cells.
@@ -369,7 +370,7 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     outside = shares.outside.reshape(-1, 2)[pixels] > _SHARE_OUTSIDE
     used, w = cells >= 0, size[0]
     row = torch.div(cells, w, rounding_mode="floor")
-    conditions, wider = [], torch.zeros(cells.shape[0], dtype=torch.bool)
+    conditions, wider = [], torch.zeros(cells.shape[0], dtype=torch.bool, device=cells.device)
     for axis, coord in enumerate((cells - row * w, row)):
         own = cell[:, axis]
         gray = own ^ (own >> 1)
