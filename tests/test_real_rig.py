@@ -274,8 +274,9 @@ def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
 
 
 def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
-    """Calibrating a bench with an object in front of another stores each map's edge pixels and cell
-    shares; the bundle gives the transport model the same ones as calibrating the captures directly.
+    """Calibrating a bench with an object in front of another stores each map's edge pixels, cell
+    shares and dimly lit pixels; the bundle gives the transport model the same ones as calibrating the
+    captures directly.
     A bundle without them (older) models none; one with a pixel outside the camera, a share outside
     [0, 1] or only some of the share arrays is refused, naming the file."""
     from torchproj.calib import calibrate_projector
@@ -289,12 +290,17 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
     assert main(["calibrate", str(root), "--projector", "256x192", "--out", str(calib)]) == 0
     state = StateCalibration.from_bundle(load_bundle(calib))["together"]
     names = [p.name for p in scene.projectors]
-    for (name, _, _), edges, shares in zip(load_bundle(calib).projectors, state.edges, state.shares):
+    for (name, _, _), edges, shares, xy, dim in zip(load_bundle(calib).projectors, state.edges, state.shares,
+                                                   state.prj_xy, state.dim):
         direct = calibrate_projector(read_graycode_folder(root / "together" / name, (256, 192)), (256, 192))
         assert len(edges) > 20 and name in names
         for field in ("pixel", "xy", "slope", "share"):
             torch.testing.assert_close(getattr(edges, field), getattr(direct.edges, field))
-        assert torch.equal((shares.cell >= 0).all(-1), direct.decoding.valid) and int(direct.decoding.valid.sum()) > 10000
+        # Shares for every fully decoded pixel, the dimly lit ones' too, whose coordinates the bundle keeps.
+        assert bool(((shares.cell >= 0).all(-1) >= direct.decoding.valid).all())
+        assert int(direct.decoding.valid.sum()) > 10000
+        assert torch.equal(dim, torch.isfinite(direct.dim_xy).all(-1)) and int(dim.sum()) > 100
+        torch.testing.assert_close(xy, torch.where(dim[..., None], direct.dim_xy, direct.prj_xy), equal_nan=True)
         for field in ("cell", "across", "outside"):
             torch.testing.assert_close(getattr(shares, field), getattr(direct.shares, field), equal_nan=True)
     path = calib / "together" / f"{names[0]}.npz"

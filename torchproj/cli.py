@@ -126,7 +126,7 @@ def cmd_calibrate(args) -> int:
     t0 = time.perf_counter()
     bundle = calibrate_folders(args.capture_root, dict(args.projector or []) or None, states=args.states,
                                white_threshold=args.white_threshold, black_threshold=args.black_threshold,
-                               max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
+                               dim_threshold=args.dim_threshold, max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
     with atomic_output(args.out) as stage:
         write_bundle(stage, bundle, args.calibration)
         calibration_summary(stage / "calibration.png", bundle.figure_rows())
@@ -232,6 +232,8 @@ def _real_rig_commands(sub) -> None:
                    "the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
 
+    from .calib import DIM_THRESHOLD
+
     p = command(sub, "calibrate", cmd_calibrate, "decode every state and projector of a capture root into a "
                  "calibration bundle", out_help="bundle folder")
     p.add_argument("capture_root", type=Path, help="CAPTURE_ROOT/STATE/PROJECTOR/ folders of captures")
@@ -241,6 +243,10 @@ def _real_rig_commands(sub) -> None:
     p.add_argument("--calibration", type=existing_file,
                    help="OpenCV camera-projector calibration to keep in the bundle")
     decoding_options(p)
+    p.add_argument("--dim-threshold", type=float, default=DIM_THRESHOLD, metavar="LEVEL",
+                   help="8-bit units: read the code down to this white minus black too, so that a projector's dim "
+                        "light on pixels another one lights is modelled (default %(default)g; --black-threshold's "
+                        "value or more: off)")
     map_options(p, maps=False, bits="Gray-code pattern pairs per axis of a shortened sequence, where folders hold "
                                      "no sequence.json (which says its own)")
 

@@ -40,7 +40,7 @@ def _captures(samples: int = 8) -> tuple[GraycodeCapture, torch.Tensor]:
 
 def test_edge_pixels_recover_two_surfaces_and_the_dim_fringe():
     capture, truth = _captures()
-    cal = calibrate_projector(capture, PROJECTOR)
+    cal = calibrate_projector(capture, PROJECTOR, dim_threshold=40)  # no dim map: its fringe is edge pixels
     edges = cal.edges
     assert isinstance(edges, EdgePixels) and len(edges) > 0
     found = {int(p): k for k, p in enumerate(edges.pixel)}
@@ -67,6 +67,26 @@ def test_edge_pixels_recover_two_surfaces_and_the_dim_fringe():
             assert float(edges.share[k].max()) == 1.0
             torch.testing.assert_close(edges.xy[k, int(edges.share[k].argmax())], truth[y, x], atol=0.5, rtol=0)
         assert y * w + DIM_FROM + 3 not in found  # no mapped surface within two pixels
+
+
+def test_dim_light_is_read_into_its_own_map_and_is_then_no_edge():
+    """Light under the shadow threshold (0.12 of white, 31/255) whose code reads: its coordinates go to
+    ``dim_xy``, against the surface they were rendered from, and the lit map stays as it was."""
+    capture, truth = _captures()
+    cal = calibrate_projector(capture, PROJECTOR)
+    lit, dim = torch.isfinite(cal.prj_xy).all(-1), torch.isfinite(cal.dim_xy).all(-1)
+    assert bool(dim[:, DIM_FROM:].all()) and not dim[:, :DIM_FROM].any() and not lit[:, DIM_FROM:].any()
+    inner = dim.clone()
+    inner[:3], inner[-3:], inner[:, -3:] = False, False, False  # the refining window's full neighbourhoods
+    torch.testing.assert_close(cal.dim_xy[inner], truth[inner], atol=0.05, rtol=0)
+    # The lit map keeps its pixels; beside the dim light its refining fit has the dim neighbours too.
+    alone = calibrate_projector(capture, PROJECTOR, dim_threshold=40).prj_xy
+    assert torch.equal(lit, torch.isfinite(alone).all(-1))
+    miss, miss_alone = ((xy - truth).abs().amax(-1)[3:-3, :DIM_FROM] for xy in (cal.prj_xy, alone))
+    assert float(miss.max()) <= float(miss_alone.max()) + 1e-3
+    assert float(miss[:, -1].max()) < 0.05 < float(miss_alone[:, -1].max())
+    w = CAMERA[1]
+    assert not any(y * w + x in set(cal.edges.pixel.tolist()) for y in range(CAMERA[0]) for x in range(DIM_FROM - 1, w))
 
 
 def test_an_edge_pixel_row_is_each_surface_square_by_its_share():

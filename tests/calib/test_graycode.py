@@ -99,6 +99,21 @@ def test_shadowed_pixels_are_masked_not_guessed():
         assert not dec.valid[(cap.white - cap.black)[0] <= 40 / 255].any()
 
 
+def test_a_higher_shadow_threshold_on_a_decoding_is_decoding_with_it():
+    """Calibration decodes once, down to the dim threshold, and takes the lit pixels' decoding from it
+    (GrayDecoding.above): the same as decoding at OpenCV's threshold, on box_cylinders' grazing faces,
+    which hold pixels between the two."""
+    rig = VirtualRig(small_scene("box_cylinders"))
+    cap = simulate_calibration(rig, "together", 0)
+    low = decode_gray(cap.patterns, cap.white, cap.black, (256, 192), black_threshold=10)
+    want = decode_gray(cap.patterns, cap.white, cap.black, (256, 192), black_threshold=40)
+    got = low.above(40)
+    assert int((low.valid & ~want.valid).sum()) > 100 and int((low.partial & ~want.partial).sum()) > 0
+    for field in ("prj_xy", "valid", "lit", "coarse_xy", "spread"):
+        torch.testing.assert_close(getattr(got, field), getattr(want, field), equal_nan=True)
+    assert got.counts() == want.counts()
+
+
 def test_noisy_round_trip_and_subpixel_refinement():
     """Stated tolerance with camera noise and 3x3 supersampling: >= 99.5% of lit pixels decoded,
     >= 99.9% of those in the true cell; the sub-pixel fit is at least 3x closer to the truth."""

@@ -285,6 +285,39 @@ def test_cell_shares_must_fit_the_state():
             build_transport(cals, targets(), footprint="area", scale=0.7)
 
 
+def _global_rows(op):
+    """(row target, row pixel) -> the row over every projector's cells (float64), of an unmerged operator."""
+    offsets = torch.tensor([0, SIZES[0][0] * SIZES[0][1]])
+    dense = torch.zeros(op.shape[0], sum(w * h for w, h in SIZES), dtype=torch.float64)
+    dense[:, offsets[op.column_projector] + op.column_cell] = op.dense().double()
+    return {(int(t), int(p)): row for t, p, row in zip(op.row_target, op.row_pixel, dense)}
+
+
+@pytest.mark.parametrize("footprint", ["nearest", "area"])
+def test_dim_light_joins_the_rows_of_pixels_another_projector_lights(footprint):
+    """A projector's dimly lit pixels (StateCalibration.dim) put its light in the rows of the pixels
+    another projector lights, as a lit pixel's would, and make no row of their own; a mask per
+    projector of the camera's shape, or an error naming it."""
+    cals = synthetic_calibration()
+    plain = _global_rows(build_transport(cals, targets(), footprint=footprint, scale=0.7, merge=False))
+    g = torch.Generator().manual_seed(3)
+    for state in cals.values():
+        mapped = [torch.isfinite(xy).all(-1) for xy in state.prj_xy]
+        state.dim = [mapped[0] & (torch.rand(mapped[0].shape, generator=g) < 0.5), torch.zeros_like(mapped[1])]
+    dimmed = _global_rows(build_transport(cals, targets(), footprint=footprint, scale=0.7, merge=False))
+    want = {(t, p) for t, p in plain if bool(cals[targets()[t].state].lit().reshape(-1)[p])}
+    assert set(dimmed) == want and len(want) < len(plain)
+    assert any(bool(cals[targets()[t].state].dim[0].reshape(-1)[p]) for t, p in want)  # dim light in a row
+    for key in want:
+        torch.testing.assert_close(dimmed[key], plain[key])
+    cals["near"].dim = cals["near"].dim[:1]
+    with pytest.raises(InputError, match="dim holds 1 masks for 2 projectors"):
+        build_transport(cals, targets(), footprint=footprint, scale=0.7)
+    cals["near"].dim = [torch.zeros(15, 21, dtype=torch.bool)] * 2
+    with pytest.raises(InputError, match=r"dim\[0\]"):
+        build_transport(cals, targets(), footprint=footprint, scale=0.7)
+
+
 def test_unknown_blur_is_in_focus_on_edge_pixels_too():
     """measure_blur leaves NaN where it cannot tell; the area rows take it as in focus, the edge
     pixels' rows as much as the others (they once failed on it), and an infinite disc is refused."""

@@ -21,7 +21,7 @@ from .graycode import (CellShares, GrayDecoding, cell_means, cell_shares, decode
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
-from .pipeline import (FEW_DECODED, DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder,
+from .pipeline import (DIM_THRESHOLD, FEW_DECODED, DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder,
                        warn_if_few_decoded)
 from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
 from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, triangulate_map, write_ply
@@ -31,6 +31,7 @@ __all__ = [
     "CalibrationBundle",
     "CellShares",
     "DEFAULT_NAMES",
+    "DIM_THRESHOLD",
     "DecodedFolder",
     "FEW_DECODED",
     "GrayDecoding",

@@ -28,8 +28,9 @@ channels, projectors and sizes, states, response curves, decoded fractions, file
 colour camera also ``colour_contrast``, white minus black per channel ``(C, H, W)``, whose mean is
 ``contrast``; bundles without it give every channel the grey weight; from a full sequence also
 ``edge_pixel``, ``edge_xy``, ``edge_slope``, ``edge_share``, the :class:`~torchproj.calib.EdgePixels`,
-and ``share_cell``, ``share_across``, ``share_outside``, the :class:`~torchproj.calib.CellShares`; bundles without them
-model no edge pixel and fit no row to measured shares) and
+and ``share_cell``, ``share_across``, ``share_outside``, the :class:`~torchproj.calib.CellShares`, and ``dim_xy``,
+the dimly lit pixels' coordinates (:attr:`~torchproj.calib.ProjectorCalibration.dim_xy`); bundles without them
+model no edge pixel, fit no row to measured shares and add no dim light to rows) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
 Bundles from shortened sequences also record ``graycode_bits`` (per projector) and ``homographies``
 (per state and projector, :meth:`~torchproj.calib.HomographyFit.as_dict`).
@@ -288,6 +289,8 @@ def _maps(cal: ProjectorCalibration) -> dict:
         maps.update({f"edge_{k}": getattr(cal.edges, k) for k in EDGE_FIELDS})
     if cal.shares is not None:
         maps.update({f"share_{k}": getattr(cal.shares, k) for k in SHARE_FIELDS})
+    if cal.dim_xy is not None:
+        maps["dim_xy"] = cal.dim_xy
     return maps
 
 
@@ -396,13 +399,14 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
         for name, w, h in projectors:
             arrays = _read_npz(folder / meta["files"][state][name], {"prj_xy": (*camera, 2), "valid": camera,
                                                                      "contrast": camera},
-                               optional={"colour_contrast": (channels, *camera)})
+                               optional={"colour_contrast": (channels, *camera), "dim_xy": (*camera, 2)})
             _check_parts(arrays, camera, (w, h), folder / meta["files"][state][name])
-            xy = arrays["prj_xy"]
-            inside = (xy[..., 0] >= -1) & (xy[..., 0] <= w) & (xy[..., 1] >= -1) & (xy[..., 1] <= h)
-            if not (inside | ~torch.isfinite(xy).all(-1)).all():
-                raise CaptureError(f"{folder / meta['files'][state][name]}: projector coordinates outside the "
-                                   f"{w}x{h} projector that bundle.json names; calibrate again")
+            for key in (k for k in ("prj_xy", "dim_xy") if k in arrays):
+                xy = arrays[key]
+                inside = (xy[..., 0] >= -1) & (xy[..., 0] <= w) & (xy[..., 1] >= -1) & (xy[..., 1] <= h)
+                if not (inside | ~torch.isfinite(xy).all(-1)).all():
+                    raise CaptureError(f"{folder / meta['files'][state][name]}: {key} holds projector coordinates "
+                                       f"outside the {w}x{h} projector that bundle.json names; calibrate again")
             maps.append(arrays)
         states[state] = maps
         black[state] = _read_npz(folder / state / "black.npz", {"black": (channels, *camera)})["black"]
@@ -449,7 +453,7 @@ def _size(value, where: str) -> tuple[int, int]:
     return value[0], value[1]
 
 
-_MAY_BE_NAN = ("prj_xy", "share_across", "share_outside")  # maps that mark unknown pixels with NaN
+_MAY_BE_NAN = ("prj_xy", "dim_xy", "share_across", "share_outside")  # maps that mark unknown pixels with NaN
 
 
 def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]],

@@ -7,8 +7,8 @@ Two kinds of pixel get no faithful light model from the decoded map alone:
   apart: its light is the sum of two footprints, each by its share of the pixel's white minus
   black. Gray code decodes it to one of the two places, or to a wrong one (its bits mix two codes).
 - Where light grazes a surface or a shadow begins, a pixel the projector visibly lights (white
-  minus black over 0.1) may fall under the decoder's shadow threshold (40/255, OpenCV's) and stay
-  unmapped. If another projector's light keeps it in the solve, the model then says this projector
+  minus black over 0.1) may stay unmapped: under the decoder's shadow threshold (40/255, OpenCV's)
+  where its code does not read down to the dim threshold (:data:`~torchproj.calib.DIM_THRESHOLD`). If another projector's light keeps it in the solve, the model then says this projector
   sends it nothing; on ``box_cylinders`` such pixels fringe the cylinders' outlines.
 
 Both are read from the captures: the mapped pixels within two pixels carry their surfaces'

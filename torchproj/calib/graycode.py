@@ -139,6 +139,20 @@ class GrayDecoding:
     coarse_xy: torch.Tensor | None = None
     spread: torch.Tensor | None = None
 
+    def above(self, black_threshold: float) -> "GrayDecoding":
+        """This decoding with a higher shadow threshold (8-bit units, as :func:`decode_gray`'s): what
+        :func:`decode_gray` gives with that ``black_threshold``, without decoding again (a pixel's
+        bits read the same at any threshold; only which pixels count as lit changes)."""
+        lit = self.lit & (self.contrast.abs() > (black_threshold + _EPS) / 255)
+        valid = self.valid & lit
+        prj_xy = torch.where(valid[..., None], self.prj_xy, float("nan"))
+        coarse_xy = spread = None
+        if self.coarse_xy is not None:
+            coarse_xy = torch.where(lit[..., None], self.coarse_xy, float("nan"))
+            spread = torch.where(lit[..., None], self.spread, 0)
+        return GrayDecoding(prj_xy=prj_xy, valid=valid, lit=lit, contrast=self.contrast, block=self.block,
+                            coarse_xy=coarse_xy, spread=spread)
+
     @property
     def partial(self) -> torch.Tensor:
         """:math:`(H, W)` bool, lit pixels partly decoded (some bits unreliable, yet a few cells named)."""

@@ -10,18 +10,25 @@ import torch
 
 from ..core.checks import check
 from .capture import GraycodeCapture
-from .graycode import CellShares, GrayDecoding, cell_shares, decode_gray, refine_subpixel
+from .graycode import CellShares, GrayDecoding, cell_shares, decode_gray, graycode_bits, refine_subpixel, sequence_bits
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_response, measure_ramp
 
-__all__ = ["FEW_DECODED", "DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder",
+__all__ = ["DIM_THRESHOLD", "FEW_DECODED", "DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder",
            "warn_if_few_decoded"]
 
 # Below this share of its lit pixels decoded, a projector's calibration is warned about (measured on
 # the shipped scenes: README, "Bad inputs and odd captures").
 FEW_DECODED = 0.7
+
+# White minus black (8-bit units) down to which a projector's code is still read where it lights a
+# pixel too dimly for the shadow threshold (OpenCV's 40): grazing light, the limb of a curved object.
+# Such a pixel is no target pixel of its own, but where another projector lights it, this one's light
+# there belongs in its row (StateCalibration.dim). Our choice, not the paper's (README, "The ceiling",
+# measures it against none; other values are not benchmarked).
+DIM_THRESHOLD = 10
 
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:
@@ -59,6 +66,10 @@ class ProjectorCalibration:
             map is one plane).
         shares: how each fully decoded pixel's light is shared across the edges of its cell
             (:func:`~torchproj.calib.cell_shares`), from a full sequence; None for a shortened one.
+        dim_xy: :math:`(H, W, 2)` projector coordinates of the pixels the projector lights too
+            dimly to count as lit (white minus black between the dim and the shadow threshold,
+            :data:`DIM_THRESHOLD`) whose code still reads, refined and filled as ``prj_xy``; NaN
+            elsewhere (and wherever ``prj_xy`` is known). From a full sequence; None for a shortened one.
     """
 
     decoding: GrayDecoding
@@ -72,11 +83,12 @@ class ProjectorCalibration:
     colour_contrast: torch.Tensor | None = None
     edges: EdgePixels | None = None
     shares: CellShares | None = None
+    dim_xy: torch.Tensor | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
-                        black_threshold: float = 40, subpixel: bool = True, max_hole: int = 16,
-                        ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
+                        black_threshold: float = 40, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
+                        max_hole: int = 16, ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
                         plane_tolerance: float = 1.0) -> ProjectorCalibration:
     """Decode, refine, fill, invert and fit the response of one capture.
 
@@ -88,6 +100,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         capture: the images (:func:`~torchproj.calib.read_graycode_folder` or the virtual rig).
         projector_size: ``(width, height)``.
         white_threshold, black_threshold: decoder thresholds, 8-bit units (OpenCV's defaults).
+        dim_threshold: with a full sequence, read the code down to this white minus black (8-bit
+            units) too, into ``dim_xy`` (:data:`DIM_THRESHOLD`); at or above ``black_threshold``: none.
         subpixel: refine coordinates by the local affine fit (:func:`refine_subpixel`) over the mean
             cell of each pixel's light (:func:`~torchproj.calib.cell_means`); False: the decoded cells.
         max_hole: largest hole (pixels) filled in the forward and inverse maps; 0 disables.
@@ -99,12 +113,16 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     """
     check(max_hole >= 0, f"max_hole must be >= 0, got {max_hole}")
     timings = {}
+    check(dim_threshold >= 0, f"dim_threshold must be >= 0 (8-bit units), got {dim_threshold}")
     t0 = time.perf_counter()
-    dec = decode_gray(capture.patterns, capture.white, capture.black, projector_size,
-                      white_threshold=white_threshold, black_threshold=black_threshold, bits=bits)
+    full = sequence_bits(*projector_size, bits) == graycode_bits(*projector_size)
+    # One decoding down to the dim threshold; the lit pixels' is the same with the shadow threshold.
+    seen = decode_gray(capture.patterns, capture.white, capture.black, projector_size, white_threshold=white_threshold,
+                       black_threshold=min(dim_threshold, black_threshold) if full else black_threshold, bits=bits)
+    dec = seen.above(black_threshold) if full and dim_threshold < black_threshold else seen
     timings["decode"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    fit = shares = None
+    fit = shares = dim_xy = None
     if dec.block != (1, 1):
         fit = fit_homography(dec.prj_xy, block=dec.block)
         check_plane(fit, plane_tolerance, f"a {dec.block[0]}x{dec.block[1]}-cell Gray-code block map",
@@ -116,16 +134,19 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         prj_xy = homography_map(fit.matrix, torch.isfinite(covered).all(-1), projector_size)
     else:
         # Partly decoded pixels join the fit: their open cells' centre is within half a block of the
-        # truth, and the fit over their neighbours places them between the cells.
-        located = dec.valid | dec.partial
-        shares = cell_shares(capture.patterns, capture.white, capture.black, dec, projector_size)
+        # truth, and the fit over their neighbours places them between the cells. Dim pixels join it
+        # too (more neighbours on the same surface); the lit ones' map is then filled on its own, as
+        # without them.
+        shares = cell_shares(capture.patterns, capture.white, capture.black, seen, projector_size)
         if subpixel:
-            coarse = torch.where(dec.valid[..., None], shares.means(), dec.coarse_xy)
-            prj_xy = refine_subpixel(coarse, located, spread=dec.spread)
+            coarse = torch.where(seen.valid[..., None], shares.means(), seen.coarse_xy)
+            mapped = refine_subpixel(coarse, seen.valid | seen.partial, spread=seen.spread)
         else:
-            prj_xy = dec.coarse_xy.clone()
+            mapped = seen.coarse_xy.clone()
+        prj_xy = torch.where((dec.valid | dec.partial)[..., None], mapped, float("nan"))
         if max_hole:
-            prj_xy = fill_holes(prj_xy, max_hole)
+            prj_xy, mapped = fill_holes(prj_xy, max_hole), fill_holes(mapped, max_hole)
+        dim_xy = torch.where(torch.isfinite(prj_xy).all(-1, keepdim=True), float("nan"), mapped)
     cam_xy, count = inverse_map(prj_xy, projector_size)
     if max_hole:
         cam_xy = fill_holes(cam_xy, max_hole)
@@ -133,7 +154,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     edges = None
     if fit is None:
         t0 = time.perf_counter()
-        edges = find_edge_pixels(capture.patterns, capture.white, capture.black, prj_xy, projector_size)
+        edges = find_edge_pixels(capture.patterns, capture.white, capture.black,
+                                 torch.where(torch.isfinite(prj_xy), prj_xy, dim_xy), projector_size)
         timings["edges"] = time.perf_counter() - t0
     response = ramp = None
     if capture.ramp is not None:
@@ -149,7 +171,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
-                                edges=edges, shares=shares)
+                                edges=edges, shares=shares, dim_xy=dim_xy)
 
 
 @dataclass

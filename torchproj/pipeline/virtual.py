@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..calib import (GraycodeCapture, ResponseCurve, calibrate_projector, graycode_patterns, ramp_pattern, sequence_bits,
+from ..calib import (DIM_THRESHOLD, GraycodeCapture, ResponseCurve, calibrate_projector, graycode_patterns, ramp_pattern, sequence_bits,
                      warn_if_few_decoded)
 from ..core.checks import check
 from ..core.errors import InputError
@@ -192,25 +192,27 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
         del capture  # a capture stack is hundreds of MB: never hold two while simulating the next
 
 
-def _oracle_calibration(scene: Scene, device, black_threshold: float = 40) -> VirtualCalibration:
+def _oracle_calibration(scene: Scene, device, black_threshold: float = 40,
+                        dim_threshold: float = DIM_THRESHOLD) -> VirtualCalibration:
     t0 = time.perf_counter()
     rig = VirtualRig(scene, device=device)
     states, black = {}, {}
     for st in scene.states:
         geo = rig.geometry(st.name)
         dark = rig.capture(st.name, {}, noise=False, quantise=False)[0]
-        weight, prj_xy, colour = [], [], []
+        weight, prj_xy, colour, dim = [], [], [], []
         for j, proj in enumerate(scene.projectors):
             white = rig.capture(st.name, {j: torch.ones(1, 1, proj.height, proj.width)}, noise=False, quantise=False)[0]
             colour.append((white - dark).cpu())
             weight.append(colour[-1].mean(0))
             # Exact coordinates where a decoder could see the projector at all (the shadow mask's
-            # threshold), so that oracle and calibration solve for the same pixels.
+            # threshold, and the dim one below it), so that oracle and calibration solve for the same pixels.
             xy = geo.prj_xy[j].cpu().clone()
-            xy[weight[-1] <= black_threshold / 255] = float("nan")
+            xy[weight[-1] <= dim_threshold / 255] = float("nan")
             prj_xy.append(xy)
+            dim.append(torch.isfinite(xy).all(-1) & (weight[-1] <= black_threshold / 255))
         states[st.name] = StateCalibration(prj_xy, weight, [(p.width, p.height) for p in scene.projectors],
-                                           colour_weight=colour if dark.shape[0] > 1 else None)
+                                           colour_weight=colour if dark.shape[0] > 1 else None, dim=dim)
         black[st.name] = dark.cpu()
     responses = [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
                  for p in scene.projectors]

@@ -93,6 +93,10 @@ class StateCalibration:
         shares: None, or per projector the :class:`~torchproj.calib.CellShares` its captures
             measured, e.g. :attr:`torchproj.calib.ProjectorCalibration.shares`. The ``area``
             footprint fits each row to them.
+        dim: None, or per projector :math:`(H, W)` bool, the pixels of its map (``prj_xy``) that
+            it lights too dimly to count as lit (:attr:`torchproj.calib.ProjectorCalibration.dim_xy`):
+            its light there is part of the rows of pixels another projector lights, but such a
+            pixel is no row of its own (:meth:`lit`).
     """
 
     prj_xy: list[torch.Tensor]
@@ -102,6 +106,7 @@ class StateCalibration:
     colour_weight: list[torch.Tensor] | None = None
     edges: list[EdgePixels] | None = None
     shares: list[CellShares] | None = None
+    dim: list[torch.Tensor] | None = None
 
     @classmethod
     def from_calibrations(cls, calibrations, weighting: str = "radiometric", camera=None,
@@ -117,7 +122,7 @@ class StateCalibration:
         """
         check(weighting in ("radiometric", "geometric"),
               f"weighting must be 'radiometric' or 'geometric', got {weighting!r}")
-        prj_xy = [c.prj_xy for c in calibrations]
+        prj_xy, dim = _with_dim([c.prj_xy for c in calibrations], [getattr(c, "dim_xy", None) for c in calibrations])
         sizes = [(c.cam_xy.shape[1], c.cam_xy.shape[0]) for c in calibrations]
         colour = None
         edges = [c.edges for c in calibrations] if all(getattr(c, "edges", None) is not None
@@ -134,7 +139,7 @@ class StateCalibration:
             from .geometric import geometric_weights
 
             weight = geometric_weights(prj_xy, camera, projectors)
-        return cls(prj_xy, weight, sizes, colour_weight=colour, edges=edges, shares=shares)
+        return cls(prj_xy, weight, sizes, colour_weight=colour, edges=edges, shares=shares, dim=dim)
 
     @classmethod
     def from_bundle(cls, bundle) -> dict[str, "StateCalibration"]:
@@ -147,10 +152,12 @@ class StateCalibration:
             found = [read(m) for m in maps]
             return found if all(e is not None for e in found) else None
 
-        return {name: cls([m["prj_xy"] for m in maps], [m["contrast"].clamp_min(0) for m in maps], sizes,
-                          colour_weight=colour(maps), edges=every(edge_pixels, maps),
-                          shares=every(cell_shares_of, maps))
-                for name, maps in bundle.states.items()}
+        states = {}
+        for name, maps in bundle.states.items():
+            prj_xy, dim = _with_dim([m["prj_xy"] for m in maps], [m.get("dim_xy") for m in maps])
+            states[name] = cls(prj_xy, [m["contrast"].clamp_min(0) for m in maps], sizes, colour_weight=colour(maps),
+                               edges=every(edge_pixels, maps), shares=every(cell_shares_of, maps), dim=dim)
+        return states
 
     def predict(self, light: list[torch.Tensor], black: torch.Tensor, footprint: str = "nearest") -> torch.Tensor:
         """What the camera should see when the projectors emit ``light``, by this calibration's model.
@@ -198,8 +205,24 @@ class StateCalibration:
         return cells, values
 
     def lit(self) -> torch.Tensor:
-        """:math:`(H, W)` pixels lit (decoded) by at least one projector."""
-        return torch.stack([torch.isfinite(m).all(-1) for m in self.prj_xy]).any(0)
+        """:math:`(H, W)` pixels lit (decoded, not only dimly: :attr:`dim`) by at least one projector."""
+        mapped = [torch.isfinite(m).all(-1) for m in self.prj_xy]
+        if self.dim is not None:
+            check(len(self.dim) == len(mapped), f"dim holds {len(self.dim)} masks for {len(mapped)} projectors: give "
+                                                "one per projector (or None)")
+            for j, (m, d) in enumerate(zip(mapped, self.dim)):
+                check_shape(d, f"dim[{j}]", list(m.shape))
+            mapped = [m & ~d.to(device=m.device, dtype=torch.bool) for m, d in zip(mapped, self.dim)]
+        return torch.stack(mapped).any(0)
+
+
+def _with_dim(prj_xy: list[torch.Tensor], dim_xy: list[torch.Tensor | None]):
+    """Per projector, its map of lit pixels joined with the dimly lit ones' (where every projector has
+    them): the maps and :attr:`StateCalibration.dim` (None where some projector has no dim map)."""
+    if any(d is None for d in dim_xy):
+        return list(prj_xy), None
+    dim = [torch.isfinite(d).all(-1) & ~torch.isfinite(m).all(-1) for m, d in zip(prj_xy, dim_xy)]
+    return [torch.where(k[..., None], d, m) for m, d, k in zip(prj_xy, dim_xy, dim)], dim
 
 
 @dataclass
