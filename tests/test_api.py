@@ -23,7 +23,7 @@ SURFACE = {
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
-        "BUNDLE_VERSION", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
+        "BUNDLE_VERSION", "CREASE_RATIO", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
         "FEW_DECODED", "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
         "ResponseCurve", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane",
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_homography", "fit_plane", "fit_response",

@@ -79,12 +79,13 @@ def test_dim_light_is_read_into_its_own_map_and_is_then_no_edge():
     inner = dim.clone()
     inner[:3], inner[-3:], inner[:, -3:] = False, False, False  # the refining window's full neighbourhoods
     torch.testing.assert_close(cal.dim_xy[inner], truth[inner], atol=0.05, rtol=0)
-    # The lit map keeps its pixels; beside the dim light its refining fit has the dim neighbours too.
+    # The lit map keeps its pixels; beside the dim light its refining fit has the dim neighbours too
+    # (without them, the window beside the pixel, on the lit side, does as well there).
     alone = calibrate_projector(capture, PROJECTOR, dim_threshold=40).prj_xy
     assert torch.equal(lit, torch.isfinite(alone).all(-1))
     miss, miss_alone = ((xy - truth).abs().amax(-1)[3:-3, :DIM_FROM] for xy in (cal.prj_xy, alone))
     assert float(miss.max()) <= float(miss_alone.max()) + 1e-3
-    assert float(miss[:, -1].max()) < 0.05 < float(miss_alone[:, -1].max())
+    assert float(miss[:, -1].max()) < 0.05
     w = CAMERA[1]
     assert not any(y * w + x in set(cal.edges.pixel.tolist()) for y in range(CAMERA[0]) for x in range(DIM_FROM - 1, w))
 

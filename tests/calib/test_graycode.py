@@ -1,11 +1,14 @@
 """The vectorised decoder against OpenCV and against the simulator's ground truth."""
 
+import math
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
 from torchproj.calib import warn_if_few_decoded
+from torchproj.calib.maps import depth_edges
 from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, decode_gray,
                              graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
@@ -138,6 +141,61 @@ def test_refine_recovers_an_affine_map_exactly():
     inner = refined[6:-6, 6:-6] - true[6:-6, 6:-6]
     assert float(inner.abs().max()) < 0.06
     assert float((decoded - true).abs().max()) > 0.4
+
+
+def _creased(noise: float, jump: float = 0.0):
+    """A map over a 60 x 80 camera with a crease along x = 40 + 0.2 y: two faces of a box, their
+    slopes 1.6 and 0.9 cells per pixel along x, meeting without a gap (or, with ``jump``, a depth
+    edge instead), 900 cells from the origin; ``noise`` cells uniform noise on the values, as on the
+    cells' means. Returns the values, the truth and the pixels' distance from the crease along x."""
+    ys, xs = torch.meshgrid(torch.arange(60.0, dtype=torch.float64), torch.arange(80.0, dtype=torch.float64),
+                            indexing="ij")
+    across = xs - (40 + 0.2 * ys)
+    u = 900 + 1.6 * xs + 0.1 * ys + torch.where(across > 0, (0.9 - 1.6) * across + jump, 0.0)
+    v = 300 - 0.05 * xs + 1.3 * ys + torch.where(across > 0, 0.2 * across, 0.0)
+    truth = torch.stack([u, v], -1).float()
+    g = torch.Generator().manual_seed(0)
+    values = truth + (torch.rand(truth.shape, generator=g) - 0.5) * 2 * noise
+    return values, truth, across.abs().float()
+
+
+def test_refine_fits_each_face_beside_a_crease():
+    """Beside a crease the centred 7 x 7 plane straddles both faces; a window beside the pixel, on its
+    own face, recovers the map there (against the exact faces, 900 cells from the origin, where the
+    float64 residuals matter), and elsewhere the centred window still rules."""
+    values, truth, distance = _creased(noise=0.15)
+    valid = torch.ones(values.shape[:2], dtype=torch.bool)
+    inner = torch.zeros_like(valid)
+    inner[4:-4, 4:-4] = True
+    beside_crease = inner & (distance >= 1) & (distance <= 3)
+    away = inner & (distance > 7)
+    rms = {}
+    for name, ratio in (("centred", math.inf), ("beside", 2.0)):
+        err = (refine_subpixel(values, valid, crease_ratio=ratio) - truth).norm(dim=-1)
+        rms[name] = {k: float(err[m].pow(2).mean().sqrt()) for k, m in (("crease", beside_crease), ("away", away))}
+    assert rms["centred"]["crease"] > 0.1, rms  # the straddling plane: the bias this fixes
+    assert rms["beside"]["crease"] < rms["centred"]["crease"] / 3, rms
+    assert rms["beside"]["away"] < rms["centred"]["away"] * 1.2, rms
+    # without noise a face's own window fits it exactly
+    exact = refine_subpixel(truth, valid)
+    assert float((exact - truth)[beside_crease].abs().max()) < 1e-3
+
+
+def test_refine_keeps_the_centred_window_beside_a_depth_edge():
+    """Pixels beside a depth edge may see both surfaces: they keep the centred fit (or their own value)."""
+    values, truth, distance = _creased(noise=0.15, jump=30.0)
+    valid = torch.ones(values.shape[:2], dtype=torch.bool)
+    edge = depth_edges(values)
+    assert int(edge.sum()) >= 2 * 60 - 4
+    beside, centred = refine_subpixel(values, valid), refine_subpixel(values, valid, crease_ratio=math.inf)
+    torch.testing.assert_close(beside[edge], centred[edge])
+    assert not torch.equal(beside[~edge], centred[~edge])
+
+
+def test_refine_refuses_a_crease_ratio_below_one():
+    values, _, _ = _creased(noise=0.0)
+    with pytest.raises(InputError, match="crease_ratio must be >= 1"):
+        refine_subpixel(values, torch.ones(values.shape[:2], dtype=torch.bool), crease_ratio=0.5)
 
 
 def test_cell_means_are_the_mean_cell_of_each_pixel_light():

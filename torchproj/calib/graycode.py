@@ -41,8 +41,9 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
+from .maps import depth_edges
 
-__all__ = ["CellShares", "GrayDecoding", "cell_means", "cell_shares", "graycode_patterns", "graycode_bits",
+__all__ = ["CREASE_RATIO", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "graycode_patterns", "graycode_bits",
            "sequence_bits", "decode_gray", "refine_subpixel"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
@@ -474,19 +475,97 @@ def cell_means(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor,
     return cell_shares(patterns, white, black, decoding, projector_size).means()
 
 
-def _offset_kernels(window: int, dtype, device) -> torch.Tensor:
+# Camera pixels per strip of rows in refine_subpixel's float64 window sums: bounds their memory
+# (tens of float64 maps) and the size of the running sums.
+_REFINE_STRIP = 256
+
+# How many times better a window beside the pixel must fit its values than the window centred on it
+# before refine_subpixel takes it. A fit evaluated at its window's side is noisier than one at its
+# centre (about three times the variance for a 7 x 7 plane), so on a smooth face the centred window
+# should win unless the data say otherwise. Our choice, measured against the simulator's truth
+# (python benchmarks/refine.py; map error in cells rms, beside box_positions' creases / on its faces
+# away from creases and edges / the same on box_cylinders): the centred window only 0.321 / 0.024 /
+# 0.037; ratio 1 (the best fit wins) 0.050 / 0.039 / 0.062; 1.5 0.047 / 0.022 / 0.045; 2 0.051 /
+# 0.021 / 0.038; 3 0.069 / 0.021 / 0.038.
+CREASE_RATIO = 2.0
+
+
+def _sliding_sums(images: torch.Tensor, window: int, dim: int) -> torch.Tensor:
+    """Sums of ``window`` consecutive entries along ``dim`` centred at each one (zeros beyond the
+    ends), as differences of a running sum: cost independent of the window."""
+    r, n = window // 2, images.shape[dim]
+    run = images.cumsum(dim)
+    if n <= r:  # every window covers the whole line
+        return run.narrow(dim, n - 1, 1).expand_as(run).clone()
+    out = torch.empty_like(run)
+    out.narrow(dim, 0, n - r).copy_(run.narrow(dim, r, n - r))
+    out.narrow(dim, n - r, r).copy_(run.narrow(dim, n - 1, 1).expand_as(out.narrow(dim, n - r, r)))
+    out.narrow(dim, r + 1, n - r - 1).sub_(run.narrow(dim, 0, n - r - 1))
+    return out
+
+
+def _window_planes(values: torch.Tensor, mask: torch.Tensor, window: int) -> tuple[torch.Tensor, ...]:
+    """The least-squares plane through the masked values of each ``window x window`` neighbourhood.
+
+    Args:
+        values: :math:`(H, W, 2)` the map (any finite value where not masked).
+        mask: :math:`(H, W)` bool, the pixels that count.
+
+    Returns:
+        ``planes`` :math:`(H, W, 2, 3)` per axis the plane's value at the window's centre and its
+        slopes along ``x`` and ``y``; ``misfit`` :math:`(H, W)` the residual sum of squares of both
+        axes per degree of freedom; ``count`` :math:`(H, W)` masked pixels in the window. Planes
+        and misfit are NaN where the window holds too few pixels to fix a plane.
+    """
+    height, width = mask.shape
+    dev = values.device
+    planes = torch.full((height, width, 2, 3), float("nan"), dtype=torch.float32, device=dev)
+    misfit = torch.full((height, width), float("nan"), dtype=torch.float32, device=dev)
+    count = torch.zeros((height, width), dtype=torch.float32, device=dev)
     r = window // 2
-    d = torch.arange(-r, r + 1, dtype=dtype, device=device)
+    # The mask's moments about each window's centre are small integers: exact in float32.
+    d = torch.arange(-r, r + 1, dtype=torch.float32, device=dev)
     dy, dx = torch.meshgrid(d, d, indexing="ij")
-    one = torch.ones_like(dx)
-    return torch.stack([one, dx, dy, dx * dx, dx * dy, dy * dy])[:, None]  # (6, 1, w, w)
-
-
-_REFINE_CHUNK = 1 << 18  # fitted pixels per float64 pass of refine_subpixel
+    kernels = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy])[:, None]
+    # conv2d correlates: kernel entry d weighs the neighbour at offset d (neighbour - centre).
+    moments = F.conv2d(mask.float()[None, None], kernels, padding=r)[0]  # (6, H, W)
+    # The values' sums in float64: the residual is a small difference of sums of squared
+    # coordinates (up to 1e6 each). Coordinates are taken from each strip's first row and the
+    # image's middle column, and the values from their mean, to keep the running sums small.
+    centre = torch.nan_to_num(values[mask].double().mean(0)) if bool(mask.any()) else torch.zeros(2, dtype=torch.float64, device=dev)
+    xs = torch.arange(width, dtype=torch.float64, device=dev) - width // 2
+    for top in range(0, height, _REFINE_STRIP):
+        lo, hi = max(top - r, 0), min(top + _REFINE_STRIP + r, height)
+        u = (values[lo:hi].double() - centre).permute(2, 0, 1) * mask[lo:hi]  # (2, h, W)
+        ys = torch.arange(hi - lo, dtype=torch.float64, device=dev)[:, None]
+        sums = _sliding_sums(_sliding_sums(torch.cat([u, u * xs, u * ys, u * u]), window, -1), window, -2)
+        sums, y = sums[:, top - lo:top - lo + _REFINE_STRIP], ys[top - lo:top - lo + _REFINE_STRIP]
+        su, sux, suy, suu = sums[0:2], sums[2:4], sums[4:6], sums[6:8]
+        # Moments about the window's centre (x, y): a plane c0 + c1 dx + c2 dy.
+        n, sx, sy, sxx, sxy, syy = moments[:, top:top + sums.shape[1]].double()
+        sux, suy = sux - xs * su, suy - y * su
+        # The symmetric 3 x 3 normal equations [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] solved
+        # by their cofactors.
+        a00, a01, a02 = sxx * syy - sxy * sxy, sy * sxy - sx * syy, sx * sxy - sy * sxx
+        a11, a12, a22 = n * syy - sy * sy, sx * sy - n * sxy, n * sxx - sx * sx
+        det = n * a00 + sx * a01 + sy * a02
+        fixed = det > 1e-6 * n.clamp_min(1) ** 3
+        det = torch.where(fixed, det, 1.0)
+        c0 = (a00 * su + a01 * sux + a02 * suy) / det
+        c1 = (a01 * su + a11 * sux + a12 * suy) / det
+        c2 = (a02 * su + a12 * sux + a22 * suy) / det
+        rss = (suu - c0 * su - c1 * sux - c2 * suy).sum(0).clamp_min(0)
+        rows = slice(top, top + n.shape[0])
+        plane = torch.stack([c0 + centre[:, None, None], c1, c2], -1).permute(1, 2, 0, 3)
+        planes[rows] = torch.where(fixed[..., None, None], plane, float("nan")).float()
+        misfit[rows] = torch.where(fixed, rss / (2 * (n - 3)).clamp_min(1), float("nan")).float()
+        count[rows] = n.float()
+    return planes, misfit, count
 
 
 def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
-                    min_fill: float = 0.7, max_shift: float = 0.75, spread: torch.Tensor | None = None) -> torch.Tensor:
+                    min_fill: float = 0.7, max_shift: float = 0.75, spread: torch.Tensor | None = None,
+                    crease_ratio: float = CREASE_RATIO) -> torch.Tensor:
     """Sub-pixel projector coordinates by a local affine fit over neighbouring camera pixels.
 
     Gray code quantises each coordinate to whole LCD cells, a staircase across the camera image.
@@ -498,6 +577,17 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     valid neighbours, or it lands more than ``max_shift`` from the pixel's own value, as at depth
     edges) that value is kept.
 
+    Beside a crease (two faces of a box meeting: the map is continuous, its slope is not) a window
+    centred on the pixel straddles both faces and its plane misses both, by a third of a cell on
+    ``box_positions``. There the pixel takes the plane of a window beside it, shifted by half a
+    window along ``x`` or ``y`` so that the pixel lies on its side, evaluated at the pixel: of the
+    centred window and the four shifted ones, the one whose plane fits its values best, the centred
+    one unless a shifted one fits ``crease_ratio`` times better (the choice of stencil of ENO
+    interpolation; the paper does not refine at all, and this choice is ours, measured in
+    ``benchmarks/refine.py``). Pixels beside a depth edge (:func:`~torchproj.calib.maps.depth_edges`)
+    keep the centred window: they may see both surfaces, and a plane of either alone misplaces
+    their light.
+
     Args:
         prj_xy: :math:`(H, W, 2)` decoded coordinates (NaN where invalid): cells, or their means.
         valid: :math:`(H, W)` bool.
@@ -506,41 +596,38 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
         max_shift: largest accepted move away from the decoded value, in projector pixels.
         spread: optional :math:`(H, W, 2)` cells per axis a partly decoded value leaves open
             (:attr:`GrayDecoding.spread`); such a value may move by half its block more.
+        crease_ratio: how many times better a window beside the pixel must fit than the centred one
+            to be taken (:data:`CREASE_RATIO`); ``math.inf``: the centred window only.
 
     Returns:
         :math:`(H, W, 2)` refined coordinates, NaN where invalid.
     """
     check(window % 2 == 1 and window >= 3, f"window must be an odd number >= 3, got {window}")
+    check(crease_ratio >= 1, f"crease_ratio must be >= 1 (1: the best-fitting window), got {crease_ratio}")
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
-    # Sums in float32 (fast convolutions; round-off ~1e-4 px for 1024-pixel projectors), the
-    # 3x3 solve in float64.
-    dtype = torch.float32
-    kernels = _offset_kernels(window, dtype, prj_xy.device)
-    m = valid.to(dtype)[None, None]
-    vals = torch.nan_to_num(prj_xy.to(dtype)).permute(2, 0, 1)[:, None] * m  # (2, 1, H, W)
-    pad = window // 2
-    # conv2d correlates, so kernel entry d weighs the neighbour at offset d (neighbour - centre).
-    mom = F.conv2d(m, kernels, padding=pad)[0]  # (6, H, W): n, sx, sy, sxx, sxy, syy
-    rhs = F.conv2d(vals, kernels[:3], padding=pad)  # (2, 3, H, W): su, sux, suy
-    enough = valid & (mom[0] >= min_fill * window * window)
-    out = prj_xy.clone(memory_format=torch.contiguous_format)
-    if not bool(enough.any()):
-        return out
-    # Normal equations [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] c = [su, sux, suy]; only the
-    # fitted value at the centre, c0, is needed: Cramer's rule on the symmetric 3x3 system. Only the
-    # fitted pixels go to float64, not whole maps.
-    mom, rhs, flat_out = mom.flatten(1), rhs.flatten(2), out.view(-1, 2)
-    for at in torch.nonzero(enough.flatten())[:, 0].split(_REFINE_CHUNK):  # bounded float64 temporaries
-        n, sx, sy, sxx, sxy, syy = mom[:, at].double()
-        su, sux, suy = rhs[:, :, at].double().unbind(1)  # each (2, M)
-        cof_xx = sxx * syy - sxy * sxy
-        cof_xy = sx * syy - sxy * sy
-        cof_xz = sx * sxy - sxx * sy
-        det = n * cof_xx - sx * cof_xy + sy * cof_xz
-        c0 = (su * cof_xx - sx * (sux * syy - sxy * suy) + sy * (sux * sxy - sxx * suy)) / det
-        fitted = c0.T.to(prj_xy.dtype)  # (M, 2)
-        decoded = flat_out[at]
-        allowed = max_shift if spread is None else max_shift + (spread.reshape(-1, 2)[at] - 1).clamp_min(0) / 2
-        keep = ((fitted - decoded).abs() <= allowed).all(-1)
-        flat_out[at] = torch.where(keep[:, None], fitted, decoded)
-    return out
+    check_shape(valid, "valid", list(prj_xy.shape[:2]))
+    height, width = valid.shape
+    planes, misfit, count = _window_planes(torch.nan_to_num(prj_xy), valid, window)
+    enough = count >= min_fill * window * window
+    misfit = torch.where(enough, misfit, float("inf"))
+    best = planes[..., 0]  # (H, W, 2): the centred window's value at the pixel
+    score = misfit / crease_ratio if math.isfinite(crease_ratio) else misfit
+    shifted = valid & ~depth_edges(torch.where(valid[..., None], prj_xy, float("nan")))
+    if math.isfinite(crease_ratio):
+        r = window // 2
+        for dx, dy in ((r, 0), (-r, 0), (0, r), (0, -r)):
+            # The window centred at (x + dx, y + dy), read at each pixel (x, y); infinite misfit
+            # where that centre lies outside the image.
+            there = torch.full_like(misfit, float("inf"))
+            plane = torch.zeros_like(planes)
+            ys, xs = slice(max(-dy, 0), height - max(dy, 0)), slice(max(-dx, 0), width - max(dx, 0))
+            ys2, xs2 = slice(max(dy, 0), height - max(-dy, 0)), slice(max(dx, 0), width - max(-dx, 0))
+            there[ys, xs] = misfit[ys2, xs2]
+            plane[ys, xs] = planes[ys2, xs2]
+            take = shifted & (there < score)
+            score = torch.where(take, there, score)
+            best = torch.where(take[..., None], plane[..., 0] - dx * plane[..., 1] - dy * plane[..., 2], best)
+    fitted = best.to(prj_xy.dtype)
+    allowed = max_shift if spread is None else max_shift + (spread.to(prj_xy.dtype) - 1).clamp_min(0) / 2
+    keep = valid & torch.isfinite(score) & torch.isfinite(fitted).all(-1) & ((fitted - prj_xy).abs() <= allowed).all(-1)
+    return torch.where(keep[..., None], fitted, prj_xy)

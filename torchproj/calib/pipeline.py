@@ -10,7 +10,7 @@ import torch
 
 from ..core.checks import check
 from .capture import GraycodeCapture
-from .graycode import CellShares, GrayDecoding, cell_shares, decode_gray, graycode_bits, refine_subpixel, sequence_bits
+from .graycode import CREASE_RATIO, CellShares, GrayDecoding, cell_shares, decode_gray, graycode_bits, refine_subpixel, sequence_bits
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
@@ -89,7 +89,7 @@ class ProjectorCalibration:
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
                         black_threshold: float = 40, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
                         max_hole: int = 16, ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
-                        plane_tolerance: float = 1.0) -> ProjectorCalibration:
+                        plane_tolerance: float = 1.0, crease_ratio: float = CREASE_RATIO) -> ProjectorCalibration:
     """Decode, refine, fill, invert and fit the response of one capture.
 
     A shortened sequence (``bits``) decodes to blocks of cells only. Its map is then one
@@ -110,6 +110,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
             None: the full sequence.
         plane_tolerance: with a shortened sequence, the largest 95th-percentile residual
             (projector pixels, :func:`~torchproj.calib.fit_homography`) that counts as a plane.
+        crease_ratio: how much better a refining window beside a pixel must fit than the centred one
+            (:func:`refine_subpixel`); ``math.inf``: the centred window only.
     """
     check(max_hole >= 0, f"max_hole must be >= 0, got {max_hole}")
     timings = {}
@@ -140,7 +142,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         shares = cell_shares(capture.patterns, capture.white, capture.black, seen, projector_size)
         if subpixel:
             coarse = torch.where(seen.valid[..., None], shares.means(), seen.coarse_xy)
-            mapped = refine_subpixel(coarse, seen.valid | seen.partial, spread=seen.spread)
+            mapped = refine_subpixel(coarse, seen.valid | seen.partial, spread=seen.spread, crease_ratio=crease_ratio)
         else:
             mapped = seen.coarse_xy.clone()
         prj_xy = torch.where((dec.valid | dec.partial)[..., None], mapped, float("nan"))
