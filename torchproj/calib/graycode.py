@@ -610,23 +610,24 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     planes, misfit, count = _window_planes(torch.nan_to_num(prj_xy), valid, window)
     enough = count >= min_fill * window * window
     misfit = torch.where(enough, misfit, float("inf"))
-    best = planes[..., 0]  # (H, W, 2): the centred window's value at the pixel
-    score = misfit / crease_ratio if math.isfinite(crease_ratio) else misfit
-    shifted = valid & ~depth_edges(torch.where(valid[..., None], prj_xy, float("nan")))
+    best, score = planes[..., 0], misfit  # (H, W, 2): the centred window's value at the pixel
     if math.isfinite(crease_ratio):
+        score = misfit / crease_ratio
+        shifted = valid & ~depth_edges(torch.where(valid[..., None], prj_xy, float("nan")))
         r = window // 2
         for dx, dy in ((r, 0), (-r, 0), (0, r), (0, -r)):
-            # The window centred at (x + dx, y + dy), read at each pixel (x, y); infinite misfit
-            # where that centre lies outside the image.
-            there = torch.full_like(misfit, float("inf"))
-            plane = torch.zeros_like(planes)
-            ys, xs = slice(max(-dy, 0), height - max(dy, 0)), slice(max(-dx, 0), width - max(dx, 0))
-            ys2, xs2 = slice(max(dy, 0), height - max(-dy, 0)), slice(max(dx, 0), width - max(-dx, 0))
-            there[ys, xs] = misfit[ys2, xs2]
-            plane[ys, xs] = planes[ys2, xs2]
-            take = shifted & (there < score)
-            score = torch.where(take, there, score)
-            best = torch.where(take[..., None], plane[..., 0] - dx * plane[..., 1] - dy * plane[..., 2], best)
+            # The window centred at (x + dx, y + dy), read at each pixel (x, y): its plane's value
+            # there and its misfit, infinite where that centre lies outside the image.
+            here = slice(max(-dy, 0), height - max(dy, 0)), slice(max(-dx, 0), width - max(dx, 0))
+            there = slice(max(dy, 0), height - max(-dy, 0)), slice(max(dx, 0), width - max(-dx, 0))
+            misfit_there = torch.full_like(misfit, float("inf"))
+            misfit_there[here] = misfit[there]
+            value = torch.zeros_like(best)
+            plane = planes[there]
+            value[here] = plane[..., 0] - dx * plane[..., 1] - dy * plane[..., 2]
+            take = shifted & (misfit_there < score)
+            score = torch.where(take, misfit_there, score)
+            best = torch.where(take[..., None], value, best)
     fitted = best.to(prj_xy.dtype)
     allowed = max_shift if spread is None else max_shift + (spread.to(prj_xy.dtype) - 1).clamp_min(0) / 2
     keep = valid & torch.isfinite(score) & torch.isfinite(fitted).all(-1) & ((fitted - prj_xy).abs() <= allowed).all(-1)
