@@ -192,6 +192,12 @@ def test_refine_keeps_the_centred_window_beside_a_depth_edge():
     assert not torch.equal(beside[~edge], centred[~edge])
 
 
+def test_refine_leaves_a_map_smaller_than_its_window_as_decoded():
+    values = torch.rand(2, 3, 2, generator=torch.Generator().manual_seed(0)) * 100
+    for ratio in (2.0, math.inf):
+        assert torch.equal(refine_subpixel(values, torch.ones(2, 3, dtype=torch.bool), crease_ratio=ratio), values)
+
+
 def test_refine_refuses_a_crease_ratio_below_one():
     values, _, _ = _creased(noise=0.0)
     with pytest.raises(InputError, match="crease_ratio must be >= 1"):

@@ -618,8 +618,9 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
         for dx, dy in ((r, 0), (-r, 0), (0, r), (0, -r)):
             # The window centred at (x + dx, y + dy), read at each pixel (x, y): its plane's value
             # there and its misfit, infinite where that centre lies outside the image.
-            here = slice(max(-dy, 0), height - max(dy, 0)), slice(max(-dx, 0), width - max(dx, 0))
-            there = slice(max(dy, 0), height - max(-dy, 0)), slice(max(dx, 0), width - max(-dx, 0))
+            # (stops clamped at 0: a negative stop would count from the end of a map narrower than r)
+            here = slice(max(-dy, 0), max(height - max(dy, 0), 0)), slice(max(-dx, 0), max(width - max(dx, 0), 0))
+            there = slice(max(dy, 0), max(height - max(-dy, 0), 0)), slice(max(dx, 0), max(width - max(-dx, 0), 0))
             misfit_there = torch.full_like(misfit, float("inf"))
             misfit_there[here] = misfit[there]
             value = torch.zeros_like(best)
