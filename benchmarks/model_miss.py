@@ -1,14 +1,21 @@
-"""Where the area model misses the exact light: silhouettes, and the simulator's own pixel sampling.
+"""Where the default model misses the exact light: which ingredient, and where on the image.
 
     python benchmarks/model_miss.py --out benchmarks/results/model_miss
 
-Two measurements behind README's "The ceiling":
+Three measurements behind README's "The ceiling", on the scenes whose targets stay short of it:
 
-1. Silhouettes. ``box_cylinders`` is run with the simulator's exact maps (``--oracle geometry``, area
-   footprint) and on the exact light (``--oracle transport``); for each target, the share of its
-   squared error that lies within 2 pixels of the target's edge, where a camera pixel may see an
-   object and what is behind it at once.
-2. Sampling. The virtual camera integrates a pixel as ``supersampling`` x ``supersampling`` point
+1. Ingredients. One calibration per scene; the default ``run`` (area footprint, shares' fit) on it,
+   then with the simulator's exact projector coordinates swapped in where calibration mapped a
+   pixel (``maps``), with the exact white minus black of each pixel and projector (``weights``: the
+   row sums of the exact light transport), with both, and on the exact light itself (the ceiling,
+   ``--oracle transport``). What is left between "both" and the ceiling is the footprint: how the
+   area model shares a pixel's light among its cells.
+2. Bands. For the default run, the run with both ingredients exact, and the ceiling: each target's
+   mean squared error by distance (camera pixels) to the nearest depth edge or outline, from the
+   exact maps: a step over 4 cells to a neighbour in any projector's map, the border of a
+   projector's lit region, or a change of surface under the camera. The share of the target's
+   squared error in each band says where the dB are lost.
+3. Sampling. The virtual camera integrates a pixel as ``supersampling`` x ``supersampling`` point
    samples. On the paper's planes, with the exact maps, the area model predicts a noise-free capture
    of random 2x2-cell blocks, its pixel sampled 4 x 4 (the default) or on the camera's own grid;
    and ``box_cylinders`` is run both ways.
@@ -19,6 +26,7 @@ Writes ``results.json`` and ``results.md``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import warnings
 from pathlib import Path
 
@@ -27,21 +35,91 @@ from common import machine, write_results
 from scipy import ndimage
 
 import torchproj.transport.build as build
+from torchproj.calib.maps import depth_edges
 from torchproj.pipeline import calibrate_virtual, run_virtual
 from torchproj.scene import load_scene
 
+BANDS = ((0, 1), (2, 3), (4, 8), (9, None))  # camera pixels from the nearest edge, both ends included
+VARIANTS = ("decoded", "maps", "weights", "both")
 
-def edge_share(targets) -> list[dict]:
-    """Per target, its PSNR and the share of its squared error within 2 pixels of its edge."""
+
+def exact_weights(rig, state: str) -> list[torch.Tensor]:
+    """Per projector, :math:`(H, W)` each pixel's exact white minus black: its row of the exact light
+    transport times what one unit of linear light adds to each cell (grey, or the first channel)."""
+    scene, geo = rig.scene, rig.geometry(state)
+    out = []
+    for j, proj in enumerate(scene.projectors):
+        on, off = (rig.emitted(j, torch.full((1, 1, proj.height, proj.width), v, device=rig.device))[0, 0]
+                   for v in (1.0, 0.0))
+        per_cell = scene.camera.exposure * (on - off)
+        out.append((geo.transport[j][0] @ per_cell).reshape(scene.camera.height, scene.camera.width).cpu())
+    return out
+
+
+def swapped(cal, variant: str):
+    """``cal`` with the simulator's exact maps and/or weights where calibration mapped a pixel."""
+    if variant == "decoded":
+        return cal
+    states = {}
+    for name, state in cal.states.items():
+        geo, weights = cal.rig.geometry(name), exact_weights(cal.rig, name)
+        xy, weight = list(state.prj_xy), list(state.weight)
+        for j, decoded in enumerate(state.prj_xy):
+            if variant in ("maps", "both"):
+                truth = geo.prj_xy[j].cpu().to(decoded.dtype)
+                both = (torch.isfinite(decoded).all(-1) & torch.isfinite(truth).all(-1))[..., None]
+                xy[j] = torch.where(both, truth, decoded)
+            if variant in ("weights", "both"):
+                weight[j] = weights[j].to(state.weight[j].dtype)
+        states[name] = dataclasses.replace(state, prj_xy=xy, weight=weight)
+    return dataclasses.replace(cal, states=states)
+
+
+def edge_distance(rig, state: str) -> torch.Tensor:
+    """:math:`(H, W)` camera pixels to the nearest depth edge or outline (module text, point 2)."""
+    geo = rig.geometry(state)
+    edge = torch.zeros(geo.surface_id.shape, dtype=torch.bool)
+    for truth in geo.prj_xy:
+        truth = truth.cpu()
+        unmapped = ~torch.isfinite(truth).all(-1)
+        border = torch.from_numpy(ndimage.binary_dilation(unmapped.numpy())) & ~unmapped
+        edge |= depth_edges(truth) | border
+    surface = geo.surface_id.cpu()
+    for dim in (0, 1):
+        change = surface.diff(dim=dim) != 0
+        edge |= torch.nn.functional.pad(change, (0, 1) if dim else (0, 0, 0, 1))
+        edge |= torch.nn.functional.pad(change, (1, 0) if dim else (0, 0, 1, 0))
+    return torch.from_numpy(ndimage.distance_transform_edt(~edge.numpy()))
+
+
+def banded(targets, distance: dict[str, torch.Tensor]) -> list[dict]:
+    """Per target: PSNR, SSIM, and per band its pixels, mean squared error and share of the squared error."""
     rows = []
     for t in targets:
-        covered = t.covered.numpy()
-        error = ((t.estimate - t.values).pow(2).sum(0) * t.covered).numpy()
-        edge = covered & (ndimage.distance_transform_edt(covered) <= 2)
+        error = (t.estimate - t.values).pow(2).mean(0)
+        covered, far = t.covered, distance[t.state]
+        total = float(error[covered].sum())
+        bands = []
+        for lo, hi in BANDS:
+            inside = covered & (far >= lo) & ((far <= hi) if hi is not None else True)
+            part = error[inside]
+            bands.append({"from": lo, "to": hi, "pixels": int(inside.sum()),
+                          "mse": round(float(part.mean()), 6) if part.numel() else None,
+                          "share": round(float(part.sum()) / total, 3) if total else None})
         rows.append({"name": t.name, "psnr_db": round(t.psnr_db, 2), "ssim": round(t.ssim, 3),
-                     "edge_pixels": round(float(edge.sum() / covered.sum()), 3),
-                     "edge_error_share": round(float(error[edge].sum() / error[covered].sum()), 3)})
+                     "mse": round(float(error[covered].mean()), 6), "bands": bands})
     return rows
+
+
+def ingredients(scene_name: str) -> dict:
+    """Runs of one scene with each ingredient exact, and the ceiling, each banded (points 1 and 2)."""
+    scene = load_scene(scene_name)
+    cal = calibrate_virtual(scene, progress=False)
+    distance = {st.name: edge_distance(cal.rig, st.name) for st in scene.states}
+    runs = {v: banded(run_virtual(scene, calibration=swapped(cal, v), progress=False).targets, distance)
+            for v in VARIANTS}
+    runs["ceiling"] = banded(run_virtual(scene, calibration=cal, progress=False, oracle="transport").targets, distance)
+    return runs
 
 
 def prediction_miss(scene_name: str, samples: int) -> dict:
@@ -69,44 +147,67 @@ def prediction_miss(scene_name: str, samples: int) -> dict:
     return out
 
 
+def _band_name(band: dict) -> str:
+    return f"{band['from']}-{band['to']}" if band["to"] is not None else f">= {band['from']}"
+
+
+def markdown(scenes: dict, sampling: dict, runs: dict, grid: int) -> str:
+    lines = [f"# Where the default model misses the exact light ({machine()})", "",
+             "## Ingredients: the default run with the simulator's exact maps and/or weights swapped in", "",
+             "| scene | run | per target PSNR / SSIM |", "|---|---|---|"]
+    for scene, per in scenes.items():
+        lines += [f"| {scene} | {run} | " + "; ".join(f"{r['name']} {r['psnr_db']:.2f} / {r['ssim']:.3f}" for r in rows)
+                  + " |" for run, rows in per.items()]
+    names = [_band_name(b) for b in next(iter(next(iter(scenes.values())).values()))[0]["bands"]]
+    lines += ["", "## Bands: mean squared error (share of the target's squared error) by camera pixels "
+                  "from the nearest depth edge or outline", "",
+              "| scene | run | target | pixels per band | " + " | ".join(names) + " |",
+              "|---|---|---|---|" + "---|" * len(names)]
+    for scene, per in scenes.items():
+        for run in ("decoded", "both", "ceiling"):
+            for r in per[run]:
+                cells = [f"{b['mse']:.5f} ({b['share']:.0%})" if b["mse"] is not None else "-" for b in r["bands"]]
+                lines.append(f"| {scene} | {run} | {r['name']} | {', '.join(str(b['pixels']) for b in r['bands'])} | "
+                             + " | ".join(cells) + " |")
+    lines += ["", "## paper_two_planes, exact maps: area prediction of random light, pixel sampled n x n", "",
+              "| n | state | miss (RMS) | signal (std) |", "|---|---|---|---|"]
+    for n, per in sampling.items():
+        lines += [f"| {n} | {s} | {v['miss_rms']:.4f} | {v['signal_std']:.4f} |" for s, v in per.items()]
+    lines += ["", f"## box_cylinders, area pixel sampled 4 x 4 or {grid} x {grid} (the camera's grid)", "",
+              "| n | maps | per target PSNR / SSIM |", "|---|---|---|"]
+    for n, per in runs.items():
+        lines += [f"| {n} | {maps} | " + "; ".join(f"{r['name']} {r['psnr_db']:.2f} / {r['ssim']:.3f}" for r in rows)
+                  + " |" for maps, rows in per.items()]
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/model_miss"))
+    ap.add_argument("--scenes", nargs="+", default=["box_cylinders", "box_positions"])
     args = ap.parse_args()
     warnings.simplefilter("ignore")
+    scenes = {}
+    for name in args.scenes:
+        scenes[name] = ingredients(name)
+        print(name, {run: [(r["name"], r["psnr_db"]) for r in rows] for run, rows in scenes[name].items()}, flush=True)
+    sampling = {n: prediction_miss("paper_two_planes", n) for n in (4, 3)}
     scene = load_scene("box_cylinders")
     grid = scene.camera.supersampling
-    silhouettes = {oracle: edge_share(run_virtual(scene, progress=False, oracle=oracle).targets)
-                   for oracle in ("geometry", "transport")}
-    sampling = {"paper_two_planes": {n: prediction_miss("paper_two_planes", n) for n in (4, 3)}}
+    cal = calibrate_virtual(scene, progress=False)
     runs = {}
     for n in (4, grid):
         build._AREA_SAMPLES = n
         try:
-            runs[n] = {oracle: edge_share(run_virtual(scene, progress=False, oracle=oracle).targets)
-                       for oracle in (False, "geometry")}
+            runs[n] = {maps: [{"name": t.name, "psnr_db": round(t.psnr_db, 2), "ssim": round(t.ssim, 3)}
+                              for t in run_virtual(scene, calibration=swapped(cal, variant), progress=False).targets]
+                       for maps, variant in (("decoded", "decoded"), ("exact", "maps"))}
         finally:
             build._AREA_SAMPLES = 4
-    lines = [f"# Where the area model misses the exact light ({machine()})", "",
-             "## box_cylinders: squared error within 2 pixels of each target's edge", "",
-             "| run | target | PSNR / SSIM | edge pixels | share of squared error |", "|---|---|---|---|---|"]
-    for oracle, rows in silhouettes.items():
-        lines += [f"| --oracle {oracle} | {r['name']} | {r['psnr_db']:.2f} / {r['ssim']:.3f} | {r['edge_pixels']:.1%} | "
-                  f"{r['edge_error_share']:.1%} |" for r in rows]
-    lines += ["", "## paper_two_planes, exact maps: area prediction of random light, pixel sampled n x n", "",
-              "| n | state | miss (RMS) | signal (std) |", "|---|---|---|---|"]
-    for n, per in sampling["paper_two_planes"].items():
-        lines += [f"| {n} | {s} | {v['miss_rms']:.4f} | {v['signal_std']:.4f} |" for s, v in per.items()]
-    lines += ["", f"## box_cylinders runs, area pixel sampled 4 x 4 or {grid} x {grid} (the camera's grid)", "",
-              "| n | maps | per target PSNR / SSIM |", "|---|---|---|"]
-    for n, per in runs.items():
-        lines += [f"| {n} | {'decoded' if not oracle else 'exact'} | "
-                  + "; ".join(f"{r['name']} {r['psnr_db']:.2f} / {r['ssim']:.3f}" for r in rows) + " |"
-                  for oracle, rows in per.items()]
-    write_results(args.out, {"machine": machine(), "silhouettes": silhouettes, "sampling": sampling,
-                             "runs": {str(n): {str(k): v for k, v in per.items()} for n, per in runs.items()}},
-                  "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    text = markdown(scenes, sampling, runs, grid)
+    write_results(args.out, {"machine": machine(), "ingredients": scenes, "sampling": sampling,
+                             "grid_runs": {str(n): per for n, per in runs.items()}}, text)
+    print(text)
 
 
 if __name__ == "__main__":
