@@ -19,6 +19,12 @@ Three measurements behind README's "The ceiling", on the scenes whose targets st
    samples. On the paper's planes, with the exact maps, the area model predicts a noise-free capture
    of random 2x2-cell blocks, its pixel sampled 4 x 4 (the default) or on the camera's own grid;
    and ``box_cylinders`` is run both ways.
+4. Stripes as more white minus black. Inside a Gray-code stripe, more than 2.5 cells from its
+   edges, ``|pattern - inverse|`` is the pixel's white minus black again, whatever the camera's
+   response, so averaging the pairs where that holds would take the camera noise out of the
+   weights (``stripes``: on the same captures as the calibration, regenerated from the scene's
+   seed). On the real captures (``../shared/data/procam_chessboard``, skipped where absent) the
+   median ratio of the two per pair says whether a bench's stripes really are that bright.
 
 Writes ``results.json`` and ``results.md``.
 """
@@ -35,12 +41,18 @@ from common import machine, write_results
 from scipy import ndimage
 
 import torchproj.transport.build as build
+from torchproj.calib import calibrate_projector, read_graycode_folder
+from torchproj.calib.graycode import graycode_bits
 from torchproj.calib.maps import depth_edges
 from torchproj.pipeline import calibrate_virtual, run_virtual
+from torchproj.pipeline.virtual import simulate_calibration
 from torchproj.scene import load_scene
+from torchproj.sim.rig import VirtualRig
 
 BANDS = ((0, 1), (2, 3), (4, 8), (9, None))  # camera pixels from the nearest edge, both ends included
-VARIANTS = ("decoded", "maps", "weights", "both")
+VARIANTS = ("decoded", "maps", "weights", "both", "stripes")
+STRIPE_CLEARANCE = 2.5  # cells from the pixel's coordinate to the nearest edge of a stripe it counts in
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam_chessboard"
 
 
 def exact_weights(rig, state: str) -> list[torch.Tensor]:
@@ -56,20 +68,75 @@ def exact_weights(rig, state: str) -> list[torch.Tensor]:
     return out
 
 
-def swapped(cal, variant: str):
-    """``cal`` with the simulator's exact maps and/or weights where calibration mapped a pixel."""
+def inside_stripes(capture, size: tuple[int, int], xy: torch.Tensor):
+    """Per Gray-code pair: its axis, bit, :math:`(H, W)` ``|pattern - inverse|`` (grey) and where the
+    pixel's coordinate lies more than :data:`STRIPE_CLEARANCE` cells inside one stripe.
+
+    Bit ``k`` of the Gray code changes between cells ``2^k - 1 + m 2^(k+1)`` and the next, i.e. at
+    ``2^k - 0.5 + m 2^(k+1)`` with cells centred on integers (``torchproj.core.conventions``).
+    """
+    images = capture.patterns.mean(1).double()
+    u = torch.nan_to_num(xy.double(), nan=-1e9)
+    mapped = torch.isfinite(xy).all(-1)
+    nx, ny = graycode_bits(*size)
+    for pair in range(nx + ny):
+        axis, k = (0, nx - 1 - pair) if pair < nx else (1, nx + ny - 1 - pair)
+        period = 2 ** (k + 1)
+        t = torch.remainder(u[..., axis] + 0.5 - 2 ** k, period)
+        clear = mapped & (torch.minimum(t, period - t) > STRIPE_CLEARANCE)
+        yield axis, k, (images[2 * pair] - images[2 * pair + 1]).abs(), clear
+
+
+def stripe_weights(scene, cal) -> dict[str, list[torch.Tensor]]:
+    """Per state and projector, each pixel's white minus black averaged with its clear stripes' differences."""
+    rig, out = VirtualRig(scene), {}
+    for st in scene.states:
+        out[st.name] = []
+        for j, proj in enumerate(scene.projectors):
+            rig.geometry(st.name)
+            capture = simulate_calibration(rig, st.name, j)  # the rig's seed: the calibration's own captures
+            state = cal.states[st.name]
+            contrast = (capture.white - capture.black).mean(0).double()
+            if not torch.equal(contrast.clamp_min(0).to(state.weight[j].dtype), state.weight[j]):
+                raise RuntimeError("the regenerated captures are not the calibration's")
+            total, count = contrast.clone(), torch.ones_like(contrast)
+            for _, _, diff, clear in inside_stripes(capture, (proj.width, proj.height), state.prj_xy[j]):
+                total += torch.where(clear, diff, 0.0)
+                count += clear
+            out[st.name].append((total / count).clamp_min(0).to(state.weight[j].dtype))
+    return out
+
+
+def real_stripes() -> dict:
+    """Per real capture and pair, the median ratio of ``|pattern - inverse|`` to white minus black where clear."""
+    out = {}
+    for folder in sorted(REAL.glob("capture_*")):
+        capture = read_graycode_folder(folder, (1024, 768))
+        cal = calibrate_projector(capture, (1024, 768))
+        contrast = cal.decoding.contrast.double()
+        out[folder.name] = [{"axis": "xy"[axis], "bit": k, "pixels": int(clear.sum()),
+                             "median_ratio": round(float((diff[clear] / contrast[clear]).median()), 3)}
+                            for axis, k, diff, clear in inside_stripes(capture, (1024, 768), cal.prj_xy)
+                            if clear.sum() >= 1000]
+    return out
+
+
+def swapped(cal, variant: str, stripes: dict | None = None):
+    """``cal`` with the simulator's exact maps and/or weights where calibration mapped a pixel, or
+    with the stripe-averaged weights (``stripes``, from :func:`stripe_weights`)."""
     if variant == "decoded":
         return cal
     states = {}
     for name, state in cal.states.items():
-        geo, weights = cal.rig.geometry(name), exact_weights(cal.rig, name)
+        geo = cal.rig.geometry(name)
+        weights = stripes[name] if variant == "stripes" else exact_weights(cal.rig, name)
         xy, weight = list(state.prj_xy), list(state.weight)
         for j, decoded in enumerate(state.prj_xy):
             if variant in ("maps", "both"):
                 truth = geo.prj_xy[j].cpu().to(decoded.dtype)
                 both = (torch.isfinite(decoded).all(-1) & torch.isfinite(truth).all(-1))[..., None]
                 xy[j] = torch.where(both, truth, decoded)
-            if variant in ("weights", "both"):
+            if variant in ("weights", "both", "stripes"):
                 weight[j] = weights[j].to(state.weight[j].dtype)
         states[name] = dataclasses.replace(state, prj_xy=xy, weight=weight)
     return dataclasses.replace(cal, states=states)
@@ -111,15 +178,28 @@ def banded(targets, distance: dict[str, torch.Tensor]) -> list[dict]:
     return rows
 
 
-def ingredients(scene_name: str) -> dict:
-    """Runs of one scene with each ingredient exact, and the ceiling, each banded (points 1 and 2)."""
+def weight_miss(cal, stripes: dict) -> dict:
+    """RMS of measured minus exact white minus black over the mapped pixels, as decoded and stripe-averaged."""
+    out = {}
+    for name, state in cal.states.items():
+        exact = exact_weights(cal.rig, name)
+        out[name] = {how: [round(float((w[j] - exact[j])[torch.isfinite(state.prj_xy[j]).all(-1)].pow(2).mean().sqrt()), 5)
+                           for j in range(len(exact))]
+                     for how, w in (("decoded", state.weight), ("stripes", stripes[name]))}
+    return out
+
+
+def ingredients(scene_name: str) -> tuple[dict, dict]:
+    """Runs of one scene with each ingredient exact, and the ceiling, each banded (points 1 and 2);
+    and the weights' miss (point 4)."""
     scene = load_scene(scene_name)
     cal = calibrate_virtual(scene, progress=False)
     distance = {st.name: edge_distance(cal.rig, st.name) for st in scene.states}
-    runs = {v: banded(run_virtual(scene, calibration=swapped(cal, v), progress=False).targets, distance)
+    stripes = stripe_weights(scene, cal)
+    runs = {v: banded(run_virtual(scene, calibration=swapped(cal, v, stripes), progress=False).targets, distance)
             for v in VARIANTS}
     runs["ceiling"] = banded(run_virtual(scene, calibration=cal, progress=False, oracle="transport").targets, distance)
-    return runs
+    return runs, weight_miss(cal, stripes)
 
 
 def prediction_miss(scene_name: str, samples: int) -> dict:
@@ -151,7 +231,7 @@ def _band_name(band: dict) -> str:
     return f"{band['from']}-{band['to']}" if band["to"] is not None else f">= {band['from']}"
 
 
-def markdown(scenes: dict, sampling: dict, runs: dict, grid: int) -> str:
+def markdown(scenes: dict, sampling: dict, runs: dict, grid: int, weights: dict, real: dict) -> str:
     lines = [f"# Where the default model misses the exact light ({machine()})", "",
              "## Ingredients: the default run with the simulator's exact maps and/or weights swapped in", "",
              "| scene | run | per target PSNR / SSIM |", "|---|---|---|"]
@@ -178,6 +258,22 @@ def markdown(scenes: dict, sampling: dict, runs: dict, grid: int) -> str:
     for n, per in runs.items():
         lines += [f"| {n} | {maps} | " + "; ".join(f"{r['name']} {r['psnr_db']:.2f} / {r['ssim']:.3f}" for r in rows)
                   + " |" for maps, rows in per.items()]
+    lines += ["", f"## Stripes as more white minus black (clear: over {STRIPE_CLEARANCE} cells from a stripe's edge)", "",
+              "Weights' RMS miss of the exact white minus black, per projector (the runs are `decoded` and "
+              "`stripes` above):", "", "| scene | state | decoded | stripe-averaged |", "|---|---|---|---|"]
+    for scene, per in weights.items():
+        lines += [f"| {scene} | {st} | {', '.join(map(str, v['decoded']))} | {', '.join(map(str, v['stripes']))} |"
+                  for st, v in per.items()]
+    if real:
+        bits = [r["bit"] for r in next(iter(real.values())) if r["axis"] == "x"]
+        lines += ["", "Real captures: median of |pattern - inverse| / (white - black) over the clear pixels, per bit", "",
+                  "| capture | axis | " + " | ".join(f"bit {k}" for k in bits) + " |", "|---|---|" + "---|" * len(bits)]
+        for name, rows in real.items():
+            for axis in "xy":
+                ratio = {r["bit"]: r["median_ratio"] for r in rows if r["axis"] == axis}
+                lines.append(f"| {name} | {axis} | " + " | ".join(f"{ratio[k]:.3f}" if k in ratio else "-" for k in bits) + " |")
+    else:
+        lines += ["", f"Real captures: {REAL} is absent, not measured."]
     return "\n".join(lines) + "\n"
 
 
@@ -187,9 +283,10 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=["box_cylinders", "box_positions"])
     args = ap.parse_args()
     warnings.simplefilter("ignore")
-    scenes = {}
+    real = real_stripes() if REAL.is_dir() else {}
+    scenes, weights = {}, {}
     for name in args.scenes:
-        scenes[name] = ingredients(name)
+        scenes[name], weights[name] = ingredients(name)
         print(name, {run: [(r["name"], r["psnr_db"]) for r in rows] for run, rows in scenes[name].items()}, flush=True)
     sampling = {n: prediction_miss("paper_two_planes", n) for n in (4, 3)}
     scene = load_scene("box_cylinders")
@@ -204,9 +301,10 @@ def main() -> None:
                        for maps, variant in (("decoded", "decoded"), ("exact", "maps"))}
         finally:
             build._AREA_SAMPLES = 4
-    text = markdown(scenes, sampling, runs, grid)
+    text = markdown(scenes, sampling, runs, grid, weights, real)
     write_results(args.out, {"machine": machine(), "ingredients": scenes, "sampling": sampling,
-                             "grid_runs": {str(n): per for n, per in runs.items()}}, text)
+                             "grid_runs": {str(n): per for n, per in runs.items()}, "weights": weights,
+                             "real_stripes": real}, text)
     print(text)
 
 
