@@ -40,7 +40,6 @@ import torch
 from common import machine, write_results
 from scipy import ndimage
 
-import torchproj.transport.build as build
 from torchproj.calib import calibrate_projector, read_graycode_folder
 from torchproj.calib.graycode import graycode_bits
 from torchproj.calib.maps import depth_edges
@@ -48,6 +47,7 @@ from torchproj.pipeline import calibrate_virtual, run_virtual
 from torchproj.pipeline.virtual import simulate_calibration
 from torchproj.scene import load_scene
 from torchproj.sim.rig import VirtualRig
+from torchproj.transport import build
 
 BANDS = ((0, 1), (2, 3), (4, 8), (9, None))  # camera pixels from the nearest edge, both ends included
 VARIANTS = ("decoded", "maps", "weights", "both", "stripes")
@@ -239,8 +239,8 @@ def markdown(scenes: dict, sampling: dict, runs: dict, grid: int, weights: dict,
         lines += [f"| {scene} | {run} | " + "; ".join(f"{r['name']} {r['psnr_db']:.2f} / {r['ssim']:.3f}" for r in rows)
                   + " |" for run, rows in per.items()]
     names = [_band_name(b) for b in next(iter(next(iter(scenes.values())).values()))[0]["bands"]]
-    lines += ["", "## Bands: mean squared error (share of the target's squared error) by camera pixels "
-                  "from the nearest depth edge or outline", "",
+    lines += ["", ("## Bands: mean squared error (share of the target's squared error) by camera pixels "
+                   "from the nearest depth edge or outline"), "",
               "| scene | run | target | pixels per band | " + " | ".join(names) + " |",
               "|---|---|---|---|" + "---|" * len(names)]
     for scene, per in scenes.items():
@@ -259,8 +259,8 @@ def markdown(scenes: dict, sampling: dict, runs: dict, grid: int, weights: dict,
         lines += [f"| {n} | {maps} | " + "; ".join(f"{r['name']} {r['psnr_db']:.2f} / {r['ssim']:.3f}" for r in rows)
                   + " |" for maps, rows in per.items()]
     lines += ["", f"## Stripes as more white minus black (clear: over {STRIPE_CLEARANCE} cells from a stripe's edge)", "",
-              "Weights' RMS miss of the exact white minus black, per projector (the runs are `decoded` and "
-              "`stripes` above):", "", "| scene | state | decoded | stripe-averaged |", "|---|---|---|---|"]
+              ("Weights' RMS miss of the exact white minus black, per projector (the runs are `decoded` and "
+               "`stripes` above):"), "", "| scene | state | decoded | stripe-averaged |", "|---|---|---|---|"]
     for scene, per in weights.items():
         lines += [f"| {scene} | {st} | {', '.join(map(str, v['decoded']))} | {', '.join(map(str, v['stripes']))} |"
                   for st, v in per.items()]
