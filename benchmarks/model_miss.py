@@ -7,7 +7,7 @@ Three measurements behind README's "The ceiling", on the scenes whose targets st
 1. Ingredients. One calibration per scene; the default ``run`` (area footprint, shares' fit) on it,
    then with the simulator's exact projector coordinates swapped in where calibration mapped a
    pixel (``maps``), with the exact white minus black of each pixel and projector (``weights``: the
-   row sums of the exact light transport), with both, and on the exact light itself (the ceiling,
+   oracle calibration's, from noise-free captures), with both, and on the exact light itself (the ceiling,
    ``--oracle transport``). What is left between "both" and the ceiling is the footprint: how the
    area model shares a pixel's light among its cells.
 2. Bands. For the default run, the run with both ingredients exact, and the ceiling: each target's
@@ -50,22 +50,8 @@ from torchproj.sim.rig import VirtualRig
 from torchproj.transport import build
 
 BANDS = ((0, 1), (2, 3), (4, 8), (9, None))  # camera pixels from the nearest edge, both ends included
-VARIANTS = ("decoded", "maps", "weights", "both", "stripes")
 STRIPE_CLEARANCE = 2.5  # cells from the pixel's coordinate to the nearest edge of a stripe it counts in
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam_chessboard"
-
-
-def exact_weights(rig, state: str) -> list[torch.Tensor]:
-    """Per projector, :math:`(H, W)` each pixel's exact white minus black: its row of the exact light
-    transport times what one unit of linear light adds to each cell (grey, or the first channel)."""
-    scene, geo = rig.scene, rig.geometry(state)
-    out = []
-    for j, proj in enumerate(scene.projectors):
-        on, off = (rig.emitted(j, torch.full((1, 1, proj.height, proj.width), v, device=rig.device))[0, 0]
-                   for v in (1.0, 0.0))
-        per_cell = scene.camera.exposure * (on - off)
-        out.append((geo.transport[j][0] @ per_cell).reshape(scene.camera.height, scene.camera.width).cpu())
-    return out
 
 
 def inside_stripes(capture, size: tuple[int, int], xy: torch.Tensor):
@@ -92,8 +78,8 @@ def stripe_weights(scene, cal) -> dict[str, list[torch.Tensor]]:
     rig, out = VirtualRig(scene), {}
     for st in scene.states:
         out[st.name] = []
+        rig.geometry(st.name)
         for j, proj in enumerate(scene.projectors):
-            rig.geometry(st.name)
             capture = simulate_calibration(rig, st.name, j)  # the rig's seed: the calibration's own captures
             state = cal.states[st.name]
             contrast = (capture.white - capture.black).mean(0).double()
@@ -121,23 +107,18 @@ def real_stripes() -> dict:
     return out
 
 
-def swapped(cal, variant: str, stripes: dict | None = None):
-    """``cal`` with the simulator's exact maps and/or weights where calibration mapped a pixel, or
-    with the stripe-averaged weights (``stripes``, from :func:`stripe_weights`)."""
-    if variant == "decoded":
-        return cal
+def swapped(cal, maps: bool = False, weights: dict | None = None):
+    """``cal`` with the simulator's exact coordinates where calibration mapped a pixel (``maps``),
+    and/or other weights, per state a list over projectors (``weights``)."""
     states = {}
     for name, state in cal.states.items():
-        geo = cal.rig.geometry(name)
-        weights = stripes[name] if variant == "stripes" else exact_weights(cal.rig, name)
-        xy, weight = list(state.prj_xy), list(state.weight)
-        for j, decoded in enumerate(state.prj_xy):
-            if variant in ("maps", "both"):
-                truth = geo.prj_xy[j].cpu().to(decoded.dtype)
+        xy = list(state.prj_xy)
+        if maps:
+            for j, (decoded, truth) in enumerate(zip(state.prj_xy, cal.rig.geometry(name).prj_xy)):
+                truth = truth.cpu().to(decoded.dtype)
                 both = (torch.isfinite(decoded).all(-1) & torch.isfinite(truth).all(-1))[..., None]
                 xy[j] = torch.where(both, truth, decoded)
-            if variant in ("weights", "both", "stripes"):
-                weight[j] = weights[j].to(state.weight[j].dtype)
+        weight = state.weight if weights is None else [w.to(v.dtype) for w, v in zip(weights[name], state.weight)]
         states[name] = dataclasses.replace(state, prj_xy=xy, weight=weight)
     return dataclasses.replace(cal, states=states)
 
@@ -178,13 +159,12 @@ def banded(targets, distance: dict[str, torch.Tensor]) -> list[dict]:
     return rows
 
 
-def weight_miss(cal, stripes: dict) -> dict:
+def weight_miss(cal, exact: dict, stripes: dict) -> dict:
     """RMS of measured minus exact white minus black over the mapped pixels, as decoded and stripe-averaged."""
     out = {}
     for name, state in cal.states.items():
-        exact = exact_weights(cal.rig, name)
-        out[name] = {how: [round(float((w[j] - exact[j])[torch.isfinite(state.prj_xy[j]).all(-1)].pow(2).mean().sqrt()), 5)
-                           for j in range(len(exact))]
+        out[name] = {how: [round(float((w[j] - exact[name][j])[torch.isfinite(xy).all(-1)].pow(2).mean().sqrt()), 5)
+                           for j, xy in enumerate(state.prj_xy)]
                      for how, w in (("decoded", state.weight), ("stripes", stripes[name]))}
     return out
 
@@ -195,11 +175,13 @@ def ingredients(scene_name: str) -> tuple[dict, dict]:
     scene = load_scene(scene_name)
     cal = calibrate_virtual(scene, progress=False)
     distance = {st.name: edge_distance(cal.rig, st.name) for st in scene.states}
+    exact = {name: state.weight for name, state in calibrate_virtual(scene, progress=False, oracle=True).states.items()}
     stripes = stripe_weights(scene, cal)
-    runs = {v: banded(run_virtual(scene, calibration=swapped(cal, v, stripes), progress=False).targets, distance)
-            for v in VARIANTS}
+    variants = {"decoded": swapped(cal), "maps": swapped(cal, maps=True), "weights": swapped(cal, weights=exact),
+                "both": swapped(cal, maps=True, weights=exact), "stripes": swapped(cal, weights=stripes)}
+    runs = {v: banded(run_virtual(scene, calibration=c, progress=False).targets, distance) for v, c in variants.items()}
     runs["ceiling"] = banded(run_virtual(scene, calibration=cal, progress=False, oracle="transport").targets, distance)
-    return runs, weight_miss(cal, stripes)
+    return runs, weight_miss(cal, exact, stripes)
 
 
 def prediction_miss(scene_name: str, samples: int) -> dict:
@@ -297,8 +279,8 @@ def main() -> None:
         build._AREA_SAMPLES = n
         try:
             runs[n] = {maps: [{"name": t.name, "psnr_db": round(t.psnr_db, 2), "ssim": round(t.ssim, 3)}
-                              for t in run_virtual(scene, calibration=swapped(cal, variant), progress=False).targets]
-                       for maps, variant in (("decoded", "decoded"), ("exact", "maps"))}
+                              for t in run_virtual(scene, calibration=swapped(cal, maps=exact), progress=False).targets]
+                       for maps, exact in (("decoded", False), ("exact", True))}
         finally:
             build._AREA_SAMPLES = 4
     text = markdown(scenes, sampling, runs, grid, weights, real)
