@@ -266,6 +266,84 @@ def test_area_rows_fitted_to_the_measured_shares_predict_the_capture():
     torch.testing.assert_close(wide.predict([light], black_level, "area"), plain.predict([light], black_level, "area"))
 
 
+def _one_pixel(across, outside=0.0):
+    """A 5 x 5 camera whose centre pixel's parallelogram covers cell (6, 5) alone, with measured shares
+    ``across`` (x towards 5, x towards 7, y towards 4, y towards 6) and ``outside`` on both axes."""
+    ys, xs = torch.meshgrid(torch.arange(5.0), torch.arange(5.0), indexing="ij")
+    prj_xy = torch.stack([0.3 * xs + 5.6, 0.3 * ys + 4.4], -1)  # the centre at (6.2, 5.0), 0.3 cells per pixel
+    cell = torch.tensor([6, 5], dtype=torch.int32).expand(5, 5, 2).clone()
+    shares = CellShares(cell, torch.tensor(across, dtype=torch.float32).reshape(2, 2).expand(5, 5, 2, 2).clone(),
+                        torch.full((5, 5, 2), outside))
+    return StateCalibration([prj_xy], [torch.full((5, 5), 0.8)], [(16, 12)], shares=[shares])
+
+
+def _light_at(cal, cell):
+    """The centre pixel's model light when only ``cell`` (x, y) shines at 1."""
+    light = torch.zeros(1, 12, 16)
+    light[0, cell[1], cell[0]] = 1.0
+    return float(cal.predict([light], torch.zeros(1, 5, 5), "area")[0, 2, 2])
+
+
+def test_rows_gain_the_cells_across_an_edge_the_captures_saw_light_across():
+    """A pixel whose captures measured 0.3 of its light across the edge towards cell 5, where its
+    parallelogram holds no cell, gains cell 5 with that share (the fit's split) and keeps its light.
+    Under the threshold, at the projector's border (NaN), where light reached past the neighbours or
+    was measured across all four edges (defocus: the row is left as it is), nothing is added."""
+    nan = float("nan")
+    cal = _one_pixel([0.3, 0.0, 0.0, 0.0])
+    assert _light_at(cal, (5, 5)) == pytest.approx(0.8 * 0.3, rel=1e-5)
+    assert _light_at(cal, (6, 5)) == pytest.approx(0.8 * 0.7, rel=1e-5)
+    assert _light_at(cal, (5, 4)) == 0.0 and _light_at(cal, (7, 5)) == 0.0  # only the edge the captures saw
+    total = cal.predict([torch.ones(1, 12, 16)], torch.zeros(1, 5, 5), "area")[0]
+    torch.testing.assert_close(total, torch.full((5, 5), 0.8))
+    for across, outside in (([0.04, 0.0, 0.0, 0.0], 0.0), ([nan, 0.0, 0.0, 0.0], 0.0), ([0.3, 0.0, 0.0, 0.0], 0.2),
+                            ([0.3, 0.2, 0.25, 0.3], 0.0)):
+        assert _light_at(_one_pixel(across, outside), (5, 5)) == 0.0, (across, outside)
+    up = _one_pixel([0.0, 0.0, 0.0, 0.25])  # the y axis too
+    assert _light_at(up, (6, 6)) == pytest.approx(0.8 * 0.25, rel=1e-5)
+
+
+def _limb_map(x, y):
+    """A cylinder's limb seen from the side: the projector's x grows like a square root towards camera
+    column 48, from 0.4 to 2.4 cells per camera pixel, so the slope over the last pixels falls short."""
+    return torch.stack([45 - 5 * torch.sqrt(48.1 - x), 0.6 * y + 0.02 * x + 5.0], -1)
+
+
+def test_rows_reach_the_light_a_limbs_slope_falls_short_of():
+    """On a limb the map's slope, a mean over neighbouring pixels taken on one side only at the outline,
+    is short of the pixel's footprint. Given the cells the captures saw light across, the rows of the
+    last four columns predict a capture of random light 3 times closer (5.8 here) (3 x 3 point samples per pixel,
+    as the virtual rig's), and no worse elsewhere."""
+    from torchproj.transport import build
+
+    camera, projector = (40, 48), (80, 64)
+    patterns, white, black, points = area_captures(_limb_map, camera, projector, samples=3)
+    dec = decode_gray(patterns, white, black, projector)
+    shares = cell_shares(patterns, white, black, dec, projector)
+    ys, xs = torch.meshgrid(torch.arange(40.0), torch.arange(48.0), indexing="ij")
+    weight = torch.full(camera, 0.8)
+    cal = StateCalibration([_limb_map(xs, ys).float()], [weight], [projector], shares=[shares])
+    light = torch.rand(1, 64, 80, generator=torch.Generator().manual_seed(4))
+    truth = 0.8 * light[0][points[..., 1], points[..., 0]].mean(-1)
+    inner = torch.zeros(camera, dtype=torch.bool)
+    inner[2:-2] = True
+    inner &= dec.valid
+    limb = inner & (xs >= 44)
+    reach = build._SHARE_REACH
+
+    def miss(where):
+        return float((cal.predict([light], torch.zeros(1, *camera), "area")[0] - truth)[where].pow(2).mean().sqrt())
+
+    try:
+        reached = miss(limb), miss(inner & (xs < 44))
+        build._SHARE_REACH = float("inf")
+        short = miss(limb), miss(inner & (xs < 44))
+    finally:
+        build._SHARE_REACH = reach
+    assert reached[0] < short[0] / 3, (reached, short)
+    assert reached[1] <= short[1] * 1.01, (reached, short)
+
+
 def test_cell_shares_must_fit_the_state():
     """One set per projector, of the camera's shape, naming cells of that projector: else an error
     that names the state and the projector, before any row is built."""

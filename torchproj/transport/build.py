@@ -12,8 +12,9 @@ the map's local slope (a parallelogram, from the calibrated map alone), each cel
 share of the pixel it lights. That is the light a camera pixel integrates when it is as large as a
 few projector cells (a camera coarser than the projectors, a steep surface). Where calibration
 measured how each pixel's light is shared across the edges of its cell (:func:`~torchproj.calib.cell_shares`),
-the ``area`` row is then fitted to those shares (:func:`_fit_shares`): the parallelogram is only the
-map's guess at the pixel's footprint, the captures measure it.
+the ``area`` row is then fitted to those shares (:func:`_fit_shares`), after gaining the cells across
+an edge where the captures saw light the parallelogram does not reach (:func:`_reach_shares`): the
+parallelogram is only the map's guess at the pixel's footprint, the captures measure it.
 
 Rows with the same columns merge exactly: their normal-equation blocks add, and an equivalent set
 of at most ``s`` rows (s = columns per row) replaces them (``R^T R = sum a a^T``, ``R^T b = sum i a``),
@@ -66,6 +67,10 @@ _SHARE_SWEEPS, _SHARE_TOL = 1, 1e-6
 # footprint (defocus) than the row can hold. Noise alone stays below 0.035 on the virtual rig (99th
 # percentile); 0.05 against 0.1 and no limit on paper_defocus: README "The ceiling".
 _SHARE_OUTSIDE = 0.05
+# A row gains the cells across an edge of its decoded cell where more than this share of the pixel's
+# light was measured across it and the row holds none there (_reach_shares). The same 0.05 as above,
+# over the noise; 0.03 and 0.1 give the same scores on box_cylinders (README "The ceiling").
+_SHARE_REACH = 0.05
 
 
 @dataclass
@@ -201,6 +206,7 @@ class StateCalibration:
         if self.edges is not None:
             cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur)
         if self.shares is not None:
+            cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
             values = _fit_shares(cells, values, self.shares[j], pixels, size)
         return cells, values
 
@@ -360,6 +366,76 @@ def _edge_rows(cells: torch.Tensor, values: torch.Tensor, edges: EdgePixels, pix
     return cells, values
 
 
+def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pixels: torch.Tensor,
+                  size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rows :math:`(N, s)` of those camera ``pixels`` :math:`(N,)` whose captures measured light
+    across an edge of the decoded cell where the row holds none, given the cells across that edge.
+
+    The parallelogram comes from the map's slope, a mean over two pixels either side. Where a
+    curved surface turns away from the camera (a cylinder's limb) the slope grows within those
+    pixels, and on the outline only the pixels on one side count: the slope is underestimated and
+    the parallelogram falls short of cells the pixel sees. On ``box_cylinders`` up to a third of such a
+    pixel's light comes from a cell its row does not hold, and :func:`_fit_shares`, which only
+    rescales the cells a row has, cannot put it there. So where the measured share across an edge
+    (:attr:`~torchproj.calib.CellShares.across`) exceeds ``_SHARE_REACH`` and the row holds no cell
+    past it, each of the row's cells on the decoded cell's column (row, for ``y``) gains its
+    neighbour across the edge, seeded in proportion so that the new cells keep the column's
+    profile along the other axis (axis by axis, so a row short of an ``x`` and a ``y`` edge also
+    gains the cell across both); :func:`_fit_shares` then sets their share. The row's total (its
+    white minus black) is kept.
+
+    Defocus is left alone: a pixel whose light reached past cells ``n +- 1`` on that axis
+    (:attr:`~torchproj.calib.CellShares.outside`), or was measured across all four edges (a disc
+    wider than the pixel every way; a limb or a steep face stretches a pixel's footprint one way),
+    gains nothing. Blurred light comes from past the four neighbours too, and the neighbours alone
+    would take all of it: on ``paper_defocus`` widening such rows costs the near target 0.034 SSIM.
+    Our choice (the paper models one cell per pixel): README "The ceiling" measures it against rows
+    left short.
+    """
+    if not cells.numel():
+        return cells, values
+    if cells.shape[0] > _AREA_CHUNK:  # (N, s) masks per edge: chunks keep them small
+        parts = [_reach_shares(cells[i:i + _AREA_CHUNK], values[i:i + _AREA_CHUNK], shares, pixels[i:i + _AREA_CHUNK],
+                               size) for i in range(0, cells.shape[0], _AREA_CHUNK)]
+        return _stack_rows([c for c, _ in parts], [v for _, v in parts])
+    w = size[0]
+    cell = shares.cell.reshape(-1, 2)[pixels].long()
+    across = shares.across.reshape(-1, 2, 2)[pixels].to(values.dtype)
+    outside = shares.outside.reshape(-1, 2)[pixels] > _SHARE_OUTSIDE
+    used, total = cells >= 0, values.sum(1)
+    row = torch.div(cells, w, rounding_mode="floor")
+    short = []  # per axis, per side: the rows short of that edge of the decoded cell
+    for axis, coord in enumerate((cells - row * w, row)):
+        for side, step in enumerate((-1, 1)):
+            share = across[:, axis, side]
+            held = torch.where(used & ((coord - cell[:, axis, None]) * step >= 1), values, 0.0).sum(1)
+            short.append(torch.isfinite(share) & (share > _SHARE_REACH) & (held <= _SHARE_TOL * total) & (total > 0)
+                         & ~outside[:, axis] & (cell[:, axis] >= 0))
+    disc = (across > _SHARE_REACH).reshape(-1, 4).all(1)
+    rows = torch.nonzero(torch.stack(short).any(0) & ~disc)[:, 0]
+    if not rows.numel():
+        return cells, values
+    # Axis by axis, so that a row short of an x and a y edge also gains the cell across both: light
+    # measured across both comes partly from that corner, and without it the conditions conflict.
+    grown, seeded = cells[rows], values[rows]
+    for axis in (0, 1):
+        coord = grown % w if axis == 0 else torch.div(grown, w, rounding_mode="floor")
+        column = (grown >= 0) & (coord == cell[rows, axis, None])
+        new_cells, new_values = [grown], [seeded]
+        for side, step in enumerate((-1, 1)):
+            # The edge is not the projector's border (the share is finite), so the neighbour is a cell.
+            gain = short[2 * axis + side][rows, None] & column
+            share = across[rows, axis, side, None].clamp(max=0.5)  # a seed: _fit_shares sets the split
+            new_cells.append(torch.where(gain, grown + step * (1 if axis == 0 else w), -1))
+            new_values.append(torch.where(gain, seeded * share / (1 - share), 0.0))
+        grown, seeded = _combine(torch.cat(new_cells, 1), torch.cat(new_values, 1))
+    seeded = seeded * (total[rows] / seeded.sum(1))[:, None]
+    width = max(cells.shape[1], grown.shape[1])
+    cells, values = _widen(cells, values, width)
+    cells[rows], values[rows] = _widen(grown, seeded, width)
+    return cells, values
+
+
 def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pixels: torch.Tensor,
                 size: tuple[int, int]) -> torch.Tensor:
     """The rows' values :math:`(N, s)`, rescaled so that each row puts the measured share of its light
@@ -370,8 +446,9 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     one linear condition on the row, whatever its footprint. Iterative proportional fitting meets
     them: per condition, the row's cells on either side are scaled to the measured split, keeping
     the row's total (its white minus black); one sweep over the four conditions settles them
-    (``_SHARE_SWEEPS``). Cells the row does not have are never added: the parallelogram says where
-    the light may fall, the captures how it is split. A condition the row cannot meet (all its light
+    (``_SHARE_SWEEPS``). Cells the row does not have are not added here: the parallelogram says where
+    the light may fall, the captures how it is split (where it falls short of an edge the captures
+    saw light across, :func:`_reach_shares` has already added the cells). A condition the row cannot meet (all its light
     on one side), or that was not measured (not fully decoded, the projector's border), is left out;
     so is a row whose
     pixel saw light past cells ``n +- 1`` (:attr:`~torchproj.calib.CellShares.outside`) where the
