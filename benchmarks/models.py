@@ -7,7 +7,10 @@ Each scene is calibrated once from simulated captures. For each model of a camer
 cells the pixel's own area covers through the map's local slope, ``area-map``; those cells with
 their weights fitted to the shares the Gray-code captures measured, ``area``, the default of ``run``;
 with ``--share-limits``, ``area`` with other limits on the light measured past a row's cells, above
-which a row is not fitted; with ``--share-sweeps``, ``area`` fitted in more sweeps; and, with ``--blur``, ``area+blur``: the area footprint spread over each
+which a row is not fitted; with ``--share-sweeps``, ``area`` fitted in more sweeps; with
+``--share-reach``, ``area`` with other shares measured across an edge over which a row short of it
+gains the cells there (``inf``: rows stay as the parallelogram gives them); and, with ``--blur``,
+``area+blur``: the area footprint spread over each
 projector's defocus disc as measured from the Gray-code captures by :func:`torchproj.calib.measure_blur`)
 the operator is built on that calibration; on a scene with a colour camera, ``area+channel`` too
 (each channel with its own white minus black, solved apart: what ``run`` does there by default).
@@ -38,7 +41,7 @@ from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
 from torchproj.transport import build, build_channel_transports, build_transport, has_colour_weights
-from torchproj.transport.build import _SHARE_OUTSIDE, _SHARE_SWEEPS
+from torchproj.transport.build import _SHARE_OUTSIDE, _SHARE_REACH, _SHARE_SWEEPS
 
 BOUNDS = (0.0, 1.0)
 
@@ -61,7 +64,7 @@ def measured_blur(cal) -> tuple[dict, float, dict]:
 
 
 def measure(name: str, scale: float, log=print, blur: bool = False, share_limits: tuple[float, ...] = (),
-            share_sweeps: tuple[int, ...] = ()) -> list[dict]:
+            share_sweeps: tuple[int, ...] = (), share_reach: tuple[float, ...] = ()) -> list[dict]:
     scene = load_scene(name, scale=scale)
     cal = calibrate_virtual(scene, progress=False)
     targets = scene_targets(scene, None, cal.rig)
@@ -69,17 +72,20 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
     colour = ("area+channel",) if has_colour_weights(cal.states, targets) else ()
     limits = tuple(f"area, outside <= {limit:g}" for limit in share_limits)
     sweeps = tuple(f"area, {n} sweeps" for n in share_sweeps)
-    for model in ("nearest", "bilinear", "area-map", "area", *limits, *sweeps, *colour,
+    reaches = tuple(f"area, reach {r:g}" for r in share_reach)
+    for model in ("nearest", "bilinear", "area-map", "area", *limits, *sweeps, *reaches, *colour,
                   *(("area+blur",) if blur else ()), "ceiling"):
         extra, states = {}, cal.states
-        # what run uses, but where a row below names another limit or number of sweeps
-        build._SHARE_OUTSIDE, build._SHARE_SWEEPS = _SHARE_OUTSIDE, _SHARE_SWEEPS
+        # what run uses, but where a row below names another limit, number of sweeps or reach
+        build._SHARE_OUTSIDE, build._SHARE_SWEEPS, build._SHARE_REACH = _SHARE_OUTSIDE, _SHARE_SWEEPS, _SHARE_REACH
         if model == "area-map":
             states = {k: dataclasses.replace(s, shares=None) for k, s in states.items()}
         if model in limits:
             build._SHARE_OUTSIDE = share_limits[limits.index(model)]
         if model in sweeps:
             build._SHARE_SWEEPS = share_sweeps[sweeps.index(model)]
+        if model in reaches:
+            build._SHARE_REACH = share_reach[reaches.index(model)]
         if model == "area+blur":
             states, seconds, medians = measured_blur(cal)
             extra = {"measure_blur_s": round(seconds, 2), "blur_median_cells": medians}
@@ -157,6 +163,9 @@ def main() -> None:
                          f"(default of run: {_SHARE_OUTSIDE})")
     ap.add_argument("--share-sweeps", nargs="+", type=int, default=[],
                     help=f"also the area footprint fitted in these numbers of sweeps (default of run: {_SHARE_SWEEPS})")
+    ap.add_argument("--share-reach", nargs="+", type=float, default=[],
+                    help="also the area footprint whose rows gain the cells across an edge over these measured shares "
+                         f"(inf: never; default of run: {_SHARE_REACH})")
     ap.add_argument("--update", action="store_true", help="keep --out's rows of the scenes not measured now")
     args = ap.parse_args()
     if args.chart_only:
@@ -164,7 +173,8 @@ def main() -> None:
         return
     rows = [r for name in args.scenes for r in measure(name, args.scale, blur=args.blur,
                                                        share_limits=tuple(args.share_limits),
-                                                       share_sweeps=tuple(args.share_sweeps))]
+                                                       share_sweeps=tuple(args.share_sweeps),
+                                                       share_reach=tuple(args.share_reach))]
     if args.update:
         kept = [r for r in json.loads((args.out / "results.json").read_text())["rows"] if r["scene"] not in args.scenes]
         order = list(dict.fromkeys([r["scene"] for r in kept] + args.scenes))
