@@ -237,6 +237,18 @@ def test_area_footprint_predicts_the_simulated_capture(camera, oracle, gain):
     assert miss["area"] < 0.3 * float(shot[0][lit].std())
 
 
+def _sampled_calibration(true_map, camera, projector):
+    """Noise-free captures of the Gray-code sequence through a camera that samples each pixel at 3 x 3
+    points (as the virtual rig's), and a calibration on the exact ``true_map`` at weight 0.8 with the
+    cell shares they measure. Returns the calibration, the decoding and each pixel's points' cells."""
+    patterns, white, black, points = area_captures(true_map, camera, projector, samples=3)
+    dec = decode_gray(patterns, white, black, projector)
+    shares = cell_shares(patterns, white, black, dec, projector)
+    ys, xs = torch.meshgrid(torch.arange(float(camera[0])), torch.arange(float(camera[1])), indexing="ij")
+    cal = StateCalibration([true_map(xs, ys).float()], [torch.full(camera, 0.8)], [projector], shares=[shares])
+    return cal, dec, points
+
+
 def test_area_rows_fitted_to_the_measured_shares_predict_the_capture():
     """A camera that samples each pixel at 3 x 3 points (as the virtual rig's) shares its light among
     the cells unlike the area footprint's 4 x 4 parallelogram. Fitted to the cell shares its Gray-code
@@ -244,12 +256,8 @@ def test_area_rows_fitted_to_the_measured_shares_predict_the_capture():
     (0.011 against 0.036 rms, light in [0, 1]), and keep each pixel's light. Where the shares say light came from past the cells the row
     holds (``outside``, defocus), the row is left as it is."""
     camera, projector = (60, 70), (80, 64)
-    patterns, white, black, points = area_captures(curved_map, camera, projector, samples=3)
-    dec = decode_gray(patterns, white, black, projector)
-    shares = cell_shares(patterns, white, black, dec, projector)
-    ys, xs = torch.meshgrid(torch.arange(60.0), torch.arange(70.0), indexing="ij")
-    weight = torch.full(camera, 0.8)
-    cal = StateCalibration([curved_map(xs, ys)], [weight], [projector], shares=[shares])
+    cal, dec, points = _sampled_calibration(curved_map, camera, projector)
+    shares, weight = cal.shares[0], cal.weight[0]
     plain = dataclasses.replace(cal, shares=None)
     light = torch.rand(1, 64, 80, generator=torch.Generator().manual_seed(3))
     truth = 0.8 * light[0][points[..., 1], points[..., 0]].mean(-1)
@@ -312,17 +320,13 @@ def _limb_map(x, y):
 def test_rows_reach_the_light_a_limbs_slope_falls_short_of():
     """On a limb the map's slope, a mean over neighbouring pixels taken on one side only at the outline,
     is short of the pixel's footprint. Given the cells the captures saw light across, the rows of the
-    last four columns predict a capture of random light 3 times closer (5.8 here) (3 x 3 point samples per pixel,
-    as the virtual rig's), and no worse elsewhere."""
+    last four columns predict a capture of random light at least 3 times closer (5.8 here; 3 x 3
+    point samples per pixel, as the virtual rig's), and no worse elsewhere."""
     from torchproj.transport import build
 
     camera, projector = (40, 48), (80, 64)
-    patterns, white, black, points = area_captures(_limb_map, camera, projector, samples=3)
-    dec = decode_gray(patterns, white, black, projector)
-    shares = cell_shares(patterns, white, black, dec, projector)
-    ys, xs = torch.meshgrid(torch.arange(40.0), torch.arange(48.0), indexing="ij")
-    weight = torch.full(camera, 0.8)
-    cal = StateCalibration([_limb_map(xs, ys).float()], [weight], [projector], shares=[shares])
+    cal, dec, points = _sampled_calibration(_limb_map, camera, projector)
+    xs = torch.arange(48.0).expand(camera)
     light = torch.rand(1, 64, 80, generator=torch.Generator().manual_seed(4))
     truth = 0.8 * light[0][points[..., 1], points[..., 0]].mean(-1)
     inner = torch.zeros(camera, dtype=torch.bool)
