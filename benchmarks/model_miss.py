@@ -25,6 +25,12 @@ Three measurements behind README's "The ceiling", on the scenes whose targets st
    weights (``stripes``: on the same captures as the calibration, regenerated from the scene's
    seed). On the real captures (``../shared/data/procam_chessboard``, skipped where absent) the
    median ratio of the two per pair says whether a bench's stripes really are that bright.
+5. The faces' maps on ``box_positions``. The refined map's error on the faces (``refine.py``'s
+   ``rest`` band) from the calibration captures with and without the camera's noise: what is left
+   without it is the aliasing of the camera's point-sampled pixel against the cells, not noise.
+   Then runs on the exact maps plus either part of the decoded map's error: its smooth part (the
+   mean over :data:`SMOOTHING` x :data:`SMOOTHING` pixels) or the rest (the fine part), to say
+   which part the images pay for.
 
 Writes ``results.json`` and ``results.md``.
 """
@@ -37,7 +43,9 @@ import warnings
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from common import machine, write_results
+from refine import bands as map_bands
 from scipy import ndimage
 
 from torchproj.calib import calibrate_projector, read_graycode_folder
@@ -51,6 +59,7 @@ from torchproj.transport import build
 
 BANDS = ((0, 1), (2, 3), (4, 8), (9, None))  # camera pixels from the nearest edge, both ends included
 STRIPE_CLEARANCE = 2.5  # cells from the pixel's coordinate to the nearest edge of a stripe it counts in
+SMOOTHING = 15  # camera pixels: the box whose mean splits a map's error into its smooth and fine parts
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam_chessboard"
 
 
@@ -209,11 +218,55 @@ def prediction_miss(scene_name: str, samples: int) -> dict:
     return out
 
 
+def _box_mean(values: torch.Tensor, known: torch.Tensor, size: int) -> torch.Tensor:
+    """:math:`(H, W, D)` the mean of ``values`` over the ``known`` pixels of each ``size x size`` box."""
+    pool = lambda t: F.avg_pool2d(t, size, 1, size // 2, count_include_pad=False)
+    total = pool(torch.where(known[..., None], values, 0.0).permute(2, 0, 1)[None])[0].permute(1, 2, 0)
+    return total / pool(known.to(values.dtype)[None, None])[0, 0].clamp_min(1e-9)[..., None]
+
+
+def face_maps(scene_name: str = "box_positions") -> dict:
+    """Point 5: the faces' map error with and without camera noise, and runs on the exact maps plus
+    the smooth or the fine part of the decoded map's error."""
+    scene = load_scene(scene_name)
+    rig = VirtualRig(scene)
+    errors = {"noisy": [], "noise-free": []}
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            truth = rig.geometry(st.name).prj_xy[j].cpu()
+            faces = map_bands(truth)["rest"]
+            for how, noise in (("noisy", True), ("noise-free", False)):
+                xy = calibrate_projector(simulate_calibration(rig, st.name, j, noise=noise), (p.width, p.height)).prj_xy
+                miss = (xy - truth).norm(dim=-1)
+                errors[how].append(miss[faces & torch.isfinite(miss)])
+    out = {"map_rms": {how: round(float(torch.cat(m).pow(2).mean().sqrt()), 4) for how, m in errors.items()}}
+    cal = calibrate_virtual(scene, progress=False)
+    parts = {"smooth": lambda e, known: _box_mean(e, known, SMOOTHING),
+             "fine": lambda e, known: e - _box_mean(e, known, SMOOTHING), "all": lambda e, known: e}
+    runs, part_rms = {}, {}
+    for part, split in parts.items():
+        states, miss = {}, []
+        for name, state in cal.states.items():
+            xy = list(state.prj_xy)
+            for j, (decoded, truth) in enumerate(zip(state.prj_xy, cal.rig.geometry(name).prj_xy)):
+                truth = truth.cpu().to(decoded.dtype)
+                known = torch.isfinite(decoded).all(-1) & torch.isfinite(truth).all(-1)
+                error = split(torch.where(known[..., None], decoded - truth, 0.0), known)
+                xy[j] = torch.where(known[..., None], truth + error, decoded)
+                miss.append(error[known & map_bands(truth)["rest"]].norm(dim=-1))
+            states[name] = dataclasses.replace(state, prj_xy=xy)
+        part_rms[part] = round(float(torch.cat(miss).pow(2).mean().sqrt()), 4)
+        runs[part] = [{"name": t.name, "psnr_db": round(t.psnr_db, 2), "ssim": round(t.ssim, 3)}
+                      for t in run_virtual(scene, calibration=dataclasses.replace(cal, states=states),
+                                           progress=False).targets]
+    return {"scene": scene_name, **out, "part_rms": part_rms, "runs": runs}
+
+
 def _band_name(band: dict) -> str:
     return f"{band['from']}-{band['to']}" if band["to"] is not None else f">= {band['from']}"
 
 
-def markdown(scenes: dict, sampling: dict, runs: dict, grid: int, weights: dict, real: dict) -> str:
+def markdown(scenes: dict, sampling: dict, runs: dict, grid: int, weights: dict, real: dict, faces: dict) -> str:
     lines = [f"# Where the default model misses the exact light ({machine()})", "",
              "## Ingredients: the default run with the simulator's exact maps and/or weights swapped in", "",
              "| scene | run | per target PSNR / SSIM |", "|---|---|---|"]
@@ -256,6 +309,13 @@ def markdown(scenes: dict, sampling: dict, runs: dict, grid: int, weights: dict,
                 lines.append(f"| {name} | {axis} | " + " | ".join(f"{ratio[k]:.3f}" if k in ratio else "-" for k in bits) + " |")
     else:
         lines += ["", f"Real captures: {REAL} is absent, not measured."]
+    lines += ["", f"## {faces['scene']}: the faces' maps", "",
+              (f"Refined map's error on the faces (cells rms, `refine.py`'s rest band): {faces['map_rms']['noisy']} "
+               f"from the noisy captures, {faces['map_rms']['noise-free']} from noise-free ones."), "",
+              (f"Exact maps plus a part of the decoded map's error (smooth: its mean over {SMOOTHING} x {SMOOTHING} "
+               "pixels; fine: the rest):"), "", "| error added | its rms on the faces | per target PSNR / SSIM |", "|---|---|---|"]
+    lines += [f"| {part} | {faces['part_rms'][part]} | " + "; ".join(f"{r['name']} {r['psnr_db']:.2f} / {r['ssim']:.3f}"
+                                                                for r in rows) + " |" for part, rows in faces["runs"].items()]
     return "\n".join(lines) + "\n"
 
 
@@ -283,10 +343,12 @@ def main() -> None:
                        for maps, exact in (("decoded", False), ("exact", True))}
         finally:
             build._AREA_SAMPLES = 4
-    text = markdown(scenes, sampling, runs, grid, weights, real)
+    faces = face_maps()
+    print(faces, flush=True)
+    text = markdown(scenes, sampling, runs, grid, weights, real, faces)
     write_results(args.out, {"machine": machine(), "ingredients": scenes, "sampling": sampling,
                              "grid_runs": {str(n): per for n, per in runs.items()}, "weights": weights,
-                             "real_stripes": real}, text)
+                             "real_stripes": real, "faces": faces}, text)
     print(text)
 
 
