@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from ..core.checks import check, check_shape
 from .maps import depth_edges
 
-__all__ = ["CREASE_RATIO", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "graycode_patterns", "graycode_bits",
+__all__ = ["CREASE_RATIO", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "graycode_patterns", "graycode_bits",
            "sequence_bits", "decode_gray", "refine_subpixel"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
@@ -342,6 +342,11 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
                         spread=spread)
 
 
+# Light measured past cells n +- 1 (CellShares.outside) over this share is a footprint wider than
+# the two edges of n describe (defocus): noise alone stays below 0.035 on the virtual rig (99th
+# percentile). Calibration keeps such a partly decoded pixel's open cells rather than its means, and
+# the area footprint leaves its row's split alone (README "The ceiling").
+WIDE_SHARE = 0.05
 _BEYOND = 0.05  # a share of reliably decoded pixels beyond the projector that noise does not explain
 
 
@@ -359,8 +364,8 @@ def _warn_if_codes_beyond(decoded: torch.Tensor, inside: torch.Tensor, first: li
 
 @dataclass
 class CellShares:
-    """How each fully decoded camera pixel's light is shared across the edges of its decoded cell,
-    as its Gray-code differences measure it (:func:`cell_shares`).
+    """How each decoded camera pixel's light is shared across the edges of its cell, as its Gray-code
+    differences measure it (:func:`cell_shares`).
 
     A camera pixel covers an area, so its light often comes from its decoded cell ``n`` and a
     neighbour. Each cell edge is the stripe edge of exactly one pattern pair (neighbouring Gray codes
@@ -370,13 +375,16 @@ class CellShares:
     differs from cell ``n``'s; for a footprint within a cell of ``n``, the share from across the edge.
 
     Attributes:
-        cell: :math:`(H, W, 2)` int32 decoded cell ``(x, y)``; -1 where the pixel did not decode fully.
+        cell: :math:`(H, W, 2)` int32 cell ``n = (x, y)`` the shares are about: the decoded cell of
+            a fully decoded pixel, or the cell :func:`cell_shares` was given (for a partly decoded
+            pixel, the nearest cell of its refined map); -1 where none.
         across: :math:`(H, W, 2, 2)` float32, per axis ``(x, y)``: ``f`` of the edge towards cell
-            ``n - 1`` and of the edge towards ``n + 1``; NaN where the pixel did not decode fully
-            or the edge is the projector's border (nothing lights the pixel from beyond it).
+            ``n - 1`` and of the edge towards ``n + 1``; NaN where the pixel has no cell or the
+            edge is the projector's border (nothing lights the pixel from beyond it).
         outside: :math:`(H, W, 2)` float32, per axis the largest ``f`` of the axis' other pairs: light
             from beyond cells ``n - 1`` and ``n + 1`` (0 up to the captures' noise for a footprint
-            within a cell of ``n``; a tenth and more under defocus); NaN where not fully decoded.
+            within a cell of ``n``; a tenth and more under defocus, over :data:`WIDE_SHARE`); NaN
+            where the pixel has no cell.
     """
 
     cell: torch.Tensor
@@ -385,7 +393,7 @@ class CellShares:
 
     def means(self) -> torch.Tensor:
         """:math:`(H, W, 2)` projector ``(x, y)``: the mean cell centre of each pixel's light,
-        ``n - f_lower + f_upper`` per axis; NaN where the pixel did not decode fully.
+        ``n - f_lower + f_upper`` per axis; NaN where the pixel has no cell.
 
         Fitted over neighbouring pixels (:func:`refine_subpixel`), these means place a pixel
         between cells two to four times as closely as the integer cells do (0.042 against 0.117
@@ -414,24 +422,41 @@ class CellShares:
 
 
 def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, decoding: GrayDecoding,
-                projector_size: tuple[int, int]) -> CellShares:
+                projector_size: tuple[int, int], cells: torch.Tensor | None = None) -> CellShares:
     """The share of each fully decoded pixel's light from across each edge of its cell
-    (:class:`CellShares`), from the pattern pairs whose stripe edges they are.
+    (:class:`CellShares`), from the pattern pairs whose stripe edges they are; or of each pixel's
+    light across the edges of a cell it is given.
 
     Calibration fits its maps to their means (:meth:`CellShares.means`) and the ``area`` transport
-    footprint fits its rows to them (:func:`~torchproj.transport.build_transport`).
+    footprint fits its rows to them (:func:`~torchproj.transport.build_transport`). A partly decoded
+    pixel has no decoded cell, but its captures measure its light across any cell's edges all the
+    same: a pair whose stripe its footprint straddles evenly shows a share near one half, which is
+    why the decoder could not read that bit. :func:`~torchproj.calib.calibrate_projector` asks for
+    those pixels' shares about the nearest cell of their refined map.
 
     Args:
         patterns, white, black: the full-sequence captures :func:`decode_gray` read.
         decoding: its result.
         projector_size: ``(width, height)``.
+        cells: optional :math:`(H, W, 2)` integer cells ``(x, y)`` to measure each pixel's shares
+            about, -1 where none; None: each fully decoded pixel's decoded cell.
     """
     check(decoding.block == (1, 1), "cell shares need the full Gray-code sequence (decoding.block is "
                                     f"{decoding.block}): a shortened one shows no stripe at the cells' edges")
     nx, ny, contrast = check_full_sequence(patterns, white, black, decoding.prj_xy, projector_size, "cell_shares")
     span = contrast.clamp_min(_EPS)
-    valid = decoding.valid
-    cells = torch.where(valid[..., None], torch.nan_to_num(decoding.prj_xy).round(), -1).to(torch.int32)
+    if cells is None:
+        valid = decoding.valid
+        cells = torch.where(valid[..., None], torch.nan_to_num(decoding.prj_xy).round(), -1).to(torch.int32)
+    else:
+        check_shape(cells, "cells", [*decoding.valid.shape, 2])
+        check(not cells.is_floating_point(), f"cells must be integer cell indices, got {cells.dtype}")
+        valid = (cells >= 0).all(-1)
+        size = torch.tensor(projector_size, device=cells.device)
+        check(bool((cells[valid] < size).all()),
+              f"cells name cells outside the {projector_size[0]}x{projector_size[1]} projector; -1 marks a pixel "
+              "without one")
+        cells = torch.where(valid[..., None], cells, -1).to(torch.int32)
     across = torch.full((*valid.shape, 2, 2), float("nan"), device=valid.device)
     outside = torch.full((*valid.shape, 2), float("nan"), device=valid.device)
     for axis, (bits, first, size) in enumerate(((nx, 0, projector_size[0]), (ny, nx, projector_size[1]))):

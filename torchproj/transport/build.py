@@ -33,6 +33,7 @@ from ..core.checks import check, check_device, check_finite, check_image, check_
 from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope, pixel_square
 from ..calib.bundle import cell_shares_of, edge_pixels
+from ..calib.graycode import WIDE_SHARE
 from ..calib.edges import EdgePixels
 from ..calib.graycode import CellShares
 from ..core.lens import disc_points, points_for_diameter
@@ -62,11 +63,11 @@ _AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
 # 0.02 dB or 0.001 SSIM (benchmarks/models.py --share-sweeps 2 3). A row with less than _SHARE_TOL
 # of its light on one side of an edge has none there to scale.
 _SHARE_SWEEPS, _SHARE_TOL = 1, 1e-6
-# A row is left as it is where more light than this was measured past cells n +- 1 on an axis
+# A row is left as it is where more light than WIDE_SHARE was measured past cells n +- 1 on an axis
 # (CellShares.outside) and the row holds no cell there: its measured shares then describe a wider
-# footprint (defocus) than the row can hold. Noise alone stays below 0.035 on the virtual rig (99th
-# percentile); 0.05 against 0.1 and no limit on paper_defocus: README "The ceiling".
-_SHARE_OUTSIDE = 0.05
+# footprint (defocus) than the row can hold. 0.05 against 0.1 and no limit on paper_defocus:
+# README "The ceiling".
+_SHARE_OUTSIDE = WIDE_SHARE
 # A row gains the cells across an edge of its decoded cell where more than this share of the pixel's
 # light was measured across it and the row holds none there (_reach_shares). The same 0.05 as above,
 # over the noise; 0.03 and 0.1 give the same scores on box_cylinders (README "The ceiling").
@@ -449,7 +450,7 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     (``_SHARE_SWEEPS``). Cells the row does not have are not added here: the parallelogram says where
     the light may fall, the captures how it is split (where it falls short of an edge the captures
     saw light across, :func:`_reach_shares` has already added the cells). A condition the row cannot meet (all its light
-    on one side), or that was not measured (not fully decoded, the projector's border), is left out;
+    on one side), or that was not measured (an undecoded pixel, the projector's border), is left out;
     so is a row whose
     pixel saw light past cells ``n +- 1`` (:attr:`~torchproj.calib.CellShares.outside`) where the
     row has no cell: defocus spread that light, and its shares would pull the row's light onto the
@@ -464,7 +465,7 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     if cells.shape[0] > _AREA_CHUNK:  # the conditions are (N, s) masks: chunks keep them small
         return torch.cat([_fit_shares(cells[i:i + _AREA_CHUNK], values[i:i + _AREA_CHUNK], shares,
                                       pixels[i:i + _AREA_CHUNK], size) for i in range(0, cells.shape[0], _AREA_CHUNK)])
-    cell = shares.cell.reshape(-1, 2)[pixels]  # -1 where not fully decoded: no share was measured there
+    cell = shares.cell.reshape(-1, 2)[pixels]  # -1 where the pixel has no cell: no share was measured there
     cells = cells.to(torch.int32)
     across = shares.across.reshape(-1, 2, 2)[pixels].to(values.dtype)
     outside = shares.outside.reshape(-1, 2)[pixels] > _SHARE_OUTSIDE
