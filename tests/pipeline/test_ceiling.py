@@ -82,7 +82,9 @@ def test_ceiling_is_the_optimum_of_the_exact_light(quarter_rig):
     """The ceiling's patterns are optimal for the exact light: the run's own patterns, put on the same
     exact operator, explain no more; and every target's row of the report carries its ceiling."""
     scene, cal = quarter_rig
-    result = run_virtual(scene, calibration=cal, ceiling=True, progress=False)
+    # The nearest-cell model: the default area footprint comes within 0.001 dB of the ceiling here,
+    # where the captured PSNR may fall either side of the least-squares optimum's.
+    result = run_virtual(scene, calibration=cal, ceiling=True, progress=False, footprint="nearest")
     rows = result.report["targets"]
     assert all(set(r["ceiling"]) == {"psnr_db", "ssim"} for r in rows)
     assert "ceiling PSNR (dB)" in run_markdown(result.report)
