@@ -190,8 +190,9 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
 
 def _partial_shares(capture: GraycodeCapture, seen: GrayDecoding, shares: CellShares, mapped: torch.Tensor,
                     projector_size: tuple[int, int]) -> tuple[CellShares, torch.Tensor]:
-    """``shares`` with the partly decoded pixels' added, about the nearest cell of ``mapped`` (their
-    fitted coordinate), and which of those pixels' light stays within a cell of it on both axes.
+    """``shares`` measured again with the partly decoded pixels' added, about the nearest cell of
+    ``mapped`` (their fitted coordinate), and which of those pixels' light stays within a cell of it
+    on both axes.
 
     The decoder could not read such a pixel's finest bits because its footprint straddles their
     stripes; the same captures measure how it straddles them (:func:`cell_shares`), so the ``area``
@@ -203,12 +204,11 @@ def _partial_shares(capture: GraycodeCapture, seen: GrayDecoding, shares: CellSh
     size = torch.tensor(projector_size, device=mapped.device)
     near = torch.nan_to_num(mapped, nan=-1.0).round()
     open_cells = seen.partial & ~seen.valid & ((near >= 0) & (near < size)).all(-1)
-    more = cell_shares(capture.patterns, capture.white, capture.black, seen, projector_size,
-                       cells=torch.where(open_cells[..., None], near, -1).to(torch.int32))
-    full = seen.valid[..., None]
-    merged = CellShares(torch.where(full, shares.cell, more.cell), torch.where(full[..., None], shares.across, more.across),
-                        torch.where(full, shares.outside, more.outside))
-    return merged, open_cells & (more.outside <= WIDE_SHARE).all(-1)
+    # The fully decoded pixels keep their cells, so their shares come out as before: one pass over
+    # the pairs costs the same for any number of pixels, and nothing is merged by hand.
+    cells = torch.where(open_cells[..., None], near.to(torch.int32), shares.cell)
+    merged = cell_shares(capture.patterns, capture.white, capture.black, seen, projector_size, cells=cells)
+    return merged, open_cells & (merged.outside <= WIDE_SHARE).all(-1)
 
 
 @dataclass

@@ -33,9 +33,8 @@ from ..core.checks import check, check_device, check_finite, check_image, check_
 from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope, pixel_square
 from ..calib.bundle import cell_shares_of, edge_pixels
-from ..calib.graycode import WIDE_SHARE
 from ..calib.edges import EdgePixels
-from ..calib.graycode import CellShares
+from ..calib.graycode import WIDE_SHARE, CellShares
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor
 from .operator import TransportOperator
