@@ -54,7 +54,9 @@ FOOTPRINTS = ("nearest", "bilinear", "area")  # the cells a camera pixel's light
 DEFAULT_FOOTPRINT = "area"
 
 # Points per axis at which a camera pixel's area is carried onto the projector by the ``area``
-# footprint: 4 x 4 shares a pixel's light among its cells to 1/16, as the virtual rig samples it.
+# footprint: 4 x 4 shares a pixel's light among its cells to 1/16. box_positions' camera samples its
+# pixels at the same 4 x 4 points, which flatters the model there; 8 x 8 and 12 x 12 against cameras
+# of 2-6 points per axis: benchmarks/area_grid.py, README "The ceiling".
 _AREA_SAMPLES = 4
 _AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
 # Sweeps of _fit_shares over a row's four measured shares: the x and y conditions nearly separate,
