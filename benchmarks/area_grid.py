@@ -9,7 +9,7 @@ The ``area`` footprint samples a camera pixel's square at ``_AREA_SAMPLES`` x ``
 points (4 by default) carried through the calibrated map. Where both grids are the same and the
 map is right, the model's samples fall on the camera's own and its row is the exact one, to the
 judge's quantisation; ``box_positions`` ships with a 4 x 4 camera. Its boxes' faces are steep to
-the projectors (a camera pixel spans 1.6-1.8 cells), so a tilted cell edge splits a few point
+the projectors (a camera pixel spans 1.5-1.8 cells), so a tilted cell edge splits a few point
 samples between cells in a way that no area can, and the captures' Gray code, constant along one
 projector axis at a time, measures only each axis' split, not that joint one.
 
