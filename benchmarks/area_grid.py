@@ -15,7 +15,11 @@ projector axis at a time, measures only each axis' split, not that joint one.
 
 1. ``box_positions`` with its camera's supersampling set to each of ``--cameras`` (one calibration
    each): the default run with the area model sampled at each of ``--samples``, and the ceiling.
-2. The cost on a full-size scene: ``paper_two_planes`` (3 x 3 camera) built at each sample count,
+2. With ``--checker``: the same runs with each pixel's checkerboard share (:attr:`CellShares.checker
+   <torchproj.calib.CellShares>`, the share of its light on cells of the other parity ``(x + y) mod
+   2``) taken from the exact light, as a noise-free capture of :func:`~torchproj.calib.checker_patterns`
+   would measure it: what that one pattern pair, which no sequence shows yet, would be worth.
+3. The cost on a full-size scene: ``paper_two_planes`` (3 x 3 camera) built at each sample count,
    its transport seconds and scores.
 
 Writes ``results.json``, ``results.md`` and ``area_grid.png`` (each target's PSNR below the
@@ -29,10 +33,12 @@ import dataclasses
 import warnings
 from pathlib import Path
 
+import torch
 from common import machine, write_results
 from matplotlib.figure import Figure
 
 from torchproj.pipeline import calibrate_virtual, run_virtual
+from torchproj.pipeline.ceiling import _gather_rows
 from torchproj.scene import load_scene
 from torchproj.transport import build
 
@@ -43,17 +49,42 @@ def _scores(run) -> list[dict]:
     return [{"name": t.name, "psnr_db": round(t.psnr_db, 3), "ssim": round(t.ssim, 4)} for t in run.targets]
 
 
-def _runs(scene, samples: list[int]) -> dict:
-    """One calibration of ``scene``; the default run at each area sample count, and the ceiling."""
+def _with_checker(cal):
+    """``cal`` with each pixel's checkerboard share from the exact light (module text, point 2)."""
+    states = {}
+    for name, state in cal.states.items():
+        transport, shares = cal.rig.geometry(name).transport, []
+        for j, part in enumerate(state.shares):
+            height, width = part.cell.shape[:2]
+            row, col, val = _gather_rows(transport[j][0].cpu(), torch.arange(height * width))
+            val = val.double()
+            cols = cal.rig.scene.projectors[j].width
+            cell = part.cell.reshape(-1, 2).long()
+            other = (col % cols + col // cols) % 2 != (cell[row, 0] + cell[row, 1]) % 2
+            total = torch.zeros(height * width, dtype=torch.float64).index_add_(0, row, val)
+            far = torch.zeros_like(total).index_add_(0, row, torch.where(other, val, 0.0))
+            checker = torch.where((cell >= 0).all(1) & (total > 0), far / total.clamp_min(1e-12), float("nan"))
+            shares.append(dataclasses.replace(part, checker=checker.float().reshape(height, width)))
+        states[name] = dataclasses.replace(state, shares=shares)
+    return dataclasses.replace(cal, states=states)
+
+
+def _runs(scene, samples: list[int], checker: bool = False) -> dict:
+    """One calibration of ``scene``; the default run at each area sample count (and with the
+    checkerboard's share, ``checker``), and the ceiling."""
     cal = calibrate_virtual(scene, progress=False)
     out = {"ceiling": _scores(run_virtual(scene, calibration=cal, progress=False, oracle="transport"))}
-    for n in samples:
-        build._AREA_SAMPLES = n
+    variants = [(n, cal) for n in samples]
+    if checker:
+        checked = _with_checker(cal)
+        variants += [(f"{n}+checker", checked) for n in samples]
+    for key, c in variants:
+        build._AREA_SAMPLES = int(str(key).split("+")[0])
         try:
-            run = run_virtual(scene, calibration=cal, progress=False)
+            run = run_virtual(scene, calibration=c, progress=False)
         finally:
             build._AREA_SAMPLES = _DEFAULT
-        out[n] = {"targets": _scores(run), "transport_s": round(run.report["timings_s"]["transport"], 2)}
+        out[key] = {"targets": _scores(run), "transport_s": round(run.report["timings_s"]["transport"], 2)}
     return out
 
 
@@ -61,23 +92,28 @@ def _with_camera(scene, supersampling: int):
     return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, supersampling=supersampling))
 
 
-def markdown(grid: dict, cost: dict, samples: list[int]) -> str:
+def _label(key) -> str:
+    n, _, checker = str(key).partition("+")
+    return f"area {n} x {n}" + (" + checker (exact light)" if checker else "")
+
+
+def markdown(grid: dict, cost: dict, keys: list, samples: list[int]) -> str:
     lines = [f"# The area model's sample grid against the camera's ({machine()})", "",
              (f"## box_positions, camera point samples varied: PSNR / SSIM per target (ceiling: the exact "
               f"point-sampled light); default model grid {_DEFAULT} x {_DEFAULT}"), "",
-             "| camera | " + " | ".join(f"area {n} x {n}" for n in samples) + " | ceiling |",
-             "|---|" + "---|" * (len(samples) + 1)]
+             "| camera | " + " | ".join(_label(n) for n in keys) + " | ceiling |",
+             "|---|" + "---|" * (len(keys) + 1)]
     for cam, runs in grid.items():
         cells = ["; ".join(f"{t['name']} {t['psnr_db']:.2f} / {t['ssim']:.3f}" for t in runs[n]["targets"])
-                 for n in samples]
+                 for n in keys]
         top = "; ".join(f"{t['name']} {t['psnr_db']:.2f} / {t['ssim']:.3f}" for t in runs["ceiling"])
         lines.append(f"| {cam} x {cam} | " + " | ".join(cells) + f" | {top} |")
     lines += ["", "Below the ceiling, PSNR (dB) / SSIM, per target:", "",
-              "| camera | " + " | ".join(f"area {n} x {n}" for n in samples) + " |",
-              "|---|" + "---|" * len(samples)]
+              "| camera | " + " | ".join(_label(n) for n in keys) + " |",
+              "|---|" + "---|" * len(keys)]
     for cam, runs in grid.items():
         cells = ["; ".join(f"{t['name']} {c['psnr_db'] - t['psnr_db']:.2f} / {c['ssim'] - t['ssim']:.3f}"
-                           for t, c in zip(runs[n]["targets"], runs["ceiling"])) for n in samples]
+                           for t, c in zip(runs[n]["targets"], runs["ceiling"])) for n in keys]
         lines.append(f"| {cam} x {cam} | " + " | ".join(cells) + " |")
     lines += ["", "## paper_two_planes (3 x 3 camera): the cost", "",
               "| area grid | transport (s) | per target PSNR / SSIM |", "|---|---|---|"]
@@ -89,16 +125,16 @@ def markdown(grid: dict, cost: dict, samples: list[int]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def chart(path: Path, grid: dict, samples: list[int]) -> None:
+def chart(path: Path, grid: dict, keys: list) -> None:
     """Per target, PSNR below the ceiling against the camera's grid, one line per model grid."""
     cams = list(grid)
     names = [t["name"] for t in grid[cams[0]]["ceiling"]]
     fig = Figure(figsize=(5 * len(names), 4), layout="constrained")
     for k, name in enumerate(names):
         ax = fig.add_subplot(1, len(names), k + 1)
-        for n in samples:
+        for n in keys:
             gap = [grid[c]["ceiling"][k]["psnr_db"] - grid[c][n]["targets"][k]["psnr_db"] for c in cams]
-            ax.plot(cams, gap, "o-", label=f"area {n} x {n}" + (" (default)" if n == _DEFAULT else ""))
+            ax.plot(cams, gap, "o-", label=_label(n) + (" (default)" if n == _DEFAULT else ""))
         ax.axhline(0.3, color="grey", ls="--", lw=1, label="issue 18's goal")
         ax.set(title=f"box_positions, {name}", xlabel="camera point samples per pixel (s x s)",
                ylabel="PSNR below the ceiling (dB)", xticks=cams)
@@ -111,18 +147,20 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/area_grid"))
     ap.add_argument("--cameras", type=int, nargs="+", default=[2, 3, 4, 5, 6])
     ap.add_argument("--samples", type=int, nargs="+", default=[4, 8, 12])
+    ap.add_argument("--checker", action="store_true", help="also run with the checkerboard's share from the exact light")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     base = load_scene("box_positions")
     grid = {}
     for cam in args.cameras:
-        grid[cam] = _runs(_with_camera(base, cam), args.samples)
+        grid[cam] = _runs(_with_camera(base, cam), args.samples, args.checker)
         print("camera", cam, {k: v if k == "ceiling" else v["targets"] for k, v in grid[cam].items()}, flush=True)
     cost = _runs(load_scene("paper_two_planes"), args.samples)
     print("paper_two_planes", cost, flush=True)
+    keys = list(args.samples) + ([f"{n}+checker" for n in args.samples] if args.checker else [])
     write_results(args.out, {"machine": machine(), "default_samples": _DEFAULT, "box_positions": grid,
-                             "paper_two_planes": cost}, markdown(grid, cost, args.samples))
-    chart(args.out / "area_grid.png", grid, args.samples)
+                             "paper_two_planes": cost}, markdown(grid, cost, keys, args.samples))
+    chart(args.out / "area_grid.png", grid, keys)
 
 
 if __name__ == "__main__":

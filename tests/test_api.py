@@ -25,7 +25,7 @@ SURFACE = {
     "calib": [
         "BUNDLE_VERSION", "CREASE_RATIO", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
         "FEW_DECODED", "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
-        "ResponseCurve", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane",
+        "ResponseCurve", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane", "checker_patterns", "checker_shares",
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_homography", "fit_plane", "fit_response",
         "graycode_bits", "graycode_patterns", "homography_map",
         "inverse_map", "load_bundle", "measure_blur", "measure_ramp", "ramp_pattern", "read_graycode_folder",

@@ -9,8 +9,8 @@ import torch
 
 from torchproj.calib import warn_if_few_decoded
 from torchproj.calib.maps import depth_edges
-from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, decode_gray,
-                             graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
+from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, checker_patterns,
+                             checker_shares, decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
 from torchproj.core import InputError
 from torchproj.sim import VirtualRig
@@ -263,6 +263,47 @@ def test_cell_shares_refuse_cells_off_the_projector_or_not_integer():
     with pytest.raises(InputError, match="cells"):
         cell_shares(patterns, white, black, dec, (80, 64), cells=cells[:5])
 
+
+
+def _checker_captures(points, projector):
+    """Noise-free captures of the checkerboard pair through the camera of :func:`area_captures`
+    (``points``: each pixel's points' cells), at its contrast 0.8 over 0.05."""
+    shown = checker_patterns(*projector)[:, 0]
+    return (0.05 + 0.8 * shown[:, points[..., 1], points[..., 0]].mean(-1))[:, None].float()
+
+
+def test_checker_shares_are_each_pixels_light_on_the_other_parity():
+    """Against each pixel's 64 lit points: the share of them on cells whose parity (x + y) differs
+    from the decoded cell's, to float precision, on a map where a pixel spans one or two cells.
+    Pixels without a cell get NaN; bad shapes and float cells are refused."""
+    camera, projector = (30, 36), (80, 64)
+    patterns, white, black, points = area_captures(_curved, camera, projector)
+    dec = decode_gray(patterns, white, black, projector)
+    cells = cell_shares(patterns, white, black, dec, projector).cell
+    pair = _checker_captures(points, projector)
+    share = checker_shares(pair, white, black, cells)
+    decoded = (cells >= 0).all(-1)
+    assert decoded.float().mean() > 0.5 and share[~decoded].isnan().all()
+    parity = (points.sum(-1) % 2) != ((cells[..., 0] + cells[..., 1]).long() % 2)[..., None]
+    truth = parity.double().mean(-1)
+    torch.testing.assert_close(share[decoded].double(), truth[decoded], atol=1e-5, rtol=0)
+    assert 0.05 < float(truth[decoded].mean()) < 0.95  # the test sees light on both parities
+    with pytest.raises(InputError, match="checker pair"):
+        checker_shares(pair[:1], white, black, cells)
+    with pytest.raises(InputError, match="cells must be integer"):
+        checker_shares(pair, white, black, cells.float())
+    # A bundle map keeps the share beside the others; a checker share that does not fit is refused.
+    from torchproj.calib.bundle import SHARE_FIELDS, cell_shares_of
+    shares = cell_shares(patterns, white, black, dec, projector)
+    maps = {f"share_{k}": getattr(shares, k) for k in SHARE_FIELDS}
+    assert cell_shares_of(maps).checker is None
+    kept = cell_shares_of({**maps, "share_checker": share}).checker
+    assert torch.equal(kept.isnan(), share.isnan()) and torch.equal(kept.nan_to_num(), share.nan_to_num())
+    cell_shares_of({**maps, "share_checker": share}).check(camera, projector, "near.npz")
+    with pytest.raises(InputError, match="near.npz: cell shares' checker"):
+        cell_shares_of({**maps, "share_checker": share[:5]}).check(camera, projector, "near.npz")
+    with pytest.raises(InputError, match="checker must lie in"):
+        cell_shares_of({**maps, "share_checker": share + 2}).check(camera, projector, "near.npz")
 
 def _steep(x, y):
     """An affine map at 3.5 cells per camera pixel: a pixel's light spans three to four cells."""

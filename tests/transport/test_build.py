@@ -15,7 +15,7 @@ from torchproj.transport import (StateCalibration, Target, TransportOperator, bu
 from torchproj.calib.maps import depth_edges
 from torchproj.transport.build import target_on_camera
 
-from torchproj.calib import CellShares, EdgePixels, cell_shares, decode_gray
+from torchproj.calib import CellShares, EdgePixels, cell_shares, checker_patterns, checker_shares, decode_gray
 
 from ..helpers import (LARGE, SIZES, area_captures, curved_map, dense_reference, small_config, synthetic_calibration,
                        targets)
@@ -347,6 +347,40 @@ def test_rows_reach_the_light_a_limbs_slope_falls_short_of():
     assert reached[0] < short[0] / 3, (reached, short)
     assert reached[1] <= short[1] * 1.01, (reached, short)
 
+
+
+def _steep_face(x, y):
+    """A face steep to the projector, as ``box_positions``' boxes: a camera pixel spans 1.5-1.8 cells."""
+    return torch.stack([1.7 * x + 0.13 * y + 3.2, 1.3 * y + 0.1 * x + 2.4], -1)
+
+
+def test_a_checkerboard_share_tells_the_rows_how_the_axes_splits_combine():
+    """Through a camera that samples each pixel at 3 x 3 points, a tilted cell edge between the points
+    splits a pixel's light over a block of cells in a way the per-axis Gray-code shares cannot
+    describe. Given the share its checkerboard pair measures as a fifth condition, the fitted rows
+    predict a capture of random light at least twice as close (2.8 times here, 0.0074 against 0.021
+    rms), and still keep each pixel's light."""
+    camera, projector = (28, 38), (96, 64)
+    patterns, white, black, points = area_captures(_steep_face, camera, projector, samples=3)
+    dec = decode_gray(patterns, white, black, projector)
+    shares = cell_shares(patterns, white, black, dec, projector)
+    shown = checker_patterns(*projector)[:, 0]
+    pair = (0.05 + 0.8 * shown[:, points[..., 1], points[..., 0]].mean(-1))[:, None].float()
+    checked = dataclasses.replace(shares, checker=checker_shares(pair, white, black, shares.cell))
+    ys, xs = torch.meshgrid(torch.arange(float(camera[0])), torch.arange(float(camera[1])), indexing="ij")
+    cals = {name: StateCalibration([_steep_face(xs, ys).float()], [torch.full(camera, 0.8)], [projector], shares=[sh])
+            for name, sh in (("axes", shares), ("checker", checked))}
+    light = torch.rand(1, 64, 96, generator=torch.Generator().manual_seed(7))
+    truth = 0.8 * light[0][points[..., 1], points[..., 0]].mean(-1)
+    inner = torch.zeros(camera, dtype=torch.bool)
+    inner[2:-2, 2:-2] = True
+    inner &= dec.valid
+    black_level = torch.zeros(1, *camera)
+    miss = {name: float((c.predict([light], black_level, "area")[0] - truth)[inner].pow(2).mean().sqrt())
+            for name, c in cals.items()}
+    assert miss["checker"] < miss["axes"] / 2, miss
+    ones = cals["checker"].predict([torch.ones(1, 64, 96)], black_level, "area")[0]
+    torch.testing.assert_close(ones[inner], torch.full_like(ones[inner], 0.8))
 
 def test_cell_shares_must_fit_the_state():
     """One set per projector, of the camera's shape, naming cells of that projector: else an error

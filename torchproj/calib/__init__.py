@@ -16,7 +16,7 @@ The calibration types, and how they relate:
 from .blur import measure_blur
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
-from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_means, cell_shares, decode_gray, graycode_bits, graycode_patterns,
+from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_means, cell_shares, checker_patterns, checker_shares, decode_gray, graycode_bits, graycode_patterns,
                        refine_subpixel, sequence_bits)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
@@ -46,6 +46,8 @@ __all__ = [
     "calibrate_projector",
     "cell_means",
     "cell_shares",
+    "checker_patterns",
+    "checker_shares",
     "check_plane",
     "decode_folder",
     "decode_gray",

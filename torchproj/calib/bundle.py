@@ -289,6 +289,8 @@ def _maps(cal: ProjectorCalibration) -> dict:
         maps.update({f"edge_{k}": getattr(cal.edges, k) for k in EDGE_FIELDS})
     if cal.shares is not None:
         maps.update({f"share_{k}": getattr(cal.shares, k) for k in SHARE_FIELDS})
+        if cal.shares.checker is not None:
+            maps["share_checker"] = cal.shares.checker
     if cal.dim_xy is not None:
         maps["dim_xy"] = cal.dim_xy
     return maps
@@ -313,7 +315,7 @@ def cell_shares_of(maps: dict) -> CellShares | None:
     older bundle)."""
     if "share_cell" not in maps:
         return None
-    return CellShares(*(maps[f"share_{k}"] for k in SHARE_FIELDS))
+    return CellShares(*(maps[f"share_{k}"] for k in SHARE_FIELDS), checker=maps.get("share_checker"))
 
 
 def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:

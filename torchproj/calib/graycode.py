@@ -385,11 +385,18 @@ class CellShares:
             from beyond cells ``n - 1`` and ``n + 1`` (0 up to the captures' noise for a footprint
             within a cell of ``n``; a tenth and more under defocus, over :data:`WIDE_SHARE`); NaN
             where the pixel has no cell.
+        checker: optional :math:`(H, W)` float32, the share of the pixel's light on the cells whose
+            parity ``(x + y) mod 2`` differs from cell ``n``'s, measured by a checkerboard pair
+            (:func:`checker_shares`); NaN where the pixel has no cell. Gray code, constant along one
+            projector axis at a time, measures how a pixel's light splits along each axis but not
+            how the two splits combine; this one pair tells a footprint leaning along one diagonal
+            of a block of cells from one leaning along the other. None: not measured.
     """
 
     cell: torch.Tensor
     across: torch.Tensor
     outside: torch.Tensor
+    checker: torch.Tensor | None = None
 
     def means(self) -> torch.Tensor:
         """:math:`(H, W, 2)` projector ``(x, y)``: the mean cell centre of each pixel's light,
@@ -416,7 +423,11 @@ class CellShares:
         size = torch.tensor(projector_size, device=self.cell.device)
         check(bool(((self.cell < size) & (self.cell >= -1)).all() and ((self.cell >= 0) | ~decoded[..., None]).all()),
               f"{where}: cell shares name cells outside the {projector_size[0]}x{projector_size[1]} projector")
-        for name, share in (("across", self.across), ("outside", self.outside)):
+        if self.checker is not None:
+            check_shape(self.checker, f"{where}: cell shares' checker", list(camera))
+        for name, share in (("across", self.across), ("outside", self.outside), ("checker", self.checker)):
+            if share is None:
+                continue
             share = share[torch.isfinite(share)]
             check(bool(((share >= 0) & (share <= 1)).all()), f"{where}: cell shares' {name} must lie in [0, 1]")
 
@@ -482,6 +493,43 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
             across[..., axis, side] = torch.where(valid & (pair >= 0), seen, float("nan"))
         outside[..., axis] = torch.where(valid, far, float("nan"))
     return CellShares(cells, across, outside)
+
+
+def checker_patterns(width: int, height: int) -> torch.Tensor:
+    """A checkerboard of single cells and its inverse, :math:`(2, 1, H, W)` in [0, 1]: cell ``(x, y)``
+    lit in the first where ``x + y`` is even. Shown after the Gray code, its pair measures the share
+    of each pixel's light that :attr:`CellShares.checker` holds (:func:`checker_shares`)."""
+    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    even = ((xs + ys) % 2 == 0).to(torch.float32)
+    return torch.stack([even, 1 - even])[:, None]
+
+
+def checker_shares(pair: torch.Tensor, white: torch.Tensor, black: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """The share of each pixel's light on the cells whose parity differs from its cell's, from the
+    captures of :func:`checker_patterns` (:attr:`CellShares.checker`).
+
+    As for a Gray-code pair (:class:`CellShares`), the pair's difference in units of white minus
+    black is ``+-1`` where all the light came from cells of one parity and ``1 - 2 f`` where a
+    share ``f`` came from the other.
+
+    Args:
+        pair: :math:`(2, C, H, W)` captures of the checkerboard and its inverse.
+        white, black: :math:`(C, H, W)` the all-white and all-black captures.
+        cells: :math:`(H, W, 2)` integer cells ``(x, y)`` the shares are about, -1 where none
+            (:attr:`CellShares.cell`).
+
+    Returns:
+        :math:`(H, W)` float32 in [0, 1], NaN where the pixel has no cell.
+    """
+    check_shape(pair, "checker pair", [2, *white.shape])
+    check_shape(cells, "cells", [*white.shape[-2:], 2])
+    check(not cells.is_floating_point(), f"cells must be integer cell indices, got {cells.dtype}")
+    span = (_grey(white[None])[0] - _grey(black[None])[0]).float().clamp_min(_EPS)
+    shown = _grey(pair).float()
+    valid = (cells >= 0).all(-1)
+    mine = 1 - 2 * ((cells[..., 0].long() + cells[..., 1].long()) % 2).to(torch.float32)  # +1: lit in the first
+    share = ((1 - (shown[0] - shown[1]) / span * mine) / 2).clamp(0, 1)
+    return torch.where(valid, share, float("nan"))
 
 
 def cell_means(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, decoding: GrayDecoding,
