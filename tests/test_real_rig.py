@@ -278,7 +278,8 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
     shares and dimly lit pixels; the bundle gives the transport model the same ones as calibrating the
     captures directly.
     A bundle without them (older) models none; one with a pixel outside the camera, a share outside
-    [0, 1] or only some of the share arrays is refused, naming the file."""
+    [0, 1], only some of the share arrays or a checkerboard share that does not fit is refused, naming
+    the file; a checkerboard share that fits comes back."""
     from torchproj.calib import calibrate_projector
     from torchproj.transport import StateCalibration
 
@@ -310,7 +311,16 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
     assert old.edges is None and old.shares is None
     for broken, message in (({"edge_pixel": arrays["edge_pixel"] + 320 * 240}, "an edge pixel lies outside the 320x240"),
                             ({"share_across": arrays["share_across"] + 1.5}, "cell shares' across must lie in"),
-                            ({"share_outside": None}, "holds .* but not every share_\\* array")):
+                            ({"share_outside": None}, "holds .* but not every share_\\* array"),
+                            ({"share_checker": np.zeros((5, 5), np.float32)}, "'share_checker' has shape"),
+                            ({"share_checker": np.full((240, 320), 2.0, np.float32)}, "checker must lie in")):
         np.savez_compressed(path, **{k: v for k, v in {**arrays, **broken}.items() if v is not None})
         with pytest.raises(CaptureError, match=f"{names[0]}.npz: .*{message}"):
             load_bundle(calib)
+    # A checkerboard pair's share, where a bench measured one, comes back beside the others.
+    checker = np.where((arrays["share_cell"] >= 0).all(-1), 0.25, np.nan).astype(np.float32)
+    np.savez_compressed(path, **{**arrays, "share_checker": checker})
+    bundle = load_bundle(calib)
+    which = [name for name, _, _ in bundle.projectors].index(names[0])
+    kept = StateCalibration.from_bundle(bundle)["together"].shares[which].checker
+    torch.testing.assert_close(kept, torch.from_numpy(checker), equal_nan=True)

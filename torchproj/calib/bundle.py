@@ -28,7 +28,8 @@ channels, projectors and sizes, states, response curves, decoded fractions, file
 colour camera also ``colour_contrast``, white minus black per channel ``(C, H, W)``, whose mean is
 ``contrast``; bundles without it give every channel the grey weight; from a full sequence also
 ``edge_pixel``, ``edge_xy``, ``edge_slope``, ``edge_share``, the :class:`~torchproj.calib.EdgePixels`,
-and ``share_cell``, ``share_across``, ``share_outside``, the :class:`~torchproj.calib.CellShares`, and ``dim_xy``,
+and ``share_cell``, ``share_across``, ``share_outside`` (and, where a checkerboard pair was measured,
+``share_checker``), the :class:`~torchproj.calib.CellShares`, and ``dim_xy``,
 the dimly lit pixels' coordinates (:attr:`~torchproj.calib.ProjectorCalibration.dim_xy`); bundles without them
 model no edge pixel, fit no row to measured shares and add no dim light to rows) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
@@ -401,7 +402,8 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
         for name, w, h in projectors:
             arrays = _read_npz(folder / meta["files"][state][name], {"prj_xy": (*camera, 2), "valid": camera,
                                                                      "contrast": camera},
-                               optional={"colour_contrast": (channels, *camera), "dim_xy": (*camera, 2)})
+                               optional={"colour_contrast": (channels, *camera), "dim_xy": (*camera, 2),
+                                         "share_checker": tuple(camera)})
             _check_parts(arrays, camera, (w, h), folder / meta["files"][state][name])
             for key in (k for k in ("prj_xy", "dim_xy") if k in arrays):
                 xy = arrays[key]
@@ -455,7 +457,7 @@ def _size(value, where: str) -> tuple[int, int]:
     return value[0], value[1]
 
 
-_MAY_BE_NAN = ("prj_xy", "dim_xy", "share_across", "share_outside")  # maps that mark unknown pixels with NaN
+_MAY_BE_NAN = ("prj_xy", "dim_xy", "share_across", "share_outside", "share_checker")  # maps that mark unknown pixels with NaN
 
 
 def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]],
