@@ -74,12 +74,12 @@ def _runs(scene, samples: list[int], checker: bool = False) -> dict:
     checkerboard's share, ``checker``), and the ceiling."""
     cal = calibrate_virtual(scene, progress=False)
     out = {"ceiling": _scores(run_virtual(scene, calibration=cal, progress=False, oracle="transport"))}
-    variants = [(n, cal) for n in samples]
+    variants = [(n, n, cal) for n in samples]
     if checker:
         checked = _with_checker(cal)
-        variants += [(f"{n}+checker", checked) for n in samples]
-    for key, c in variants:
-        build._AREA_SAMPLES = int(str(key).split("+")[0])
+        variants += [(f"{n}+checker", n, checked) for n in samples]
+    for key, n, c in variants:
+        build._AREA_SAMPLES = n
         try:
             run = run_virtual(scene, calibration=c, progress=False)
         finally:

@@ -43,8 +43,8 @@ import torch.nn.functional as F
 from ..core.checks import check, check_shape
 from .maps import depth_edges
 
-__all__ = ["CREASE_RATIO", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "graycode_patterns", "graycode_bits",
-           "sequence_bits", "decode_gray", "refine_subpixel"]
+__all__ = ["CREASE_RATIO", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "checker_patterns",
+           "checker_shares", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
 
@@ -211,6 +211,24 @@ def _grey_image(image: torch.Tensor) -> torch.Tensor:
     return _grey(image[None] if image.dim() <= 3 else image)[0]
 
 
+def _contrast(white: torch.Tensor, black: torch.Tensor) -> torch.Tensor:
+    """White minus black of each pixel, grey :math:`(H, W)`: the span a pair's difference is read in."""
+    return _grey_image(white).float() - _grey_image(black).float()
+
+
+def _pair_share(shown: torch.Tensor, span: torch.Tensor, mine: torch.Tensor) -> torch.Tensor:
+    """The share ``f`` of a pixel's light on the cells a pattern pair lights otherwise than the
+    pixel's cell, from the pair's captures :math:`(2, H, W)` (``mine``: +1 where the first pattern
+    lights that cell, -1 where the second does): the difference is ``+-(1 - 2 f)`` of ``span``."""
+    return ((1 - (shown[0] - shown[1]) / span * mine) / 2).clamp(0, 1)
+
+
+def _check_cells(cells: torch.Tensor, camera) -> None:
+    """Cells given per camera pixel: :math:`(H, W, 2)` integer indices."""
+    check_shape(cells, "cells", [*camera, 2])
+    check(not cells.is_floating_point(), f"cells must be integer cell indices, got {cells.dtype}")
+
+
 def check_full_sequence(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
                         projector_size: tuple[int, int], who: str, why: str = "") -> tuple[int, int, torch.Tensor]:
     """What the estimators that read the captures beyond the decoder check first (:func:`~torchproj.calib.measure_blur`,
@@ -228,7 +246,7 @@ def check_full_sequence(patterns: torch.Tensor, white: torch.Tensor, black: torc
           f"captures, got {patterns.shape[0] if stack else tuple(patterns.shape)}{why}")
     H, W = patterns.shape[-2:]
     check_shape(prj_xy, "prj_xy", [H, W, 2])
-    contrast = _grey_image(white).float() - _grey_image(black).float()
+    contrast = _contrast(white, black)
     check_shape(contrast, "white - black", [H, W])
     return nx, ny, contrast
 
@@ -460,8 +478,7 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
         valid = decoding.valid
         cells = torch.where(valid[..., None], torch.nan_to_num(decoding.prj_xy).round(), -1).to(torch.int32)
     else:
-        check_shape(cells, "cells", [*decoding.valid.shape, 2])
-        check(not cells.is_floating_point(), f"cells must be integer cell indices, got {cells.dtype}")
+        _check_cells(cells, decoding.valid.shape)
         valid = (cells >= 0).all(-1)
         size = torch.tensor(projector_size, device=cells.device)
         check(bool((cells[valid] < size).all()),
@@ -485,7 +502,7 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
         for i in range(bits):  # one pair at a time, as the decoder: the stack is tens of images
             shown = _grey(patterns[2 * (first + i):2 * (first + i) + 2]).float()
             mine = ((gray >> (bits - 1 - i)) & 1).to(torch.float32) * 2 - 1  # what pair i shows on cell n
-            share = ((1 - (shown[0] - shown[1]) / span * mine) / 2).clamp(0, 1)
+            share = _pair_share(shown, span, mine)
             for pair, seen in zip(edges, found):
                 torch.where(pair == i, share, seen, out=seen)
             far = torch.where((edges[0] == i) | (edges[1] == i), far, torch.maximum(far, share))
@@ -522,14 +539,12 @@ def checker_shares(pair: torch.Tensor, white: torch.Tensor, black: torch.Tensor,
         :math:`(H, W)` float32 in [0, 1], NaN where the pixel has no cell.
     """
     check_shape(pair, "checker pair", [2, *white.shape])
-    check_shape(cells, "cells", [*white.shape[-2:], 2])
-    check(not cells.is_floating_point(), f"cells must be integer cell indices, got {cells.dtype}")
-    span = (_grey(white[None])[0] - _grey(black[None])[0]).float().clamp_min(_EPS)
+    _check_cells(cells, white.shape[-2:])
+    span = _contrast(white, black).clamp_min(_EPS)
     shown = _grey(pair).float()
     valid = (cells >= 0).all(-1)
     mine = 1 - 2 * ((cells[..., 0].long() + cells[..., 1].long()) % 2).to(torch.float32)  # +1: lit in the first
-    share = ((1 - (shown[0] - shown[1]) / span * mine) / 2).clamp(0, 1)
-    return torch.where(valid, share, float("nan"))
+    return torch.where(valid, _pair_share(shown, span, mine), float("nan"))
 
 
 def cell_means(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, decoding: GrayDecoding,

@@ -478,7 +478,8 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     used, w = cells >= 0, size[0]
     row = torch.div(cells, w, rounding_mode="floor")
     conditions, wider = [], torch.zeros(cells.shape[0], dtype=torch.bool, device=cells.device)
-    for axis, coord in enumerate((cells - row * w, row)):
+    column = cells - row * w
+    for axis, coord in enumerate((column, row)):
         own = cell[:, axis]
         gray = own ^ (own >> 1)
         stripe = coord ^ (coord >> 1)
@@ -493,7 +494,6 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     if shares.checker is not None:
         # The checkerboard's condition couples the axes: cells of one parity lie on both sides of
         # every edge, so the conditions no longer nearly separate and the fit needs more sweeps.
-        column = cells - row * w
         parity = (cell[:, 0] + cell[:, 1]) % 2
         conditions.append((used & ((column + row) % 2 != parity[:, None]),
                            shares.checker.reshape(-1)[pixels].to(values.dtype)))
