@@ -265,6 +265,13 @@ def test_cell_shares_refuse_cells_off_the_projector_or_not_integer():
 
 
 
+
+@pytest.mark.parametrize("width", [0, -3, 2.5, float("nan"), True, "64"])
+def test_patterns_refuse_a_projector_size_that_is_not_a_whole_number_of_cells(width):
+    for make in (graycode_patterns, checker_patterns):
+        with pytest.raises(InputError, match="projector width must be a whole number of cells"):
+            make(width, 48)
+
 def _checker_captures(points, projector):
     """Noise-free captures of the checkerboard pair through the camera of :func:`area_captures`
     (``points``: each pixel's points' cells), at its contrast 0.8 over 0.05."""

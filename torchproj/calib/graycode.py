@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 import warnings
 from dataclasses import dataclass
 
@@ -49,8 +50,20 @@ __all__ = ["CREASE_RATIO", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_mea
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
 
 
+def _check_projector_size(width, height) -> None:
+    """A projector's ``width`` and ``height``: whole numbers of cells, at least one each."""
+    for name, value in (("width", width), ("height", height)):
+        try:
+            whole = operator.index(value)
+        except TypeError:
+            whole = None
+        check(whole is not None and whole >= 1 and not isinstance(value, bool),
+              f"projector {name} must be a whole number of cells, at least 1, got {value!r}")
+
+
 def graycode_bits(width: int, height: int) -> tuple[int, int]:
     """Number of column and row bits OpenCV uses for a projector of this size."""
+    _check_projector_size(width, height)
     return math.ceil(math.log2(width)), math.ceil(math.log2(height))
 
 
@@ -516,6 +529,7 @@ def checker_patterns(width: int, height: int) -> torch.Tensor:
     """A checkerboard of single cells and its inverse, :math:`(2, 1, H, W)` in [0, 1]: cell ``(x, y)``
     lit in the first where ``x + y`` is even. Shown after the Gray code, its pair measures the share
     of each pixel's light that :attr:`CellShares.checker` holds (:func:`checker_shares`)."""
+    _check_projector_size(width, height)
     ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
     even = ((xs + ys) % 2 == 0).to(torch.float32)
     return torch.stack([even, 1 - even])[:, None]
