@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import calibrate_folders, graycode_patterns, load_bundle, read_graycode_folder, write_graycode_folder
+from torchproj.calib import (calibrate_folders, checker_patterns, graycode_patterns, load_bundle, read_graycode_folder,
+                             write_graycode_folder)
+from torchproj.calib.capture import CHECKER_NAMES, RAMP_NAMES
 from torchproj.pipeline import simulate_calibration
 from torchproj.cli import main
 from torchproj.core import CaptureError, read_image, write_image
@@ -41,15 +43,30 @@ def capture_root(scene, tmp_path_factory):
     return root
 
 
-def test_sequence_is_what_the_virtual_rig_shows(tmp_path):
+def test_sequence_is_what_the_virtual_rig_shows(scene, tmp_path):
     assert main(["sequence", "--projector", "256x192", "--out", str(tmp_path / "seq")]) == 0
     manifest = json.loads((tmp_path / "seq" / "sequence.json").read_text())
     files = [e["file"] for e in manifest["images"]]
     gray = graycode_patterns(256, 192)
-    assert len(files) == len(gray) + 2 and files[-2:] == ["ramp.png", "ramp_mirrored.png"]
+    assert len(files) == len(gray) + 4 and files[len(gray):] == [*RAMP_NAMES, *CHECKER_NAMES]
     assert [e["kind"] for e in manifest["images"]][len(gray) - 2:len(gray)] == ["white", "black"]
-    for i in (0, 5, len(gray) - 1):
-        assert torch.equal(read_image(tmp_path / "seq" / files[i]), gray[i])
+    assert [(e["kind"], e["inverse"]) for e in manifest["images"][-2:]] == [("checker", False), ("checker", True)]
+    shown = torch.cat([gray, checker_patterns(256, 192)])
+    for i, k in ((0, 0), (5, 5), (len(gray) - 1, len(gray) - 1), (-2, len(gray)), (-1, len(gray) + 1)):
+        assert torch.equal(read_image(tmp_path / "seq" / files[i]), shown[k])
+    # What the virtual rig shows: the same images, the checkerboard pair after the ramps.
+    p = scene.projectors[0]
+    cap = simulate_calibration(VirtualRig(scene), scene.states[0].name, 0, noise=False)
+    assert cap.patterns.shape[0] == len(graycode_patterns(p.width, p.height)) - 2
+    assert cap.checker.shape == (2, *cap.white.shape)
+
+
+def test_a_shortened_sequence_shows_no_checkerboard(scene, tmp_path):
+    # Its map is one homography and its rows no measured shares: the pair would be two wasted captures.
+    assert main(["sequence", "--projector", "256x192", "--bits", "3", "--out", str(tmp_path / "seq")]) == 0
+    kinds = [e["kind"] for e in json.loads((tmp_path / "seq" / "sequence.json").read_text())["images"]]
+    assert "checker" not in kinds and not (tmp_path / "seq" / CHECKER_NAMES[0]).exists()
+    assert simulate_calibration(VirtualRig(scene), scene.states[0].name, 0, bits=3, noise=False).checker is None
 
 
 @pytest.mark.slow

@@ -75,7 +75,8 @@ def existing_file(text: str) -> Path:
 
 # ------------------------------------------------------------------------ shared options
 BITS_HELP = ("show only the first K Gray-code pattern pairs per axis (at least 2): 4K + 4 images per projector "
-              "and state with white, black and the two ramps, instead of 44 for a 1024x768 projector")
+              "and state with white, black and the two ramps, instead of 46 for a 1024x768 projector (with the "
+              "checkerboard pair)")
 
 
 def command(sub, name: str, func, help: str, out: str | None = None, out_help: str = "output folder"):

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torchproj.calib import GraycodeCapture, graycode_patterns, read_graycode_folder, write_graycode_folder
+from torchproj.calib import GraycodeCapture, checker_patterns, graycode_patterns, read_graycode_folder, write_graycode_folder
 from torchproj.core import CaptureError, write_image
 
 
@@ -25,6 +25,23 @@ def test_reads_a_complete_folder(folder):
     for got, expected in ((cap.patterns, want.patterns), (cap.white, want.white), (cap.black, want.black)):
         assert float((got - expected).abs().max()) <= 0.5 / 255 + 1e-6
     assert not torch.equal(cap.patterns[0], cap.patterns[2])  # not one image repeated
+
+
+def test_reads_the_checkerboard_pair_beside_the_sequence(folder):
+    pair = checker_patterns(64, 48) * 0.7 + 0.1
+    write_graycode_folder(folder, GraycodeCapture(**{**written().__dict__, "checker": pair}))
+    cap = read_graycode_folder(folder, (64, 48))
+    assert float((cap.checker - pair).abs().max()) <= 0.5 / 255 + 1e-6
+    # Half a pair is refused naming the missing file; a pair of another size too.
+    (folder / "checker_inverse.png").unlink()
+    with pytest.raises(CaptureError, match="checker_inverse.png: missing, while checker.png is there"):
+        read_graycode_folder(folder, (64, 48))
+    write_image(folder / "checker_inverse.png", torch.zeros(1, 40, 64))
+    with pytest.raises(CaptureError, match="checker_inverse.png: size .* differs from graycode_00.png"):
+        read_graycode_folder(folder, (64, 48))
+    (folder / "checker.png").unlink()
+    (folder / "checker_inverse.png").unlink()
+    assert read_graycode_folder(folder, (64, 48)).checker is None
 
 
 def test_missing_image(folder):

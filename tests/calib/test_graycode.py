@@ -312,6 +312,22 @@ def test_checker_shares_are_each_pixels_light_on_the_other_parity():
     with pytest.raises(InputError, match="checker must lie in"):
         cell_shares_of({**maps, "share_checker": share + 2}).check(camera, projector, "near.npz")
 
+def test_calibration_measures_the_checker_share_where_the_capture_holds_the_pair():
+    """calibrate_projector reads the pair about each pixel's share cell, fully and partly decoded
+    pixels alike, to the points' truth; without the pair, the shares carry none."""
+    camera, projector = (30, 36), (80, 64)
+    patterns, white, black, points = area_captures(_curved, camera, projector)
+    capture = GraycodeCapture(patterns, white, black, checker=_checker_captures(points, projector))
+    shares = calibrate_projector(capture, projector).shares
+    cells = shares.cell
+    known = (cells >= 0).all(-1)
+    parity = (points.sum(-1) % 2) != ((cells[..., 0] + cells[..., 1]).long() % 2)[..., None]
+    truth = parity.double().mean(-1)
+    assert known.float().mean() > 0.5 and shares.checker[~known].isnan().all()
+    torch.testing.assert_close(shares.checker[known].double(), truth[known], atol=1e-5, rtol=0)
+    assert calibrate_projector(GraycodeCapture(patterns, white, black), projector).shares.checker is None
+
+
 def _steep(x, y):
     """An affine map at 3.5 cells per camera pixel: a pixel's light spans three to four cells."""
     return torch.stack([3.5 * x + 0.3 * y + 1.2, 3.5 * y - 0.2 * x + 6.3], -1)

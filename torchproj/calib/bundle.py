@@ -3,9 +3,12 @@
 Sequence (``write_sequence``): per projector, the images to show in order, named as their captures
 must be named: ``graycode_00.png`` ... (Gray-code pattern/inverse pairs, columns first, most
 significant bit first), then white and black (the last two ``graycode_`` indices), then ``ramp.png``
-and ``ramp_mirrored.png`` (the photometric ramp), with ``sequence.json`` saying what each image is.
-A shortened sequence (``bits``) shows only the first pattern pairs per axis; ``sequence.json``
-records them (``"bits": [kx, ky]``), and calibration reads such a capture through one homography
+and ``ramp_mirrored.png`` (the photometric ramp), then ``checker.png`` and ``checker_inverse.png``
+(a checkerboard of single cells and its inverse, :func:`~torchproj.calib.checker_patterns`: how each
+pixel's light splits between diagonal neighbours, which the ``area`` rows fit), with
+``sequence.json`` saying what each image is. A shortened sequence (``bits``) shows only the first
+pattern pairs per axis and no checkerboard (its map is one homography, its rows no measured shares);
+``sequence.json`` records them (``"bits": [kx, ky]``), and calibration reads such a capture through one homography
 per state and projector (:mod:`torchproj.calib.homography`), for planar scenes.
 
 Capture root (what ``calibrate_folders`` reads), one folder per scene state and projector, each
@@ -13,7 +16,8 @@ holding the camera's image of every sequence image under the same file name::
 
     CAPTURE_ROOT/
       near/                    a scene state
-        upper/                 a projector: graycode_00.png ... graycode_41.png, ramp.png, ramp_mirrored.png
+        upper/                 a projector: graycode_00.png ... graycode_41.png, ramp.png, ramp_mirrored.png,
+                               checker.png, checker_inverse.png
         lower/                 (sequence.json here gives the projector's size)
       far/
         upper/ ...
@@ -55,8 +59,8 @@ from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
 from .edges import EdgePixels
-from .capture import DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
-from .graycode import CellShares, graycode_bits, graycode_patterns, sequence_bits
+from .capture import CHECKER_NAMES, DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
+from .graycode import CellShares, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import ProjectorCalibration, calibrate_projector, warn_if_few_decoded
 from .response import ResponseCurve, ramp_pattern
 
@@ -93,6 +97,10 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
     for name, mirrored in zip(RAMP_NAMES, (False, True)):
         write_image(folder / name, ramp_pattern(width, height, ramp_steps, mirrored=mirrored)[0])
         entries.append({"file": name, "kind": "ramp_mirrored" if mirrored else "ramp", "steps": ramp_steps})
+    if (nx, ny) == graycode_bits(width, height):
+        for name, img in zip(CHECKER_NAMES, checker_patterns(width, height)):
+            write_image(folder / name, img)
+            entries.append({"file": name, "kind": "checker", "inverse": name != CHECKER_NAMES[0]})
     manifest = {"version": BUNDLE_VERSION, "projector": [width, height], "order": "show and capture in this order; "
                 "save each capture under the same file name", "images": entries}
     if (nx, ny) != graycode_bits(width, height):

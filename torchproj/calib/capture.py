@@ -3,7 +3,9 @@
 Layout (that of ``shared/data/procam_chessboard/capture_0``): the Gray-code captures in pattern
 order, then the all-white capture, then the all-black one, named by a template that defaults to
 ``graycode_{:02d}.png`` (``graycode_00.png`` ... ``graycode_41.png`` for a 1024x768 projector).
-Optional photometric captures sit beside them as ``ramp.png`` and ``ramp_mirrored.png``.
+Optional photometric captures sit beside them as ``ramp.png`` and ``ramp_mirrored.png``, and the
+optional checkerboard pair (:func:`~torchproj.calib.checker_patterns`) as ``checker.png`` and
+``checker_inverse.png``.
 """
 
 from __future__ import annotations
@@ -20,10 +22,11 @@ from ..core.imageio import read_image, write_image
 from .graycode import sequence_bits
 
 __all__ = ["GraycodeCapture", "read_graycode_folder", "write_graycode_folder", "DEFAULT_NAMES",
-           "RAMP_NAMES"]
+           "RAMP_NAMES", "CHECKER_NAMES"]
 
 DEFAULT_NAMES = "graycode_{:02d}.png"
 RAMP_NAMES = ("ramp.png", "ramp_mirrored.png")
+CHECKER_NAMES = ("checker.png", "checker_inverse.png")
 _DARK = 8 / 255  # a white capture whose brightest pixel is below this saw no projector light
 
 
@@ -35,12 +38,15 @@ class GraycodeCapture:
         patterns: :math:`(N, C, H, W)` Gray-code captures in pattern order.
         white, black: :math:`(C, H, W)`.
         ramp: :math:`(2, C, H, W)` ramp and mirrored ramp captures, or None if absent.
+        checker: :math:`(2, C, H, W)` captures of the checkerboard and its inverse
+            (:func:`~torchproj.calib.checker_patterns`), or None if absent.
     """
 
     patterns: torch.Tensor
     white: torch.Tensor
     black: torch.Tensor
     ramp: torch.Tensor | None = None
+    checker: torch.Tensor | None = None
 
 
 def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, int],
@@ -92,10 +98,27 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
     ramp = None
     ramp_paths = [folder / n for n in RAMP_NAMES]
     if all(p.is_file() for p in ramp_paths):
-        ramp = torch.stack([read_image(p) for p in ramp_paths])
-        if ramp.shape[1:] != white.shape:
-            raise CaptureError(f"{ramp_paths[0]}: size differs from the Gray-code captures")
-    return GraycodeCapture(patterns=stack[:-2], white=white, black=black, ramp=ramp)
+        ramp = _read_extra(ramp_paths, white.shape, paths[0].name)
+    checker = None
+    checker_paths = [folder / n for n in CHECKER_NAMES]
+    present = [p.is_file() for p in checker_paths]
+    if any(present) and not all(present):
+        have, lack = (checker_paths[0], checker_paths[1]) if present[0] else (checker_paths[1], checker_paths[0])
+        raise CaptureError(f"{lack}: missing, while {have.name} is there: the checkerboard is read as a pair; capture "
+                           "the other one, or move both out of the folder to calibrate without them")
+    if all(present):
+        checker = _read_extra(checker_paths, white.shape, paths[0].name)
+    return GraycodeCapture(patterns=stack[:-2], white=white, black=black, ramp=ramp, checker=checker)
+
+
+def _read_extra(paths: list[Path], shape, first: str) -> torch.Tensor:
+    """Captures beside the Gray code (the ramps, the checkerboard pair), of the Gray code's size."""
+    images = [read_image(p) for p in paths]
+    for p, img in zip(paths, images):
+        if img.shape != shape:
+            raise CaptureError(f"{p}: size {tuple(img.shape)} (C, H, W) differs from {first}'s {tuple(shape)}; all "
+                               "captures must come from one camera setting")
+    return torch.stack(images)
 
 
 def _file_names(names: str, count: int) -> list[str]:
@@ -126,6 +149,7 @@ def write_graycode_folder(folder: str | os.PathLike, capture: GraycodeCapture, b
     images = list(capture.patterns) + [capture.white, capture.black]
     for i, img in enumerate(images):
         write_image(folder / names.format(i), img, bits)
-    if capture.ramp is not None:
-        for name, img in zip(RAMP_NAMES, capture.ramp):
-            write_image(folder / name, img, bits)
+    for names_, images_ in ((RAMP_NAMES, capture.ramp), (CHECKER_NAMES, capture.checker)):
+        if images_ is not None:
+            for name, img in zip(names_, images_):
+                write_image(folder / name, img, bits)

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from ..core.checks import check
 from .capture import GraycodeCapture
-from .graycode import CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_shares, decode_gray, graycode_bits, refine_subpixel, sequence_bits
+from .graycode import CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_shares, checker_shares, decode_gray, graycode_bits, refine_subpixel, sequence_bits
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
@@ -66,8 +66,9 @@ class ProjectorCalibration:
             map is one plane).
         shares: how each decoded pixel's light is shared across the edges of its cell
             (:func:`~torchproj.calib.cell_shares`): the decoded cell of a fully decoded pixel, the
-            nearest cell of its fitted map for a partly decoded one; from a full sequence; None for a
-            shortened one.
+            nearest cell of its fitted map for a partly decoded one, with the checkerboard pair's
+            share (:attr:`~torchproj.calib.CellShares.checker`) where the capture holds one; from a
+            full sequence; None for a shortened one.
         dim_xy: :math:`(H, W, 2)` projector coordinates of the pixels the projector lights too
             dimly to count as lit (white minus black between the dim and the shadow threshold,
             :data:`DIM_THRESHOLD`) whose code still reads, refined and filled as ``prj_xy``; NaN
@@ -149,6 +150,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         else:
             mapped = seen.coarse_xy.clone()
         shares, sharp = _partial_shares(capture, seen, shares, mapped, projector_size)
+        if capture.checker is not None:
+            shares = replace(shares, checker=checker_shares(capture.checker, capture.white, capture.black, shares.cell))
         if subpixel and bool(sharp.any()):
             # Their means place them between cells where the open cells' centre leaves them half a
             # block off; a second fit over them takes box_positions' faces from 0.020 to 0.016 cells

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..calib import (DIM_THRESHOLD, GraycodeCapture, ResponseCurve, calibrate_projector, graycode_patterns, ramp_pattern, sequence_bits,
-                     warn_if_few_decoded)
+from ..calib import (DIM_THRESHOLD, GraycodeCapture, ResponseCurve, calibrate_projector, checker_patterns, graycode_bits,
+                     graycode_patterns, ramp_pattern, sequence_bits, warn_if_few_decoded)
 from ..core.checks import check
 from ..core.errors import InputError
 from ..scene.config import Scene
@@ -31,15 +31,21 @@ def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp
     """Capture the calibration sequence of one projector in one state on the virtual rig.
 
     The projector shows its Gray code (the first ``bits`` pairs per axis of it, if given), white,
-    black and the ramp and mirrored ramp; the other projectors stay on showing black, as on a real
-    bench.
+    black, the ramp and mirrored ramp and, after a full Gray code, the checkerboard pair
+    (:func:`~torchproj.calib.checker_patterns`): what ``torchproj sequence`` writes. The other
+    projectors stay on showing black, as on a real bench.
     """
     index = projector if isinstance(projector, int) else [p.name for p in rig.scene.projectors].index(projector)
     proj = rig.scene.projectors[index]
-    shown = torch.cat([graycode_patterns(proj.width, proj.height, bits), ramp_pattern(proj.width, proj.height, ramp_steps),
-                       ramp_pattern(proj.width, proj.height, ramp_steps, mirrored=True)])
-    images = rig.capture(state, {index: shown}, noise=noise)
-    return GraycodeCapture(patterns=images[:-4], white=images[-4], black=images[-3], ramp=images[-2:])
+    extra = [ramp_pattern(proj.width, proj.height, ramp_steps), ramp_pattern(proj.width, proj.height, ramp_steps, mirrored=True)]
+    full = sequence_bits(proj.width, proj.height, bits) == graycode_bits(proj.width, proj.height)
+    if full:
+        extra.append(checker_patterns(proj.width, proj.height))
+    gray = graycode_patterns(proj.width, proj.height, bits)
+    images = rig.capture(state, {index: torch.cat([gray, *extra])}, noise=noise)
+    n = gray.shape[0]
+    return GraycodeCapture(patterns=images[:n - 2], white=images[n - 2], black=images[n - 1], ramp=images[n:n + 2],
+                           checker=images[n + 2:n + 4] if full else None)
 
 
 @dataclass
