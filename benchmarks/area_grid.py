@@ -11,14 +11,19 @@ map is right, the model's samples fall on the camera's own and its row is the ex
 judge's quantisation; ``box_positions`` ships with a 4 x 4 camera. Its boxes' faces are steep to
 the projectors (a camera pixel spans 1.5-1.8 cells), so a tilted cell edge splits a few point
 samples between cells in a way that no area can, and the captures' Gray code, constant along one
-projector axis at a time, measures only each axis' split, not that joint one.
+projector axis at a time, measures only each axis' split, not that joint one: the checkerboard
+pair the sequence shows after it (:func:`~torchproj.calib.checker_patterns`) measures how the two
+combine (:attr:`CellShares.checker <torchproj.calib.CellShares>`, the share of a pixel's light on
+cells of the other parity ``(x + y) mod 2``).
 
 1. ``box_positions`` with its camera's supersampling set to each of ``--cameras`` (one calibration
-   each): the default run with the area model sampled at each of ``--samples``, and the ceiling.
-2. With ``--checker``: the same runs with each pixel's checkerboard share (:attr:`CellShares.checker
-   <torchproj.calib.CellShares>`, the share of its light on cells of the other parity ``(x + y) mod
-   2``) taken from the exact light, as a noise-free capture of :func:`~torchproj.calib.checker_patterns`
-   would measure it: what that one pattern pair, which no sequence shows yet, would be worth.
+   each): the default run (the checkerboard share measured from its noisy captures) with the area
+   model sampled at each of ``--samples`` (and, as by default, at ``_STEEP_SAMPLES`` squared points
+   where a pixel spans more than ``_STEEP_EXTENT`` cells), and the ceiling.
+2. With ``--checker``: the same runs with no finer grid on steep rows (``everywhere``), without the
+   checkerboard share (the Gray code alone, as a capture folder without the pair, whose rows keep
+   one grid), and with it taken from the exact light (what a noise-free capture of the pair would
+   measure): what the finer grid and the pair are worth, and what the pair's noise costs.
 3. The cost on a full-size scene: ``paper_two_planes`` (3 x 3 camera) built at each sample count,
    its transport seconds and scores.
 
@@ -42,15 +47,19 @@ from torchproj.pipeline.ceiling import _gather_rows
 from torchproj.scene import load_scene
 from torchproj.transport import build
 
-_DEFAULT = build._AREA_SAMPLES
+_DEFAULT, _STEEP = build._AREA_SAMPLES, build._STEEP_SAMPLES
 
 
 def _scores(run) -> list[dict]:
     return [{"name": t.name, "psnr_db": round(t.psnr_db, 3), "ssim": round(t.ssim, 4)} for t in run.targets]
 
 
-def _with_checker(cal):
-    """``cal`` with each pixel's checkerboard share from the exact light (module text, point 2)."""
+def _with_checker(cal, exact: bool):
+    """``cal`` with each pixel's checkerboard share from the exact light, or with none (module text,
+    point 2)."""
+    if not exact:
+        return dataclasses.replace(cal, states={name: dataclasses.replace(state, shares=[
+            dataclasses.replace(part, checker=None) for part in state.shares]) for name, state in cal.states.items()})
     states = {}
     for name, state in cal.states.items():
         transport, shares = cal.rig.geometry(name).transport, []
@@ -70,20 +79,23 @@ def _with_checker(cal):
 
 
 def _runs(scene, samples: list[int], checker: bool = False) -> dict:
-    """One calibration of ``scene``; the default run at each area sample count (and with the
-    checkerboard's share, ``checker``), and the ceiling."""
+    """One calibration of ``scene``; the default run at each area sample count (and, ``checker``,
+    without the checkerboard's share and with the exact one), and the ceiling."""
     cal = calibrate_virtual(scene, progress=False)
     out = {"ceiling": _scores(run_virtual(scene, calibration=cal, progress=False, oracle="transport"))}
-    variants = [(n, n, cal) for n in samples]
+    # (key, the grid, the steep rows' grid, the calibration)
+    variants = [(str(n), n, max(n, _STEEP), cal) for n in samples]
     if checker:
-        checked = _with_checker(cal)
-        variants += [(f"{n}+checker", n, checked) for n in samples]
-    for key, n, c in variants:
-        build._AREA_SAMPLES = n
+        variants += [(f"{n}+flat", n, n, cal) for n in samples if n < _STEEP]
+        for how, exact in (("gray", False), ("exact", True)):
+            changed = _with_checker(cal, exact)
+            variants += [(f"{n}+{how}", n, max(n, _STEEP), changed) for n in samples]
+    for key, n, steep, c in variants:
+        build._AREA_SAMPLES, build._STEEP_SAMPLES = n, steep
         try:
             run = run_virtual(scene, calibration=c, progress=False)
         finally:
-            build._AREA_SAMPLES = _DEFAULT
+            build._AREA_SAMPLES, build._STEEP_SAMPLES = _DEFAULT, _STEEP
         out[key] = {"targets": _scores(run), "transport_s": round(run.report["timings_s"]["transport"], 2)}
     return out
 
@@ -93,8 +105,10 @@ def _with_camera(scene, supersampling: int):
 
 
 def _label(key) -> str:
-    n, _, checker = str(key).partition("+")
-    return f"area {n} x {n}" + (" + checker (exact light)" if checker else "")
+    n, _, how = str(key).partition("+")
+    steep = f" ({_STEEP} x {_STEEP} steep)" if int(n) < _STEEP and how in ("", "exact") else ""
+    return f"area {n} x {n}{steep}" + {"": "", "flat": " everywhere", "gray": ", Gray code only",
+                                        "exact": ", checker from the exact light"}[how]
 
 
 def markdown(grid: dict, cost: dict, keys: list, samples: list[int]) -> str:
@@ -117,7 +131,7 @@ def markdown(grid: dict, cost: dict, keys: list, samples: list[int]) -> str:
         lines.append(f"| {cam} x {cam} | " + " | ".join(cells) + " |")
     lines += ["", "## paper_two_planes (3 x 3 camera): the cost", "",
               "| area grid | transport (s) | per target PSNR / SSIM |", "|---|---|---|"]
-    for n in samples:
+    for n in map(str, samples):
         lines.append(f"| {n} x {n} | {cost[n]['transport_s']:.1f} | "
                      + "; ".join(f"{t['name']} {t['psnr_db']:.2f} / {t['ssim']:.3f}" for t in cost[n]["targets"]) + " |")
     lines.append("| ceiling | | " + "; ".join(f"{t['name']} {t['psnr_db']:.2f} / {t['ssim']:.3f}"
@@ -134,7 +148,7 @@ def chart(path: Path, grid: dict, keys: list) -> None:
         ax = fig.add_subplot(1, len(names), k + 1)
         for n in keys:
             gap = [grid[c]["ceiling"][k]["psnr_db"] - grid[c][n]["targets"][k]["psnr_db"] for c in cams]
-            ax.plot(cams, gap, "o-", label=_label(n) + (" (default)" if n == _DEFAULT else ""))
+            ax.plot(cams, gap, "o-", label=_label(n) + (" (default)" if n == str(_DEFAULT) else ""))
         ax.axhline(0.3, color="grey", ls="--", lw=1, label="issue 18's goal")
         ax.set(title=f"box_positions, {name}", xlabel="camera point samples per pixel (s x s)",
                ylabel="PSNR below the ceiling (dB)", xticks=cams)
@@ -147,7 +161,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/area_grid"))
     ap.add_argument("--cameras", type=int, nargs="+", default=[2, 3, 4, 5, 6])
     ap.add_argument("--samples", type=int, nargs="+", default=[4, 8, 12])
-    ap.add_argument("--checker", action="store_true", help="also run with the checkerboard's share from the exact light")
+    ap.add_argument("--checker", action="store_true",
+                    help="also run without the checkerboard's share and with it from the exact light")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     base = load_scene("box_positions")
@@ -157,7 +172,8 @@ def main() -> None:
         print("camera", cam, {k: v if k == "ceiling" else v["targets"] for k, v in grid[cam].items()}, flush=True)
     cost = _runs(load_scene("paper_two_planes"), args.samples)
     print("paper_two_planes", cost, flush=True)
-    keys = list(args.samples) + ([f"{n}+checker" for n in args.samples] if args.checker else [])
+    keys = [f"{n}{how}" for how in ["", *(["+flat", "+gray", "+exact"] if args.checker else [])] for n in args.samples
+            if how != "+flat" or n < _STEEP]
     write_results(args.out, {"machine": machine(), "default_samples": _DEFAULT, "box_positions": grid,
                              "paper_two_planes": cost}, markdown(grid, cost, keys, args.samples))
     chart(args.out / "area_grid.png", grid, keys)

@@ -5,7 +5,9 @@
 Each scene is calibrated once from simulated captures. For each model of a camera pixel's light
 (the nearest cell, as the paper; the four cells around its sub-pixel coordinate, ``bilinear``; the
 cells the pixel's own area covers through the map's local slope, ``area-map``; those cells with
-their weights fitted to the shares the Gray-code captures measured, ``area``, the default of ``run``;
+their weights fitted to the shares the Gray-code captures measured, ``area-gray`` (a capture folder
+without the checkerboard pair); fitted to those and the checkerboard pair's share, ``area``, the
+default of ``run``;
 with ``--share-limits``, ``area`` with other limits on the light measured past a row's cells, above
 which a row is not fitted; with ``--share-sweeps``, ``area`` fitted in more sweeps; with
 ``--share-reach``, ``area`` with other shares measured across an edge over which a row short of it
@@ -41,7 +43,7 @@ from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
 from torchproj.transport import build, build_channel_transports, build_transport, has_colour_weights
-from torchproj.transport.build import _SHARE_OUTSIDE, _SHARE_REACH, _SHARE_SWEEPS
+from torchproj.transport.build import _CHECKER_SWEEPS, _SHARE_OUTSIDE, _SHARE_REACH, _SHARE_SWEEPS
 
 BOUNDS = (0.0, 1.0)
 
@@ -73,17 +75,21 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
     limits = tuple(f"area, outside <= {limit:g}" for limit in share_limits)
     sweeps = tuple(f"area, {n} sweeps" for n in share_sweeps)
     reaches = tuple(f"area, reach {r:g}" for r in share_reach)
-    for model in ("nearest", "bilinear", "area-map", "area", *limits, *sweeps, *reaches, *colour,
+    for model in ("nearest", "bilinear", "area-map", "area-gray", "area", *limits, *sweeps, *reaches, *colour,
                   *(("area+blur",) if blur else ()), "ceiling"):
         extra, states = {}, cal.states
         # what run uses, but where a row below names another limit, number of sweeps or reach
-        build._SHARE_OUTSIDE, build._SHARE_SWEEPS, build._SHARE_REACH = _SHARE_OUTSIDE, _SHARE_SWEEPS, _SHARE_REACH
+        build._SHARE_OUTSIDE, build._SHARE_REACH = _SHARE_OUTSIDE, _SHARE_REACH
+        build._SHARE_SWEEPS, build._CHECKER_SWEEPS = _SHARE_SWEEPS, _CHECKER_SWEEPS
         if model == "area-map":
             states = {k: dataclasses.replace(s, shares=None) for k, s in states.items()}
+        if model == "area-gray":
+            states = {k: dataclasses.replace(s, shares=s.shares and [part and dataclasses.replace(part, checker=None)
+                                                                      for part in s.shares]) for k, s in states.items()}
         if model in limits:
             build._SHARE_OUTSIDE = share_limits[limits.index(model)]
         if model in sweeps:
-            build._SHARE_SWEEPS = share_sweeps[sweeps.index(model)]
+            build._SHARE_SWEEPS = build._CHECKER_SWEEPS = share_sweeps[sweeps.index(model)]
         if model in reaches:
             build._SHARE_REACH = share_reach[reaches.index(model)]
         if model == "area+blur":
@@ -162,7 +168,8 @@ def main() -> None:
                     help="also the area footprint with these limits on the light measured past a row's cells "
                          f"(default of run: {_SHARE_OUTSIDE})")
     ap.add_argument("--share-sweeps", nargs="+", type=int, default=[],
-                    help=f"also the area footprint fitted in these numbers of sweeps (default of run: {_SHARE_SWEEPS})")
+                    help=f"also the area footprint fitted in these numbers of sweeps (default of run: {_SHARE_SWEEPS}; "
+                         f"{_CHECKER_SWEEPS} where a checkerboard share joins the fit)")
     ap.add_argument("--share-reach", nargs="+", type=float, default=[],
                     help="also the area footprint whose rows gain the cells across an edge over these measured shares "
                          f"(inf: never; default of run: {_SHARE_REACH})")

@@ -415,9 +415,11 @@ def test_folder_round_trip_decodes_identically(tmp_path):
     cap = simulate_calibration(VirtualRig(scene), "far", 0)
     write_graycode_folder(tmp_path / "cap", cap, bits=16)
     names = sorted(p.name for p in (tmp_path / "cap").iterdir())
-    assert names[:2] == ["graycode_00.png", "graycode_01.png"] and "ramp.png" in names
+    assert names[:4] == ["checker.png", "checker_inverse.png", "graycode_00.png", "graycode_01.png"]
+    assert "ramp.png" in names
     back = read_graycode_folder(tmp_path / "cap", (128, 96))
-    assert torch.equal(back.patterns, cap.patterns) and torch.equal(back.ramp, cap.ramp)
+    for got, shot in ((back.patterns, cap.patterns), (back.ramp, cap.ramp), (back.checker, cap.checker)):
+        assert torch.equal(got, shot)
     a = decode_gray(cap.patterns, cap.white, cap.black, (128, 96))
     b = decode_gray(back.patterns, back.white, back.black, (128, 96))
     assert torch.equal(a.valid, b.valid) and torch.equal(a.prj_xy[a.valid], b.prj_xy[b.valid])

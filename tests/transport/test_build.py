@@ -10,6 +10,7 @@ import torch
 from torchproj.core import InputError
 from torchproj.pipeline import calibrate_virtual
 from torchproj.scene import parse_scene
+from torchproj.transport import build
 from torchproj.transport import (StateCalibration, Target, TransportOperator, build_channel_transports, build_transport,
                                  csr_from_coo, group_rows, has_colour_weights, map_slope)
 from torchproj.calib.maps import depth_edges
@@ -322,7 +323,6 @@ def test_rows_reach_the_light_a_limbs_slope_falls_short_of():
     is short of the pixel's footprint. Given the cells the captures saw light across, the rows of the
     last four columns predict a capture of random light at least 3 times closer (5.8 here; 3 x 3
     point samples per pixel, as the virtual rig's), and no worse elsewhere."""
-    from torchproj.transport import build
 
     camera, projector = (40, 48), (80, 64)
     cal, dec, points = _sampled_calibration(_limb_map, camera, projector)
@@ -354,14 +354,12 @@ def _steep_face(x, y):
     return torch.stack([1.7 * x + 0.13 * y + 3.2, 1.3 * y + 0.1 * x + 2.4], -1)
 
 
-def test_a_checkerboard_share_tells_the_rows_how_the_axes_splits_combine():
-    """Through a camera that samples each pixel at 3 x 3 points, a tilted cell edge between the points
-    splits a pixel's light over a block of cells in a way the per-axis Gray-code shares cannot
-    describe. Given the share its checkerboard pair measures as a fifth condition, the fitted rows
-    predict a capture of random light at least twice as close (2.8 times here, 0.0074 against 0.021
-    rms), and still keep each pixel's light."""
+def _steep_rows(samples):
+    """The steep face through a camera of ``samples`` x ``samples`` points per pixel: the calibration
+    on the exact map with the Gray-code shares and the one with the checkerboard's too, a random
+    light, its true capture and the inner decoded pixels."""
     camera, projector = (28, 38), (96, 64)
-    patterns, white, black, points = area_captures(_steep_face, camera, projector, samples=3)
+    patterns, white, black, points = area_captures(_steep_face, camera, projector, samples=samples)
     dec = decode_gray(patterns, white, black, projector)
     shares = cell_shares(patterns, white, black, dec, projector)
     shown = checker_patterns(*projector)[:, 0]
@@ -374,13 +372,54 @@ def test_a_checkerboard_share_tells_the_rows_how_the_axes_splits_combine():
     truth = 0.8 * light[0][points[..., 1], points[..., 0]].mean(-1)
     inner = torch.zeros(camera, dtype=torch.bool)
     inner[2:-2, 2:-2] = True
-    inner &= dec.valid
-    black_level = torch.zeros(1, *camera)
-    miss = {name: float((c.predict([light], black_level, "area")[0] - truth)[inner].pow(2).mean().sqrt())
-            for name, c in cals.items()}
+    return cals, light, truth, inner & dec.valid
+
+
+def _miss(cal, light, truth, inner) -> float:
+    """RMS of the model's prediction of ``light`` against the true capture, over ``inner`` pixels."""
+    return float((cal.predict([light], torch.zeros(1, *truth.shape), "area")[0] - truth)[inner].pow(2).mean().sqrt())
+
+
+def test_a_checkerboard_share_tells_the_rows_how_the_axes_splits_combine():
+    """Through a camera that samples each pixel at 3 x 3 points, a tilted cell edge between the points
+    splits a pixel's light over a block of cells in a way the per-axis Gray-code shares cannot
+    describe. Given the share its checkerboard pair measures as a fifth condition, the fitted rows
+    predict a capture of random light at least twice as close (2.8 times here, 0.0074 against 0.021
+    rms), and still keep each pixel's light."""
+    cals, light, truth, inner = _steep_rows(3)
+    miss = {name: _miss(c, light, truth, inner) for name, c in cals.items()}
     assert miss["checker"] < miss["axes"] / 2, miss
-    ones = cals["checker"].predict([torch.ones(1, 64, 96)], black_level, "area")[0]
+    ones = cals["checker"].predict([torch.ones(1, 64, 96)], torch.zeros(1, *truth.shape), "area")[0]
     torch.testing.assert_close(ones[inner], torch.full_like(ones[inner], 0.8))
+
+
+def test_steep_rows_are_sampled_finely_enough_for_any_camera():
+    """Where a camera pixel spans more than a cell (here 1.3-1.8), 4 x 4 points leave a cell to one or
+    two of them, and a camera sampling its pixel at 5 x 5 points shares the light otherwise: sampled
+    at 12 x 12 there (the default where the rows are fitted to a checkerboard share), the rows
+    predict a capture of random light 2.5 times closer than at 4 x 4 (0.0058 against 0.0146 rms),
+    and no worse through a 3 x 3-point camera. Rows fitted to the per-axis shares alone, and a face
+    under a cell per pixel, keep the 4 x 4 rows, cell for cell."""
+    for samples, gain in ((5, 2.0), (3, 1.0)):
+        cals, light, truth, inner = _steep_rows(samples)
+        fine, axes = (_miss(cals[k], light, truth, inner) for k in ("checker", "axes"))
+        steep = build._STEEP_SAMPLES
+        build._STEEP_SAMPLES = build._AREA_SAMPLES
+        try:
+            coarse, axes_coarse = (_miss(cals[k], light, truth, inner) for k in ("checker", "axes"))
+        finally:
+            build._STEEP_SAMPLES = steep
+        assert fine * gain <= coarse, (samples, fine, coarse)
+        assert axes == axes_coarse
+    u = torch.tensor([[10.3, 7.6], [20.1, 9.9]])
+    slope = torch.tensor([[[0.9, 0.05], [0.0, 0.8]], [[1.6, 0.1], [0.1, 1.3]]])  # spans 0.95 and 1.7 cells
+    cells, values = build._area_cells(u, slope, torch.ones(2, dtype=torch.bool), (40, 30), fine=True)
+    for row, n in ((0, build._AREA_SAMPLES), (1, build._STEEP_SAMPLES)):
+        alone = build._sampled_cells(u[row:row + 1], slope[row:row + 1], torch.ones(1, dtype=torch.bool), (40, 30), None, n)
+        got = {int(c): float(v) for c, v in zip(cells[row], values[row]) if c >= 0}
+        assert got == pytest.approx({int(c): float(v) for c, v in zip(alone[0][0], alone[1][0]) if c >= 0}), row
+    assert len(got) > 4  # the steep row spans a block of cells
+
 
 def test_cell_shares_must_fit_the_state():
     """One set per projector, of the camera's shape, naming cells of that projector: else an error

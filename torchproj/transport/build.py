@@ -58,6 +58,12 @@ DEFAULT_FOOTPRINT = "area"
 # pixels at the same 4 x 4 points, which flatters the model there; 8 x 8 and 12 x 12 against cameras
 # of 2-6 points per axis: benchmarks/area_grid.py, README "The ceiling".
 _AREA_SAMPLES = 4
+# Where a camera pixel spans more than _STEEP_EXTENT cells along a projector axis (steep faces, a
+# cylinder's limb) and its rows are fitted to a checkerboard share, its square is sampled at
+# _STEEP_SAMPLES x _STEEP_SAMPLES points instead: there 4 x 4 points leave whole cells to one or two
+# samples each. Our choice (the paper models no footprint), measured by benchmarks/area_grid.py and
+# benchmarks/models.py (README "The ceiling").
+_STEEP_EXTENT, _STEEP_SAMPLES = 1.0, 12
 _AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
 # Sweeps of _fit_shares over a row's four measured shares: the x and y conditions nearly separate,
 # so on box_cylinders and paper_two_planes a second or third sweep moves no score by more than
@@ -207,9 +213,12 @@ class StateCalibration:
         blur = None
         if self.blur is not None:  # NaN where measure_blur could not tell: taken as in focus
             blur = torch.nan_to_num(self.blur[j].reshape(-1)[pixels].to(xy.dtype), nan=0.0).clamp_min(0)
-        cells, values = _footprint(xy, weight, size, footprint, slope, blur)
+        # Steep rows are sampled finely only where the fit has the checkerboard's condition: with the
+        # per-axis shares alone, the coarse rows' missing cells are what _reach_shares adds on a limb.
+        fine = self.shares is not None and self.shares[j].checker is not None
+        cells, values = _footprint(xy, weight, size, footprint, slope, blur, fine)
         if self.edges is not None:
-            cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur)
+            cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur, fine)
         if self.shares is not None:
             cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
             values = _fit_shares(cells, values, self.shares[j], pixels, size)
@@ -306,14 +315,35 @@ def group_rows(columns: torch.Tensor) -> tuple[torch.Tensor, int]:
 
 
 def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tuple[int, int],
-                blur: torch.Tensor | None = None):
+                blur: torch.Tensor | None = None, fine: bool = False):
     """The cells a camera pixel's square covers, carried through the local ``slope``, and the share
-    of the pixel each lights (sampled at ``_AREA_SAMPLES`` squared points): :math:`(N, s)` each.
+    of the pixel each lights (sampled at ``_AREA_SAMPLES`` squared points; with ``fine``,
+    ``_STEEP_SAMPLES`` squared where the square spans more than ``_STEEP_EXTENT`` cells along a
+    projector axis): :math:`(N, s)` each.
 
     With ``blur`` :math:`(N,)` (disc diameters in cells), each sample also spreads over its disc:
-    the light a pixel sees through a defocused lens is the mean of the cells within that circle."""
+    the light a pixel sees through a defocused lens is the mean of the cells within that circle
+    (and the square keeps ``_AREA_SAMPLES`` squared points: the disc smooths more than they resolve)."""
+    blurred = blur is not None and blur.numel() > 0
+    # Cells per camera pixel along the wider projector axis: the square's extent through the slope.
+    steep = None if blurred or not fine or _STEEP_SAMPLES == _AREA_SAMPLES else slope.abs().sum(-1).amax(-1) > _STEEP_EXTENT
+    if steep is None or not bool(steep.any()):
+        return _sampled_cells(u, slope, ok, size, blur, _AREA_SAMPLES)
+    rows = [torch.nonzero(~steep)[:, 0], torch.nonzero(steep)[:, 0]]
+    # Steep rows in smaller chunks: their samples' temporaries as large as the other rows'.
+    step = max(1, _AREA_CHUNK * _AREA_SAMPLES ** 2 // _STEEP_SAMPLES ** 2)
+    parts = [_sampled_cells(u[rows[0]], slope[rows[0]], ok[rows[0]], size, None, _AREA_SAMPLES)]
+    parts += [_sampled_cells(u[i], slope[i], ok[i], size, None, _STEEP_SAMPLES) for i in rows[1].split(step)]
+    cells, values = _stack_rows([c for c, _ in parts], [v for _, v in parts])
+    order = torch.argsort(torch.cat(rows))  # back to the rows' own order
+    return cells[order], values[order]
+
+
+def _sampled_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tuple[int, int],
+                   blur: torch.Tensor | None, samples: int):
+    """:func:`_area_cells` with the square sampled at ``samples`` squared points."""
     w, h = size
-    offset = pixel_square(_AREA_SAMPLES, u.dtype, u.device)  # (S, 2) camera-pixel offsets from the centre
+    offset = pixel_square(samples, u.dtype, u.device)  # (S, 2) camera-pixel offsets from the centre
     # Cell centres at integers (conventions module): a point's cell is floor(u + 0.5), kept in float
     # (exact for any projector size) and turned to int32 once, for a fast sort.
     points = torch.einsum("nij,sj->nsi", torch.nan_to_num(slope), offset).add_(u[:, None, :] + 0.5)
@@ -346,7 +376,7 @@ def _combine(cells: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, t
 
 
 def _edge_rows(cells: torch.Tensor, values: torch.Tensor, edges: EdgePixels, pixels: torch.Tensor,
-               weight: torch.Tensor, size: tuple[int, int], blur: torch.Tensor | None = None):
+               weight: torch.Tensor, size: tuple[int, int], blur: torch.Tensor | None = None, fine: bool = False):
     """The ``area`` rows of those camera ``pixels`` :math:`(N,)` that are ``edges``: each surface's
     cells, the pixel's square carried through that surface's slope, by its share of the pixel's
     ``weight``. Other rows stay as they are."""
@@ -361,7 +391,7 @@ def _edge_rows(cells: torch.Tensor, values: torch.Tensor, edges: EdgePixels, pix
     entry = order[at[hit]]
     lit = weight[hit] > 0
     parts = [_area_cells(edges.xy[entry, k].to(values.dtype), edges.slope[entry, k].to(values.dtype), lit, size,
-                         None if blur is None else blur[hit]) for k in (0, 1)]
+                         None if blur is None else blur[hit], fine) for k in (0, 1)]
     share = edges.share[entry].to(values.dtype) * torch.where(lit, weight[hit], 0.0)[:, None]
     two_cells, two_values = _combine(torch.cat([parts[0][0], parts[1][0]], 1),
                                      torch.cat([parts[0][1] * share[:, :1], parts[1][1] * share[:, 1:]], 1))
@@ -524,12 +554,13 @@ def _stack_rows(cells: list[torch.Tensor], values: list[torch.Tensor]) -> tuple[
 
 
 def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], model: str,
-               slope: torch.Tensor | None = None, blur: torch.Tensor | None = None):
+               slope: torch.Tensor | None = None, blur: torch.Tensor | None = None, fine: bool = False):
     """Cells and weights of one projector for rows: :math:`(N, s)` flat cells (-1 = none), weights.
 
     ``slope`` :math:`(N, 2, 2)` (:func:`map_slope` at the rows) is needed by the ``area`` model; a
     row whose slope is unknown keeps its nearest cell. ``blur`` :math:`(N,)`, the ``area`` model's
-    defocus disc per row (:attr:`StateCalibration.blur`, NaN already taken as 0)."""
+    defocus disc per row (:attr:`StateCalibration.blur`, NaN already taken as 0). ``fine``: steep
+    rows sampled finely (:func:`_area_cells`)."""
     w, h = size
     ok = torch.isfinite(prj_xy).all(-1) & (weight > 0)
     if model == "area":
@@ -539,7 +570,7 @@ def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int]
         # Rows go in chunks, so the samples' temporaries (16 per row, up to 16 x 16 blurred) stay small.
         step = _AREA_CHUNK if blur is None else _BLUR_CHUNK
         parts = [_area_cells(u[i:i + step], slope[i:i + step], ok[i:i + step], size,
-                             None if blur is None else blur[i:i + step]) for i in range(0, max(u.shape[0], 1), step)]
+                             None if blur is None else blur[i:i + step], fine) for i in range(0, max(u.shape[0], 1), step)]
         cells, share = _stack_rows([c for c, _ in parts], [v for _, v in parts])
         return cells, share * torch.where(ok, weight, 0.0)[:, None]
     if model == "nearest":
