@@ -105,7 +105,8 @@ class VirtualCalibration:
 
 def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False,
                       bits: int | None = None, plane_tolerance: float = 1.0) -> VirtualCalibration:
-    """Simulate and decode every state's calibration captures (Gray code, white, black, ramps).
+    """Simulate and decode every state's calibration captures (Gray code, white, black, ramps and,
+    after a full Gray code, the checkerboard pair).
 
     Args:
         bits: show only the first ``bits`` Gray-code pattern pairs per axis, and read each capture
