@@ -322,8 +322,9 @@ def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tu
     projector axis): :math:`(N, s)` each.
 
     With ``blur`` :math:`(N,)` (disc diameters in cells), each sample also spreads over its disc:
-    the light a pixel sees through a defocused lens is the mean of the cells within that circle
-    (and the square keeps ``_AREA_SAMPLES`` squared points: the disc smooths more than they resolve)."""
+    the light a pixel sees through a defocused lens is the mean of the cells within that circle.
+    Blurred rows keep ``_AREA_SAMPLES`` squared points: each is already spread over up to hundreds of
+    disc points, and a finer square was not measured on ``paper_defocus``."""
     blurred = blur is not None and blur.numel() > 0
     # Cells per camera pixel along the wider projector axis: the square's extent through the slope.
     steep = None if blurred or not fine or _STEEP_SAMPLES == _AREA_SAMPLES else slope.abs().sum(-1).amax(-1) > _STEEP_EXTENT
