@@ -275,14 +275,15 @@ def test_area_rows_fitted_to_the_measured_shares_predict_the_capture():
     torch.testing.assert_close(wide.predict([light], black_level, "area"), plain.predict([light], black_level, "area"))
 
 
-def _one_pixel(across, outside=0.0):
-    """A 5 x 5 camera whose centre pixel's parallelogram covers cell (6, 5) alone, with measured shares
-    ``across`` (x towards 5, x towards 7, y towards 4, y towards 6) and ``outside`` on both axes."""
+def _one_pixel(across, outside=0.0, checker=None, x=6):
+    """A 5 x 5 camera whose centre pixel's parallelogram covers cell (x, 5) alone (6 by default), with
+    measured shares ``across`` (x towards x - 1, x towards x + 1, y towards 4, y towards 6),
+    ``outside`` on both axes and, if given, the ``checker`` share."""
     ys, xs = torch.meshgrid(torch.arange(5.0), torch.arange(5.0), indexing="ij")
-    prj_xy = torch.stack([0.3 * xs + 5.6, 0.3 * ys + 4.4], -1)  # the centre at (6.2, 5.0), 0.3 cells per pixel
-    cell = torch.tensor([6, 5], dtype=torch.int32).expand(5, 5, 2).clone()
+    prj_xy = torch.stack([0.3 * xs + x - 0.4, 0.3 * ys + 4.4], -1)  # the centre at (x + 0.2, 5.0), 0.3 cells per pixel
+    cell = torch.tensor([x, 5], dtype=torch.int32).expand(5, 5, 2).clone()
     shares = CellShares(cell, torch.tensor(across, dtype=torch.float32).reshape(2, 2).expand(5, 5, 2, 2).clone(),
-                        torch.full((5, 5, 2), outside))
+                        torch.full((5, 5, 2), outside), None if checker is None else torch.full((5, 5), checker))
     return StateCalibration([prj_xy], [torch.full((5, 5), 0.8)], [(16, 12)], shares=[shares])
 
 
@@ -310,6 +311,24 @@ def test_rows_gain_the_cells_across_an_edge_the_captures_saw_light_across():
         assert _light_at(_one_pixel(across, outside), (5, 5)) == 0.0, (across, outside)
     up = _one_pixel([0.0, 0.0, 0.0, 0.25])  # the y axis too
     assert _light_at(up, (6, 6)) == pytest.approx(0.8 * 0.25, rel=1e-5)
+
+
+def test_light_two_cells_away_is_told_from_light_either_side_by_the_checkerboard():
+    """Light on cell n - 2 (n even; n + 2 for an odd n) crosses the stripes of both of n's edges and no
+    other pair's, so it reads as light across both edges, as light on n - 1 and n + 1 would. Cells
+    n +- 1 are of the other parity and n +- 2 of the same, so a checkerboard share below what either
+    edge measured puts it two cells away: the row gains that cell and the fit gives it the light
+    (a camera-side outline, where the surface turns away within the pixel). Where the checkerboard
+    says the light is either side, or was not measured, nothing is gained two cells away."""
+    for x, far in ((6, 4), (7, 9)):
+        cal = _one_pixel([0.3, 0.3, 0.0, 0.0], checker=0.0, x=x)
+        assert _light_at(cal, (far, 5)) == pytest.approx(0.8 * 0.3, rel=0.02), x
+        assert _light_at(cal, (x, 5)) == pytest.approx(0.8 * 0.7, rel=0.02), x
+        assert _light_at(cal, (x - 1, 5)) + _light_at(cal, (x + 1, 5)) < 0.8 * 0.01, x
+        assert _light_at(cal, (2 * x - far, 5)) == 0.0  # not the other side
+    for checker in (0.6, None):
+        cal = _one_pixel([0.3, 0.3, 0.0, 0.0], checker=checker)
+        assert _light_at(cal, (4, 5)) == 0.0 and _light_at(cal, (5, 5)) > 0.8 * 0.2, checker
 
 
 def _limb_map(x, y):

@@ -420,6 +420,17 @@ def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares,
     gains the cell across both); :func:`_fit_shares` then sets their share. The row's total (its
     white minus black) is kept.
 
+    Light two cells away reads otherwise. Gray code flips bit 0 at every odd step, so of ``n - 2``
+    and ``n + 2`` the one of ``n``'s parity class (``n - 2`` for an even ``n``, ``n + 2`` for an odd
+    one) differs from ``n`` in exactly the bits of ``n``'s two edges: its light reads as light
+    across both edges, as light on ``n - 1`` and ``n + 1`` would. The checkerboard tells them apart
+    (:attr:`~torchproj.calib.CellShares.checker`: cells ``n +- 1`` are of the other parity,
+    ``n +- 2`` of the same): where its share is below what either edge measured by more than
+    ``_SHARE_REACH``, the row's cells on the decoded cell's column gain that cell too. On
+    ``box_cylinders`` these are the pixels on the cylinders' outline as the camera sees it, where the
+    surface turns away within the pixel and the slope, taken from the inner side only, falls far
+    short: their rows held a third of their light on the wrong cells.
+
     Defocus is left alone: a pixel whose light reached past cells ``n +- 1`` on that axis
     (:attr:`~torchproj.calib.CellShares.outside`), or was measured across all four edges (a disc
     wider than the pixel every way; a limb or a steep face stretches a pixel's footprint one way),
@@ -438,6 +449,7 @@ def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares,
     cell = shares.cell.reshape(-1, 2)[pixels].long()
     across = shares.across.reshape(-1, 2, 2)[pixels].to(values.dtype)
     outside = shares.outside.reshape(-1, 2)[pixels] > _SHARE_OUTSIDE
+    checker = None if shares.checker is None else shares.checker.reshape(-1)[pixels].to(values.dtype)
     used, total = cells >= 0, values.sum(1)
     row = torch.div(cells, w, rounding_mode="floor")
     short = []  # per axis, per side: the rows short of that edge of the decoded cell
@@ -448,7 +460,23 @@ def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares,
             short.append(torch.isfinite(share) & (share > _SHARE_REACH) & (held <= _SHARE_TOL * total) & (total > 0)
                          & ~outside[:, axis] & (cell[:, axis] >= 0))
     disc = (across > _SHARE_REACH).reshape(-1, 4).all(1)
-    rows = torch.nonzero(torch.stack(short).any(0) & ~disc)[:, 0]
+    # Two cells away on one side lies the one cell whose light both edges' pairs see and no other
+    # pair does (n - 2 for an even n, n + 2 for an odd one: Gray code flips bit 0 at every odd
+    # step), so its light reads as light across both edges. The checkerboard tells them apart:
+    # cells n +- 1 are of the other parity, n +- 2 of the same, so where the checker share is below
+    # what either edge measured, the light is two cells away (a camera-side outline, where the
+    # surface turns away within the pixel and its slope is taken from the inner side only).
+    twice = []
+    for axis in (0, 1):
+        lo, hi = across[:, axis, 0], across[:, axis, 1]
+        far = 2 * (cell[:, axis] % 2 == 1).long() - 1
+        inside = (cell[:, axis] + 2 * far >= 0) & (cell[:, axis] + 2 * far < size[axis])
+        coord = cells - row * w if axis == 0 else row
+        held = torch.where(used & ((coord - cell[:, axis, None]) * far[:, None] >= 2), values, 0.0).sum(1)
+        twice.append(torch.zeros_like(inside) if checker is None else
+                     torch.isfinite(lo) & torch.isfinite(hi) & (torch.minimum(lo, hi) > checker + _SHARE_REACH)
+                     & inside & (held <= _SHARE_TOL * total) & (total > 0) & (cell[:, axis] >= 0))
+    rows = torch.nonzero((torch.stack(short).any(0) & ~disc) | torch.stack(twice).any(0))[:, 0]
     if not rows.numel():
         return cells, values
     # Axis by axis, so that a row short of an x and a y edge also gains the cell across both: light
@@ -458,12 +486,18 @@ def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares,
         coord = grown % w if axis == 0 else torch.div(grown, w, rounding_mode="floor")
         column = (grown >= 0) & (coord == cell[rows, axis, None])
         new_cells, new_values = [grown], [seeded]
+        unit = 1 if axis == 0 else w
         for side, step in enumerate((-1, 1)):
             # The edge is not the projector's border (the share is finite), so the neighbour is a cell.
-            gain = short[2 * axis + side][rows, None] & column
+            gain = short[2 * axis + side][rows, None] & column & ~disc[rows, None]
             share = across[rows, axis, side, None].clamp(max=0.5)  # a seed: _fit_shares sets the split
-            new_cells.append(torch.where(gain, grown + step * (1 if axis == 0 else w), -1))
+            new_cells.append(torch.where(gain, grown + step * unit, -1))
             new_values.append(torch.where(gain, seeded * share / (1 - share), 0.0))
+        far = 2 * (cell[rows, axis, None] % 2 == 1).long() - 1
+        gain = twice[axis][rows, None] & column
+        share = torch.minimum(across[rows, axis, 0], across[rows, axis, 1])[:, None].clamp(max=0.5)
+        new_cells.append(torch.where(gain, grown + 2 * far * unit, -1))
+        new_values.append(torch.where(gain, seeded * share / (1 - share), 0.0))
         grown, seeded = _combine(torch.cat(new_cells, 1), torch.cat(new_values, 1))
     seeded = seeded * (total[rows] / seeded.sum(1))[:, None]
     width = max(cells.shape[1], grown.shape[1])
