@@ -7,7 +7,9 @@ Each scene is calibrated once from simulated captures. For each model of a camer
 cells the pixel's own area covers through the map's local slope, ``area-map``; those cells with
 their weights fitted to the shares the Gray-code captures measured, ``area-gray`` (a capture folder
 without the checkerboard pair); fitted to those and the checkerboard pair's share, ``area``, the
-default of ``run``;
+default of ``run``; on scenes where every state is one plane, those rows on one fitted homography
+per state and projector (``area, homography maps``, ``--maps homography``) and on the shortened
+Gray-code sequence read through homographies (``area, 3-bit Gray code``, ``--bits 3``);
 with ``--share-limits``, ``area`` with other limits on the light measured past a row's cells, above
 which a row is not fitted; with ``--share-sweeps``, ``area`` fitted in more sweeps; with
 ``--share-reach``, ``area`` with other shares measured across an edge over which a row short of it
@@ -37,15 +39,30 @@ from pathlib import Path
 from common import machine, write_results
 from matplotlib.figure import Figure
 
-from torchproj.calib import measure_blur
+from torchproj.calib import graycode_patterns, measure_blur
+from torchproj.core import InputError
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
                                 scene_targets, simulate_calibration, solve_on_light_transport)
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
-from torchproj.transport import build, build_channel_transports, build_transport, has_colour_weights
+from torchproj.transport import build, build_channel_transports, build_transport, has_colour_weights, planar_calibration
 from torchproj.transport.build import _CHECKER_SWEEPS, _SHARE_OUTSIDE, _SHARE_REACH, _SHARE_SWEEPS
 
 BOUNDS = (0.0, 1.0)
+SHORT_BITS = 3  # the shortened sequence's pattern pairs per axis (README "Shortened sequences")
+# Models that read no checkerboard pair: their calibrations need the Gray code, white, black and ramps only.
+WITHOUT_CHECKER = ("nearest", "bilinear", "area-map", "area-gray")
+
+
+def calibration_images(scene, model: str) -> int | None:
+    """Captures the model's calibration needs, over every state and projector (None for the ceiling)."""
+    if model == "ceiling":
+        return None
+    per = []
+    for p in scene.projectors:
+        gray = graycode_patterns(p.width, p.height, SHORT_BITS if "-bit" in model else None).shape[0]
+        per.append(gray + 2 + (0 if model in WITHOUT_CHECKER or "-bit" in model else 2))  # ramps, checkerboard pair
+    return sum(per) * len(scene.states)
 
 
 def measured_blur(cal) -> tuple[dict, float, dict]:
@@ -75,9 +92,18 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
     limits = tuple(f"area, outside <= {limit:g}" for limit in share_limits)
     sweeps = tuple(f"area, {n} sweeps" for n in share_sweeps)
     reaches = tuple(f"area, reach {r:g}" for r in share_reach)
+    planar = {}
+    try:  # where every state is one plane: its homographies, and the shortened sequence
+        planar["area, homography maps"] = (cal, planar_calibration(cal.states)[0])
+        short = calibrate_virtual(scene, progress=False, bits=SHORT_BITS)
+        planar[f"area, {SHORT_BITS}-bit Gray code"] = (short, short.states)
+    except InputError:
+        pass
     for model in ("nearest", "bilinear", "area-map", "area-gray", "area", *limits, *sweeps, *reaches, *colour,
-                  *(("area+blur",) if blur else ()), "ceiling"):
-        extra, states = {}, cal.states
+                  *(("area+blur",) if blur else ()), *planar, "ceiling"):
+        extra, states, judge = {}, cal.states, cal
+        if model in planar:
+            judge, states = planar[model]
         # what run uses, but where a row below names another limit, number of sweeps or reach
         build._SHARE_OUTSIDE, build._SHARE_REACH = _SHARE_OUTSIDE, _SHARE_REACH
         build._SHARE_SWEEPS, build._CHECKER_SWEEPS = _SHARE_SWEEPS, _CHECKER_SWEEPS
@@ -112,8 +138,9 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
         else:
             result, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False)
         solved = time.perf_counter() - t0
-        scores = evaluate_patterns(cal, patterns, targets, scale=op.scale).targets
-        row = {"scene": name, "model": model, **extra, "variables": ops[0].shape[1], "rows": ops[0].shape[0],
+        scores = evaluate_patterns(judge, patterns, targets, scale=op.scale, states=states if model in planar else None).targets
+        row = {"scene": name, "model": model, **extra, "images": calibration_images(scene, model),
+               "variables": ops[0].shape[1], "rows": ops[0].shape[0],
                "nnz": sum(o.nnz for o in ops), "build_s": round(built, 3), "solve_s": round(solved, 3),
                "iterations": result.iterations, "converged": result.converged,
                "targets": [{"name": s.name, "psnr_db": round(s.psnr_db, 3), "ssim": round(s.ssim, 4),
@@ -126,10 +153,11 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
 
 def markdown(rows: list[dict], scale: float) -> str:
     lines = [f"# Transport models against the exact-light ceiling (scale {scale:g}, {machine()})", "",
-             "| scene | model | variables | rows | nnz | build (s) | solve (s) | per target: PSNR (dB) / SSIM / "
-             "crosstalk |", "|---|---|---|---|---|---|---|---|"]
+             "| scene | model | calibration images | variables | rows | nnz | build (s) | solve (s) | per target: PSNR "
+             "(dB) / SSIM / crosstalk |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['model']} | {r['variables']} | {r['rows']} | {r['nnz']} | {r['build_s']:.2f} "
+        images = "" if r.get("images") is None else r["images"]
+        lines.append(f"| {r['scene']} | {r['model']} | {images} | {r['variables']} | {r['rows']} | {r['nnz']} | {r['build_s']:.2f} "
                      f"| {r['solve_s']:.2f} | " + "; ".join(f"{t['name']} {t['psnr_db']:.2f} / {t['ssim']:.3f} / "
                                                            f"{t['crosstalk']:.3f}" for t in r["targets"]) + " |")
     return "\n".join(lines) + "\n"
@@ -149,7 +177,7 @@ def chart(path: Path, rows: list[dict]) -> None:
         for k, name in enumerate(t["name"] for t in top["targets"]):
             colour = f"C{k}"
             ax.axhline(top["targets"][k]["ssim"], color=colour, ls="--", lw=1, label=f"{name}: ceiling")
-            for marker, r in zip("os^vDPX*", mine):
+            for marker, r in zip("os^vDPX*hp<>", mine):
                 ax.plot(r["build_s"] + r["solve_s"], r["targets"][k]["ssim"], marker, color=colour,
                         label=f"{name}: {r['model']}")
         ax.set(title=scene, xlabel="build + solve (s)", ylabel="captured SSIM")
