@@ -39,7 +39,7 @@ import warnings
 from pathlib import Path
 
 import torch
-from common import machine, write_results
+from common import machine, without_checker, write_results
 from matplotlib.figure import Figure
 
 from torchproj.pipeline import calibrate_virtual, run_virtual
@@ -58,8 +58,7 @@ def _with_checker(cal, exact: bool):
     """``cal`` with each pixel's checkerboard share from the exact light, or with none (module text,
     point 2)."""
     if not exact:
-        return dataclasses.replace(cal, states={name: dataclasses.replace(state, shares=[
-            dataclasses.replace(part, checker=None) for part in state.shares]) for name, state in cal.states.items()})
+        return dataclasses.replace(cal, states=without_checker(cal.states))
     states = {}
     for name, state in cal.states.items():
         transport, shares = cal.rig.geometry(name).transport, []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 from pathlib import Path
 
@@ -37,3 +38,10 @@ def write_results(folder: Path, result, markdown: str | None = None) -> None:
     write_json(folder / "results.json", result)
     if markdown is not None:
         (folder / "results.md").write_text(markdown)
+
+
+def without_checker(states: dict) -> dict:
+    """Each state's calibration without the checkerboard pair's shares: what a capture folder of the
+    Gray code alone gives (state name -> :class:`~torchproj.transport.StateCalibration`)."""
+    return {name: dataclasses.replace(state, shares=state.shares and [
+        part and dataclasses.replace(part, checker=None) for part in state.shares]) for name, state in states.items()}

@@ -36,7 +36,7 @@ import json
 import time
 from pathlib import Path
 
-from common import machine, write_results
+from common import machine, without_checker, write_results
 from matplotlib.figure import Figure
 
 from torchproj.calib import graycode_patterns, measure_blur
@@ -50,6 +50,7 @@ from torchproj.transport.build import _CHECKER_SWEEPS, _SHARE_OUTSIDE, _SHARE_RE
 
 BOUNDS = (0.0, 1.0)
 SHORT_BITS = 3  # the shortened sequence's pattern pairs per axis (README "Shortened sequences")
+HOMOGRAPHY, SHORT = "area, homography maps", f"area, {SHORT_BITS}-bit Gray code"  # planar scenes' models
 # Models that read no checkerboard pair: their calibrations need the Gray code, white, black and ramps only.
 WITHOUT_CHECKER = ("nearest", "bilinear", "area-map", "area-gray")
 
@@ -60,8 +61,8 @@ def calibration_images(scene, model: str) -> int | None:
         return None
     per = []
     for p in scene.projectors:
-        gray = graycode_patterns(p.width, p.height, SHORT_BITS if "-bit" in model else None).shape[0]
-        per.append(gray + 2 + (0 if model in WITHOUT_CHECKER or "-bit" in model else 2))  # ramps, checkerboard pair
+        gray = graycode_patterns(p.width, p.height, SHORT_BITS if model == SHORT else None).shape[0]
+        per.append(gray + 2 + (0 if model in (*WITHOUT_CHECKER, SHORT) else 2))  # ramps, checkerboard pair
     return sum(per) * len(scene.states)
 
 
@@ -94,9 +95,9 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
     reaches = tuple(f"area, reach {r:g}" for r in share_reach)
     planar = {}
     try:  # where every state is one plane: its homographies, and the shortened sequence
-        planar["area, homography maps"] = (cal, planar_calibration(cal.states)[0])
+        planar[HOMOGRAPHY] = (cal, planar_calibration(cal.states)[0])
         short = calibrate_virtual(scene, progress=False, bits=SHORT_BITS)
-        planar[f"area, {SHORT_BITS}-bit Gray code"] = (short, short.states)
+        planar[SHORT] = (short, short.states)
     except InputError:
         pass
     for model in ("nearest", "bilinear", "area-map", "area-gray", "area", *limits, *sweeps, *reaches, *colour,
@@ -110,8 +111,7 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
         if model == "area-map":
             states = {k: dataclasses.replace(s, shares=None) for k, s in states.items()}
         if model == "area-gray":
-            states = {k: dataclasses.replace(s, shares=s.shares and [part and dataclasses.replace(part, checker=None)
-                                                                      for part in s.shares]) for k, s in states.items()}
+            states = without_checker(states)
         if model in limits:
             build._SHARE_OUTSIDE = share_limits[limits.index(model)]
         if model in sweeps:

@@ -149,7 +149,7 @@ def write_graycode_folder(folder: str | os.PathLike, capture: GraycodeCapture, b
     images = list(capture.patterns) + [capture.white, capture.black]
     for i, img in enumerate(images):
         write_image(folder / names.format(i), img, bits)
-    for names_, images_ in ((RAMP_NAMES, capture.ramp), (CHECKER_NAMES, capture.checker)):
-        if images_ is not None:
-            for name, img in zip(names_, images_):
+    for files, shots in ((RAMP_NAMES, capture.ramp), (CHECKER_NAMES, capture.checker)):
+        if shots is not None:
+            for name, img in zip(files, shots):
                 write_image(folder / name, img, bits)

@@ -460,16 +460,12 @@ def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares,
             short.append(torch.isfinite(share) & (share > _SHARE_REACH) & (held <= _SHARE_TOL * total) & (total > 0)
                          & ~outside[:, axis] & (cell[:, axis] >= 0))
     disc = (across > _SHARE_REACH).reshape(-1, 4).all(1)
-    # Two cells away on one side lies the one cell whose light both edges' pairs see and no other
-    # pair does (n - 2 for an even n, n + 2 for an odd one: Gray code flips bit 0 at every odd
-    # step), so its light reads as light across both edges. The checkerboard tells them apart:
-    # cells n +- 1 are of the other parity, n +- 2 of the same, so where the checker share is below
-    # what either edge measured, the light is two cells away (a camera-side outline, where the
-    # surface turns away within the pixel and its slope is taken from the inner side only).
+    # The cell two away whose light reads as light across both edges (docstring): its direction per
+    # axis, -1 for an even cell, +1 for an odd one, and the rows where the checkerboard puts it there.
+    towards = [2 * (cell[:, axis] % 2 == 1).long() - 1 for axis in (0, 1)]
     twice = []
-    for axis in (0, 1):
+    for axis, far in enumerate(towards):
         lo, hi = across[:, axis, 0], across[:, axis, 1]
-        far = 2 * (cell[:, axis] % 2 == 1).long() - 1
         inside = (cell[:, axis] + 2 * far >= 0) & (cell[:, axis] + 2 * far < size[axis])
         coord = cells - row * w if axis == 0 else row
         held = torch.where(used & ((coord - cell[:, axis, None]) * far[:, None] >= 2), values, 0.0).sum(1)
@@ -493,7 +489,7 @@ def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares,
             share = across[rows, axis, side, None].clamp(max=0.5)  # a seed: _fit_shares sets the split
             new_cells.append(torch.where(gain, grown + step * unit, -1))
             new_values.append(torch.where(gain, seeded * share / (1 - share), 0.0))
-        far = 2 * (cell[rows, axis, None] % 2 == 1).long() - 1
+        far = towards[axis][rows, None]
         gain = twice[axis][rows, None] & column
         share = torch.minimum(across[rows, axis, 0], across[rows, axis, 1])[:, None].clamp(max=0.5)
         new_cells.append(torch.where(gain, grown + 2 * far * unit, -1))
