@@ -209,7 +209,7 @@ class Scene:
     def describe(self) -> str:
         """What the scene holds, one line per device, surface and state (``torchproj scene``)."""
         cam = self.camera
-        lines = [f"scene {self.name} ({self.source})"]
+        lines = [f"scene {self.name} ({self.source if self.source is not None else 'generated, not read from a file'})"]
         for p in self.projectors:
             lines.append(f"  projector {p.name}: {p.width}x{p.height}, f={p.fx:g}px, at "
                          f"{np.round(p.centre, 3).tolist()} m, response x^{'/'.join(f'{b:g}' for b in p.response_b)}, "
@@ -555,7 +555,8 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
     """Load a scene YAML file, or a built-in scene by name (None: the paper's two-plane rig).
 
     Args:
-        path: a YAML file, or a name of :data:`BUILTIN_SCENES`.
+        path: a YAML file, a name of :data:`BUILTIN_SCENES`, or a procedural scene's name
+            (``suite-SEED-INDEX``, ``suite-SEED-INDEX-full``: :mod:`torchproj.scene.procedural`).
         scale: give every camera and projector ``scale`` times the resolution (:func:`scale_config`):
             ``load_scene("paper_two_planes", scale=0.25)`` is the paper's rig with 256x192
             projectors and a 400x300 camera, a quick stand-in for the full one.
@@ -563,12 +564,21 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
     """
     if path is None:
         path = builtin_config()
+    from .procedural import parse_suite_name, procedural_config
+
+    suite = parse_suite_name(path) if isinstance(path, str) else None
+    if suite is not None and not Path(path).is_file():
+        data = procedural_config(*suite)
+        if scale is not None:
+            data = scale_config(data, scale)
+        return parse_scene(data, name=data["name"], size_limit=size_limit)
     path = Path(path)
     if not path.is_file() and path.suffix == "" and path.name in BUILTIN_SCENES:
         path = builtin_config(path.name)
     if not path.is_file():
         raise ConfigError("config", f"file {str(path)!r} not found",
-                          f"give a YAML path or a built-in name: {list(BUILTIN_SCENES)}")
+                          f"give a YAML path, a built-in name ({list(BUILTIN_SCENES)}) or a procedural scene's "
+                          "name (suite-SEED-INDEX)")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
