@@ -18,18 +18,18 @@ SURFACE = {
         "write_json"],
     "scene": [
         "BUILTIN_SCENES", "Camera", "Projector", "SIZE_LIMIT", "Scene", "State", "Surface", "TargetSpec",
-        "builtin_config", "config_dir", "load_scene", "look_at", "parse_scene", "rotation_from_euler_deg",
-        "rotation_from_rotvec", "scale_config"],
+        "builtin_config", "config_dir", "load_scene", "look_at", "parse_scene", "procedural_config",
+        "procedural_scene", "rotation_from_euler_deg", "rotation_from_rotvec", "scale_config", "suite_names"],
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
-        "BUNDLE_VERSION", "CREASE_RATIO", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
+        "BUNDLE_VERSION", "CREASE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
         "FEW_DECODED", "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
         "ResponseCurve", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane", "checker_patterns", "checker_shares",
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_homography", "fit_plane", "fit_response",
         "graycode_bits", "graycode_patterns", "homography_map",
         "inverse_map", "load_bundle", "measure_blur", "measure_ramp", "ramp_pattern", "read_graycode_folder",
-        "read_opencv_calibration", "refine_subpixel", "sequence_bits", "triangulate", "triangulate_map",
+        "read_opencv_calibration", "refine_subpixel", "sequence_bits", "stripe_contrast", "triangulate", "triangulate_map",
         "warn_if_few_decoded", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [
         "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target",

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (calibrate_folders, checker_patterns, graycode_patterns, load_bundle, read_graycode_folder,
+from torchproj.calib import (calibrate_folders, calibrate_projector, checker_patterns, graycode_patterns, load_bundle, read_graycode_folder,
                              write_graycode_folder)
 from torchproj.calib.capture import CHECKER_NAMES, RAMP_NAMES
 from torchproj.pipeline import simulate_calibration
@@ -274,7 +274,11 @@ def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
     assert main(["calibrate", str(root), "--projector", "128x96", "--out", str(calib)]) == 0
     capture = read_graycode_folder(root / "near" / "upper", (128, 96))
     stored = np.load(calib / "near" / "upper.npz")
-    np.testing.assert_allclose(stored["colour_contrast"], (capture.white - capture.black).numpy(), atol=1e-6)
+    # White minus black per channel, averaged over the captures that show each pixel white and black
+    # (stripe_contrast): what calibrating the folder in Python gives, and within the noise of one frame.
+    np.testing.assert_allclose(stored["colour_contrast"], calibrate_projector(capture, (128, 96)).colour_contrast.numpy(),
+                               atol=1e-6)
+    assert np.abs(stored["colour_contrast"] - (capture.white - capture.black).numpy()).mean() < 0.01
     np.testing.assert_allclose(stored["colour_contrast"].mean(0), stored["contrast"], atol=1e-6)
     args = ["solve", str(calib), "--targets", "far=astronaut", "near=chelsea"]
     assert main([*args, "--out", str(tmp_path / "channel")]) == 0

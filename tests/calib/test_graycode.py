@@ -487,3 +487,44 @@ def test_few_placed_pixels_are_warned_about_naming_the_causes():
     assert dec.counts() == {"lit": 4, "full": 1, "partial": 0, "none": 3}
     with pytest.warns(UserWarning, match=r"only 25% of the pixels the projector lights decoded, fully or partly.*stripes"):
         assert warn_if_few_decoded(dec, "state 'near', projector 'upper'") == pytest.approx(0.25)
+
+
+def test_stripe_contrast_has_a_fraction_of_white_minus_black_noise():
+    """Against the simulator's noise-free white minus black: the mean over the captures that show a
+    pixel white and black has at most half the error of the one white and one black frame, and no
+    bias; pixels without a cell keep white minus black."""
+    from torchproj.calib import stripe_contrast
+
+    scene = small_scene("box_positions", camera=(200, 150), projector=(256, 192))
+    rig = VirtualRig(scene)
+    cap = simulate_calibration(rig, "near", 0)
+    cal = calibrate_projector(cap, (256, 192))
+    truth = (rig.capture("near", {0: torch.ones(1, 1, 192, 256)}, noise=False, quantise=False)[0]
+             - rig.capture("near", {}, noise=False, quantise=False)[0]).mean(0)
+    cells = cal.shares.cell
+    span = stripe_contrast(cap.patterns, cap.white, cap.black, cells, (256, 192))
+    assert span.shape == (1, 150, 200)
+    raw = cap.white[0] - cap.black[0]
+    inner = (cells >= 0).all(-1) & (truth > 0.2)
+    before = ((raw - truth) / truth)[inner]
+    after = ((span[0] - truth) / truth)[inner]
+    assert inner.sum() > 3000
+    assert after.pow(2).mean().sqrt() < 0.5 * before.pow(2).mean().sqrt()
+    assert abs(float(after.mean())) < 0.002
+    none = ~(cells >= 0).all(-1)
+    assert torch.equal(span[0][none], raw[none])
+    # calibrate_projector weighs by it: the decoding's contrast is its mean over channels.
+    assert torch.equal(cal.decoding.contrast, span.mean(0))
+
+
+def test_stripe_contrast_keeps_white_minus_black_where_stripes_do_not_read_as_white():
+    """A projector whose stripes read dimmer than its white (blur, scatter on a real bench): no pair
+    qualifies, and white minus black is returned as it is."""
+    from torchproj.calib import stripe_contrast
+
+    scene = small_scene("box_positions", camera=(200, 150), projector=(256, 192))
+    cap = simulate_calibration(VirtualRig(scene), "near", 0)
+    cal = calibrate_projector(cap, (256, 192))
+    dimmer = cap.black + 0.95 * (cap.patterns - cap.black)
+    span = stripe_contrast(dimmer, cap.white, cap.black, cal.shares.cell, (256, 192))
+    assert torch.equal(span, (cap.white - cap.black).float())

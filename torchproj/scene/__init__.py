@@ -16,6 +16,7 @@ from .config import (
     scale_config,
 )
 from .pose import look_at, rotation_from_euler_deg, rotation_from_rotvec
+from .procedural import procedural_config, procedural_scene, suite_names
 
 __all__ = [
     "BUILTIN_SCENES",
@@ -31,7 +32,10 @@ __all__ = [
     "load_scene",
     "look_at",
     "parse_scene",
+    "procedural_config",
+    "procedural_scene",
     "rotation_from_euler_deg",
     "rotation_from_rotvec",
     "scale_config",
+    "suite_names",
 ]
