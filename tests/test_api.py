@@ -34,7 +34,7 @@ SURFACE = {
     "transport": [
         "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target",
         "TransportOperator", "build_channel_transports", "build_transport", "cell_blocks", "csr_from_coo",
-        "fit_homography", "geometric_weights", "group_rows", "has_colour_weights", "homography_map", "map_slope", "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera",
+        "fit_homography", "geometric_weights", "group_rows", "has_colour_weights", "homography_map", "map_slope", "normal_form", "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera",
         "triangulate_rays"],
     "metrics": [
         "SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"],

@@ -119,3 +119,74 @@ def test_blockwise_sum_is_as_good_as_float64_accumulation(n):
     assert total.dtype == torch.float64
     assert abs(float(total) - exact) <= 1e-8 * float(x.abs().sum())
     assert float(_blockwise_sum(x.double())) == pytest.approx(exact, rel=1e-12, abs=1e-9)
+
+
+def test_the_product_form_applies_the_same_normal_equations(op):
+    """``A^T (A p)`` without Q: the same product, scaling, coarse levels (with their targets carried
+    by ``with_rhs``) and Lipschitz bound as the formed ``Q``, against dense float64 algebra."""
+    A = op.dense()
+    g = torch.Generator().manual_seed(5)
+    p = torch.rand(op.shape[1], 3, generator=g, dtype=torch.float64)
+    matrix, products = op.normal_equations("matrix"), op.normal_equations("products")
+    assert products.Q is None and op.normal_equations("products") is products  # never built; cached
+    torch.testing.assert_close(products.product(p), A.T @ (A @ p), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(products.q, matrix.q, rtol=1e-12, atol=1e-12)
+    assert products.objective(p, products.product(p)) == pytest.approx(float(op.objective(p)), rel=1e-12)
+    scaled = products.jacobi()
+    torch.testing.assert_close(scaled.scale, matrix.jacobi().scale, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(scaled.product(p), matrix.jacobi().product(p), rtol=1e-12, atol=1e-12)
+    assert products.lipschitz() >= torch.linalg.eigvalsh(A.T @ A)[-1] * (1 - 1e-9)
+    tie = torch.eye(op.shape[1], dtype=torch.float64)
+    for (ne, block), (ref, ref_block) in zip(op.coarse_levels(2, "products"), op.coarse_levels(2, "matrix")):
+        assert torch.equal(block, ref_block)
+        tie = tie @ tie_matrix(block)
+        pc = torch.rand(ne.q.shape[0], 3, generator=g, dtype=torch.float64)
+        torch.testing.assert_close(ne.product(pc), tie.T @ A.T @ A @ tie @ pc, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(ne.q, ref.q, rtol=1e-12, atol=1e-12)
+    fresh = build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3, seed=7),
+                            scale=0.8).double()
+    swapped = op.with_rhs(fresh.rhs, fresh.constant)
+    for (ne, _), (ref, _) in zip(swapped.coarse_levels(2, "products"), fresh.coarse_levels(2, "products")):
+        torch.testing.assert_close(ne.q, ref.q, rtol=1e-12, atol=1e-12)
+    with pytest.raises(Exception, match="form must be"):
+        op.normal_equations("dense")
+
+
+def test_fista_reaches_the_same_patterns_on_either_form():
+    from torchproj.solve import solve_fista
+    from torchproj.transport import operator
+
+    one = build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=1), scale=0.8,
+                          footprint="area")
+    results = {}
+    for form in ("matrix", "products"):
+        one.forget_normal_equations()
+        previous, operator.normal_form = operator.normal_form, (lambda op, f=form: f)
+        try:
+            results[form] = solve_fista(one, (0, 1), max_iter=2000, tol=1e-10)
+        finally:
+            operator.normal_form = previous
+    assert results["products"].objective == pytest.approx(results["matrix"].objective, rel=1e-4)
+    assert float((results["products"].patterns - results["matrix"].patterns).abs().max()) < 0.02
+
+
+def test_the_solvers_iterate_on_products_where_rows_are_few_and_wide():
+    """normal_form: Q where rows hold one or two cells (merged nearest rows) or repeat them (more rows
+    than cells), products where camera pixels are fewer than the cells and rows are wide (a coarse
+    camera's area rows)."""
+    from torchproj.transport import TransportOperator, csr_from_coo, normal_form
+
+    cals = synthetic_calibration(shape=(40, 50), sizes=LARGE)
+    assert normal_form(build_transport(cals, targets(channels=1), footprint="nearest")) == "matrix"
+
+    def banded(rows: int, cells: int, width: int) -> TransportOperator:
+        """Row r lights ``width`` consecutive cells from ``r * cells // rows``: a pixel seeing a patch."""
+        r = torch.arange(rows).repeat_interleave(width)
+        c = (r * cells // rows + torch.arange(width).repeat(rows)).clamp(max=cells - 1)
+        matrix = csr_from_coo(r, c, torch.ones(len(r)), (rows, cells))
+        return TransportOperator(matrix, torch.ones(rows, 1), torch.zeros(cells, dtype=torch.int64),
+                                 torch.arange(cells), [(cells, 1)])
+
+    assert normal_form(banded(100, 400, 8)) == "products"  # few, wide rows
+    assert normal_form(banded(100, 400, 2)) == "matrix"  # narrow rows keep Q sparse
+    assert normal_form(banded(800, 400, 8)) == "matrix"  # every cell in several rows

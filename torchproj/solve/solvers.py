@@ -138,7 +138,7 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
     lo, hi = check_bounds(bounds)
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     t0 = time.perf_counter()
-    ne = op.normal_equations()
+    ne = op.normal_equations("auto")
     history = []
     if x0 is None:
         p, coarse_iterations, coarse_columns = coarse_start(op, lo, hi, levels, tol, t0, history, precondition,
@@ -168,7 +168,7 @@ def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: 
         :math:`(N_{cols}, C)` patterns within ``[lo, hi]``, and per level, coarsest first, its iterations
         and its number of columns.
     """
-    coarse = op.coarse_levels(levels)
+    coarse = op.coarse_levels(levels, "auto")
     p, iterations, columns = None, [], []
     for level in reversed(range(len(coarse))):
         level_ne, block = coarse[level]
@@ -177,7 +177,7 @@ def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: 
         p, _, its, _ = _iterate(level_ne.jacobi() if precondition else level_ne, p, lo, hi, _COARSE_MAX_ITER,
                                 max(tol, _COARSE_TOL), accelerate, t0, history, None)
         iterations.append(its)
-        columns.append(level_ne.Q.shape[0])
+        columns.append(level_ne.q.shape[0])
         p = p[block]  # each cell takes its block's value
     return (_start(op, None, lo, hi) if p is None else p), iterations, columns
 
@@ -432,7 +432,7 @@ def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 20000,
     check(normalise in LF_NORMALISE, f"normalise must be one of {list(LF_NORMALISE)}, got {normalise!r}")
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     t0 = time.perf_counter()
-    base = op.normal_equations()
+    base = op.normal_equations("auto")
     ne = base.jacobi()
     z = torch.zeros(op.shape[1], op.channels, dtype=op.val.dtype, device=op.val.device)
     r = ne.q.clone()  # residual of the normal equations at z = 0

@@ -20,7 +20,7 @@ from torch import nn
 from ..core.checks import check, check_finite, check_shape
 from ..core.sparse import csr_tensor, spmm
 
-__all__ = ["TransportOperator", "NormalEquations", "csr_from_coo", "cell_blocks"]
+__all__ = ["TransportOperator", "normal_form", "NormalEquations", "ProductNormalEquations", "csr_from_coo", "cell_blocks"]
 
 # Below this many columns a coarser level saves nothing worth its setup.
 _MIN_COARSE_COLUMNS = 64
@@ -155,7 +155,7 @@ class TransportOperator(nn.Module):
 
     def set_extra_state(self, state: dict) -> None:
         self.scale = float(state["scale"])
-        self._normal = None  # caches of the old values
+        self._normal = self._products = None  # caches of the old values
         self._blocks_device = None
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
@@ -257,24 +257,34 @@ class TransportOperator(nn.Module):
             x = y / value
         return value * 1.01
 
-    def normal_equations(self) -> "NormalEquations":
+    def normal_equations(self, form: str = "matrix") -> "NormalEquations":
         """``Q = A^T A``, ``q = A^T i`` and the constant: the objective as a quadratic in p.
 
-        Built once (scipy's sparse product) and cached. Iterative solvers use it to pay one sparse
-        product per iteration instead of two.
+        Args:
+            form: ``"matrix"``: ``Q`` built once (scipy's sparse product), one sparse product per
+                iteration after that; what EO's chains read. ``"products"``: ``Q p`` taken as
+                ``A^T (A p)``, two products per iteration and ``Q`` never built
+                (:class:`ProductNormalEquations`). ``"auto"``: :func:`normal_form`, what the
+                gradient solvers (FISTA, PGD, LF) use.
+
+        Cached per form.
         """
-        cached = getattr(self, "_normal", None)
+        check(form in ("matrix", "products", "auto"), f"form must be 'matrix', 'products' or 'auto', got {form!r}")
+        form = normal_form(self) if form == "auto" else form
+        key = "_normal" if form == "matrix" else "_products"
+        cached = getattr(self, key, None)
         if cached is None or cached.q.device != self.val.device or cached.q.dtype != self.val.dtype:
-            self._normal = NormalEquations.from_operator(self)
-        return self._normal
+            maker = NormalEquations if form == "matrix" else ProductNormalEquations
+            setattr(self, key, maker.from_operator(self))
+        return getattr(self, key)
 
     def forget_normal_equations(self) -> None:
         """Drop the cached ``Q`` (:meth:`normal_equations` builds it again when asked): a solve over one
         operator per colour channel then holds one ``Q`` at a time (0.2 GB each on the full-size RGB rig
         with the area footprint)."""
-        self._normal = None
+        self._normal = self._products = None
 
-    def coarse_levels(self, levels: int) -> list[tuple["NormalEquations", torch.Tensor]]:
+    def coarse_levels(self, levels: int, form: str = "matrix") -> list[tuple["NormalEquations", torch.Tensor]]:
         """The normal equations of the same rig with projector cells tied in 2x2, 4x4, ... blocks.
 
         Tying the cells of a block to one value ``p_c`` is ``p = P p_c`` with ``P`` the 0/1 matrix of
@@ -287,6 +297,8 @@ class TransportOperator(nn.Module):
         Coarsening stops early where a level would keep more than half the columns (scattered lit
         cells) or fewer than 64. Built once per operator and cached (``Q`` does not
         depend on the targets; :meth:`with_rhs` shares it).
+
+        ``form``: of the normal equations, as :meth:`normal_equations`.
 
         Returns:
             Up to ``levels`` pairs ``(normal_equations, block)``, finest first: ``block`` maps the
@@ -304,7 +316,7 @@ class TransportOperator(nn.Module):
                 self._blocks_complete = True
             else:
                 self._blocks.append((block, *coarse))
-        ne, out = self.normal_equations(), []
+        ne, out = self.normal_equations(form), []
         for block, *_ in self._blocks[:levels]:
             ne = ne.coarsened(block)
             out.append((ne, block))
@@ -326,12 +338,13 @@ class TransportOperator(nn.Module):
         new._buffers["rhs"] = rhs
         new._buffers["constant"] = (torch.zeros(rhs.shape[1], dtype=rhs.dtype, device=rhs.device)
                                     if constant is None else constant.to(rhs))
-        cached = getattr(self, "_normal", None)
-        if cached is not None and cached.q.dtype == rhs.dtype and cached.q.device == rhs.device:
-            new._normal = cached.with_targets(new.A_adjoint(rhs), rhs.double().pow(2).sum(0)
-                                              + new.constant.double())
-        else:
-            new._normal = None
+        for key in ("_normal", "_products"):
+            cached = getattr(self, key, None)
+            if cached is not None and cached.q.dtype == rhs.dtype and cached.q.device == rhs.device:
+                setattr(new, key, cached.with_targets(new.A_adjoint(rhs), rhs.double().pow(2).sum(0)
+                                                      + new.constant.double()))
+            else:
+                setattr(new, key, None)
         return new
 
     def dense(self) -> torch.Tensor:
@@ -538,3 +551,121 @@ class NormalEquations:
             else:
                 self._lipschitz = 1.05 * float(y.norm() / x.norm())
         return self._lipschitz
+
+
+def normal_form(op: "TransportOperator") -> str:
+    """The form of the normal equations the gradient solvers iterate on for ``op``
+    (:meth:`TransportOperator.normal_equations`' ``"auto"``): ``"products"`` where its rows are
+    fewer than its columns and more than three cells wide on average (by the sum of squares), else
+    ``"matrix"``.
+
+    ``Q = A^T A`` has a nonzero for every pair of cells that share a row: up to ``s^2`` for a row of
+    ``s`` cells, against the ``2 s`` that ``A`` and ``A^T`` apply. Where every cell is seen by
+    several rows (a camera finer than the projectors: the paper's rig, 2.1 M rows on 0.93 M cells)
+    those pairs repeat, ``Q`` is the compact form and building it once pays: on the default scene
+    FISTA takes 2.5 s on ``Q`` against 4.3 s on ``A`` and ``A^T``. Where camera pixels are fewer
+    than the cells they see and rows are wide (a coarse camera, the area footprint's rows of 4-12
+    cells) nothing repeats, ``Q`` holds 2-5 times A's nonzeros, and building it and its coarse
+    levels costs more than the iterations save: 4.4 s against 2.6 s on a three-projector sphere
+    scene of 0.28 M rows and 0.67 M cells, 0.86 against 0.54 s on ``box_positions`` at half scale.
+    Rows of one or two cells (the nearest footprint) keep ``Q`` sparse: there it wins everywhere
+    (``python benchmarks/normal_forms.py``).
+    """
+    width = op.crow.diff().double()
+    wide = float((width * width).sum()) > 3 * float(width.sum())
+    return "products" if op.shape[0] < op.shape[1] and wide else "matrix"
+
+
+class ProductNormalEquations(NormalEquations):
+    """The normal equations with ``Q p`` taken as ``A^T (A p)``: ``Q`` is never built.
+
+    The same interface and results as :class:`NormalEquations` (``q``, ``c``, ``scale``,
+    :meth:`product`, :meth:`jacobi`, :meth:`coarsened`, :meth:`lipschitz`), so the solvers that
+    only apply ``Q`` run on either. The Jacobi scaling multiplies A's columns (``A S``), and tying
+    columns into blocks sums them (``A P``): each level is again a pair of sparse factors.
+
+    Attributes:
+        A, At: CSR :math:`(N_{rows}, N_{cols})` and its transpose.
+    """
+
+    def __init__(self, A: torch.Tensor, At: torch.Tensor, q: torch.Tensor, c: torch.Tensor,
+                 scale: torch.Tensor | None = None):
+        super().__init__(None, q, c, scale)
+        self.A, self.At = A, At
+        self._rows_buffer = None
+
+    @classmethod
+    def from_operator(cls, op: TransportOperator) -> "ProductNormalEquations":
+        with torch.no_grad():
+            return cls(op._csr(), op._csr(transpose=True), op.A_adjoint(op.rhs),
+                       op.rhs.double().pow(2).sum(0) + op.constant.double())
+
+    def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "ProductNormalEquations":
+        new = ProductNormalEquations(self.A, self.At, q, c)
+        new._lipschitz = self._lipschitz
+        if self._jacobi is not None:
+            s = self._jacobi.scale
+            new._jacobi = ProductNormalEquations(self._jacobi.A, self._jacobi.At, q * s, c, s)
+            new._jacobi._lipschitz = self._jacobi._lipschitz
+            new._jacobi._bounds = self._jacobi._bounds
+        if self._coarse is not None:
+            block, coarse = self._coarse
+            new._coarse = (block, coarse.with_targets(_sum_blocks(q, block, coarse.q.shape[0]), c))
+        return new
+
+    def product(self, p: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """``A^T (A p)`` for :math:`(N_{cols}, C)` p, into ``out`` when given."""
+        rows = self._rows_buffer
+        if rows is None or rows.shape[1] != p.shape[1] or rows.dtype != p.dtype or rows.device != p.device:
+            rows = self._rows_buffer = torch.empty(self.A.shape[0], p.shape[1], dtype=p.dtype, device=p.device)
+        return spmm(self.At, spmm(self.A, p, rows), out)
+
+    def coarsened(self, block: torch.Tensor) -> "ProductNormalEquations":
+        """``A P`` (columns summed per ``block``), ``P^T q`` and ``c``; cached for that tensor."""
+        if self._coarse is None or self._coarse[0] is not block:
+            n = int(block.max()) + 1
+            tied = _tie_columns(self.A, block, n)
+            self._coarse = (block, ProductNormalEquations(tied, _transpose(tied),
+                                                          _sum_blocks(self.q, block, n), self.c))
+        return self._coarse[1]
+
+    def jacobi(self) -> "ProductNormalEquations":
+        """The system in ``z = p / scale`` with ``scale = diag(A^T A)^-1/2``: A's columns scaled to unit
+        norm (cached)."""
+        if self._jacobi is None:
+            crow, col, val = self.A.crow_indices(), self.A.col_indices(), self.A.values()
+            norm = torch.zeros(self.A.shape[1], dtype=val.dtype, device=val.device).index_add_(0, col.long(), val * val)
+            s = norm.clamp_min(1e-30).rsqrt()
+            A = csr_tensor(crow, col, val * s[col.long()], self.A.shape)
+            t_crow, t_col, t_val = self.At.crow_indices(), self.At.col_indices(), self.At.values()
+            t_rows = torch.repeat_interleave(torch.arange(self.At.shape[0], device=val.device), t_crow.diff())
+            At = csr_tensor(t_crow, t_col, t_val * s[t_rows], self.At.shape)
+            self._jacobi = ProductNormalEquations(A, At, self.q * s[:, None], self.c, s[:, None])
+        return self._jacobi
+
+    def lipschitz(self, iterations: int = 30) -> float:
+        """An upper bound of the largest eigenvalue of ``A^T A`` (cached), as :meth:`NormalEquations.lipschitz`."""
+        if self._lipschitz is None:
+            x = torch.ones(self.q.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
+            for _ in range(iterations):
+                y = self.product(x)
+                x = y / y.norm().clamp_min(1e-30)
+            y = self.product(x)
+            if float(self.A.values().min()) >= 0 and bool((x > 0).all()):
+                self._lipschitz = float((y / x).max())
+            else:
+                self._lipschitz = 1.05 * float(y.norm() / x.norm())
+        return self._lipschitz
+
+
+def _tie_columns(matrix: torch.Tensor, block: torch.Tensor, n: int) -> torch.Tensor:
+    """CSR ``matrix P``: the columns of each block summed (``block`` :math:`(N_{cols},)` of ``n``)."""
+    crow, col, val = matrix.crow_indices(), matrix.col_indices(), matrix.values()
+    rows = torch.repeat_interleave(torch.arange(matrix.shape[0], device=val.device), crow.diff())
+    return csr_from_coo(rows, block[col.long()], val, (matrix.shape[0], n))
+
+
+def _transpose(matrix: torch.Tensor) -> torch.Tensor:
+    """The CSR transpose of a CSR matrix (its CSC arrays read as CSR)."""
+    csc = matrix.to_sparse_csc()
+    return csr_tensor(csc.ccol_indices(), csc.row_indices(), csc.values(), tuple(matrix.shape)[::-1])
