@@ -32,15 +32,15 @@ import yaml
 from common import machine, write_results
 from matplotlib.figure import Figure
 
-from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
-                                scene_targets, solve_on_light_transport)
+from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, choose_footprint, evaluate_patterns,
+                                light_transport, scene_targets, solve_on_light_transport)
 from torchproj.pipeline.run import build_operators
 from torchproj.scene import load_scene
 from torchproj.scene.procedural import KINDS, parse_suite_name, procedural_config, suite_names
 from torchproj.solve import make_patterns
 
 BOUNDS = (0.0, 1.0)
-MODELS = ("nearest", "bilinear", "area")
+MODELS = ("nearest", "bilinear", "area", "auto")
 
 
 def describe(scene) -> dict:
@@ -59,23 +59,31 @@ def describe(scene) -> dict:
                                 for s in scene.surfaces.values()})}
 
 
-def solve_model(cal, targets, model: str) -> tuple[list, object, float, float]:
-    """Build and solve one model as ``run`` does: (operators, result, build s, solve s, patterns)."""
+def solve_model(cal, targets, model: str) -> tuple:
+    """Build and solve one model as ``run`` does: (operators, result, build s, solve s, patterns, the
+    auto choice or None)."""
     t0 = time.perf_counter()
+    choice = None
     if model == "ceiling":
         rows = build_operators(cal.states, targets, footprint="area", merge=False, colour_weights="grey",
                                device="cpu")[0]
         ops = light_transport(cal.rig, targets, rows)
     else:
-        ops = build_operators(cal.states, targets, footprint=model, merge=model == "nearest", colour_weights="channel",
-                              device="cpu")
+        footprint = model
+        if model == "auto":  # as run_virtual: the choice's time counts as building
+            choice = choose_footprint(cal.states, targets, BOUNDS)
+            footprint = choice.footprint
+        ops = build_operators(cal.states, targets, footprint=footprint, merge=footprint == "nearest",
+                              colour_weights="channel", device="cpu")
     built = time.perf_counter() - t0
     t0 = time.perf_counter()
     if model == "ceiling":
         result, _, patterns = solve_on_light_transport(ops, BOUNDS, cal.responses, max_iter=CEILING_ITERATIONS)
     else:
-        result, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False)
-    return ops, result, built, time.perf_counter() - t0, patterns
+        x0 = choice.start_for(ops[0]) if choice is not None and len(ops) == 1 else None
+        result, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False,
+                                            solver_options=None if x0 is None else {"x0": x0})
+    return ops, result, built, time.perf_counter() - t0, patterns, choice
 
 
 def measure(name: str, models: tuple[str, ...], log=print) -> list[dict]:
@@ -87,11 +95,12 @@ def measure(name: str, models: tuple[str, ...], log=print) -> list[dict]:
     about = describe(scene)
     rows = []
     for model in (*models, "ceiling"):
-        ops, result, built, solved, patterns = solve_model(cal, targets, model)
+        ops, result, built, solved, patterns, choice = solve_model(cal, targets, model)
         scores = evaluate_patterns(cal, patterns, targets, scale=ops[0].scale, paper=False).targets
         rows.append({"scene": name, **about, "model": model, "calibrate_s": round(calibrated, 2),
                      "variables": ops[0].shape[1], "rows": ops[0].shape[0], "nnz": sum(o.nnz for o in ops),
                      "build_s": round(built, 3), "solve_s": round(solved, 3), "iterations": result.iterations,
+                     **({} if choice is None else {"chose": choice.footprint}),
                      "targets": [{"name": s.name, "pixels": s.pixels, "psnr_db": round(s.psnr_db, 3),
                                   "ssim": round(s.ssim, 4)} for s in scores]})
         log(f"{name} {model}: build {built:.2f} s, solve {solved:.2f} s, "
@@ -143,7 +152,8 @@ def markdown(rows: list[dict], totals: list[dict], title: str) -> str:
     for r in rows:
         lines.append(f"| {r['scene']} | {r['kind']} | {r['projectors']} | {r['camera'][0]}x{r['camera'][1]} ({r['samples']}) "
                      f"| {r['pixel_cells']:.2f} | {'yes' if r['channels'] > 1 else ''} | {'yes' if r['defocus'] else ''} "
-                     f"| {r['states']} | {r['model']} | {r['build_s']:.2f} | {r['solve_s']:.2f} | "
+                     f"| {r['states']} | {r['model']}{' (' + r['chose'] + ')' if 'chose' in r else ''} "
+                     f"| {r['build_s']:.2f} | {r['solve_s']:.2f} | "
                      + "; ".join(f"{t['name']} {t['psnr_db']:.2f} / {t['ssim']:.3f}"
                                  + ("" if r["model"] == "ceiling" else f" ({t['gap_db']:+.2f} / {t['gap_ssim']:+.3f})")
                                  for t in r["targets"]) + " |")

@@ -46,9 +46,10 @@ SURFACE = {
         "solve_eo", "solve_fista", "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim",
         "to_projectable"],
     "pipeline": [
-        "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "ORACLES",
+        "AUTO_TOLERANCE_DB", "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy",
+        "EVALUATION", "FootprintChoice", "ORACLES",
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
-        "affine_psnr", "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration",
+        "affine_psnr", "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "choose_footprint",
         "decoding_accuracy", "default_images", "evaluate_patterns", "ghost_images", "light_transport",
         "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image", "simulate_calibration",
         "simulate_markdown", "simulate_scene", "solve_bundle", "solve_on_light_transport", "target_image"],

@@ -194,6 +194,12 @@ def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path,
         reports[footprint] = json.loads((tmp_path / footprint / "report.json").read_text())
         assert reports[footprint]["footprint"] == footprint
     assert reports["bilinear"]["model"]["nnz"] > 2 * reports["nearest"]["model"]["nnz"]
+    # auto chooses from the bundle's own cell shares, and says which and why.
+    assert main(["solve", str(calib), "--targets", "near=astronaut", "far=camera", "--footprint", "auto",
+                 "--out", str(tmp_path / "auto")]) == 0
+    auto = json.loads((tmp_path / "auto" / "report.json").read_text())
+    assert auto["footprint"] == auto["footprint_choice"]["footprint"] in ("nearest", "area")
+    assert set(auto["footprint_choice"]["expected_loss_db"]) == {"near", "far"}
 
 
 @pytest.mark.skipif(not CHESSBOARD.is_dir(), reason=f"real captures not found at {CHESSBOARD} (they live in "

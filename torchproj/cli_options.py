@@ -145,9 +145,11 @@ def solve_options(p) -> None:
     p.add_argument("--psnr-drop", type=float, default=PSNR_DROP_DB, metavar="DB", help="ssim/mixed: the PSNR each "
                    f"target may give up against least squares, in the model (default {PSNR_DROP_DB:g}; -1: no limit)")
     p.add_argument("--ssim-iter", type=int, default=30, metavar="N", help="ssim/mixed: iterations (default 30)")
-    p.add_argument("--footprint", default=DEFAULT_FOOTPRINT, choices=list(FOOTPRINTS), help="the projector cells a "
-                   "camera pixel's light is modelled on: nearest (one per projector, as the paper), bilinear (the four "
-                   f"around its sub-pixel coordinate) or area (those its area covers); default {DEFAULT_FOOTPRINT}")
+    p.add_argument("--footprint", default=DEFAULT_FOOTPRINT, choices=[*FOOTPRINTS, "auto"], help="the projector cells "
+                   "a camera pixel's light is modelled on: nearest (one per projector, as the paper), bilinear (the four "
+                   "around its sub-pixel coordinate), area (those its area covers) or auto (nearest where the measured "
+                   "cell shares put its expected loss within 0.2 dB of a model that holds them, else area; the report "
+                   f"says which and why); default {DEFAULT_FOOTPRINT}")
     p.add_argument("--colour-weights", default="channel", choices=list(COLOUR_WEIGHTS), help="colour camera and "
                    "targets: model each channel with its own white minus black and solve the channels apart (channel, "
                    "default), or give every channel their mean (grey); image objectives use grey")

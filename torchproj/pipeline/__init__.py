@@ -10,6 +10,7 @@ camera and a projector (:func:`capture_sequence`), and solve from its calibratio
 from .acquire import OpenCVCamera, OpenCVDisplay, capture_sequence
 from .real_rig import BundleSolution, solve_bundle
 from .ceiling import light_transport, solve_on_light_transport
+from .footprint import AUTO_TOLERANCE_DB, FootprintChoice, choose_footprint
 from .run import CEILING_ITERATIONS, ORACLES, RunResult, run_markdown, run_virtual
 from .scoring import (EVALUATION, PatternEvaluation, TargetScore, affine_psnr, evaluate_patterns, ghost_images,
                       score_image)
@@ -18,9 +19,9 @@ from .virtual import (DecodingAccuracy, VirtualCalibration, calibrate_rig, calib
                       decoding_accuracy, simulate_calibration, simulate_markdown, simulate_scene)
 
 __all__ = [
-    "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "ORACLES",
+    "AUTO_TOLERANCE_DB", "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "FootprintChoice", "ORACLES",
     "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
-    "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "decoding_accuracy",
+    "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "choose_footprint", "decoding_accuracy",
     "affine_psnr", "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual", "scene_images",
     "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle",
     "solve_on_light_transport", "target_image",

@@ -18,6 +18,7 @@ from ..calib import CalibrationBundle, load_bundle
 from ..core.checks import check
 from ..solve import SolveResult, check_solve_options, image_objective, make_patterns
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, StateCalibration, Target, select_maps, target_on_camera
+from .footprint import AUTO, check_footprint, choose_footprint
 from .run import build_operators, image_objective_report
 from .scoring import score_image
 from .targets import target_image
@@ -85,21 +86,27 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     bundle = bundle if isinstance(bundle, CalibrationBundle) else load_bundle(bundle)
     lo, hi = check_solve_options(solver, bounds_8bit, len(bundle.projectors), outside, chains)
+    check_footprint(footprint)
     wanted = _bundle_targets(bundle, targets)
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
     states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
     if image is not None:
         colour_weights = "grey"  # an image objective couples the channels (run_virtual)
+    choice = None
+    if footprint == AUTO:
+        choice = choose_footprint(states, wanted, (lo, hi), device=device)
+        footprint = choice.footprint
     # Bilinear rows almost never repeat: merging them costs time and saves nothing (run_virtual).
     ops = build_operators(states, wanted, merge=image is None and footprint == "nearest", footprint=footprint,
                           colour_weights=colour_weights, device=device)
     if len(ops) == 1:  # the predicted views follow the weights solved with
         states = {name: dataclasses.replace(s, colour_weight=None) for name, s in states.items()}
     op = ops[0]
+    x0 = choice.start_for(op) if choice is not None and solver == "fista" and len(ops) == 1 else None
     result, light, patterns = make_patterns(ops, solver, (lo, hi), bundle.response_curves(), calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
-                                            chains=chains)
+                                            chains=chains, solver_options=None if x0 is None else {"x0": x0})
     rows, predicted = [], {}
     for t in wanted:
         view = states[t.state].predict(light, bundle.black[t.state], footprint)
@@ -120,5 +127,7 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
         report["image_objective"] = image_objective_report(result)
     if fits is not None:
         report["homographies"] = fits
+    if choice is not None:
+        report["footprint_choice"] = choice.as_dict()
     return BundleSolution(report=report, patterns={name: p for (name, _, _), p in zip(bundle.projectors, patterns)},
                           predicted=predicted, solution=result)

@@ -22,6 +22,7 @@ from ..solve.compensate import iteration_limit, unexplained
 from ..transport import (COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, build_channel_transports, build_transport,
                          has_colour_weights, select_maps)
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
+from .footprint import AUTO, check_footprint, choose_footprint
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
 from .virtual import VirtualCalibration, calibrate_virtual
@@ -112,7 +113,10 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         footprint: the projector cells each camera pixel's light is modelled on: ``"nearest"``
             (one per projector, as the paper), ``"bilinear"`` (the four around its sub-pixel
             coordinate) or ``"area"`` (the cells its area covers, the default:
-            :data:`~torchproj.transport.DEFAULT_FOOTPRINT`; :func:`~torchproj.transport.build_transport`).
+            :data:`~torchproj.transport.DEFAULT_FOOTPRINT`; :func:`~torchproj.transport.build_transport`),
+            or ``"auto"``: the least costly of nearest and area whose expected loss, from the
+            calibration's measured cell shares, is within 0.2 dB (:func:`~torchproj.pipeline.choose_footprint`;
+            ``report.json``'s ``footprint_choice`` says which and why).
         ceiling: also solve the same targets, rows and bounds on the simulator's own light transport
             (FISTA, least squares, to convergence) and score it the same way: each report row gets
             ``ceiling = {psnr_db, ssim}``, the best any calibration could give that target.
@@ -131,6 +135,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains)
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
+    check_footprint(footprint)
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
@@ -140,6 +145,10 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     if fits is not None and cal.homographies is None:
         timings["homography"] = time.perf_counter() - t0
     targets = scene_targets(scene, images, cal.rig)
+    choice = None
+    if footprint == AUTO:
+        choice = choose_footprint(states, targets, bounds, device=device)
+        footprint, timings["footprint"] = choice.footprint, choice.seconds
 
     exact = oracle == "transport"
     if image is not None or gain_offset is not None or exact:
@@ -147,7 +156,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=exact,
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
                               device=device, timings=timings, outside=outside, chains=chains,
-                              solver_options=solver_options, colour_weights=colour_weights)
+                              solver_options=solver_options, colour_weights=colour_weights, start=choice)
     t0 = time.perf_counter()
     evaluation = evaluate_patterns(cal, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
     scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
@@ -160,6 +169,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
     report["footprint"] = footprint
+    if choice is not None:
+        report["footprint_choice"] = choice.as_dict()
     report["colour_weights"] = "channel" if len(solved.ops) > 1 and not exact else "grey"
     report["outside"] = outside
     if solver == "eo":
@@ -213,8 +224,10 @@ def build_operators(states, targets, *, footprint: str, merge: bool, colour_weig
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
                      progress, device, timings, outside, chains, solver_options=None,
-                     colour_weights: str = "grey") -> _Solved:
-    """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve."""
+                     colour_weights: str = "grey", start=None) -> _Solved:
+    """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve.
+    ``start``: a :class:`~torchproj.pipeline.FootprintChoice` whose patterns start a FISTA solve on one
+    operator (``footprint="auto"``)."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A), and with the bilinear or area footprint,
@@ -237,9 +250,11 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
                                                   max_iter, progress, device, footprint, outside)
         ops = [op]
     else:
+        x0 = start.start_for(op) if start is not None and solver == "fista" and len(ops) == 1 else None
+        options = solver_options if x0 is None else {**(solver_options or {}), "x0": x0}
         result, _, patterns = make_patterns(ops, solver, bounds, cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
-                                            chains=chains, solver_options=solver_options)
+                                            chains=chains, solver_options=options)
     timings["solve"] = time.perf_counter() - t0
     return _Solved(result, ops, patterns, model)
 
@@ -366,6 +381,8 @@ def run_markdown(report: dict) -> str:
     m, t = report["model"], report["timings_s"]
     adjusted = "gain_offset_limits" in report
     footprint = report.get("footprint", "nearest")
+    if "footprint_choice" in report:
+        footprint = f"{footprint}, chosen by auto ({report['footprint_choice']['reason']})"
     ceiling = all("ceiling" in r for r in report["targets"]) and bool(report["targets"])
     paper = all("paper" in r for r in report["targets"]) and bool(report["targets"])
     below = report["bounds_8bit"][0] < 0  # only then is there anything to clip or map

@@ -1,0 +1,79 @@
+"""footprint="auto": the choice from the calibration's own shares, checked against the captures it predicts."""
+
+import json
+
+import pytest
+import yaml
+
+from torchproj.cli import main
+from torchproj.core import InputError
+from torchproj.pipeline import calibrate_virtual, choose_footprint, run_virtual, scene_targets
+from torchproj.scene import builtin_config, load_scene, parse_scene, scale_config
+
+
+def _fine_camera():
+    """The paper's rig seen by a camera whose pixels are a seventh of a cell across: each pixel's light
+    stays on one cell, and nearest has nothing to lose."""
+    data = scale_config(yaml.safe_load(builtin_config("paper_two_planes").read_text()), camera=(800, 600),
+                        projector=(128, 96))
+    data["camera"]["supersampling"] = 1
+    return parse_scene(data, name="fine_camera")
+
+
+def test_auto_keeps_nearest_where_the_shares_say_a_pixel_sees_one_cell():
+    scene = _fine_camera()
+    cal = calibrate_virtual(scene, progress=False)
+    choice = choose_footprint(cal.states, scene_targets(scene, None, cal.rig))
+    assert choice.footprint == "nearest"
+    assert max(choice.expected_loss_db.values()) < 0.2 and "within 0.2 dB" in choice.reason
+    # The captures agree: area gains no more than the tolerance over nearest.
+    runs = {fp: run_virtual(scene, footprint=fp, calibration=cal, progress=False) for fp in ("auto", "nearest", "area")}
+    assert runs["auto"].report["footprint"] == "nearest"
+    assert runs["auto"].report["footprint_choice"]["footprint"] == "nearest"
+    for near, area in zip(runs["nearest"].report["targets"], runs["area"].report["targets"]):
+        assert area["psnr_db"] - near["psnr_db"] < 0.2
+
+
+def test_auto_takes_area_where_pixels_span_cells_and_says_why():
+    """A suite scene whose camera pixels cover about a projector cell: nearest's expected loss is
+    over the tolerance, and the captures show it losing more than that."""
+    scene = load_scene("suite-7-1")
+    cal = calibrate_virtual(scene, progress=False)
+    choice = choose_footprint(cal.states, scene_targets(scene, None, cal.rig))
+    assert choice.footprint == "area"
+    worst = max(choice.expected_loss_db, key=choice.expected_loss_db.get)
+    assert choice.expected_loss_db[worst] > 0.2 and worst in choice.reason
+    auto = run_virtual(scene, footprint="auto", calibration=cal, progress=False)
+    near = run_virtual(scene, footprint="nearest", calibration=cal, progress=False)
+    assert auto.report["footprint"] == "area" and "footprint" in auto.report["timings_s"]
+    target = [t["name"] for t in auto.report["targets"]].index(worst)
+    assert auto.report["targets"][target]["psnr_db"] - near.report["targets"][target]["psnr_db"] > 0.2
+
+
+def test_auto_keeps_the_richest_where_no_shares_were_measured():
+    scene = load_scene("paper_two_planes", scale=0.25)
+    cal = calibrate_virtual(scene, progress=False, bits=3)
+    choice = choose_footprint(cal.states, scene_targets(scene, None, cal.rig))
+    assert choice.footprint == "area" and choice.expected_loss_db is None and "no cell shares" in choice.reason
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), "0.2"])
+def test_a_bad_tolerance_is_refused(quarter_rig, bad):
+    scene, cal = quarter_rig
+    with pytest.raises(InputError, match="tolerance_db"):
+        choose_footprint(cal.states, scene_targets(scene, None, cal.rig), tolerance_db=bad)
+
+
+def test_an_unknown_footprint_is_refused_before_any_work(quarter_rig):
+    scene, cal = quarter_rig
+    with pytest.raises(InputError, match="footprint must be one of"):
+        run_virtual(scene, footprint="widest")
+
+
+def test_the_command_reports_the_choice(tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", "suite-7-2", "--footprint", "auto", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["footprint"] in ("nearest", "area")
+    assert report["footprint_choice"]["footprint"] == report["footprint"]
+    assert "chosen by auto" in (out / "report.md").read_text()

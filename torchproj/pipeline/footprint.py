@@ -1,0 +1,175 @@
+"""``footprint="auto"``: the least costly model of a pixel's light whose expected loss is within a tolerance.
+
+The models, cheapest first: ``nearest`` (one cell per pixel and projector, the paper's; rows merge),
+then ``area`` (the cells the pixel's area covers, fitted to the shares its captures measured: the
+richest, and several times the cost to build and solve). ``bilinear`` is not on the ladder: on the
+procedural suite it costs about twice nearest and stays 2.3 dB (median) short of area
+(``benchmarks/suite.py``).
+
+What nearest loses is measured by the calibration itself, not by the simulator: every full-sequence
+calibration keeps, per pixel, the share of its light that came from across each edge of its cell
+(:class:`~torchproj.calib.CellShares`). Nearest's row puts all of it on one cell. So the patterns
+nearest solves are carried through both rows, nearest's and the measured shares' (the decoded cell
+and its four neighbours by their shares), and their difference on the targets' pixels is the error
+nearest's model makes on its own patterns. Against what nearest leaves unexplained anyway (its
+residual to the targets), it gives each target's expected loss in PSNR,
+``10 log10(1 + mean(difference^2) / mean(residual^2))``. Where every target's is within
+``tolerance_db``, nearest is chosen; else area. Our rule (the paper models one cell per pixel):
+where the shares say that a pixel's light stays on one cell, a richer model has nothing to add.
+
+Where no shares were measured (a shortened Gray-code sequence, maps from homographies, a bundle
+written without them) nothing tells the models apart from the captures, and area is chosen.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from ..core.checks import check
+from ..core.sparse import spmm
+from ..solve import solve_fista
+from ..solve.compensate import iteration_limit
+from ..transport import FOOTPRINTS, StateCalibration, Target, TransportOperator, build_transport, csr_from_coo
+
+__all__ = ["AUTO", "AUTO_TOLERANCE_DB", "FootprintChoice", "check_footprint", "choose_footprint"]
+
+AUTO = "auto"
+# The loss against the richest model that auto accepts for a cheaper one: the issue's "within 0.2 dB".
+AUTO_TOLERANCE_DB = 0.2
+
+
+def check_footprint(footprint: str) -> None:
+    """``footprint`` names a model of :data:`~torchproj.transport.FOOTPRINTS` or ``"auto"`` (checked
+    before any work)."""
+    check(footprint in (*FOOTPRINTS, AUTO), f"footprint must be one of {[*FOOTPRINTS, AUTO]}, got {footprint!r}")
+
+
+@dataclass
+class FootprintChoice:
+    """What :func:`choose_footprint` chose and why.
+
+    Attributes:
+        footprint: ``"nearest"`` or ``"area"``.
+        expected_loss_db: per target name, nearest's expected PSNR loss against a model that holds
+            the measured shares (None where no shares were measured).
+        tolerance_db: the loss accepted.
+        seconds: time the choice took (nearest built and solved once).
+        reason: one sentence for the report.
+    """
+
+    footprint: str
+    expected_loss_db: dict[str, float] | None
+    tolerance_db: float
+    seconds: float
+    reason: str = ""
+    nearest: dict = field(default_factory=dict)
+    _start: tuple | None = field(default=None, repr=False)  # nearest's patterns and their columns' (projector, cell)
+
+    def start_for(self, op: TransportOperator) -> torch.Tensor | None:
+        """Nearest's solved patterns on ``op``'s columns (mid-grey where nearest had no such cell),
+        :math:`(N_{cols}, C)`: a start for the chosen model's solve, which then skips its coarse
+        levels (on suite scenes about the time nearest's own solve took). None where nothing was solved
+        or the channels differ."""
+        if self._start is None:
+            return None
+        patterns, projector, cell, middle = self._start
+        if patterns.shape[1] != op.channels:
+            return None
+        starts = torch.tensor([0] + [w * h for w, h in op.projector_sizes], device=patterns.device).cumsum(0)
+        table = torch.full((int(starts[-1]), patterns.shape[1]), middle, dtype=patterns.dtype, device=patterns.device)
+        table[starts[projector] + cell] = patterns
+        return table[starts[op.column_projector.to(patterns.device)] + op.column_cell.to(patterns.device)].to(op.val)
+
+    def as_dict(self) -> dict:
+        return {"footprint": self.footprint, "tolerance_db": self.tolerance_db, "seconds": round(self.seconds, 3),
+                "expected_loss_db": None if self.expected_loss_db is None else
+                {k: round(v, 3) for k, v in self.expected_loss_db.items()}, "reason": self.reason}
+
+
+def choose_footprint(states: dict[str, StateCalibration], targets: list[Target], bounds: tuple[float, float] = (0.0, 1.0),
+                     *, tolerance_db: float = AUTO_TOLERANCE_DB, device="cpu") -> FootprintChoice:
+    """The least costly footprint whose expected loss is within ``tolerance_db`` of the richest
+    (module docstring): ``nearest`` or ``area``.
+
+    Args:
+        states: state name -> :class:`~torchproj.transport.StateCalibration`, as for
+            :func:`~torchproj.transport.build_transport`.
+        targets: the targets to be solved.
+        bounds: the solver's box, linear light.
+        tolerance_db: the expected PSNR loss (dB, >= 0) a cheaper model may have on any target.
+    """
+    check(isinstance(tolerance_db, (int, float)) and math.isfinite(tolerance_db) and tolerance_db >= 0,
+          f"tolerance_db must be a number >= 0 (dB), got {tolerance_db!r}")
+    t0 = time.perf_counter()
+    used = {t.state for t in targets}
+    if any(states[s].shares is None for s in used if s in states):
+        return FootprintChoice("area", None, tolerance_db, time.perf_counter() - t0,
+                               "area: no cell shares were measured (a shortened Gray-code sequence, homography maps "
+                               "or a bundle without them), so nothing tells the models apart; the richest is kept")
+    op = build_transport(states, targets, footprint="nearest", merge=False, device=device)
+    result = solve_fista(op, bounds, progress=False, **iteration_limit(None))
+    with torch.no_grad():
+        nearest = op.A(result.patterns)
+        measured = spmm(_share_rows(states, targets, op), result.patterns)
+    loss = {}
+    for k, target in enumerate(targets):
+        rows = op.row_target == k
+        residual = float((nearest[rows] - op.rhs[rows]).double().pow(2).mean())
+        difference = float((measured[rows] - nearest[rows]).double().pow(2).mean())
+        loss[target.name or f"target{k}"] = 10 * math.log10(1 + difference / max(residual, 1e-30))
+    worst = max(loss, key=loss.get)
+    if loss[worst] <= tolerance_db:
+        footprint = "nearest"
+        reason = (f"nearest: the measured cell shares put nearest's expected loss at {loss[worst]:.2f} dB at most "
+                  f"({worst}), within {tolerance_db:g} dB")
+    else:
+        footprint = "area"
+        reason = (f"area: the measured cell shares put nearest's expected loss at {loss[worst]:.2f} dB on {worst}, over "
+                  f"{tolerance_db:g} dB")
+    return FootprintChoice(footprint, loss, tolerance_db, time.perf_counter() - t0, reason,
+                           {"iterations": result.iterations, "objective": result.objective},
+                           (result.patterns, op.column_projector, op.column_cell, 0.5 * (bounds[0] + bounds[1])))
+
+
+def _share_rows(states: dict[str, StateCalibration], targets: list[Target], op: TransportOperator) -> torch.Tensor:
+    """CSR, ``op``'s rows (camera pixels) as the measured shares place each pixel's light: on its share cell
+    ``n`` the share not measured across an edge, on each neighbour ``n +- 1`` along x and y the share
+    measured across that edge, each times the projector's weight; over ``op``'s columns (a cell that
+    is no column is black in every pattern of ``op``)."""
+    sizes = op.projector_sizes
+    starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
+    column = torch.full((int(starts[-1]),), -1, dtype=torch.int64)
+    column[starts[op.column_projector.cpu()] + op.column_cell.cpu()] = torch.arange(op.shape[1])
+    rows, cols, vals = [], [], []
+    for k, target in enumerate(targets):
+        which = torch.nonzero(op.row_target.cpu() == k)[:, 0]
+        pixels = op.row_pixel.cpu()[which]
+        state = states[target.state]
+        for j, (w, h) in enumerate(sizes):
+            shares, weight = state.shares[j], state.weight[j].reshape(-1)[pixels].float()
+            cell = shares.cell.reshape(-1, 2)[pixels].long()
+            nearest = torch.floor(state.prj_xy[j].reshape(-1, 2)[pixels] + 0.5)
+            known = (cell >= 0).all(-1)
+            # A pixel without a share cell (filled holes, dim light) keeps its nearest cell whole.
+            cell = torch.where(known[:, None], cell, torch.nan_to_num(nearest, nan=-1).long())
+            across = torch.nan_to_num(shares.across.reshape(-1, 2, 2)[pixels].float(), nan=0.0)
+            across = torch.where(known[:, None, None], across, 0.0)
+            parts = [(cell, 1 - across.sum((1, 2)))]
+            for axis in (0, 1):
+                for side, step in enumerate((-1, 1)):
+                    moved = cell.clone()
+                    moved[:, axis] += step
+                    parts.append((moved, across[:, axis, side]))
+            for at, share in parts:
+                inside = (at[:, 0] >= 0) & (at[:, 0] < w) & (at[:, 1] >= 0) & (at[:, 1] < h) & (share > 0)
+                inside &= torch.isfinite(weight) & (weight > 0)
+                col = torch.where(inside, column[starts[j] + (at[:, 1] * w + at[:, 0]).clamp(0, w * h - 1)], -1)
+                keep = col >= 0
+                rows.append(which[keep])
+                cols.append(col[keep])
+                vals.append((weight * share)[keep])
+    return csr_from_coo(torch.cat(rows), torch.cat(cols), torch.cat(vals), op.shape).to(op.val.device)
