@@ -331,6 +331,10 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
         torch.testing.assert_close(xy, torch.where(dim[..., None], direct.dim_xy, direct.prj_xy), equal_nan=True)
         for field in ("cell", "across", "outside"):
             torch.testing.assert_close(getattr(shares, field), getattr(direct.shares, field), equal_nan=True)
+    # Each map's defocus disc comes back as calibration measured it.
+    for blur, (name, _, _) in zip(state.blur, load_bundle(calib).projectors):
+        direct = calibrate_projector(read_graycode_folder(root / "together" / name, (256, 192)), (256, 192))
+        torch.testing.assert_close(blur, direct.blur, equal_nan=True)
     path = calib / "together" / f"{names[0]}.npz"
     arrays = dict(np.load(path))
     np.savez_compressed(path, **{k: v for k, v in arrays.items() if not k.startswith(("edge_", "share_"))})
@@ -340,7 +344,9 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
                             ({"share_across": arrays["share_across"] + 1.5}, "cell shares' across must lie in"),
                             ({"share_outside": None}, "holds .* but not every share_\\* array"),
                             ({"share_checker": np.zeros((5, 5), np.float32)}, "'share_checker' has shape"),
-                            ({"share_checker": np.full((240, 320), 2.0, np.float32)}, "checker must lie in")):
+                            ({"share_checker": np.full((240, 320), 2.0, np.float32)}, "checker must lie in"),
+                            ({"blur": np.full((240, 320), -1.0, np.float32)}, "'blur' must hold defocus diameters"),
+                            ({"blur": np.full((240, 320), np.inf, np.float32)}, "'blur' must hold defocus diameters")):
         np.savez_compressed(path, **{k: v for k, v in {**arrays, **broken}.items() if v is not None})
         with pytest.raises(CaptureError, match=f"{names[0]}.npz: .*{message}"):
             load_bundle(calib)

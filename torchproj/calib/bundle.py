@@ -33,9 +33,10 @@ colour camera also ``colour_contrast``, white minus black per channel ``(C, H, W
 ``contrast``; bundles without it give every channel the grey weight; from a full sequence also
 ``edge_pixel``, ``edge_xy``, ``edge_slope``, ``edge_share``, the :class:`~torchproj.calib.EdgePixels`,
 and ``share_cell``, ``share_across``, ``share_outside`` (and, where a checkerboard pair was measured,
-``share_checker``), the :class:`~torchproj.calib.CellShares`, and ``dim_xy``,
-the dimly lit pixels' coordinates (:attr:`~torchproj.calib.ProjectorCalibration.dim_xy`); bundles without them
-model no edge pixel, fit no row to measured shares and add no dim light to rows) and
+``share_checker``), the :class:`~torchproj.calib.CellShares`, ``dim_xy``,
+the dimly lit pixels' coordinates (:attr:`~torchproj.calib.ProjectorCalibration.dim_xy`), and ``blur``, each
+pixel's defocus disc in cells (:attr:`~torchproj.calib.ProjectorCalibration.blur`); bundles without them
+model no edge pixel, fit no row to measured shares, add no dim light to rows and take every lens as sharp) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
 Bundles from shortened sequences also record ``graycode_bits`` (per projector) and ``homographies``
 (per state and projector, :meth:`~torchproj.calib.HomographyFit.as_dict`).
@@ -302,6 +303,8 @@ def _maps(cal: ProjectorCalibration) -> dict:
             maps["share_checker"] = cal.shares.checker
     if cal.dim_xy is not None:
         maps["dim_xy"] = cal.dim_xy
+    if cal.blur is not None:
+        maps["blur"] = cal.blur.float()
     return maps
 
 
@@ -411,7 +414,7 @@ def _bundle_from_meta(folder: Path, meta: dict) -> CalibrationBundle:
             arrays = _read_npz(folder / meta["files"][state][name], {"prj_xy": (*camera, 2), "valid": camera,
                                                                      "contrast": camera},
                                optional={"colour_contrast": (channels, *camera), "dim_xy": (*camera, 2),
-                                         "share_checker": tuple(camera)})
+                                         "share_checker": tuple(camera), "blur": tuple(camera)})
             _check_parts(arrays, camera, (w, h), folder / meta["files"][state][name])
             for key in (k for k in ("prj_xy", "dim_xy") if k in arrays):
                 xy = arrays[key]
@@ -453,6 +456,10 @@ def _check_parts(arrays: dict, camera: tuple[int, int], size: tuple[int, int], p
             check_part(read(arrays))
         except InputError as exc:
             raise CaptureError(f"{exc}; calibrate again") from None
+    blur = arrays.get("blur")
+    if blur is not None and bool((torch.isinf(blur) | (blur < 0)).any()):
+        raise CaptureError(f"{path}: 'blur' must hold defocus diameters in cells, 0 or more (NaN where unknown); "
+                           "calibrate again")
 
 
 def _size(value, where: str) -> tuple[int, int]:
@@ -465,7 +472,7 @@ def _size(value, where: str) -> tuple[int, int]:
     return value[0], value[1]
 
 
-_MAY_BE_NAN = ("prj_xy", "dim_xy", "share_across", "share_outside", "share_checker")  # maps that mark unknown pixels with NaN
+_MAY_BE_NAN = ("prj_xy", "dim_xy", "share_across", "share_outside", "share_checker", "blur")  # maps that mark unknown pixels with NaN
 
 
 def _read_npz(path: Path, shapes: dict[str, tuple[int, ...]],

@@ -14,6 +14,7 @@ from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_
                        graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
+from .blur import measure_blur
 from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_response, measure_ramp
 
@@ -74,6 +75,10 @@ class ProjectorCalibration:
             dimly to count as lit (white minus black between the dim and the shadow threshold,
             :data:`DIM_THRESHOLD`) whose code still reads, refined and filled as ``prj_xy``; NaN
             elsewhere (and wherever ``prj_xy`` is known). From a full sequence; None for a shortened one.
+        blur: :math:`(H, W)` the projector's defocus disc at each pixel, diameter in cells
+            (:func:`~torchproj.calib.measure_blur` on the finest stripes; NaN where it could not
+            tell), which the ``area`` footprint spreads rows over where it is a cell or wider. From
+            a full sequence; None for a shortened one.
     """
 
     decoding: GrayDecoding
@@ -88,6 +93,7 @@ class ProjectorCalibration:
     edges: EdgePixels | None = None
     shares: CellShares | None = None
     dim_xy: torch.Tensor | None = None
+    blur: torch.Tensor | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
@@ -169,12 +175,19 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     if max_hole:
         cam_xy = fill_holes(cam_xy, max_hole)
     timings["maps"] = time.perf_counter() - t0
-    edges = None
+    edges = blur = None
     if fit is None:
         t0 = time.perf_counter()
         edges = find_edge_pixels(capture.patterns, capture.white, capture.black,
                                  torch.where(torch.isfinite(prj_xy), prj_xy, dim_xy), projector_size)
         timings["edges"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        # A lens focused elsewhere spreads each cell over a disc; the finest stripes show how wide.
+        # Blur follows depth, smooth on a surface: about 2,500 samples per map are read.
+        height, width = prj_xy.shape[:2]
+        blur = measure_blur(capture.patterns, capture.white, capture.black, prj_xy, projector_size,
+                            step=max(8, round((height * width / 2500) ** 0.5)))
+        timings["blur"] = time.perf_counter() - t0
     response = ramp = None
     if capture.ramp is not None:
         t0 = time.perf_counter()
@@ -198,7 +211,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         timings["stripes"] = time.perf_counter() - t0
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
-                                edges=edges, shares=shares, dim_xy=dim_xy)
+                                edges=edges, shares=shares, dim_xy=dim_xy, blur=blur)
 
 
 def _partial_shares(capture: GraycodeCapture, seen: GrayDecoding, shares: CellShares, mapped: torch.Tensor,

@@ -39,7 +39,7 @@ from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor
 from .operator import TransportOperator
 
-__all__ = ["COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
+__all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
            "build_transport", "build_channel_transports", "group_rows", "has_colour_weights", "map_slope"]
 
 # A colour camera's weights: one white minus black per channel (build_channel_transports), or their
@@ -65,6 +65,16 @@ _AREA_SAMPLES = 4
 # benchmarks/models.py (README "The ceiling").
 _STEEP_EXTENT, _STEEP_SAMPLES = 1.0, 12
 _AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
+# Defocus discs narrower than this (cells) are taken as sharp: measure_blur reads diameters in half
+# cells, and a half-cell disc inside a pixel's own footprint changes its row by less than its share of
+# the captures' noise; spreading such rows cost a focused plane 0.56 dB on a suite scene (suite-3-3's
+# near state, measured 0.5 where the lens is focused).
+BLUR_MIN = 1.0
+# Points per axis of a blurred row's square where the pixel spans a cell or less, each spread over up
+# to 16 points of its disc (wider pixels keep _AREA_SAMPLES): on paper_defocus at half scale (0.6-cell
+# pixels) 2 x 2 scores as 4 x 4 (within 0.01 dB) and builds in 3.0 s against 8.7 s; on the suite's
+# seed 3 (0.7-1.8-cell pixels) 2 x 2 everywhere cost 0.2-0.45 dB.
+_BLUR_SAMPLES = 2
 # Sweeps of _fit_shares over a row's four measured shares: the x and y conditions nearly separate,
 # so on box_cylinders and paper_two_planes a second or third sweep moves no score by more than
 # 0.02 dB or 0.001 SSIM (benchmarks/models.py --share-sweeps 2 3). A row with less than _SHARE_TOL
@@ -95,8 +105,9 @@ class StateCalibration:
         projector_sizes: ``(width, height)`` per projector.
         blur: None, or per projector :math:`(H, W)` the diameter in cells of the disc over which a
             defocused lens spreads each cell's light where that pixel looks (0 = in focus; NaN
-            where unknown, taken as 0), e.g. :func:`torchproj.calib.measure_blur`. Only the
-            ``area`` footprint uses it.
+            where unknown, taken as 0), e.g. :func:`torchproj.calib.measure_blur`, which every
+            full-sequence calibration runs (:attr:`~torchproj.calib.ProjectorCalibration.blur`).
+            Only the ``area`` footprint uses it, where it is :data:`BLUR_MIN` cells or wider.
         colour_weight: None, or per projector :math:`(C, H, W)` white minus black per camera
             channel (``weight`` is their mean), e.g.
             :attr:`torchproj.calib.ProjectorCalibration.colour_contrast`. Where the surfaces are
@@ -145,6 +156,8 @@ class StateCalibration:
                                                         for c in calibrations) else None
         shares = [c.shares for c in calibrations] if all(getattr(c, "shares", None) is not None
                                                           for c in calibrations) else None
+        blur = [c.blur for c in calibrations] if all(getattr(c, "blur", None) is not None
+                                                    for c in calibrations) else None
         if weighting == "radiometric":
             weight = [c.decoding.contrast.clamp_min(0) for c in calibrations]
             if all(getattr(c, "colour_contrast", None) is not None for c in calibrations):
@@ -155,7 +168,7 @@ class StateCalibration:
             from .geometric import geometric_weights
 
             weight = geometric_weights(prj_xy, camera, projectors)
-        return cls(prj_xy, weight, sizes, colour_weight=colour, edges=edges, shares=shares, dim=dim)
+        return cls(prj_xy, weight, sizes, blur=blur, colour_weight=colour, edges=edges, shares=shares, dim=dim)
 
     @classmethod
     def from_bundle(cls, bundle) -> dict[str, "StateCalibration"]:
@@ -172,7 +185,8 @@ class StateCalibration:
         for name, maps in bundle.states.items():
             prj_xy, dim = _with_dim([m["prj_xy"] for m in maps], [m.get("dim_xy") for m in maps])
             states[name] = cls(prj_xy, [m["contrast"].clamp_min(0) for m in maps], sizes, colour_weight=colour(maps),
-                               edges=every(edge_pixels, maps), shares=every(cell_shares_of, maps), dim=dim)
+                               edges=every(edge_pixels, maps), shares=every(cell_shares_of, maps), dim=dim,
+                               blur=every(lambda m: m.get("blur"), maps))
         return states
 
     def predict(self, light: list[torch.Tensor], black: torch.Tensor, footprint: str = "nearest") -> torch.Tensor:
@@ -321,23 +335,31 @@ def _area_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tu
     ``_STEEP_SAMPLES`` squared where the square spans more than ``_STEEP_EXTENT`` cells along a
     projector axis): :math:`(N, s)` each.
 
-    With ``blur`` :math:`(N,)` (disc diameters in cells), each sample also spreads over its disc:
-    the light a pixel sees through a defocused lens is the mean of the cells within that circle.
-    Blurred rows keep ``_AREA_SAMPLES`` squared points: each is already spread over up to hundreds of
-    disc points, and a finer square was not measured on ``paper_defocus``."""
-    blurred = blur is not None and blur.numel() > 0
-    # Cells per camera pixel along the wider projector axis: the square's extent through the slope.
-    steep = None if blurred or not fine or _STEEP_SAMPLES == _AREA_SAMPLES else slope.abs().sum(-1).amax(-1) > _STEEP_EXTENT
-    if steep is None or not bool(steep.any()):
-        return _sampled_cells(u, slope, ok, size, blur, _AREA_SAMPLES)
-    rows = [torch.nonzero(~steep)[:, 0], torch.nonzero(steep)[:, 0]]
-    # Steep rows in smaller chunks: their samples' temporaries as large as the other rows'.
-    step = max(1, _AREA_CHUNK * _AREA_SAMPLES ** 2 // _STEEP_SAMPLES ** 2)
-    parts = [_sampled_cells(u[rows[0]], slope[rows[0]], ok[rows[0]], size, None, _AREA_SAMPLES)]
-    parts += [_sampled_cells(u[i], slope[i], ok[i], size, None, _STEEP_SAMPLES) for i in rows[1].split(step)]
+    With ``blur`` :math:`(N,)` (disc diameters in cells), each sample of a row whose disc is
+    ``BLUR_MIN`` cells or wider also spreads over its disc: the light a pixel sees through a
+    defocused lens is the mean of the cells within that circle. Narrower discs are taken as sharp
+    (:attr:`StateCalibration.blur`). Blurred rows of pixels that span a cell or less take
+    ``_BLUR_SAMPLES`` squared points, each already spread over up to 16 disc points."""
+    blurred = torch.zeros_like(ok) if blur is None or not blur.numel() else blur >= BLUR_MIN
+    extent = slope.abs().sum(-1).amax(-1)  # cells per camera pixel along the wider projector axis
+    steep = torch.zeros_like(ok) if not fine or _STEEP_SAMPLES == _AREA_SAMPLES else (extent > _STEEP_EXTENT) & ~blurred
+    plain = ~blurred & ~steep
+    if bool(plain.all()):
+        return _sampled_cells(u, slope, ok, size, None, _AREA_SAMPLES)
+    # Steep and blurred rows in smaller passes: their samples' temporaries as large as the others'.
+    # (rows, blur or None, samples, rows per pass)
+    groups = [(torch.nonzero(plain)[:, 0], None, _AREA_SAMPLES, _AREA_CHUNK),
+              (torch.nonzero(steep)[:, 0], None, _STEEP_SAMPLES, max(1, _AREA_CHUNK * _AREA_SAMPLES ** 2 // _STEEP_SAMPLES ** 2)),
+              (torch.nonzero(blurred & (extent <= 1))[:, 0], blur, _BLUR_SAMPLES, _BLUR_CHUNK),
+              (torch.nonzero(blurred & ~(extent <= 1))[:, 0], blur, _AREA_SAMPLES, _BLUR_CHUNK)]
+    parts, order = [], []
+    for rows, disc, samples, step in groups:
+        for i in rows.split(step):
+            parts.append(_sampled_cells(u[i], slope[i], ok[i], size, None if disc is None else disc[i], samples))
+            order.append(i)
     cells, values = _stack_rows([c for c, _ in parts], [v for _, v in parts])
-    order = torch.argsort(torch.cat(rows))  # back to the rows' own order
-    return cells[order], values[order]
+    back = torch.argsort(torch.cat(order))  # back to the rows' own order
+    return cells[back], values[back]
 
 
 def _sampled_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size: tuple[int, int],
@@ -598,8 +620,9 @@ def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int]
         u = torch.nan_to_num(prj_xy, nan=-10.0)
         known = torch.isfinite(slope).all(-1).all(-1)
         slope = torch.where(known[:, None, None], slope, 0.0)
-        # Rows go in chunks, so the samples' temporaries (16 per row, up to 16 x 16 blurred) stay small.
-        step = _AREA_CHUNK if blur is None else _BLUR_CHUNK
+        # Rows go in chunks, so the samples' temporaries (16 per row; blurred and steep rows in smaller
+        # passes, _area_cells) stay small.
+        step = _AREA_CHUNK
         parts = [_area_cells(u[i:i + step], slope[i:i + step], ok[i:i + step], size,
                              None if blur is None else blur[i:i + step], fine) for i in range(0, max(u.shape[0], 1), step)]
         cells, share = _stack_rows([c for c, _ in parts], [v for _, v in parts])
