@@ -1,0 +1,75 @@
+"""The default model against the exact-light ceiling on procedural scenes nobody tuned for.
+
+The suite's seed here (11) is not one the model was developed on (0, 1, 3 and 2026 were studied).
+``python benchmarks/suite.py --seed S`` measures any other; README "Scenes nobody tuned for" gives
+seed 1's table. The issue's goal (every target within 0.5 dB and 0.02 SSIM of the ceiling) is not met
+on every scene: the bounds below are the regression line, and the README says where and why.
+"""
+
+import dataclasses
+import statistics
+
+import pytest
+
+from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
+                                scene_targets, solve_on_light_transport)
+from torchproj.pipeline.run import build_operators
+from torchproj.scene import load_scene
+from torchproj.solve import make_patterns
+
+BOUNDS = (0.0, 1.0)
+# suite-11-3 (one projector, two states) leaves 19% of its targets unexplained, and run says so: the
+# suite holds ill-posed scenes as users bring them.
+pytestmark = pytest.mark.filterwarnings("ignore:the patterns leave:UserWarning")
+
+
+def _scores(cal, targets, footprint=None, states=None):
+    """Each target's captured (PSNR, SSIM): a model solved as ``run`` solves it, or the ceiling."""
+    states = cal.states if states is None else states
+    if footprint is None:
+        rows = build_operators(states, targets, footprint="area", merge=False, colour_weights="grey", device="cpu")[0]
+        ops = light_transport(cal.rig, targets, rows)
+        _, _, patterns = solve_on_light_transport(ops, BOUNDS, cal.responses, max_iter=CEILING_ITERATIONS)
+    else:
+        ops = build_operators(states, targets, footprint=footprint, merge=footprint == "nearest",
+                              colour_weights="channel", device="cpu")
+        _, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False)
+    return [(s.psnr_db, s.ssim) for s in evaluate_patterns(cal, patterns, targets, scale=ops[0].scale, paper=False).targets]
+
+
+@pytest.fixture(scope="module")
+def suite():
+    out = {}
+    for index in range(4):  # one scene of each kind
+        scene = load_scene(f"suite-11-{index}")
+        cal = calibrate_virtual(scene, progress=False)
+        targets = scene_targets(scene, None, cal.rig)
+        out[scene.name] = {model: _scores(cal, targets, model) for model in ("nearest", "area", None)}
+    return out
+
+
+def test_the_default_model_is_near_the_ceiling_on_unseen_scenes(suite):
+    gaps, ssim = [], []
+    for name, runs in suite.items():
+        for (near, _), (area, area_ssim), (top, top_ssim) in zip(runs["nearest"], runs["area"], runs[None]):
+            assert area > near - 0.1, f"{name}: area {area:.2f} dB below the paper's nearest cell {near:.2f} dB"
+            gaps.append(top - area)
+            ssim.append(top_ssim - area_ssim)
+    assert statistics.median(gaps) <= 0.5, gaps
+    assert max(ssim) <= 0.02, ssim
+    assert max(gaps) <= 3.0, gaps  # the goal is 0.5 dB: README "Scenes nobody tuned for" says what is missed
+
+
+def test_the_measured_defocus_brings_a_blurred_state_to_its_ceiling():
+    """suite-3-3: every projector focused on the near state; the far one, 14 cm behind, gets each cell's
+    light over discs 1.5-2.5 cells wide. Without the measured blur its solid lost 4 dB."""
+    scene = load_scene("suite-3-3")
+    cal = calibrate_virtual(scene, progress=False)
+    targets = scene_targets(scene, None, cal.rig)
+    assert all(b is not None for st in cal.states.values() for b in st.blur)
+    sharp = {name: dataclasses.replace(st, blur=None) for name, st in cal.states.items()}
+    far = [k for k, t in enumerate(targets) if t.state == "far"]
+    with_blur, without, top = (_scores(cal, targets, "area"), _scores(cal, targets, "area", sharp), _scores(cal, targets))
+    for k in far:
+        assert with_blur[k][0] > without[k][0] + 1.0
+        assert top[k][0] - with_blur[k][0] < 1.0
