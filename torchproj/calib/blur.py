@@ -31,6 +31,8 @@ __all__ = ["measure_blur"]
 _DIAMETERS = torch.arange(0, 12.25, 0.5)
 _AREA = 4  # points per axis across a camera pixel's square, as the area footprint
 _DISC = 16  # points of the disc (Vogel spiral), as the virtual rig samples a circle of confusion
+# Neighbouring samples whose diameters differ by less than this (cells) are taken as one surface's.
+_AGREE = 1.0
 
 
 def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
@@ -98,24 +100,33 @@ def _on_the_surface(grid: torch.Tensor, at: torch.Tensor, ys: torch.Tensor, xs: 
     and on a focused object before a defocused wall a median over both gave a fifth to a half of the
     object's pixels a disc a cell wide and more (``suite-3-0``). A sample is on the pixel's surface
     where the map carries the pixel there: its projector coordinate is within a cell (and a quarter of
-    the way, for curvature) of the pixel's own carried through its slope."""
+    the way, for curvature) of the pixel's own carried through its slope. Where the 3 x 3 samples
+    agree within ``_AGREE`` cells (all of a sharp scene, the inside of a blurred surface) they are one
+    surface's, and the pixel takes their median without the test."""
     H, W = prj_xy.shape[:2]
     device = prj_xy.device
     rows = torch.clamp(torch.arange(H, device=device) // step, max=grid.shape[0] - 1)
     cols = torch.clamp(torch.arange(W, device=device) // step, max=grid.shape[1] - 1)
-    py, px = torch.meshgrid(torch.arange(H, device=device, dtype=torch.float32),
-                            torch.arange(W, device=device, dtype=torch.float32), indexing="ij")
-    known = torch.isfinite(slope).all(-1).all(-1)
-    candidates = []
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            r = (rows + dy).clamp(0, grid.shape[0] - 1)[:, None].expand(H, W)
-            c = (cols + dx).clamp(0, grid.shape[1] - 1)[None, :].expand(H, W)
-            offset = torch.stack([xs[c].float() - px, ys[r].float() - py], -1)  # camera pixels, (x, y)
-            carried = prj_xy + torch.einsum("hwij,hwj->hwi", torch.nan_to_num(slope), offset)
-            miss = (at[r, c] - carried).norm(dim=-1)
-            reach = torch.einsum("hwij,hwj->hwi", torch.nan_to_num(slope), offset).norm(dim=-1)
-            same = torch.where(known, miss <= torch.clamp(0.25 * reach, min=1.0), (dy == 0) & (dx == 0))
-            candidates.append(torch.where(same, grid[r, c], float("nan")))
-    blur = torch.nanmedian(torch.stack(candidates), 0).values
+    padded = F.pad(grid[None, None], (1, 1, 1, 1), value=float("nan"))
+    around = F.unfold(padded, 3).reshape(9, *grid.shape)  # each sample's 3 x 3 neighbours
+    spread = torch.nan_to_num(around.nan_to_num(float("-inf")).amax(0) - around.nan_to_num(float("inf")).amin(0),
+                              nan=0.0, posinf=0.0, neginf=0.0)
+    blur = torch.nanmedian(around, 0).values[rows[:, None], cols[None, :]]
+    disputed = torch.nonzero((spread >= _AGREE)[rows[:, None], cols[None, :]] & torch.isfinite(prj_xy).all(-1))
+    if disputed.numel():
+        py, px = disputed.unbind(-1)
+        xy, g = prj_xy[py, px], slope[py, px]
+        known = torch.isfinite(g).all(-1).all(-1)
+        g = torch.nan_to_num(g)
+        candidates = []
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                r = (rows[py] + dy).clamp(0, grid.shape[0] - 1)
+                c = (cols[px] + dx).clamp(0, grid.shape[1] - 1)
+                offset = torch.stack([xs[c] - px, ys[r] - py], -1).to(xy.dtype)  # camera pixels, (x, y)
+                carried = torch.einsum("nij,nj->ni", g, offset)
+                miss = (at[r, c] - xy - carried).norm(dim=-1)
+                same = torch.where(known, miss <= torch.clamp(0.25 * carried.norm(dim=-1), min=1.0), (dy == 0) & (dx == 0))
+                candidates.append(torch.where(same, grid[r, c], float("nan")))
+        blur[py, px] = torch.nanmedian(torch.stack(candidates), 0).values
     return torch.where(torch.isfinite(prj_xy).all(-1), blur, float("nan")).to(torch.float32)

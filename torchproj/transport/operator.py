@@ -453,17 +453,21 @@ class NormalEquations:
 
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
         """The same ``Q`` (and its cached scaling and Lipschitz bound) with new ``q`` and ``c``."""
-        new = NormalEquations(self.Q, q, c)
+        new = self._with(q, c)
         new._lipschitz = self._lipschitz
         if self._jacobi is not None:
             s = self._jacobi.scale
-            new._jacobi = NormalEquations(self._jacobi.Q, q * s, c, s)
+            new._jacobi = self._jacobi._with(q * s, c, s)
             new._jacobi._lipschitz = self._jacobi._lipschitz
             new._jacobi._bounds = self._jacobi._bounds
         if self._coarse is not None:
             block, coarse = self._coarse
-            new._coarse = (block, coarse.with_targets(_sum_blocks(q, block, coarse.Q.shape[0]), c))
+            new._coarse = (block, coarse.with_targets(_sum_blocks(q, block, coarse.q.shape[0]), c))
         return new
+
+    def _with(self, q: torch.Tensor, c: torch.Tensor, scale: torch.Tensor | None = None) -> "NormalEquations":
+        """The same ``Q`` with other ``q``, ``c`` and scale, nothing cached."""
+        return NormalEquations(self.Q, q, c, scale)
 
     def coarsened(self, block: torch.Tensor) -> "NormalEquations":
         """``P^T Q P``, ``P^T q`` and ``c`` for the 0/1 matrix ``P`` that ties columns by ``block``.
@@ -600,18 +604,9 @@ class ProductNormalEquations(NormalEquations):
             return cls(op._csr(), op._csr(transpose=True), op.A_adjoint(op.rhs),
                        op.rhs.double().pow(2).sum(0) + op.constant.double())
 
-    def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "ProductNormalEquations":
-        new = ProductNormalEquations(self.A, self.At, q, c)
-        new._lipschitz = self._lipschitz
-        if self._jacobi is not None:
-            s = self._jacobi.scale
-            new._jacobi = ProductNormalEquations(self._jacobi.A, self._jacobi.At, q * s, c, s)
-            new._jacobi._lipschitz = self._jacobi._lipschitz
-            new._jacobi._bounds = self._jacobi._bounds
-        if self._coarse is not None:
-            block, coarse = self._coarse
-            new._coarse = (block, coarse.with_targets(_sum_blocks(q, block, coarse.q.shape[0]), c))
-        return new
+    def _with(self, q: torch.Tensor, c: torch.Tensor, scale: torch.Tensor | None = None) -> "ProductNormalEquations":
+        """The same ``A`` with other ``q``, ``c`` and scale, nothing cached (:meth:`NormalEquations.with_targets`)."""
+        return ProductNormalEquations(self.A, self.At, q, c, scale)
 
     def product(self, p: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
         """``A^T (A p)`` for :math:`(N_{cols}, C)` p, into ``out`` when given."""

@@ -1,0 +1,138 @@
+"""Where and why the default model misses the ceiling on suite scenes: the outline band, the weights, the rows.
+
+    python benchmarks/suite_miss.py --from benchmarks/results/suite --out benchmarks/results/suite_miss
+           [--scenes suite-1-12 ...] [--threshold 0.5]
+
+For each scene of a suite run (``benchmarks/suite.py``'s ``results.json``) with a target more than
+``--threshold`` dB below the ceiling (or the scenes named), calibrated once as ``run`` calibrates:
+
+- **where**: each target's PSNR of the default model and of the ceiling over all its pixels, over
+  its interior (pixels 2 or more from the edge of its region) and over the band within 2 pixels of
+  its outline, where a camera pixel may see the object and what lies behind it;
+- **what**: the same rows solved with each row's measured weight (white minus black) replaced by the
+  simulator's exact one (``exact weights``), and with each row's shape (how its light is shared among
+  cells) replaced by the exact light's, scaled to the measured weight (``exact shapes``). What the
+  measured weight costs is the first's gain; what the model of a pixel's footprint costs, the second's.
+
+Grey scenes only (a tinted surface gives the exact light one operator per channel). Writes
+``results.json`` and ``results.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import warnings
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from common import machine, write_results
+
+from torchproj.core.sparse import csr_tensor
+from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
+                                scene_targets, solve_on_light_transport)
+from torchproj.scene import load_scene
+from torchproj.solve import make_patterns
+from torchproj.transport import TransportOperator, build_transport
+
+BOUNDS = (0.0, 1.0)
+BAND = 2  # camera pixels from a target region's outline that count as its outline band
+
+
+def row_sums(op: TransportOperator) -> torch.Tensor:
+    rows = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff())
+    return torch.zeros(op.shape[0], dtype=op.val.dtype).index_add_(0, rows, op.val)
+
+
+def rescaled(op: TransportOperator, factor: torch.Tensor) -> TransportOperator:
+    """``op`` with each row multiplied by ``factor``."""
+    rows = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff())
+    return TransportOperator(csr_tensor(op.crow, op.col, op.val * factor[rows], op.shape), op.rhs, op.column_projector,
+                             op.column_cell, op.projector_sizes, row_target=op.row_target, scale=op.scale,
+                             row_pixel=op.row_pixel, camera_size=op.camera_size, target_count=op.target_count)
+
+
+def psnr(score, region: torch.Tensor) -> float:
+    error = ((score.estimate - score.values) ** 2).mean(0)[region]
+    return -10 * math.log10(float(error.mean())) if region.any() else float("nan")
+
+
+def measure(name: str, log=print) -> dict | None:
+    scene = load_scene(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = calibrate_virtual(scene, progress=False)
+        targets = scene_targets(scene, None, cal.rig)
+        model = build_transport(cal.states, targets, footprint="area", merge=False)
+        exact = light_transport(cal.rig, targets, model)
+        if len(exact) != 1 or exact[0].shape[0] != model.shape[0]:
+            log(f"{name}: skipped (tinted surfaces, or rows the exact light does not reach)")
+            return None
+        exact = exact[0]
+        measured, true = row_sums(model), row_sums(exact)
+        runs = {"area": model, "area, exact weights": rescaled(model, true / measured.clamp_min(1e-12)),
+                "area, exact shapes": rescaled(exact, measured / true.clamp_min(1e-12)), "ceiling": exact}
+        scores = {}
+        for label, op in runs.items():
+            iterations = CEILING_ITERATIONS if label == "ceiling" else None
+            if label == "ceiling":
+                _, _, patterns = solve_on_light_transport([op], BOUNDS, cal.responses, max_iter=iterations)
+            else:
+                _, _, patterns = make_patterns([op], "fista", BOUNDS, cal.responses, progress=False)
+            scores[label] = evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False).targets
+    out = {"scene": name, "weight_error_rms": round(float(((measured / true) - 1).pow(2).mean().sqrt()), 4),
+           "targets": []}
+    for k, target in enumerate(targets):
+        covered = scores["area"][k].covered
+        inner = -F.max_pool2d(-covered.float()[None, None], 2 * BAND + 1, 1, BAND)[0, 0] > 0.5
+        row = {"name": target.name, "pixels": int(covered.sum()), "outline_pixels": int((covered & ~inner).sum())}
+        for label in runs:
+            s = scores[label][k]
+            row[label] = {"all": round(s.psnr_db, 3), "interior": round(psnr(s, inner), 3),
+                          "outline": round(psnr(s, covered & ~inner), 3)}
+        out["targets"].append(row)
+        log(f"{name} {target.name}: " + ", ".join(f"{label} {row[label]['all']:.2f} (interior {row[label]['interior']:.2f}, "
+                                                   f"outline {row[label]['outline']:.2f})" for label in runs))
+    return out
+
+
+def markdown(results: list[dict]) -> str:
+    lines = [f"# Where the default model misses the ceiling ({machine()})", "",
+             f"PSNR (dB) over all of a target's pixels / its interior / the band within {BAND} pixels of its outline. "
+             "`exact weights`: each row's measured white minus black replaced by the exact light's; `exact shapes`: each "
+             "row's split among cells replaced by the exact light's, at the measured weight.", "",
+             "| scene | target | pixels (outline) | area | area, exact weights | area, exact shapes | ceiling |",
+             "|---|---|---|---|---|---|---|"]
+    for r in results:
+        for t in r["targets"]:
+            cells = [f"{t[k]['all']:.2f} / {t[k]['interior']:.2f} / {t[k]['outline']:.2f}"
+                     for k in ("area", "area, exact weights", "area, exact shapes", "ceiling")]
+            lines.append(f"| {r['scene']} | {t['name']} | {t['pixels']} ({t['outline_pixels']}) | " + " | ".join(cells) + " |")
+    lines += ["", "Measured weight against the exact row sum, rms relative error per scene: "
+              + ", ".join(f"{r['scene']} {r['weight_error_rms']:.4f}" for r in results) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--from", dest="source", type=Path, default=Path("benchmarks/results/suite"),
+                    help="a suite run's folder: its scenes with a target over --threshold dB below the ceiling")
+    ap.add_argument("--scenes", nargs="+", help="these scenes instead")
+    ap.add_argument("--threshold", type=float, default=0.5)
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/suite_miss"))
+    args = ap.parse_args()
+    names = args.scenes
+    if not names:
+        rows = json.loads((args.source / "results.json").read_text())["rows"]
+        names = list(dict.fromkeys(r["scene"] for r in rows if r["model"] == "area"
+                                   and any(t["gap_db"] > args.threshold for t in r["targets"])))
+    results = [r for r in (measure(n) for n in names) if r is not None]
+    write_results(args.out, {"machine": machine(), "band_px": BAND, "results": results}, markdown(results))
+    print(markdown(results))
+    print(f"wrote {args.out}/results.json, results.md")
+
+
+if __name__ == "__main__":
+    main()
