@@ -103,6 +103,9 @@ def measure(name: str, models: tuple[str, ...], log=print) -> list[dict]:
                      **({} if choice is None else {"chose": choice.footprint}),
                      "targets": [{"name": s.name, "pixels": s.pixels, "psnr_db": round(s.psnr_db, 3),
                                   "ssim": round(s.ssim, 4)} for s in scores]})
+        if choice is not None and choice.expected_loss_db is not None:
+            for t in rows[-1]["targets"]:  # auto's estimate of nearest's loss, to check against the captures
+                t["nearest_expected_loss_db"] = round(choice.expected_loss_db[t["name"]], 3)
         log(f"{name} {model}: build {built:.2f} s, solve {solved:.2f} s, "
             + ", ".join(f"{t['name']} {t['psnr_db']:.2f} dB / {t['ssim']:.3f}" for t in rows[-1]["targets"]))
     top = rows[-1]
@@ -110,6 +113,10 @@ def measure(name: str, models: tuple[str, ...], log=print) -> list[dict]:
         for t, c in zip(r["targets"], top["targets"]):
             t["gap_db"] = round(c["psnr_db"] - t["psnr_db"], 3)
             t["gap_ssim"] = round(c["ssim"] - t["ssim"], 4)
+    found = {r["model"]: r for r in rows}
+    if {"auto", "nearest", "area"} <= set(found):  # what nearest lost to area in the captures, beside auto's estimate
+        for t, near, area in zip(found["auto"]["targets"], found["nearest"]["targets"], found["area"]["targets"]):
+            t["nearest_measured_loss_db"] = round(area["psnr_db"] - near["psnr_db"], 3)
     return rows
 
 
@@ -134,6 +141,24 @@ def summary(rows: list[dict]) -> list[dict]:
     return out
 
 
+def estimate_check(rows: list[dict]) -> str:
+    """How auto's expected loss of nearest compares with what nearest lost to area in the captures."""
+    pairs = [(t["nearest_expected_loss_db"], t["nearest_measured_loss_db"]) for r in rows if r["model"] == "auto"
+             for t in r["targets"] if "nearest_expected_loss_db" in t and "nearest_measured_loss_db" in t]
+    if not pairs:
+        return ""
+    lines = []
+    for low, high in ((-1e9, 1.0), (1.0, 2.5), (2.5, 1e9)):
+        band = [(e, m) for e, m in pairs if low <= m < high]
+        if band:
+            errors = [abs(e - m) for e, m in band]
+            lines.append(f"measured {max(low, 0):g}-{high:g} dB: {len(band)} targets, estimate off by {statistics.median(errors):.2f} dB "
+                         f"median, {max(errors):.2f} at most" if high < 1e9 else
+                         f"measured over {low:g} dB: {len(band)} targets, estimate / measured {statistics.median(e / m for e, m in band):.2f} median")
+    return ("auto's expected loss of nearest (from the measured shares) against the loss nearest showed to area in the "
+            "captures: " + "; ".join(lines) + ".")
+
+
 def markdown(rows: list[dict], totals: list[dict], title: str) -> str:
     lines = [f"# {title} ({machine()})", "",
              "Gap: the ceiling's PSNR (dB) or SSIM minus the model's, per target (negative: above the ceiling, "
@@ -146,6 +171,8 @@ def markdown(rows: list[dict], totals: list[dict], title: str) -> str:
         lines.append(f"| {s['model']} | {s['scenes']} | {s['targets']} | {s['median_gap_db']:.2f} | {s['worst_gap_db']:.2f} "
                      f"| {s['within_0.5_db']:.0%} | {s['median_gap_ssim']:.3f} | {s['worst_gap_ssim']:.3f} "
                      f"| {s['within_0.02_ssim']:.0%} | {cost} |")
+    check = estimate_check(rows)
+    lines += ["", check] if check else []
     lines += ["", "| scene | kind | projectors | camera (samples) | pixel (cells) | colour | defocus | states | model "
                   "| build (s) | solve (s) | per target: PSNR (dB) / SSIM (gap dB / SSIM) |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
