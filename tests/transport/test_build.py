@@ -612,3 +612,18 @@ def test_colour_weights_predict_a_tinted_capture():
         assert bool((miss["channel"][[0, 2]] < 0.5 * miss["grey"][[0, 2]]).all()), (name, miss)
     oracle = calibrate_virtual(scene, oracle=True)  # the expected white minus black, per channel too
     torch.testing.assert_close(oracle.states["near"].colour_weight[0].mean(0), oracle.states["near"].weight[0])
+
+
+def test_a_states_map_slope_is_taken_once_and_again_when_the_map_changes():
+    """Every target of a state asks for the same projector's slope: it is kept while the map is the
+    same tensor, unchanged, and taken again after the map is edited in place or replaced."""
+    from torchproj.transport.build import map_slope
+
+    state = synthetic_calibration(shape=(20, 24))["near"]
+    first = state._slope(0)
+    assert state._slope(0) is first
+    torch.testing.assert_close(first, map_slope(state.prj_xy[0]), equal_nan=True)
+    state.prj_xy[0].add_(1.5)  # in place: the same tensor, a new version
+    assert state._slope(0) is not first
+    state.prj_xy[0] = state.prj_xy[0] * 2  # replaced
+    torch.testing.assert_close(state._slope(0), map_slope(state.prj_xy[0]), equal_nan=True)

@@ -223,7 +223,7 @@ class StateCalibration:
         size = self.projector_sizes[j]
         if footprint != "area":
             return _footprint(xy, weight, size, footprint)
-        slope = map_slope(self.prj_xy[j]).reshape(-1, 2, 2)[pixels]
+        slope = self._slope(j).reshape(-1, 2, 2)[pixels]
         blur = None
         if self.blur is not None:  # NaN where measure_blur could not tell: taken as in focus
             blur = torch.nan_to_num(self.blur[j].reshape(-1)[pixels].to(xy.dtype), nan=0.0).clamp_min(0)
@@ -237,6 +237,16 @@ class StateCalibration:
             cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
             values = _fit_shares(cells, values, self.shares[j], pixels, size)
         return cells, values
+
+    def _slope(self, j: int) -> torch.Tensor:
+        """:func:`map_slope` of projector ``j``'s map, kept while the map is unchanged: a state's
+        targets each ask for it."""
+        xy = self.prj_xy[j]
+        cache = self.__dict__.setdefault("_slopes", {})  # projector -> (its map, the map's version, slope)
+        kept = cache.get(j)
+        if kept is None or kept[0] is not xy or kept[1] != xy._version:
+            cache[j] = kept = (xy, xy._version, map_slope(xy))
+        return kept[2]
 
     def lit(self) -> torch.Tensor:
         """:math:`(H, W)` pixels lit (decoded, not only dimly: :attr:`dim`) by at least one projector."""
@@ -727,6 +737,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
     n_ch = channels.pop()
     sizes = camera = None
+    checked = set()
     row_cols, row_vals, row_values, row_tgt, row_pix, row_ratio = [], [], [], [], [], []
     for ti, target in enumerate(targets):
         check(target.state in calibrations, f"target {target.name or ti!r} names state {target.state!r}, which was "
@@ -757,15 +768,17 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
                   f"state {target.state!r} has {len(per or [])} {name} for {len(cal.prj_xy)} projectors: "
                   "give one per projector")
         for j, weight in enumerate(cal.weight):
-            check_finite(weight, f"weight[{j}] of state {target.state!r}")
-            if cal.edges is not None:
-                cal.edges[j].check(tuple(lit.shape), f"edges[{j}] of state {target.state!r}")
-            if cal.shares is not None:
-                cal.shares[j].check(tuple(lit.shape), sizes[j], f"shares[{j}] of state {target.state!r}")
-            if cal.blur is not None:
-                check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
-                check(not torch.isinf(cal.blur[j]).any(), f"blur[{j}] of state {target.state!r} holds infinite "
-                                                          "diameters: give them in cells, NaN where unknown")
+            if (target.state, j) not in checked:  # a state's parts once, whatever its number of targets
+                checked.add((target.state, j))
+                check_finite(weight, f"weight[{j}] of state {target.state!r}")
+                if cal.edges is not None:
+                    cal.edges[j].check(tuple(lit.shape), f"edges[{j}] of state {target.state!r}")
+                if cal.shares is not None:
+                    cal.shares[j].check(tuple(lit.shape), sizes[j], f"shares[{j}] of state {target.state!r}")
+                if cal.blur is not None:
+                    check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
+                    check(not torch.isinf(cal.blur[j]).any(), f"blur[{j}] of state {target.state!r} holds "
+                                                              "infinite diameters: give them in cells, NaN where unknown")
             c, v = cal._rows(j, rows, footprint)
             cols.append(torch.where(c >= 0, c + offset, -1))
             vals.append(v)
