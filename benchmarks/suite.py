@@ -8,7 +8,7 @@ pixels cover 1/4 to 4 cells, solids, tilted and overlapping planes, grey and col
 or several states) is calibrated once from simulated captures, as ``torchproj run`` calibrates.
 Each model of a camera pixel's light (``nearest``, the paper's; ``bilinear``; ``area``, the default
 of ``run``; ``auto``, the least costly model whose expected loss is within a tolerance of the
-richest, :func:`torchproj.transport.choose_footprint`) is built and solved as ``run`` builds and
+richest, :func:`torchproj.pipeline.choose_footprint`) is built and solved as ``run`` builds and
 solves it (FISTA, least squares, bounds 0..255; colour scenes one operator per channel), and the
 patterns are scored on the rig's captures. ``ceiling`` is the same rows solved on the simulator's
 own light transport (``torchproj run --ceiling``), the best any calibration could reach.

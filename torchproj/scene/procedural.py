@@ -197,7 +197,7 @@ def _camera(rng, size: str, centre: np.ndarray, projectors: list[dict]) -> dict:
     camera = {"resolution": [width, height], "focal": round(float(focal), 2), "pose": _pose(position, centre),
               "noise": {"full_well": int(rng.integers(10000, 40000)), "read": round(float(rng.uniform(0.001, 0.003)), 4)},
               "supersampling": samples}
-    if projectors and rng.random() < 0.3:
+    if rng.random() < 0.3:
         camera["channels"] = 3
     if rng.random() < 0.2:
         camera["distortion"] = [round(float(rng.uniform(-0.08, 0.08)), 4), 0.0, 0.0, 0.0]
@@ -439,9 +439,8 @@ def _expose(rng, data: dict) -> None:
     nearest point of each target's bounding sphere, facing the projector), as one sets a real camera
     so that the calibration's white capture does not saturate. A saturated white reads less than the
     light that reaches the pixel, and every model's weight is then wrong there (the ceiling's is not).
-    Where that leaves some target's centre below the decoder's shadow threshold (40/255) with a
-    ``_MARGIN``, the scene is dim there and its decoded region smaller; ``_check_light`` refuses
-    the draw before that happens."""
+    Where that leaves some target's centre below ``_MARGIN`` times the decoder's shadow threshold
+    (40/255, :func:`_dimmest`), :func:`procedural_config` draws the scene again."""
     camera, surfaces = data["camera"], data["surfaces"]
     used = {n for t in data["targets"] for n in t["surfaces"]}
     bright = 0.0
