@@ -65,7 +65,7 @@ def test_a_bad_tolerance_is_refused(quarter_rig, bad):
 
 
 def test_an_unknown_footprint_is_refused_before_any_work(quarter_rig):
-    scene, cal = quarter_rig
+    scene, _ = quarter_rig
     with pytest.raises(InputError, match="footprint must be one of"):
         run_virtual(scene, footprint="widest")
 
