@@ -80,9 +80,8 @@ def solve_model(cal, targets, model: str) -> tuple:
     if model == "ceiling":
         result, _, patterns = solve_on_light_transport(ops, BOUNDS, cal.responses, max_iter=CEILING_ITERATIONS)
     else:
-        x0 = choice.start_for(ops[0]) if choice is not None and len(ops) == 1 else None
         result, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False,
-                                            solver_options=None if x0 is None else {"x0": x0})
+                                            solver_options=choice and choice.solver_options(ops, "fista"))
     return ops, result, built, time.perf_counter() - t0, patterns, choice
 
 

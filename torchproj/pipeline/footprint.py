@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..core.checks import check
+from ..core.conventions import round_to_pixel
 from ..core.sparse import spmm
 from ..solve import solve_fista
 from ..solve.compensate import iteration_limit
@@ -66,8 +67,9 @@ class FootprintChoice:
     tolerance_db: float
     seconds: float
     reason: str = ""
-    nearest: dict = field(default_factory=dict)
-    _start: tuple | None = field(default=None, repr=False)  # nearest's patterns and their columns' (projector, cell)
+    # nearest's columns' cell indices (_cell_index), its patterns and mid-grey; not its operator, which
+    # may be gone before the chosen model is built
+    _start: tuple | None = field(default=None, repr=False)
 
     def start_for(self, op: TransportOperator) -> torch.Tensor | None:
         """Nearest's solved patterns on ``op``'s columns (mid-grey where nearest had no such cell),
@@ -76,13 +78,18 @@ class FootprintChoice:
         or the channels differ."""
         if self._start is None:
             return None
-        patterns, projector, cell, middle = self._start
+        (cells, count), patterns, middle = self._start
         if patterns.shape[1] != op.channels:
             return None
-        starts = torch.tensor([0] + [w * h for w, h in op.projector_sizes], device=patterns.device).cumsum(0)
-        table = torch.full((int(starts[-1]), patterns.shape[1]), middle, dtype=patterns.dtype, device=patterns.device)
-        table[starts[projector] + cell] = patterns
-        return table[starts[op.column_projector.to(patterns.device)] + op.column_cell.to(patterns.device)].to(op.val)
+        table = torch.full((count, patterns.shape[1]), middle, dtype=patterns.dtype, device=patterns.device)
+        table[cells.to(patterns.device)] = patterns
+        return table[_cell_index(op)[0].to(patterns.device)].to(op.val)
+
+    def solver_options(self, ops: list[TransportOperator], solver: str, options: dict | None = None) -> dict | None:
+        """``options`` for :func:`~torchproj.solve.make_patterns` with nearest's patterns as FISTA's
+        start (``x0``) where one operator is solved by FISTA; ``options`` as they are otherwise."""
+        x0 = self.start_for(ops[0]) if solver == "fista" and len(ops) == 1 else None
+        return options if x0 is None else {**(options or {}), "x0": x0}
 
     def as_dict(self) -> dict:
         return {"footprint": self.footprint, "tolerance_db": self.tolerance_db, "seconds": round(self.seconds, 3),
@@ -131,8 +138,14 @@ def choose_footprint(states: dict[str, StateCalibration], targets: list[Target],
         reason = (f"area: the measured cell shares put nearest's expected loss at {loss[worst]:.2f} dB on {worst}, over "
                   f"{tolerance_db:g} dB")
     return FootprintChoice(footprint, loss, tolerance_db, time.perf_counter() - t0, reason,
-                           {"iterations": result.iterations, "objective": result.objective},
-                           (result.patterns, op.column_projector, op.column_cell, 0.5 * (bounds[0] + bounds[1])))
+                           (_cell_index(op), result.patterns, 0.5 * (bounds[0] + bounds[1])))
+
+
+def _cell_index(op: TransportOperator) -> tuple[torch.Tensor, int]:
+    """Each of ``op``'s columns as one index over every projector's cells (projectors one after
+    another), and how many cells there are."""
+    starts = torch.tensor([0] + [w * h for w, h in op.projector_sizes], device=op.column_cell.device).cumsum(0)
+    return starts[op.column_projector] + op.column_cell, int(starts[-1])
 
 
 def _share_rows(states: dict[str, StateCalibration], targets: list[Target], op: TransportOperator) -> torch.Tensor:
@@ -142,8 +155,9 @@ def _share_rows(states: dict[str, StateCalibration], targets: list[Target], op: 
     is no column is black in every pattern of ``op``)."""
     sizes = op.projector_sizes
     starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
-    column = torch.full((int(starts[-1]),), -1, dtype=torch.int64)
-    column[starts[op.column_projector.cpu()] + op.column_cell.cpu()] = torch.arange(op.shape[1])
+    cells, count = _cell_index(op)
+    column = torch.full((count,), -1, dtype=torch.int64)
+    column[cells.cpu()] = torch.arange(op.shape[1])
     rows, cols, vals = [], [], []
     for k, target in enumerate(targets):
         which = torch.nonzero(op.row_target.cpu() == k)[:, 0]
@@ -152,10 +166,10 @@ def _share_rows(states: dict[str, StateCalibration], targets: list[Target], op: 
         for j, (w, h) in enumerate(sizes):
             shares, weight = state.shares[j], state.weight[j].reshape(-1)[pixels].float()
             cell = shares.cell.reshape(-1, 2)[pixels].long()
-            nearest = torch.floor(state.prj_xy[j].reshape(-1, 2)[pixels] + 0.5)
+            nearest = round_to_pixel(torch.nan_to_num(state.prj_xy[j].reshape(-1, 2)[pixels], nan=-10.0))
             known = (cell >= 0).all(-1)
             # A pixel without a share cell (filled holes, dim light) keeps its nearest cell whole.
-            cell = torch.where(known[:, None], cell, torch.nan_to_num(nearest, nan=-1).long())
+            cell = torch.where(known[:, None], cell, nearest)
             across = torch.nan_to_num(shares.across.reshape(-1, 2, 2)[pixels].float(), nan=0.0)
             across = torch.where(known[:, None, None], across, 0.0)
             parts = [(cell, 1 - across.sum((1, 2)))]

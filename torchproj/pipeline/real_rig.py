@@ -103,10 +103,9 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     if len(ops) == 1:  # the predicted views follow the weights solved with
         states = {name: dataclasses.replace(s, colour_weight=None) for name, s in states.items()}
     op = ops[0]
-    x0 = choice.start_for(op) if choice is not None and solver == "fista" and len(ops) == 1 else None
     result, light, patterns = make_patterns(ops, solver, (lo, hi), bundle.response_curves(), calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
-                                            chains=chains, solver_options=None if x0 is None else {"x0": x0})
+                                            chains=chains, solver_options=choice and choice.solver_options(ops, solver))
     rows, predicted = [], {}
     for t in wanted:
         view = states[t.state].predict(light, bundle.black[t.state], footprint)

@@ -250,8 +250,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
                                                   max_iter, progress, device, footprint, outside)
         ops = [op]
     else:
-        x0 = start.start_for(op) if start is not None and solver == "fista" and len(ops) == 1 else None
-        options = solver_options if x0 is None else {**(solver_options or {}), "x0": x0}
+        options = solver_options if start is None else start.solver_options(ops, solver, solver_options)
         result, _, patterns = make_patterns(ops, solver, bounds, cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
                                             chains=chains, solver_options=options)
