@@ -121,12 +121,10 @@ class TransportOperator(nn.Module):
         self.register_buffer("crow", matrix.crow_indices())
         self.register_buffer("col", matrix.col_indices())
         self.register_buffer("val", matrix.values())
-        # A^T in CSR is A in CSC: torch converts directly, without the COO copies and sorts a transpose
-        # through coordinates would take (0.08 s against 0.53 s for 2 M nonzeros, same arrays).
-        csc = matrix.to_sparse_csc()
-        self.register_buffer("t_crow", csc.ccol_indices())
-        self.register_buffer("t_col", csc.row_indices())
-        self.register_buffer("t_val", csc.values())
+        transposed = _transpose(matrix)  # A^T in CSR, for an adjoint as fast as the forward product
+        self.register_buffer("t_crow", transposed.crow_indices())
+        self.register_buffer("t_col", transposed.col_indices())
+        self.register_buffer("t_val", transposed.values())
         self.register_buffer("rhs", rhs)
         self.register_buffer("column_projector", column_projector)
         self.register_buffer("column_cell", column_cell)
@@ -545,16 +543,20 @@ class NormalEquations:
         the power-iteration estimate gets a 5% margin.
         """
         if self._lipschitz is None:
-            x = torch.ones(self.Q.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
+            x = torch.ones(self.q.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
             for _ in range(iterations):
-                y = spmm(self.Q, x)
+                y = self.product(x)
                 x = y / y.norm().clamp_min(1e-30)
-            y = spmm(self.Q, x)
-            if float(self.Q.values().min()) >= 0 and bool((x > 0).all()):
+            y = self.product(x)
+            if self._nonnegative() and bool((x > 0).all()):
                 self._lipschitz = float((y / x).max())
             else:
                 self._lipschitz = 1.05 * float(y.norm() / x.norm())
         return self._lipschitz
+
+    def _nonnegative(self) -> bool:
+        """Whether ``Q`` has no negative entry (then the Collatz-Wielandt bound holds)."""
+        return float(self.Q.values().min()) >= 0
 
 
 def normal_form(op: "TransportOperator") -> str:
@@ -566,14 +568,13 @@ def normal_form(op: "TransportOperator") -> str:
     ``Q = A^T A`` has a nonzero for every pair of cells that share a row: up to ``s^2`` for a row of
     ``s`` cells, against the ``2 s`` that ``A`` and ``A^T`` apply. Where every cell is seen by
     several rows (a camera finer than the projectors: the paper's rig, 2.1 M rows on 0.93 M cells)
-    those pairs repeat, ``Q`` is the compact form and building it once pays: on the default scene
-    FISTA takes 2.5 s on ``Q`` against 4.3 s on ``A`` and ``A^T``. Where camera pixels are fewer
-    than the cells they see and rows are wide (a coarse camera, the area footprint's rows of 4-12
-    cells) nothing repeats, ``Q`` holds 2-5 times A's nonzeros, and building it and its coarse
-    levels costs more than the iterations save: 4.4 s against 2.6 s on a three-projector sphere
-    scene of 0.28 M rows and 0.67 M cells, 0.86 against 0.54 s on ``box_positions`` at half scale.
-    Rows of one or two cells (the nearest footprint) keep ``Q`` sparse: there it wins everywhere
-    (``python benchmarks/normal_forms.py``).
+    those pairs repeat, ``Q`` is the compact form and building it once pays: on the default scene's
+    area model FISTA takes 2.9 s on ``Q`` against 5.5 s on ``A`` and ``A^T``. Where camera pixels
+    are fewer than the cells they see and rows are wide (a coarse camera, the area footprint's rows
+    of 4-12 cells) nothing repeats, ``Q`` holds 2-5 times A's nonzeros, and building it and its
+    coarse levels costs more than the iterations save: on ``box_positions``' area model (0.16 M rows,
+    0.35 M cells, Q 5.5 times A's nonzeros) 2.5 s against 1.5 s. Rows of one or two cells (the nearest
+    footprint) keep ``Q`` sparse: there it wins everywhere (``python benchmarks/normal_forms.py``).
     """
     width = op.crow.diff().double()
     wide = float((width * width).sum()) > 3 * float(width.sum())
@@ -638,19 +639,9 @@ class ProductNormalEquations(NormalEquations):
             self._jacobi = ProductNormalEquations(A, At, self.q * s[:, None], self.c, s[:, None])
         return self._jacobi
 
-    def lipschitz(self, iterations: int = 30) -> float:
-        """An upper bound of the largest eigenvalue of ``A^T A`` (cached), as :meth:`NormalEquations.lipschitz`."""
-        if self._lipschitz is None:
-            x = torch.ones(self.q.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
-            for _ in range(iterations):
-                y = self.product(x)
-                x = y / y.norm().clamp_min(1e-30)
-            y = self.product(x)
-            if float(self.A.values().min()) >= 0 and bool((x > 0).all()):
-                self._lipschitz = float((y / x).max())
-            else:
-                self._lipschitz = 1.05 * float(y.norm() / x.norm())
-        return self._lipschitz
+    def _nonnegative(self) -> bool:
+        """Whether ``A^T A`` has no negative entry: where A has none (:meth:`NormalEquations.lipschitz`)."""
+        return float(self.A.values().min()) >= 0
 
 
 def _tie_columns(matrix: torch.Tensor, block: torch.Tensor, n: int) -> torch.Tensor:
@@ -661,6 +652,8 @@ def _tie_columns(matrix: torch.Tensor, block: torch.Tensor, n: int) -> torch.Ten
 
 
 def _transpose(matrix: torch.Tensor) -> torch.Tensor:
-    """The CSR transpose of a CSR matrix (its CSC arrays read as CSR)."""
+    """The CSR transpose of a CSR matrix: its CSC arrays read as CSR. torch converts directly, without
+    the COO copies and sorts a transpose through coordinates would take (0.08 s against 0.53 s for 2 M
+    nonzeros, same arrays)."""
     csc = matrix.to_sparse_csc()
     return csr_tensor(csc.ccol_indices(), csc.row_indices(), csc.values(), tuple(matrix.shape)[::-1])
