@@ -184,7 +184,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         t0 = time.perf_counter()
         # A lens focused elsewhere spreads each cell over a disc; the finest stripes show how wide.
         # Blur follows depth, smooth on a surface: about 1,500 samples per map are read, every 8th
-        # pixel each way at most (0.4 s of a full-size calibration, against 1.1 s for every 16th).
+        # pixel each way at most (0.4-0.6 s of a full-size calibration).
         height, width = prj_xy.shape[:2]
         blur = measure_blur(capture.patterns, capture.white, capture.black, prj_xy, projector_size,
                             step=max(8, round((height * width / 1500) ** 0.5)))
@@ -203,7 +203,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
     if shares is not None:
         # Every transport row is weighted by white minus black; the pairs whose stripes hold a pixel's
-        # footprint are further frames of both (stripe_contrast): their mean has a third to a quarter
+        # footprint are further frames of both (stripe_contrast): their mean has a half to a quarter
         # of the noise, from captures already taken.
         t0 = time.perf_counter()
         span = stripe_contrast(capture.patterns, capture.white, capture.black, shares.cell, projector_size)

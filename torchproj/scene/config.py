@@ -13,6 +13,7 @@ is one target covering everything the projectors light there.
 from __future__ import annotations
 
 import copy
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -138,6 +139,18 @@ class Camera(Pinhole):
     read_noise: float = 0.0
     bit_depth: int = 8
     supersampling: int = 2
+
+
+# Camera samples must fall at most this many projector cells apart, or a solver learns where they land
+# (the virtual rig warns: torchproj.sim.rig; benchmarks/sampling.py measures it).
+SAMPLE_SPACING = 0.4
+
+
+def supersampling_for(projector_focal: float, camera_focal: float, wanted: int = 1) -> int:
+    """The fewest samples per camera pixel axis (at least ``wanted``) that keep them within
+    :data:`SAMPLE_SPACING` projector cells of each other on a surface as far from the camera as from
+    the projector (focal lengths in pixels)."""
+    return max(int(wanted), math.ceil(projector_focal / (camera_focal * SAMPLE_SPACING) - 1e-9))
 
 
 @dataclass
@@ -564,7 +577,7 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
     """
     if path is None:
         path = builtin_config()
-    from .procedural import parse_suite_name, procedural_config
+    from .procedural import parse_suite_name, procedural_config  # here: the generator builds on this module
 
     suite = parse_suite_name(path) if isinstance(path, str) else None
     if suite is not None and not Path(path).is_file():

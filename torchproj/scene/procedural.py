@@ -34,7 +34,7 @@ import re
 import numpy as np
 
 from ..core.errors import ConfigError
-from .config import Scene, parse_scene
+from .config import Scene, parse_scene, supersampling_for
 from .pose import look_at, rotation_from_euler_deg
 
 __all__ = ["KINDS", "SUITE_SIZES", "SUITE_IMAGES", "procedural_scene", "procedural_config", "suite_names",
@@ -54,20 +54,11 @@ SUITE_IMAGES = ("astronaut", "camera", "coffee", "chelsea", "rocket", "brick", "
                 "cat", "grass", "text", "immunohistochemistry", "hubble_deep_field", "colorwheel")
 
 _NAME = re.compile(r"^suite-(\d+)-(\d+)(-full)?$")
-# Camera samples must fall at most this many projector cells apart (the virtual rig's own limit,
-# torchproj.sim.rig._warn_if_undersampled), or a solver learns where they land.
-_SAMPLE_SPACING = 0.4
 # The decoder's shadow threshold (white minus black, torchproj.calib) and the margin the dimmest
 # target point keeps above it.
 _SHADOW, _MARGIN = 40 / 255, 1.25
 _RAYS = {"small": 1.5e6, "full": 1.7e7}  # camera sample rays per state, at most
 _DRAWS = 100  # draws of one scene before the last is kept, dim or not
-
-
-def supersampling_for(projector_focal: float, camera_focal: float, wanted: int = 1) -> int:
-    """The fewest samples per camera pixel axis (at least ``wanted``) that keep them within 0.4
-    projector cells of each other on a surface as far from the camera as from the projector."""
-    return max(int(wanted), math.ceil(projector_focal / (camera_focal * _SAMPLE_SPACING) - 1e-9))
 
 
 def parse_suite_name(name: str) -> tuple[int, int, str] | None:
@@ -83,7 +74,12 @@ def suite_names(seed: int = 0, count: int = 20, size: str = "small", start: int 
     _check_seed(seed, "seed")
     _check_seed(count, "count")
     _check_size(size)
-    return [f"suite-{seed}-{i}" + ("-full" if size == "full" else "") for i in range(start, start + count)]
+    return [_name(seed, i, size) for i in range(start, start + count)]
+
+
+def _name(seed: int, index: int, size: str) -> str:
+    """What :func:`parse_suite_name` reads back."""
+    return f"suite-{seed}-{index}" + ("-full" if size == "full" else "")
 
 
 def procedural_scene(seed: int, index: int = 0, size: str = "small") -> Scene:
@@ -118,12 +114,11 @@ def procedural_config(seed: int, index: int = 0, size: str = "small") -> dict:
     _check_seed(index, "index")
     _check_size(size)
     rng = np.random.default_rng([int(seed), int(index)])
-    name = f"suite-{seed}-{index}" + ("-full" if size == "full" else "")
     for _ in range(_DRAWS):  # a draw too dim for the decoder is drawn again, from the same stream
         data = _draw(rng, KINDS[index % len(KINDS)], size)
         if _dimmest(data) >= _MARGIN * _SHADOW:
             break
-    data["name"] = name
+    data["name"] = _name(seed, index, size)
     return _plain(data)
 
 

@@ -29,7 +29,7 @@ from ..core.checks import check, check_device, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
 from ..core.lens import DISC_POINTS, GOLDEN_ANGLE, disc_points
 from ..core.sparse import csr_tensor
-from ..scene.config import Projector, Scene, Surface
+from ..scene.config import SAMPLE_SPACING, Projector, Scene, Surface, supersampling_for
 from .camera import apply_camera
 from .primitives import make_caster
 
@@ -146,11 +146,11 @@ def _footprint_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor, depth: t
     return point, cell, share
 
 
-def _warn_if_undersampled(scene: Scene, limit: float = 0.4) -> None:
+def _warn_if_undersampled(scene: Scene) -> None:
     """Warn when camera samples fall too far apart to resolve the projectors' LCD cells.
 
     Each camera pixel is simulated by s x s point samples, each lighting from the one cell it falls
-    in. Where samples are spaced more than ``limit`` cells apart (on a surface about as far from the
+    in. Where samples are spaced more than ``SAMPLE_SPACING`` (0.4) cells apart (on a surface about as far from the
     camera as from the projectors: spacing / cell = f_projector / (f_camera s)), a solver can learn
     where the samples fall and put light only there: quality looks higher at the exact pose than a
     finer simulation of the same light gives, and collapses a fraction of a millimetre away
@@ -159,8 +159,8 @@ def _warn_if_undersampled(scene: Scene, limit: float = 0.4) -> None:
     """
     cam = scene.camera
     spacing = max(p.fx for p in scene.projectors) / (cam.fx * cam.supersampling)
-    if spacing > limit:
-        need = math.ceil(max(p.fx for p in scene.projectors) / (cam.fx * limit))
+    if spacing > SAMPLE_SPACING:
+        need = supersampling_for(max(p.fx for p in scene.projectors), cam.fx)
         warnings.warn(f"scene {scene.name!r}: camera samples are {spacing:.2f} projector cells apart, too coarse to "
                       f"resolve the cells (solvers may fit where the samples fall); set camera.supersampling to "
                       f"{need} or more", stacklevel=3)
