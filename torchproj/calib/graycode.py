@@ -555,9 +555,9 @@ def stripe_contrast(patterns: torch.Tensor, white: torch.Tensor, black: torch.Te
     electrons of full well and 8 bits, about 1.5% rms of it. But each Gray-code pair shows the
     pixel's footprint all white in one capture and all black in the other wherever the footprint
     lies inside one of the pair's stripes, which it does for all but the few finest pairs: those
-    captures are further frames of white and black. Averaging them (most pixels lie ``margin``
-    cells inside 15-18 of a 1024x768 projector's 20 pairs) cuts the weight's noise about fourfold,
-    from captures calibration already took. Our choice, not the paper's (it weights by geometry).
+    captures are further frames of white and black. Averaging them (a pixel lies ``margin`` cells
+    inside about 14 of a 1024x768 projector's 20 pairs: none of the two finest per axis, half of the
+    third) cuts the weight's noise two- to fourfold, from captures calibration already took. Our choice, not the paper's (it weights by geometry).
 
     A pixel counts a pair only where the pair shows it no light from across (its share, as
     :class:`CellShares` reads it, under :data:`WIDE_SHARE`): a pixel on an object's outline also
