@@ -17,10 +17,12 @@ from .config import (
 )
 from .pose import look_at, rotation_from_euler_deg, rotation_from_rotvec
 from .procedural import procedural_config, procedural_scene, suite_names
+from .show import ShowChanges, shown_scene
 
 __all__ = [
     "BUILTIN_SCENES",
     "SIZE_LIMIT",
+    "ShowChanges",
     "Camera",
     "Projector",
     "Scene",
@@ -37,5 +39,6 @@ __all__ = [
     "rotation_from_euler_deg",
     "rotation_from_rotvec",
     "scale_config",
+    "shown_scene",
     "suite_names",
 ]

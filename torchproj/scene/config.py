@@ -26,6 +26,7 @@ from ..core.checks import SIZE_LIMIT
 from ..core.errors import ConfigError
 from .fields import Fields
 from .pose import parse_pose
+from .show import ShowChanges, parse_show
 
 __all__ = [
     "Projector",
@@ -45,7 +46,7 @@ __all__ = [
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
-                  "two_screens", "box_positions", "paper_defocus")
+                  "two_screens", "box_positions", "paper_defocus", "paper_bumped", "sphere_three_projectors")
 
 
 def config_dir() -> Path:
@@ -218,6 +219,7 @@ class Scene:
     seed: int = 0
     targets: list[TargetSpec] = field(default_factory=list)
     source: Path | None = field(default=None, compare=False)
+    show: ShowChanges | None = None  # what changed after calibration (torchproj.scene.show)
 
     def describe(self) -> str:
         """What the scene holds, one line per device, surface and state (``torchproj scene``)."""
@@ -234,6 +236,8 @@ class Scene:
         lines += [f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m"
                   for s in self.surfaces.values()]
         lines += [f"  state {st.name}: {', '.join(st.surfaces)}" for st in self.states]
+        if self.show is not None:
+            lines.append(f"  shown after calibration with changes: {self.show.as_dict()}")
         return "\n".join(lines)
 
     def target_specs(self) -> list[TargetSpec]:
@@ -490,9 +494,10 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     if len(set(state_names)) != len(state_names):
         raise ConfigError("states", f"names must be unique, got {state_names}")
     targets = _parse_targets(top, {s.name: s for s in states}, base_dir) if top.has("targets") else []
+    show = parse_show(top.sub("show"), projectors) if top.has("show") else top.raw("show", None)
     scene = Scene(
         name=top.text("name", name), projectors=projectors, camera=camera, surfaces=surfaces, states=states,
-        ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0), targets=targets,
+        ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0), targets=targets, show=show,
     )
     top.done()
     _check_in_front(scene)
