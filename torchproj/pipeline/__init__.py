@@ -12,6 +12,7 @@ from .real_rig import BundleSolution, solve_bundle
 from .ceiling import light_transport, solve_on_light_transport
 from .footprint import AUTO_TOLERANCE_DB, FootprintChoice, choose_footprint
 from .run import CEILING_ITERATIONS, ORACLES, RunResult, run_markdown, run_virtual
+from .shown import rig_measure, shown_world, true_responses
 from .scoring import (EVALUATION, PatternEvaluation, TargetScore, affine_psnr, evaluate_patterns, ghost_images,
                       score_image)
 from .targets import DEFAULT_IMAGES, default_images, scene_images, scene_targets, target_image
@@ -24,5 +25,5 @@ __all__ = [
     "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "choose_footprint", "decoding_accuracy",
     "affine_psnr", "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual", "scene_images",
     "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle",
-    "solve_on_light_transport", "target_image",
+    "rig_measure", "shown_world", "solve_on_light_transport", "target_image", "true_responses",
 ]

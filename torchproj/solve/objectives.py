@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..core.checks import check
+from ..core.checks import check, check_shape
 from ..core.progress import progress_bar
 from ..metrics import SSIMLoss
 from ..transport.operator import TransportOperator
@@ -115,30 +115,51 @@ class ImageLoss(nn.Module):
         start: :math:`(N_{cols}, C)` the patterns whose squared error the terms are relative to
             (the least-squares optimum).
         l2_weight, psnr_drop: ``w`` and ``d`` of the module docs (``d`` None: no limit).
+        offset: :math:`(N_{rows}, C)` camera values added to every prediction, ``A p + offset``
+            (what a capture showed the model misses: :func:`~torchproj.solve.refine_patterns`);
+            None: the model as it is.
 
     Shape:
         ``forward(p)``: :math:`(N_{cols}, C)` -> a 0-dim tensor, the mean over targets.
     """
 
     def __init__(self, op: TransportOperator, start: torch.Tensor, l2_weight: float = OBJECTIVES["ssim"],
-                 psnr_drop: float | None = PSNR_DROP_DB):
+                 psnr_drop: float | None = PSNR_DROP_DB, offset: torch.Tensor | None = None):
         super().__init__()
         check(l2_weight >= 0, f"l2_weight must be >= 0, got {l2_weight}")
         check(psnr_drop is None or psnr_drop >= 0, f"psnr_drop must be >= 0 dB (or None), got {psnr_drop}")
         model = ProjectionModel(op, start=start.detach())  # checks the operator's pixel map and the start's shape
         self.op, self.l2_weight, self.psnr_drop = op, float(l2_weight), psnr_drop
+        if offset is not None:
+            check_shape(offset, "offset", list(op.rhs.shape))
+        self.offset = offset
         self.ssim_loss = SSIMLoss(model.targets, model.mask)
         self.squared_error = _squared_error(op)
         with torch.no_grad():
-            self.register_buffer("reference", self.squared_error(op.A(start.detach()) / op.scale).clamp_min(1e-12))
+            start_rows = self._predict(start.detach())
+            self.register_buffer("reference", self.squared_error(start_rows / op.scale).clamp_min(1e-12))
+
+    def _predict(self, p: torch.Tensor) -> torch.Tensor:
+        rows = self.op.A(p)
+        return rows if self.offset is None else rows + self.offset
 
     def terms(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per target, ``1 - SSIM`` and the squared error relative to the start's: two :math:`(K,)`."""
-        rows = self.op.A(p) / self.op.scale
+        return self.row_terms(self._predict(p))
+
+    def row_terms(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`terms` of camera values at the rows (predicted, or captured), :math:`(N_{rows}, C)`."""
+        rows = rows / self.op.scale
         return self.ssim_loss(self.op.to_camera(rows)), self.squared_error(rows) / self.reference
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
-        dissimilarity, ratio = self.terms(p)
+        return self._combine(*self.terms(p))
+
+    def of_rows(self, rows: torch.Tensor) -> torch.Tensor:
+        """The loss of camera values at the rows (a capture's, :func:`~torchproj.solve.refine_patterns`)."""
+        return self._combine(*self.row_terms(rows))
+
+    def _combine(self, dissimilarity: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
         per_target = dissimilarity + self.l2_weight * ratio
         if self.psnr_drop is not None:
             # Clamped inside the logarithm: at an error of exactly 0 its slope is infinite, and times
@@ -156,7 +177,8 @@ class ImageLoss(nn.Module):
 
 def solve_ssim(op: TransportOperator, bounds=(0.0, 1.0), *, l2_weight: float = OBJECTIVES["ssim"],
                psnr_drop: float | None = PSNR_DROP_DB, x0: torch.Tensor | None = None, max_iter: int = 30,
-               lr: float = 1e-2, tol: float = 1e-4, progress: bool | None = None) -> SolveResult:
+               lr: float = 1e-2, tol: float = 1e-4, progress: bool | None = None,
+               offset: torch.Tensor | None = None) -> SolveResult:
     """Patterns that maximise the targets' SSIM within a PSNR budget (module docs; :class:`ImageLoss`).
 
     Clamped Adam from ``x0`` (default: the bounded least-squares optimum, FISTA), one prediction
@@ -174,6 +196,7 @@ def solve_ssim(op: TransportOperator, bounds=(0.0, 1.0), *, l2_weight: float = O
         max_iter: Adam iterations.
         lr: Adam's learning rate (linear light per step).
         tol: stop when the loss fell by less than this (relative) over the last 5 iterations.
+        offset: camera values added to the model's prediction (:class:`ImageLoss`).
 
     Returns:
         a :class:`SolveResult` with ``objective`` the image-space loss and ``info`` holding
@@ -188,7 +211,7 @@ def solve_ssim(op: TransportOperator, bounds=(0.0, 1.0), *, l2_weight: float = O
     if x0 is None:
         x0 = solve_fista(op, (lo, hi), progress=False).patterns
     x0 = x0.clamp(lo, hi)
-    loss_of = ImageLoss(op, x0, l2_weight, psnr_drop)
+    loss_of = ImageLoss(op, x0, l2_weight, psnr_drop, offset=offset)
     model = ProjectionModel(op, (lo, hi), start=x0)
     opt = ClampedAdam(model.parameters(), lr=lr, bounds=(lo, hi))
     history, start_l2 = [], float(op.objective(x0))

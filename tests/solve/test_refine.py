@@ -1,0 +1,106 @@
+"""Camera in the loop on a synthetic world: the loop against scipy's optimum of the world as it is."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import lsq_linear
+
+from torchproj.calib import ResponseCurve
+from torchproj.core import InputError
+from torchproj.solve import captured_loss, refine_patterns, solve_fista
+from torchproj.transport import build_transport
+
+from ..helpers import synthetic_calibration, targets
+
+RESPONSES = [ResponseCurve(torch.tensor([1.0]), torch.tensor([b]), torch.tensor([0.0])) for b in (2.2, 2.0)]
+
+
+@pytest.fixture(scope="module")
+def op():
+    return build_transport(synthetic_calibration(), targets(), merge=False, footprint="bilinear")
+
+
+def shown_light(op, images):
+    """The linear light the projectors emit for 8-bit images, at the operator's columns (true responses)."""
+    light = torch.empty(op.shape[1], 1)
+    for j, (img, resp) in enumerate(zip(images, RESPONSES)):
+        sel = op.column_projector == j
+        light[sel, 0] = resp(img.float() / 255)[0].flatten()[op.column_cell[sel]]
+    return light
+
+
+def world(op, matrix):
+    """A camera on a world whose transport is ``matrix`` (dense, rows x columns): captured rows."""
+    def measure(images):
+        return torch.from_numpy(matrix @ shown_light(op, images).double().numpy()).float()
+    return measure
+
+
+def optimum(matrix, rhs):
+    """scipy's bounded least squares on the world itself: the best any patterns can do there."""
+    x = lsq_linear(matrix, rhs[:, 0], bounds=(0, 1), tol=1e-12, max_iter=10000).x
+    return float(((matrix @ x - rhs[:, 0]) ** 2).sum())
+
+
+def test_a_brighter_world_is_brought_to_its_own_optimum(op):
+    # Every projector 30% brighter than calibrated: the stale patterns overshoot; four captures and
+    # updates reach the optimum of the world as it is (scipy), where the stale ones are far from it.
+    A = op.dense().double().numpy()
+    truth = 1.3 * A
+    start = solve_fista(op, max_iter=3000, tol=1e-12).patterns
+    result = refine_patterns(op, start, world(op, truth), responses=RESPONSES, iterations=4, solver_iterations=500)
+    best = optimum(truth, op.rhs.double().numpy())
+    losses = [h["loss"] for h in result.history]
+    assert losses[0] > 1.3 * best
+    assert min(losses) <= best * 1.01  # 8-bit patterns: a hair above the continuous optimum
+    assert result.best == int(np.argmin(losses)) and result.best > 0
+    assert all(0 <= float(v) <= 1 for v in (result.patterns.min(), result.patterns.max()))
+
+
+def test_the_loop_never_returns_worse_than_it_began(op):
+    # A world the model cannot describe (its columns shuffled): whatever the loop tries, it keeps the
+    # best capture, the start included, and reports it.
+    A = op.dense().double().numpy()
+    shuffled = A[:, np.random.default_rng(0).permutation(A.shape[1])]
+    start = solve_fista(op, max_iter=500).patterns
+    result = refine_patterns(op, start, world(op, shuffled), responses=RESPONSES, iterations=5)
+    losses = [h["loss"] for h in result.history]
+    assert result.history[result.best]["loss"] == min(losses)
+    again = captured_loss(op, world(op, shuffled)(result.images))[0]
+    assert again == pytest.approx(min(losses), rel=1e-6)
+    assert again <= losses[0]
+
+
+def test_an_unchanged_world_loses_nothing(op):
+    A = op.dense().double().numpy()
+    start = solve_fista(op, max_iter=3000, tol=1e-12).patterns
+    result = refine_patterns(op, start, world(op, A), responses=RESPONSES, iterations=3)
+    losses = [h["loss"] for h in result.history]
+    assert min(losses) <= losses[0]
+    assert min(losses) <= optimum(A, op.rhs.double().numpy()) * 1.03 + 1e-4
+
+
+def test_an_image_objective_refines_on_the_capture(op):
+    truth = 1.2 * op.dense().double().numpy()
+    start = solve_fista(op, max_iter=500).patterns
+    result = refine_patterns(op, start, world(op, truth), responses=RESPONSES, iterations=2, objective="ssim")
+    losses = [h["loss"] for h in result.history]
+    assert result.best > 0 and losses[result.best] < losses[0]
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"iterations": -1}, "iterations"), ({"relax": 0}, "relax"), ({"relax": 1.5}, "relax"),
+    ({"responses": None}, "response curves"), ({"solver_iterations": 0}, "solver_iterations"),
+])
+def test_bad_loop_options_are_refused_before_any_capture(op, kwargs, message):
+    def measure(images):
+        raise AssertionError("captured before the options were checked")
+    options = {"responses": RESPONSES, **kwargs}
+    with pytest.raises(InputError, match=message):
+        refine_patterns(op, torch.zeros(op.shape[1], 1), measure, **options)
+
+
+def test_a_merged_operator_is_refused(op):
+    merged = build_transport(synthetic_calibration(), targets(), merge=True)
+    with pytest.raises(InputError, match="merge=False"):
+        refine_patterns(merged, torch.zeros(merged.shape[1], 1), lambda images: None, responses=RESPONSES)

@@ -1,0 +1,85 @@
+"""The world the patterns are shown in, on the virtual rig, and the camera that looks at it in the loop.
+
+A scene with a ``show:`` section (:mod:`torchproj.scene.show`) is calibrated as written and shown
+changed. :func:`shown_world` is the calibration's view of that world: the solver keeps what
+calibration measured (maps, weights, responses), while captures, black frames, the exact light and
+the responses a ceiling compensates with are the shown world's. :func:`rig_measure` is the camera
+of :func:`~torchproj.solve.refine_patterns` on the virtual rig.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from ..calib.response import ResponseCurve
+from ..core.checks import check
+from ..scene.show import shown_scene
+from ..sim import VirtualRig
+from ..transport import Target
+from .virtual import VirtualCalibration
+
+__all__ = ["rig_measure", "shown_world", "true_responses"]
+
+
+def true_responses(scene) -> list[ResponseCurve]:
+    """The scene's projectors' own response curves (the simulator's truth, not a fit)."""
+    return [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
+            for p in scene.projectors]
+
+
+def shown_world(cal: VirtualCalibration, scene=None) -> VirtualCalibration:
+    """``cal`` with the rig, black captures and responses of the world as shown (module docs).
+
+    ``scene``: the scene whose ``show`` applies (default: the calibrated one). A scene without
+    ``show`` is shown in the world it was calibrated in: ``cal`` itself. Otherwise
+    each state's black frame is captured anew (every projector black, with noise, as a bench takes
+    one before showing), so that room light that changed since calibration is not scored as error.
+    """
+    scene = cal.rig.scene if scene is None else scene
+    if scene.show is None:
+        return cal
+    rig = VirtualRig(shown_scene(scene), device=cal.rig.device)
+    black = {state: rig.capture(state, {})[0].cpu() for state in cal.black}
+    return dataclasses.replace(cal, rig=rig, black=black, responses=true_responses(rig.scene))
+
+
+def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: int = 1):
+    """The captured rows of patterns on the virtual rig, for :func:`~torchproj.solve.refine_patterns`.
+
+    Args:
+        world: where the patterns are shown (:func:`shown_world`).
+        op: the operator whose rows are measured (rows on camera pixels), or one per colour channel
+            (they share rows; column c of the result is channel c).
+        targets: the targets it was built for (a row's state is its target's).
+        frames: captures averaged per state and iteration (camera noise falls as its square root).
+
+    Returns:
+        ``measure(images) -> (N_rows, C)``: camera values above the state's black frame at each row's
+        pixel; ``measure.captures`` counts the captures taken per state.
+    """
+    check(isinstance(frames, int) and frames >= 1, f"frames must be a whole number >= 1, got {frames!r}")
+    ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    op = ops[0]
+    check(op.row_pixel is not None, "the loop measures camera pixels: build the operator with merge=False")
+    states = [t.state for t in targets]
+    rows_of = {state: torch.nonzero(torch.isin(op.row_target, torch.tensor(
+        [k for k, s in enumerate(states) if s == state], device=op.row_target.device)))[:, 0]
+        for state in dict.fromkeys(states)}
+    channels = len(ops) if len(ops) > 1 else op.rhs.shape[1]
+
+    def measure(images: list[torch.Tensor]) -> torch.Tensor:
+        shown = {j: (img.float() / 255)[None].to(world.rig.device) for j, img in enumerate(images)}
+        rows = torch.empty(op.shape[0], channels, dtype=op.rhs.dtype, device=op.rhs.device)
+        for state, which in rows_of.items():
+            shots = world.rig.capture(state, {j: s.expand(frames, -1, -1, -1) for j, s in shown.items()})
+            above = (shots.mean(0).cpu() - world.black[state]).flatten(1)  # (C_cam, H W)
+            pixels = op.row_pixel[which].cpu()
+            values = above[:, pixels].T  # (rows, C_cam)
+            rows[which] = (values if values.shape[1] == channels else values.mean(1, keepdim=True)).to(rows)
+        measure.captures += frames
+        return rows
+
+    measure.captures = 0
+    return measure

@@ -1,0 +1,231 @@
+"""Camera in the loop: patterns corrected by what the camera sees of them.
+
+A calibrated transport ``A`` describes the world it was measured in. Once the world drifts (a
+projector bumped, a lamp brighter, light bounced between surfaces) the patterns solved on ``A``
+miss, and only a capture shows by how much. :func:`refine_patterns` closes the loop: show the
+patterns, capture every state, and correct.
+
+Each iteration is one step of the straight-through estimator taken to its end. The capture ``m_k``
+of patterns ``p_k`` gives the loss's value; the model gives its gradient, through the surrogate
+
+    m(p) ~ A p + d_k,    d_k = m_k - A p_k,
+
+which equals the capture at ``p_k`` and moves with ``A`` around it. Rather than one gradient step
+per capture (captures are what a bench pays for), the surrogate is solved to its optimum in the
+box, from ``p_k``, for the next patterns: for least squares that is the bounded solve with the
+targets moved by the defect, ``min ||A p - (i - d_k)||^2``, and for an image objective the same
+start followed by :func:`~torchproj.solve.solve_ssim` on ``A p + d_k``. Where the world is the
+model times a gain ``g`` the predicted light after k captures misses by ``(1 - g)^k`` of the first
+miss: a 20% brighter lamp is within 0.2% after four. Camera noise enters through ``d_k``: each
+capture's noise moves the next target by that much, so the loop holds its best iterate rather than
+its last, and ``relax`` < 1 averages the defect over captures (``d_k = d_{k-1} + relax (m_k - A p_k
+- d_{k-1})``) at the price of following a change more slowly (``benchmarks/drift.py`` measures
+both). The best captured iterate is returned, the start among them: the loop never returns worse
+than it began, as the camera measured it.
+
+This is torchproj's construction (defect correction, also called iterative learning control); the
+paper solves once on its calibrated ``A``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from ..core.checks import check, check_finite, check_shape
+from ..core.progress import progress_bar
+from .compensate import projectable_patterns
+from .objectives import ImageLoss, image_objective, solve_ssim
+from .solvers import check_bounds, solve_fista
+
+__all__ = ["REFINE_SOLVER_ITERATIONS", "RefineResult", "captured_loss", "carry_patterns", "refine_patterns"]
+
+# FISTA iterations per loop step: the start is the last iterate, one capture away from the optimum,
+# so a tenth of a cold solve's work reaches it (benchmarks/drift.py).
+REFINE_SOLVER_ITERATIONS = 60
+
+
+@dataclass
+class RefineResult:
+    """What :func:`refine_patterns` returns.
+
+    Attributes:
+        patterns: :math:`(N_{cols}, C)` the best captured iterate's values (in the bounds).
+        images: per projector the uint8 images of ``patterns`` (what to show).
+        best: which capture it was (0: the start).
+        history: per capture, ``{capture, loss, psnr_db (per target, from the captured rows),
+            solve_s}``; ``loss`` is :func:`captured_loss`.
+        time_s: the loop's time, captures included.
+    """
+
+    patterns: torch.Tensor
+    images: list[torch.Tensor]
+    best: int
+    history: list[dict] = field(default_factory=list)
+    time_s: float = 0.0
+
+    def as_dict(self) -> dict:
+        return {"captures": len(self.history), "best_capture": self.best, "history": self.history,
+                "seconds": round(self.time_s, 3)}
+
+
+def _operators(op) -> list:
+    ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    check(all(o.row_pixel is not None for o in ops), "the loop compares captured camera pixels with the model's rows: "
+                                                     "build the operator with merge=False")
+    check(len({(o.shape, o.target_count) for o in ops}) == 1,
+          "give one operator, or one per colour channel with the same rows and columns (build_channel_transports)")
+    return ops
+
+
+def _rows(ops, values: torch.Tensor) -> torch.Tensor:
+    """``A p`` as :math:`(N_{rows}, C)`, one operator or one per channel (column c on operator c)."""
+    if len(ops) == 1:
+        return ops[0].A(values)
+    return torch.cat([o.A(values[:, c:c + 1]) for c, o in enumerate(ops)], 1)
+
+
+def _targets(ops) -> torch.Tensor:
+    return ops[0].rhs if len(ops) == 1 else torch.cat([o.rhs for o in ops], 1)
+
+
+def captured_loss(op, measured: torch.Tensor) -> tuple[float, list[float]]:
+    """The least-squares loss of captured rows, and each target's PSNR from them.
+
+    Args:
+        op: the operator (or one per colour channel) whose rows were captured.
+        measured: :math:`(N_{rows}, C)` camera values above black at the rows' pixels.
+
+    Returns:
+        ``(loss, psnr_db)``: ``||m - i||^2`` (the solver's objective, measured instead of
+        predicted) and per target the PSNR of ``m / scale`` against its target values.
+    """
+    ops = _operators(op)
+    err = (measured.double() - _targets(ops).double()).pow(2)
+    first = ops[0]
+    per_target = torch.zeros(first.target_count, dtype=torch.float64, device=err.device)
+    per_target.index_add_(0, first.row_target, err.sum(1))
+    counts = torch.bincount(first.row_target, minlength=first.target_count).double() * err.shape[1]
+    mse = per_target / counts.clamp_min(1) / first.scale ** 2
+    return float(err.sum()), [10 * math.log10(1 / v) if v > 0 else math.inf for v in mse.tolist()]
+
+
+def carry_patterns(p: torch.Tensor, old, new) -> torch.Tensor:
+    """Values on ``old``'s columns carried to ``new``'s by projector cell (a cell new to ``new`` gets 0)."""
+    images = old.to_images(p)
+    out = p.new_zeros(new.shape[1], p.shape[1])
+    for j, img in enumerate(images):
+        sel = new.column_projector == j
+        out[sel] = img.flatten(1)[:, new.column_cell[sel]].T
+    return out
+
+
+def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tensor]], torch.Tensor],
+                    bounds=(0.0, 1.0), responses=None, *, iterations: int = 4, objective="l2", relax: float = 1.0,
+                    solver_iterations: int = REFINE_SOLVER_ITERATIONS, outside: str = "clip",
+                    progress: bool | None = None, remodel=None) -> RefineResult:
+    """Correct patterns from captures of them (module docs): ``iterations`` updates, one capture each
+    and one of the start, the best captured iterate returned.
+
+    Args:
+        op: the calibrated :class:`~torchproj.transport.TransportOperator` with rows on camera
+            pixels (``merge=False``), or one per colour channel with the same rows and columns.
+        start: :math:`(N_{cols}, C)` patterns in ``bounds`` (any solver's).
+        measure: shows per projector uint8 images :math:`(C, H_j, W_j)` and returns the captured
+            rows, :math:`(N_{rows}, C)` camera values above the black capture at each row's pixel in
+            its target's state (:func:`torchproj.pipeline.rig_measure` on the virtual rig; a bench's
+            camera otherwise).
+        bounds: the box, linear light.
+        responses: per projector its :class:`~torchproj.calib.ResponseCurve` (compensation).
+        iterations: updates (captures of patterns: ``iterations + 1``).
+        objective: ``l2``, ``ssim``, ``mixed`` or an :class:`~torchproj.solve.ImageObjective`.
+        relax: the share of each new defect taken (1: all; smaller averages camera noise).
+        solver_iterations: FISTA iterations per update.
+        outside: how values outside [0, 1] are shown (:func:`~torchproj.solve.to_projectable`).
+        remodel: None, or ``remodel(op, p, measured)`` called after each capture but the last: a new
+            operator (or list) with the same rows where the capture shows the model has moved (the
+            virtual rig's run re-registers the maps, :func:`torchproj.pipeline.register_maps`), else
+            None. Patterns are carried to its columns by projector cell.
+
+    Returns:
+        a :class:`RefineResult`; ``patterns`` in the last operator's columns.
+    """
+    ops = _operators(op)
+    lo, hi = check_bounds(bounds)
+    check(isinstance(iterations, int) and iterations >= 0, f"iterations must be a whole number >= 0, got {iterations!r}")
+    check(0 < relax <= 1, f"relax must be in (0, 1], got {relax}")
+    check(solver_iterations >= 1, f"solver_iterations must be >= 1, got {solver_iterations}")
+    check(responses is not None, "give the projectors' response curves: the loop shows 8-bit patterns")
+    check_shape(start, "start", [ops[0].shape[1], len(ops) if len(ops) > 1 else "C"])
+    check_finite(start, "start")
+    image = image_objective(objective)
+    check(image is None or len(ops) == 1, "an image objective couples the colour channels: refine it on one operator "
+                                          "with the grey weight (build_transport)")
+    t0 = time.perf_counter()
+    targets = _targets(ops)
+    p = start.detach().clamp(lo, hi)
+    best = None  # {loss, capture, p, images, measured, defect}
+    step = 1.0
+    history = []
+    bar = progress_bar(desc="refine", enabled=progress, total=iterations + 1)
+    for k in range(iterations + 1):
+        images = projectable_patterns(ops[0], p, (lo, hi), responses, outside)[1]
+        measured = measure(images)
+        check_shape(measured, "measure(...)'s rows", list(targets.shape))
+        measured = measured.to(targets)
+        loss, psnr_db = captured_loss(ops, measured)
+        if image is not None:
+            if k == 0:  # the image loss of every capture, its squared error relative to the start's capture
+                image_loss = ImageLoss(ops[0], p, image.l2_weight, image.psnr_drop, offset=measured - ops[0].A(p))
+            with torch.no_grad():
+                loss = float(image_loss.of_rows(measured))
+        history.append({"capture": k, "loss": loss, "psnr_db": psnr_db, "step": step})
+        new_ops = remodel(ops, p, measured) if remodel is not None and k < iterations else None
+        if new_ops is not None:
+            new_ops = _operators(new_ops)
+            check(new_ops[0].shape[0] == ops[0].shape[0] and len(new_ops) == len(ops),
+                  "remodel must keep the operator's rows (the same camera pixels) and channels")
+            p = carry_patterns(p, ops[0], new_ops[0])
+            if best is not None:
+                best["p"] = carry_patterns(best["p"], ops[0], new_ops[0])
+                best["defect"] = best["measured"] - _rows(new_ops, best["p"])
+            ops = new_ops
+            history[-1]["remodelled"] = True
+        with torch.no_grad():
+            fresh = measured - _rows(ops, p)
+        if best is None or loss < best["loss"]:
+            defect = fresh if best is None or new_ops is not None else best["defect"] + relax * (fresh - best["defect"])
+            best = {"loss": loss, "capture": k, "p": p, "images": images, "measured": measured, "defect": defect}
+        else:
+            # The capture got worse than the best: the model's direction is wrong at that length (a world
+            # the model does not describe, noise). Back to the best iterate, half the step along the surrogate's.
+            step /= 2
+        bar.update(1)
+        if k == iterations:
+            break
+        t_solve = time.perf_counter()
+        base = best["p"]
+        target = _update(ops, base, best["defect"], (lo, hi), image, solver_iterations)
+        p = base + step * (target - base)
+        history[-1]["solve_s"] = round(time.perf_counter() - t_solve, 4)
+    bar.close()
+    return RefineResult(patterns=best["p"], images=best["images"], best=best["capture"], history=history,
+                        time_s=time.perf_counter() - t0)
+
+
+def _update(ops, p: torch.Tensor, defect: torch.Tensor, bounds, image, solver_iterations: int) -> torch.Tensor:
+    """The surrogate's optimum from ``p``: the bounded least squares on the targets less the defect,
+    then the image objective on ``A p + defect`` where one is asked."""
+    moved = [o.with_rhs(o.rhs - (defect if len(ops) == 1 else defect[:, c:c + 1])) for c, o in enumerate(ops)]
+    solved = [solve_fista(o, bounds, x0=p if len(ops) == 1 else p[:, c:c + 1], max_iter=solver_iterations,
+                          progress=False).patterns for c, o in enumerate(moved)]
+    p = solved[0] if len(ops) == 1 else torch.cat(solved, 1)
+    if image is None:
+        return p
+    return solve_ssim(ops[0], bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=p,
+                      max_iter=image.iterations, offset=defect, progress=False).patterns
+
