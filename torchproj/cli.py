@@ -70,7 +70,8 @@ def cmd_run(args) -> int:
     result = run_virtual(_scene(args), **_solver_args(args), device=args.device, max_iter=args.max_iter,
                          oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
                          plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
-                         footprint=args.footprint, ceiling=args.ceiling, colour_weights=args.colour_weights)
+                         footprint=args.footprint, ceiling=args.ceiling, colour_weights=args.colour_weights,
+                         refine=args.refine, refine_frames=args.refine_frames)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0
 
@@ -179,6 +180,11 @@ def _virtual_rig_commands(sub) -> None:
                         "can reach)")
     p.add_argument("--ceiling", action="store_true", help="also score the transport oracle on the same targets and "
                    "rows, beside each target in the report")
+    p.add_argument("--refine", type=int, default=0, metavar="N", help="camera in the loop: N times show the patterns, "
+                   "capture every state and correct them from what the camera saw; the best captured patterns are "
+                   "kept (default 0: none). A scene's show: section changes the world after calibration")
+    p.add_argument("--refine-frames", type=int, default=1, metavar="F", help="captures averaged per state in each "
+                   "loop step, against camera noise (default 1)")
     p.add_argument("--gain", type=limits, metavar="LO,HI", help="also optimise a gain per target (fista; e.g. 0.5,1.5)")
     p.add_argument("--offset", type=limits, metavar="LO,HI", help="... and an offset (fista; e.g. -0.2,0.2)")
     map_options(p, bits=BITS_HELP + "; each capture is then read through one homography (planar scenes only)")

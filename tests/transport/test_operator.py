@@ -190,3 +190,42 @@ def test_the_solvers_iterate_on_products_where_rows_are_few_and_wide():
     assert normal_form(banded(100, 400, 8)) == "products"  # few, wide rows
     assert normal_form(banded(100, 400, 2)) == "matrix"  # narrow rows keep Q sparse
     assert normal_form(banded(800, 400, 8)) == "matrix"  # every cell in several rows
+
+
+def _moved_reference(op, moves, images):
+    """``A' L`` by sampling: each entry's weight times the light at its cell plus the row's move, read
+    bilinearly from the projector image with the edge value beyond the edge (torch's grid_sample)."""
+    import torch.nn.functional as F
+
+    dense = op.dense().double()
+    out = torch.zeros(op.shape[0], dtype=torch.float64)
+    for c in range(op.shape[1]):
+        j = int(op.column_projector[c])
+        w, h = op.projector_sizes[j]
+        cell = int(op.column_cell[c])
+        at = torch.tensor([cell % w, cell // w], dtype=torch.float64) + moves[:, j]
+        grid = torch.stack([2 * at[:, 0] / (w - 1) - 1, 2 * at[:, 1] / (h - 1) - 1], -1).view(1, 1, -1, 2)
+        seen = F.grid_sample(images[j][None].double(), grid, mode="bilinear", padding_mode="border",
+                             align_corners=True).view(-1)
+        out += dense[:, c] * seen
+    return out
+
+
+@pytest.mark.parametrize("kind", ["none", "whole", "fraction", "edge"])
+def test_rows_moved_carry_their_light_where_the_move_says(op, kind):
+    g = torch.Generator().manual_seed(3)
+    n_proj = len(op.projector_sizes)
+    moves = {"none": torch.zeros(op.shape[0], n_proj, 2),
+             "whole": torch.tensor([1.0, -2.0]).expand(op.shape[0], n_proj, 2).clone(),
+             "fraction": torch.rand(op.shape[0], n_proj, 2, generator=g) * 1.6 - 0.8,
+             "edge": torch.tensor([-30.0, 25.0]).expand(op.shape[0], n_proj, 2).clone()}[kind]
+    moved = op.with_rows_moved(moves)
+    images = [torch.rand(1, h, w, generator=g, dtype=torch.float64) for w, h in op.projector_sizes]
+    cells = torch.stack([images[int(j)][0].flatten()[int(c)] for j, c in zip(moved.column_projector, moved.column_cell)])
+    assert torch.allclose(moved.A(cells[:, None])[:, 0], _moved_reference(op, moves.double(), images), atol=1e-9)
+    assert moved.shape[0] == op.shape[0] and torch.equal(moved.row_target, op.row_target)
+    # No light is lost or made: each row's weights sum to what they were.
+    ones = torch.ones(moved.shape[1], 1, dtype=torch.float64)
+    assert torch.allclose(moved.A(ones), op.A(ones.new_ones(op.shape[1], 1)), atol=1e-9)
+    if kind == "none":
+        assert torch.allclose(moved.dense(), op.dense())

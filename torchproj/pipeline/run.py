@@ -19,10 +19,13 @@ from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
 from ..solve.compensate import iteration_limit, unexplained
+from ..solve.refine import refine_patterns
 from ..transport import (COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, build_channel_transports, build_transport,
                          has_colour_weights, select_maps)
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .footprint import AUTO, check_footprint, choose_footprint
+from .register import Reregister
+from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
 from .virtual import VirtualCalibration, calibrate_virtual
@@ -30,6 +33,7 @@ from .virtual import VirtualCalibration, calibrate_virtual
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
 
 ORACLES = ("geometry", "transport")  # what an oracle run takes from the simulator (run_virtual's ``oracle``)
+MAX_REFINE = 100  # camera-loop updates a run may ask for: each is a capture of every state
 CEILING_ITERATIONS = 3000  # FISTA's limit for the ceiling: it stops on its gap long before on the shipped scenes
 
 
@@ -74,7 +78,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 maps: str = "decoded", plane_tolerance: float = 1.0, bits: int | None = None,
                 objective="l2", footprint: str = DEFAULT_FOOTPRINT, ceiling: bool = False, outside: str = "clip",
                 chains: str = "epipolar", solver_options: dict | None = None,
-                colour_weights: str = "channel") -> RunResult:
+                colour_weights: str = "channel", refine: int = 0, refine_frames: int = 1,
+                refine_relax: float = 1.0) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -98,6 +103,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             per target with FISTA (:func:`~torchproj.solve.solve_gain_offset`); None asks for the
             images as they are. Metrics then compare with the adjusted image ``g t + o``, and the
             report also scores against the original.
+            A scene with a ``show`` section (:mod:`torchproj.scene.show`) is calibrated as written and
+            its patterns are shown, captured and scored in the changed world
+            (:func:`~torchproj.pipeline.shown_world`); the oracles and the ceiling are that world's.
         maps: ``"decoded"`` (default: the per-pixel Gray-code maps) or ``"homography"`` (one fitted
             homography per state and projector, :func:`~torchproj.transport.planar_calibration`;
             for scenes where each state is one plane; refused otherwise).
@@ -131,15 +139,28 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             (:func:`~torchproj.transport.build_channel_transports`); ``"grey"`` gives every
             channel their mean. Image objectives and gain/offset couple the channels and use grey;
             report.json ``colour_weights`` says which was used.
+        refine: camera-in-the-loop updates after the solve (:func:`~torchproj.solve.refine_patterns`):
+            show, capture every state, correct, ``refine`` times; the best captured iterate is kept
+            and scored. ``report.json``'s ``refine`` holds each capture's loss and PSNRs and the
+            start's scores. 0: none.
+        refine_frames: captures averaged per state and update (camera noise).
+        refine_relax: the share of each capture's defect the loop takes (1: all).
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains)
+    check(isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE,
+          f"refine must be a whole number of updates in 0..{MAX_REFINE}, got {refine!r}")
+    check(not refine or gain_offset is None, "the loop refines the images as they are: drop --gain/--offset or --refine")
+    check(isinstance(refine_frames, int) and not isinstance(refine_frames, bool) and 1 <= refine_frames <= MAX_REFINE,
+          f"refine_frames must be a whole number of captures in 1..{MAX_REFINE}, got {refine_frames!r}")
+    check(0 < refine_relax <= 1, f"refine_relax must be in (0, 1], got {refine_relax!r}")
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     check_footprint(footprint)
     t_total = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
                                            plane_tolerance=plane_tolerance)
     timings = {"calibrate": cal.seconds if calibration is None else 0.0}
+    world = shown_world(cal, scene)
     t0 = time.perf_counter()
     states, maps, fits = select_maps(cal.states, maps, plane_tolerance, cal.homographies)
     if fits is not None and cal.homographies is None:
@@ -153,17 +174,31 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     exact = oracle == "transport"
     if image is not None or gain_offset is not None or exact:
         colour_weights = "grey"  # these couple the channels (the transport oracle has its own per-channel light)
-    solved = _build_and_solve(cal, states, targets, bounds, solver=solver, image=image, exact=exact,
+    solved = _build_and_solve(world if exact else cal, states, targets, bounds, solver=solver, image=image, exact=exact,
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
                               device=device, timings=timings, outside=outside, chains=chains,
-                              solver_options=solver_options, colour_weights=colour_weights, start=choice)
+                              solver_options=solver_options, colour_weights=colour_weights, start=choice,
+                              rows_on_camera=refine > 0)
+    refined = None
+    if refine:
+        t0 = time.perf_counter()
+        measure = rig_measure(world, solved.ops, targets, refine_frames)
+        remodel = None if exact else Reregister(states, targets, footprint=footprint, colour_weights=colour_weights,
+                                                device=device)
+        refined = refine_patterns(solved.ops, solved.result.patterns, measure, bounds, cal.responses,
+                                  iterations=refine, objective=image or "l2", relax=refine_relax, outside=outside,
+                                  progress=progress, remodel=remodel)
+        timings["refine"] = time.perf_counter() - t0
+        start_scores = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states,
+                                         paper=False).targets
+        solved.patterns = refined.images
     t0 = time.perf_counter()
-    evaluation = evaluate_patterns(cal, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
+    evaluation = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
     scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
     timings["evaluate"] = time.perf_counter() - t0
     if ceiling:
         t0 = time.perf_counter()
-        for row, score in zip(rows, _ceiling(cal, states, targets, bounds, footprint, progress, device, outside)):
+        for row, score in zip(rows, _ceiling(world, states, targets, bounds, footprint, progress, device, outside)):
             row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
         timings["ceiling"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
@@ -177,10 +212,17 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         report["chains"] = chains
     if solver_options:
         report["solver_options"] = dict(solver_options)
+    if scene.show is not None:
+        report["show"] = scene.show.as_dict()
+    if refined is not None:
+        report["refine"] = {**refined.as_dict(), "captures_per_state": measure.captures, "frames": refine_frames,
+                            "relax": refine_relax, "registration": [] if remodel is None else remodel.fits,
+                            "start": [{"name": sc.name, "psnr_db": sc.psnr_db, "ssim": sc.ssim} for sc in start_scores]}
     if fits is not None:
         report["homographies"] = fits
+    solution = solved.result if refined is None else dataclasses.replace(solved.result, patterns=refined.patterns)
     return RunResult(report=report, patterns=solved.patterns, captures=evaluation.captures, targets=scores,
-                     solution=solved.result, scene=scene)
+                     solution=solution, scene=scene)
 
 
 def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside, chains):
@@ -224,17 +266,17 @@ def build_operators(states, targets, *, footprint: str, merge: bool, colour_weig
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
                      progress, device, timings, outside, chains, solver_options=None,
-                     colour_weights: str = "grey", start=None) -> _Solved:
+                     colour_weights: str = "grey", start=None, rows_on_camera: bool = False) -> _Solved:
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve.
     ``start``: a :class:`~torchproj.pipeline.FootprintChoice` whose patterns start a FISTA solve on one
-    operator (``footprint="auto"``)."""
+    operator (``footprint="auto"``). ``rows_on_camera``: keep rows camera pixels (a camera loop compares them)."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A), and with the bilinear or area footprint,
     # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
     # merged otherwise (exact, smaller).
     ops = build_operators(states, targets, merge=gain_offset is None and image is None and not exact
-                          and footprint == "nearest", footprint=footprint, colour_weights=colour_weights,
+                          and footprint == "nearest" and not rows_on_camera, footprint=footprint, colour_weights=colour_weights,
                           device=device)
     op = ops[0]
     if exact:
@@ -375,6 +417,21 @@ def _image_objective_lines(image: dict | None) -> list[str]:
             "counts).", ""]
 
 
+def _show_lines(report: dict) -> list[str]:
+    lines = []
+    if "show" in report:
+        lines += [f"Shown in a world changed after calibration: {report['show']}. Captures, black frames, scores and "
+                  "any ceiling are that world's; the solver knows only the calibration.", ""]
+    refine = report.get("refine")
+    if refine:
+        start = " / ".join(f"{s['psnr_db']:.2f}" for s in refine["start"])
+        trail = "; ".join(f"{h['capture']}: " + " / ".join(f"{v:.2f}" for v in h["psnr_db"]) for h in refine["history"])
+        lines += [f"Camera in the loop: {refine['captures_per_state']} captures per state ({refine['frames']} per step), "
+                  f"best at capture {refine['best_capture']}. PSNR (dB) of the solver's patterns as captured: {start}; "
+                  f"per capture, on the model's rows: {trail}. The table scores the kept patterns.", ""]
+    return lines
+
+
 def run_markdown(report: dict) -> str:
     """``report.md`` of a run: what ``report.json`` holds, as tables."""
     m, t = report["model"], report["timings_s"]
@@ -398,6 +455,7 @@ def run_markdown(report: dict) -> str:
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
              *_image_objective_lines(report.get("image_objective")),
+             *_show_lines(report),
              f"Evaluation: {report['evaluation']}.", "",
              "| target | state | PSNR (dB) | SSIM | crosstalk | ghost | pixels | affine PSNR (dB) |"
              + (" paper PSNR (dB) | paper SSIM |" if paper else "")

@@ -345,6 +345,55 @@ class TransportOperator(nn.Module):
                 setattr(new, key, None)
         return new
 
+    def with_rows_moved(self, moves: torch.Tensor) -> "TransportOperator":
+        """The same rows with each row's light moved across the projectors' cells (its footprint's shape kept).
+
+        Where a projector or camera drifted, a camera pixel's light comes from cells a fraction of a
+        cell or a few cells from where calibration saw it (:func:`torchproj.pipeline.register_maps`).
+        Each entry of row r, at cell c, moves to ``c + moves[r, j]`` for its projector j and is split
+        over the four cells around it (bilinear); a share past the projector's edge stays on its edge
+        cell, so that no row is left empty.
+
+        Args:
+            moves: :math:`(N_{rows}, J, 2)` per row and projector, the move ``(dx, dy)`` in cells.
+
+        Returns:
+            an operator with the same rows, targets, scale and camera map, over the cells now reached.
+        """
+        n_proj = len(self.projector_sizes)
+        check_shape(moves, "moves", [self.shape[0], n_proj, 2])
+        check_finite(moves, "moves")
+        device = self.val.device
+        row = torch.repeat_interleave(torch.arange(self.shape[0], device=device), self.crow.diff())
+        projector = self.column_projector[self.col]
+        widths = torch.tensor([w for w, _ in self.projector_sizes], device=device)
+        heights = torch.tensor([h for _, h in self.projector_sizes], device=device)
+        cell = self.column_cell[self.col]
+        w, h = widths[projector], heights[projector]
+        move = moves.to(device=device, dtype=torch.float64)[row, projector]
+        x = (cell % w).double() + move[:, 0]
+        y = torch.div(cell, w, rounding_mode="floor").double() + move[:, 1]
+        x0, y0 = torch.floor(x), torch.floor(y)
+        fx, fy = x - x0, y - y0
+        offsets = torch.cumsum(torch.cat([torch.zeros(1, dtype=torch.int64, device=device), widths * heights]), 0)
+        rows, cells, vals = [], [], []
+        for dx, dy, share in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
+                              (1, 1, fx * fy)):
+            # A share past the projector's edge stays on the edge cell: every row keeps its light.
+            cx, cy = torch.minimum((x0 + dx).long().clamp_min(0), w - 1), torch.minimum((y0 + dy).long().clamp_min(0), h - 1)
+            keep = share > 0
+            rows.append(row[keep])
+            cells.append(offsets[projector[keep]] + cy[keep] * w[keep] + cx[keep])
+            vals.append((self.val[keep].double() * share[keep]).to(self.val.dtype))
+        rows, cells, vals = torch.cat(rows), torch.cat(cells), torch.cat(vals)
+        used, column = torch.unique(cells, return_inverse=True)
+        owner = torch.searchsorted(offsets, used, right=True) - 1
+        matrix = csr_from_coo(rows, column, vals, (self.shape[0], len(used)))
+        return TransportOperator(matrix, self.rhs, owner, used - offsets[owner], self.projector_sizes,
+                                 constant=self.constant, row_target=self.row_target, scale=self.scale,
+                                 row_pixel=self.row_pixel, camera_size=self.camera_size,
+                                 target_count=self.target_count)
+
     def dense(self) -> torch.Tensor:
         """The matrix as a dense tensor (small problems and tests only)."""
         return self._csr().to_dense()

@@ -1,0 +1,250 @@
+"""Where the light lands now: the calibrated transport's rows moved to match a capture of the patterns.
+
+A bumped projector or camera moves every camera pixel's projector coordinates: the calibrated
+transport's entries then sit a fraction of a cell, or a few cells, from where the light lands, and
+correcting the patterns through it (:func:`~torchproj.solve.refine_patterns`) pushes light to the
+wrong cells. A capture of any patterns measures the move. Each target's pixels see each projector's
+light image ``L_j`` (the patterns as linear light) through the map ``x_j(r)``; the capture is modelled
+as
+
+    m(r) ~ (A p)(r) + sum_j w_j(r) [g_kj L_j(x_j(r) + d_kj(r)) - L_j(x_j(r))] + c_k,
+
+with ``d_kj`` an affine function of the camera pixel per target ``k`` and projector ``j`` (a plane's
+map moves by a homography, close to affine for a drift; each target is its own piece), ``g_kj`` a
+gain and ``c_k`` an offset that take what is photometric out of the fit. Gauss-Newton on the 6 + 1
+numbers per target and projector and one per target, on light images blurred by 2 cells, then 1,
+then sharp (a move of a few cells is found before the fine gradients take over), with Huber
+weights (a pixel on an outline sees two surfaces; the point-sampled light misses what a wide
+footprint averages), gives ``d``. The moved model is then the one of two that predicts the capture better
+(:class:`Reregister`): each row's entries moved by its ``d``, or the transport rebuilt from the
+moved maps.
+
+Measured in ``benchmarks/drift.py``. This is torchproj's construction; the paper calibrates once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+import torch.nn.functional as F
+
+from ..core.checks import check
+from ..transport import Target
+
+__all__ = ["REGISTER_MIN_CELLS", "Reregister", "register_maps"]
+
+# A median move below this (cells) is left to the loop's defect: rebuilding costs a transport build.
+REGISTER_MIN_CELLS = 0.1
+_BLURS = (2.0, 1.0, 0.0)  # cells; Gauss-Newton steps per blur below
+_STEPS = 3
+_RIDGE = 1e-6
+_HUBER = 1.5  # robust scales (median absolute deviations) past which a pixel's residual counts linearly
+
+
+def _blurred(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    if sigma <= 0:
+        return image
+    radius = int(3 * sigma + 0.5)
+    x = torch.arange(-radius, radius + 1, dtype=image.dtype)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    out = F.conv2d(F.pad(image[None, None], (radius, radius, 0, 0), mode="replicate"), kernel.view(1, 1, 1, -1))
+    return F.conv2d(F.pad(out, (0, 0, radius, radius), mode="replicate"), kernel.view(1, 1, -1, 1))[0, 0]
+
+
+def _sample(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of an (H, W) image at cell coordinates (N, 2) (cell centres at integers)."""
+    h, w = image.shape
+    grid = torch.stack([2 * xy[:, 0] / max(w - 1, 1) - 1, 2 * xy[:, 1] / max(h - 1, 1) - 1], -1)
+    return F.grid_sample(image[None, None], grid.view(1, 1, -1, 2), mode="bilinear", padding_mode="border",
+                         align_corners=True).view(-1)
+
+
+def _affine_basis(pixels: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """(N, 3): 1 and the camera pixel's coordinates scaled to about [-1, 1] (a well-conditioned fit)."""
+    u = (pixels % width).double() / max(width - 1, 1) * 2 - 1
+    v = torch.div(pixels, width, rounding_mode="floor").double() / max(height - 1, 1) * 2 - 1
+    return torch.stack([torch.ones_like(u), u, v], 1)
+
+
+def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, measured: torch.Tensor,
+                  moved: torch.Tensor | None = None):
+    """Where a capture of ``p`` says each row's light now lands (module docs).
+
+    Args:
+        states: per state the :class:`~torchproj.transport.StateCalibration` the operator was built from.
+        targets: the operator's targets.
+        op: the operator the patterns were solved on (rows on camera pixels), or one per colour channel.
+        p: :math:`(N_{cols}, C)` the patterns captured.
+        measured: :math:`(N_{rows}, C)` their capture above black at the rows.
+        moved: :math:`(N_{rows}, J, 2)` moves ``op`` already holds (cells; None: none), the start of the fit.
+
+    Returns:
+        ``(moves, median, explained)``: :math:`(N_{rows}, J, 2)` each row's total move per projector
+        (cells, for :meth:`~torchproj.transport.TransportOperator.with_rows_moved` on the calibrated
+        operator), the largest over projectors of this fit's median change on the rows it reaches, and the share of the
+        residual energy (robustly weighted) the moves explain beyond a gain per projector and an offset.
+    """
+    ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    first = ops[0]
+    check(first.row_pixel is not None, "re-registering needs rows on camera pixels: build with merge=False")
+    w_cam, h_cam = first.camera_size
+    n_proj = len(first.projector_sizes)
+    moved = torch.zeros(first.shape[0], n_proj, 2, dtype=torch.float64) if moved is None else moved.double().cpu()
+    grey_light = [img.double().mean(0).cpu() for img in first.to_images(p.detach())]
+    predicted = torch.cat([o.A(p[:, c:c + 1]) for c, o in enumerate(ops)], 1) if len(ops) > 1 else first.A(p)
+    residual_base = (measured.double() - predicted.double()).mean(1).cpu()
+    total = moved.clone()
+    energy = {"still": 0.0, "moved": 0.0}
+    for k, target in enumerate(targets):
+        rows = torch.nonzero(first.row_target == k)[:, 0].cpu()
+        pixels = first.row_pixel[rows].cpu()
+        cal = states[target.state]
+        basis = _affine_basis(pixels, w_cam, h_cam)
+        base = [torch.nan_to_num(m.reshape(-1, 2)[pixels].double()) + moved[rows, j] for j, m in enumerate(cal.prj_xy)]
+        weight = [wt.reshape(-1)[pixels].double() for wt in cal.weight]
+        usable = [torch.isfinite(m.reshape(-1, 2)[pixels]).all(-1) & (wt > 0) for m, wt in zip(cal.prj_xy, weight)]
+        theta = torch.zeros(n_proj, 7, dtype=torch.float64)  # affine x (3), affine y (3), gain - 1
+        offset = torch.zeros((), dtype=torch.float64)
+        residual0 = residual_base[rows]
+        for sigma in _BLURS:
+            light = [_blurred(img, sigma) for img in grey_light]
+            grads = [torch.gradient(img) for img in light]  # (d/dy, d/dx)
+            for _ in range(_STEPS):
+                model = torch.zeros_like(residual0)
+                columns = []
+                for j in range(n_proj):
+                    ok = usable[j]
+                    at = base[j] + torch.stack([basis @ theta[j, :3], basis @ theta[j, 3:6]], 1)
+                    seen = torch.where(ok, _sample(light[j], at), 0.0)
+                    gain = 1 + theta[j, 6]
+                    model += torch.where(ok, weight[j] * (gain * seen - _sample(light[j], base[j])), 0.0)
+                    gx = torch.where(ok, gain * weight[j] * _sample(grads[j][1], at), 0.0)
+                    gy = torch.where(ok, gain * weight[j] * _sample(grads[j][0], at), 0.0)
+                    columns += [gx[:, None] * basis, gy[:, None] * basis, torch.where(ok, weight[j] * seen, 0.0)[:, None]]
+                jac = torch.cat(columns + [torch.ones(len(rows), 1, dtype=torch.float64)], 1)
+                res = residual0 - model - offset
+                # Huber weights: outline pixels that see two surfaces, and what the point-sampled light
+                # misses of a wide footprint, must not pull every pixel's move.
+                spread = _HUBER * 1.4826 * float(res.abs().median()) + 1e-12
+                robust = (spread / res.abs().clamp_min(1e-12)).clamp(max=1.0)
+                normal = jac.T @ (robust[:, None] * jac)
+                normal += _RIDGE * normal.diagonal().mean() * torch.eye(normal.shape[0], dtype=torch.float64)
+                step = torch.linalg.solve(normal, jac.T @ (robust * res))
+                theta += step[:-1].view(n_proj, 7)
+                offset = offset + step[-1]
+        left = res - jac @ step
+        energy["moved"] += float((robust * left.pow(2)).sum())
+        energy["still"] += _photometric_residual(light, base, weight, usable, residual0, robust)
+        for j in range(n_proj):
+            total[rows, j, 0] += basis @ theta[j, :3]
+            total[rows, j, 1] += basis @ theta[j, 3:6]
+    change = (total - moved).norm(dim=-1)  # (rows, J)
+    reached = torch.zeros_like(change, dtype=torch.bool)
+    for j in range(n_proj):
+        reached[:, j] = torch.isin(torch.arange(first.shape[0]), _rows_reaching(first, j))
+    median = max((float(change[reached[:, j], j].median()) for j in range(n_proj) if bool(reached[:, j].any())),
+                 default=0.0)
+    explained = 1 - energy["moved"] / energy["still"] if energy["still"] > 0 else 0.0
+    return total, median, explained
+
+
+def _rows_reaching(op, j: int) -> torch.Tensor:
+    """The rows with an entry in a column of projector ``j``."""
+    row = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff().cpu())
+    return torch.unique(row[(op.column_projector[op.col] == j).cpu()])
+
+
+def _photometric_residual(light, xy, weight, usable, residual, robust) -> float:
+    """The (robustly weighted) residual energy left by a gain per projector and one offset, nothing moved."""
+    columns = [torch.where(ok, wt * _sample(img, c), 0.0) for img, c, wt, ok in zip(light, xy, weight, usable)]
+    jac = torch.stack(columns + [torch.ones_like(residual)], 1)
+    root = robust.sqrt()[:, None]
+    fit = torch.linalg.lstsq(jac * root, residual[:, None] * root).solution
+    return float((robust * (residual - (jac @ fit)[:, 0]).pow(2)).sum())
+
+
+class Reregister:
+    """The camera loop's ``remodel`` on the virtual rig (:func:`~torchproj.solve.refine_patterns`).
+
+    After each capture, while the light keeps moving (a median move of at least
+    :data:`REGISTER_MIN_CELLS`): :func:`register_maps`, then the model that predicts that capture
+    best among three: the operator as it is, the calibrated operator with its rows moved
+    (:meth:`~torchproj.transport.TransportOperator.with_rows_moved`: each row's measured footprint,
+    shares and defocus kept, translated, at the price of a bilinear split of each entry), and the
+    transport rebuilt from the moved maps (sharp footprints from the maps' geometry, the measured
+    shares dropped: they belong to the old maps). Neither moved model wins everywhere: with the
+    simulator's exact moves, box_cylinders at quarter size scored 22.3 / 21.3 dB with rows moved and
+    28.0 / 28.8 rebuilt, suite-1-7 23.4 / 28.0 / 18.7 / 22.9 moved and 20.9 / 23.6 / 17.6 / 23.0
+    rebuilt; which predicted the capture better was the better one in both. Once a capture shows
+    less move, or the operator as it is predicts best, the loop is left to its defect. ``fits``
+    records each fit: its median move (cells), the share of the residual it explained, and the model
+    chosen.
+    """
+
+    def __init__(self, states: dict, targets: list[Target], *, footprint: str, colour_weights: str, device="cpu"):
+        self.states, self.targets = states, targets
+        self.footprint, self.colour_weights, self.device = footprint, colour_weights, device
+        self.calibrated = None  # the operator(s) as calibrated, which every move is applied to
+        self.moves = None
+        self.fits: list[dict] = []
+        self.done = False
+
+    def __call__(self, ops, p, measured):
+        from ..solve.refine import carry_patterns
+
+        if self.done:
+            return None
+        if self.calibrated is None:
+            self.calibrated = list(ops)
+        moves, median, explained = register_maps(self.states, self.targets, ops, p, measured, self.moves)
+        fit = {"median_move_cells": round(median, 4), "explained": round(explained, 4), "model": "as it was"}
+        self.fits.append(fit)
+        if median < REGISTER_MIN_CELLS:
+            self.done = True
+            return None
+        candidates = {"as it was": list(ops), "rows moved": [o.with_rows_moved(moves) for o in self.calibrated],
+                      "rebuilt": self._rebuilt(ops[0], moves)}
+        misses = {}
+        for name, candidate in candidates.items():
+            if candidate is None:
+                continue
+            carried = carry_patterns(p, ops[0], candidate[0])
+            predicted = (torch.cat([o.A(carried[:, c:c + 1]) for c, o in enumerate(candidate)], 1)
+                         if len(candidate) > 1 else candidate[0].A(carried))
+            misses[name] = float((measured - predicted).double().pow(2).sum())
+        fit["model"] = min(misses, key=misses.get)
+        fit["capture_miss"] = {name: round(v, 4) for name, v in misses.items()}
+        if fit["model"] == "as it was":
+            self.done = True
+            return None
+        self.moves = moves
+        return candidates[fit["model"]]
+
+    def _rebuilt(self, op, moves):
+        """The transport built as calibrated from maps moved by ``moves`` (cell shares and edge pixels
+        dropped); a pixel of a state that is no row moves by the median of its state's rows."""
+        from .run import build_operators
+
+        moved = {}
+        for state, cal in self.states.items():
+            mine = torch.tensor([self.targets[int(k)].state == state for k in op.row_target.cpu()])
+            if not bool(mine.any()):
+                moved[state] = cal
+                continue
+            pixels = op.row_pixel.cpu()[mine]
+            maps = []
+            for j, xy in enumerate(cal.prj_xy):
+                flat = xy.reshape(-1, 2).double() + moves[mine, j].median(0).values
+                flat[pixels] = xy.reshape(-1, 2)[pixels].double() + moves[mine, j]
+                w, h = cal.projector_sizes[j]
+                flat[:, 0].clamp_(0, w - 1)
+                flat[:, 1].clamp_(0, h - 1)
+                maps.append(flat.to(xy.dtype).view(xy.shape))
+            moved[state] = dataclasses.replace(cal, prj_xy=maps, shares=None, edges=None)
+        new = build_operators(moved, self.targets, footprint=self.footprint, merge=False,
+                              colour_weights=self.colour_weights if len(self.calibrated) > 1 else "grey",
+                              device=self.device)
+        same = len(new) == len(self.calibrated) and new[0].shape[0] == op.shape[0]
+        return new if same and torch.equal(new[0].row_pixel, op.row_pixel) else None
