@@ -104,3 +104,22 @@ def test_a_merged_operator_is_refused(op):
     merged = build_transport(synthetic_calibration(), targets(), merge=True)
     with pytest.raises(InputError, match="merge=False"):
         refine_patterns(merged, torch.zeros(merged.shape[1], 1), lambda images: None, responses=RESPONSES)
+
+
+def test_the_models_straight_through_step_has_the_captures_value_and_the_models_gradient():
+    from torchproj.solve import ProjectionModel
+
+    op = build_transport(synthetic_calibration(), targets(), merge=False, footprint="bilinear").double()
+    model = ProjectionModel(op, start=torch.full((op.shape[1], 1), 0.4, dtype=torch.float64))
+    g = torch.Generator().manual_seed(5)
+    captured_rows = torch.rand(op.shape[0], 1, generator=g, dtype=torch.float64)
+    captured = model.operator.to_camera(captured_rows)
+    images = model.straight_through(captured)
+    assert torch.allclose(images.detach(), captured, atol=1e-12)
+    want = model.operator.to_camera(model.operator.rhs / model.scale)
+    ((images - want) ** 2).sum().backward()
+    # d/dp of sum((A p / s - t)^2) with A p / s replaced by the capture's rows: 2 A^T (c - t) / s.
+    expected = 2 * model.operator.A_adjoint(captured_rows - model.operator.rhs / model.scale) / model.scale
+    assert torch.allclose(model.patterns.grad, expected, atol=1e-10)
+    with pytest.raises(InputError, match="captured must be"):
+        model.straight_through(captured[:1])

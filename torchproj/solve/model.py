@@ -137,6 +137,24 @@ class ProjectionModel(nn.Module):
     def forward(self) -> torch.Tensor:
         return self.operator.to_camera(self.operator.A(self.patterns) / self.operator.scale)
 
+    def straight_through(self, captured: torch.Tensor) -> torch.Tensor:
+        """The camera images with a capture's values and the model's gradient: camera in the loop
+        from a training script (the step :func:`~torchproj.solve.refine_patterns` takes to its end).
+
+        ``loss(model.straight_through(captured), targets).backward()`` puts any torch loss on what
+        the camera saw of :meth:`to_patterns`, and gives the patterns the gradient the transport
+        model says that loss has.
+
+        Args:
+            captured: :math:`(K, C, H, W)` each target's capture above black, over :attr:`scale`
+                (target units: what :meth:`forward` predicts), e.g. ``operator.to_camera(rows / scale)``
+                of :func:`torchproj.pipeline.rig_measure`'s rows.
+        """
+        predicted = self()
+        check(captured.shape == predicted.shape, f"captured must be {tuple(predicted.shape)} like the model's images, "
+                                                 f"got {tuple(captured.shape)}")
+        return predicted + (captured.to(predicted) - predicted).detach()
+
     @torch.no_grad()
     def clamp_(self) -> "ProjectionModel":
         """Project the patterns into the bounds (after a step of an optimiser that does not)."""
