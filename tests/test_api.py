@@ -9,7 +9,8 @@ SURFACE = {
         "TorchprojError", "TransportOperator", "VirtualCalibration", "VirtualRig", "__version__",
         "build_transport", "calib", "calibrate_folders", "calibrate_virtual", "core", "crosstalk", "decode_gray",
         "evaluate_patterns", "experiments", "graycode_patterns", "load_bundle", "load_scene", "make_patterns",
-        "metrics", "pipeline", "psnr", "run_virtual", "scene", "scene_targets", "sim", "solve", "solve_adam",
+        "metrics", "pipeline", "psnr", "refine_patterns", "rig_measure", "run_virtual", "scene", "scene_targets",
+        "shown_world", "sim", "solve", "solve_adam",
         "solve_eo", "solve_fista", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "ssim", "target_image",
         "transport"],
     "core": [
@@ -17,9 +18,10 @@ SURFACE = {
         "check_image", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_uint", "write_image",
         "write_json"],
     "scene": [
-        "BUILTIN_SCENES", "Camera", "Projector", "SIZE_LIMIT", "Scene", "State", "Surface", "TargetSpec",
+        "BUILTIN_SCENES", "Camera", "Projector", "SIZE_LIMIT", "Scene", "ShowChanges", "State", "Surface", "TargetSpec",
         "builtin_config", "config_dir", "load_scene", "look_at", "parse_scene", "procedural_config",
-        "procedural_scene", "rotation_from_euler_deg", "rotation_from_rotvec", "scale_config", "suite_names"],
+        "procedural_scene", "rotation_from_euler_deg", "rotation_from_rotvec", "scale_config", "shown_scene",
+        "suite_names"],
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
@@ -40,9 +42,11 @@ SURFACE = {
         "SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [
         "CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "LF_NORMALISE", "OBJECTIVES", "OUTSIDE",
-        "PSNR_DROP_DB", "ProjectionModel", "SOLVERS", "SolveResult", "calibration_parts", "check_bounds",
+        "PSNR_DROP_DB", "ProjectionModel", "REFINE_SOLVER_ITERATIONS", "RefineResult", "SOLVERS", "SolveResult",
+        "calibration_parts", "captured_loss", "check_bounds",
         "check_solve_options", "compensate", "component_chains", "epipolar_bands", "epipolar_chains",
-        "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns", "solve_adam",
+        "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns",
+        "refine_patterns", "solve_adam",
         "solve_eo", "solve_fista", "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim",
         "to_projectable"],
     "pipeline": [
@@ -51,8 +55,9 @@ SURFACE = {
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
         "affine_psnr", "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "choose_footprint",
         "decoding_accuracy", "default_images", "evaluate_patterns", "ghost_images", "light_transport",
-        "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image", "simulate_calibration",
-        "simulate_markdown", "simulate_scene", "solve_bundle", "solve_on_light_transport", "target_image"],
+        "rig_measure", "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image", "shown_world",
+        "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle", "solve_on_light_transport",
+        "target_image", "true_responses"],
     "experiments": [
         "DepthSweep", "PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance",
         "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "placement_error",

@@ -20,12 +20,12 @@ from . import calib, core, experiments, metrics, pipeline, scene, sim, solve, tr
 from .calib import CalibrationBundle, ResponseCurve, calibrate_folders, decode_gray, graycode_patterns, load_bundle  # noqa: E402
 from .core import InputError, TorchprojError  # noqa: E402
 from .metrics import SSIMLoss, crosstalk, psnr, ssim  # noqa: E402
-from .pipeline import (VirtualCalibration, calibrate_virtual, evaluate_patterns, run_virtual, scene_targets,  # noqa: E402
-                       target_image)
+from .pipeline import (VirtualCalibration, calibrate_virtual, evaluate_patterns, rig_measure, run_virtual,  # noqa: E402
+                       scene_targets, shown_world, target_image)
 from .scene import BUILTIN_SCENES, Scene, load_scene  # noqa: E402
 from .sim import VirtualRig  # noqa: E402
 from .solve import (OBJECTIVES, SOLVERS, ClampedAdam, ProjectionModel, SolveResult, make_patterns,  # noqa: E402
-                    solve_adam, solve_eo, solve_fista, solve_lf, solve_patterns, solve_pgd, solve_ssim)
+                    refine_patterns, solve_adam, solve_eo, solve_fista, solve_lf, solve_patterns, solve_pgd, solve_ssim)
 from .transport import StateCalibration, Target, TransportOperator, build_transport  # noqa: E402
 
 __all__ = [
@@ -33,7 +33,7 @@ __all__ = [
     "SOLVERS", "SSIMLoss", "Scene", "SolveResult", "StateCalibration", "Target", "TorchprojError", "TransportOperator",
     "VirtualCalibration", "VirtualRig", "__version__", "build_transport", "calib", "calibrate_folders",
     "calibrate_virtual", "core", "crosstalk", "decode_gray", "evaluate_patterns", "experiments", "graycode_patterns",
-    "load_bundle", "load_scene", "make_patterns", "metrics", "pipeline", "psnr", "run_virtual", "scene",
-    "scene_targets", "sim", "solve", "solve_adam", "solve_eo", "solve_fista", "solve_lf", "solve_patterns",
+    "load_bundle", "load_scene", "make_patterns", "metrics", "pipeline", "psnr", "refine_patterns", "rig_measure",
+    "run_virtual", "scene", "scene_targets", "shown_world", "sim", "solve", "solve_adam", "solve_eo", "solve_fista", "solve_lf", "solve_patterns",
     "solve_pgd", "solve_ssim", "ssim", "target_image", "transport",
 ]

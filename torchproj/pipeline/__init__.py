@@ -12,12 +12,12 @@ from .real_rig import BundleSolution, solve_bundle
 from .ceiling import light_transport, solve_on_light_transport
 from .footprint import AUTO_TOLERANCE_DB, FootprintChoice, choose_footprint
 from .run import CEILING_ITERATIONS, ORACLES, RunResult, run_markdown, run_virtual
-from .shown import rig_measure, shown_world, true_responses
+from .shown import rig_measure, shown_world
 from .scoring import (EVALUATION, PatternEvaluation, TargetScore, affine_psnr, evaluate_patterns, ghost_images,
                       score_image)
 from .targets import DEFAULT_IMAGES, default_images, scene_images, scene_targets, target_image
 from .virtual import (DecodingAccuracy, VirtualCalibration, calibrate_rig, calibrate_virtual, check_calibration,
-                      decoding_accuracy, simulate_calibration, simulate_markdown, simulate_scene)
+                      decoding_accuracy, simulate_calibration, simulate_markdown, simulate_scene, true_responses)
 
 __all__ = [
     "AUTO_TOLERANCE_DB", "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "FootprintChoice", "ORACLES",

@@ -174,9 +174,10 @@ class Reregister:
     (:meth:`~torchproj.transport.TransportOperator.with_rows_moved`: each row's measured footprint,
     shares and defocus kept, translated, at the price of a bilinear split of each entry), and the
     transport rebuilt from the moved maps (sharp footprints from the maps' geometry, the measured
-    shares dropped: they belong to the old maps). Neither moved model wins everywhere: with the
-    simulator's exact moves, box_cylinders at quarter size scored 22.3 / 21.3 dB with rows moved and
-    28.0 / 28.8 rebuilt, suite-1-7 23.4 / 28.0 / 18.7 / 22.9 moved and 20.9 / 23.6 / 17.6 / 23.0
+    shares dropped: they belong to the old maps). Neither moved model wins everywhere: given the
+    simulator's exact moves (``python benchmarks/drift.py --moved-models``), box_cylinders at quarter
+    size with its upper projector turned 0.2 degrees scored 22.3 / 21.2 dB with rows moved and
+    28.0 / 28.8 rebuilt, suite-1-7 23.5 / 28.1 / 18.7 / 22.8 moved and 21.1 / 23.6 / 17.7 / 23.1
     rebuilt; which predicted the capture better was the better one in both. Once a capture shows
     less move, or the operator as it is predicts best, the loop is left to its defect. ``fits``
     records each fit: its median move (cells), the share of the residual it explained, and the model

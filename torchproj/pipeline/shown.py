@@ -13,20 +13,13 @@ import dataclasses
 
 import torch
 
-from ..calib.response import ResponseCurve
 from ..core.checks import check
 from ..scene.show import shown_scene
 from ..sim import VirtualRig
 from ..transport import Target
-from .virtual import VirtualCalibration
+from .virtual import VirtualCalibration, true_responses
 
-__all__ = ["rig_measure", "shown_world", "true_responses"]
-
-
-def true_responses(scene) -> list[ResponseCurve]:
-    """The scene's projectors' own response curves (the simulator's truth, not a fit)."""
-    return [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
-            for p in scene.projectors]
+__all__ = ["rig_measure", "shown_world"]
 
 
 def shown_world(cal: VirtualCalibration, scene=None) -> VirtualCalibration:

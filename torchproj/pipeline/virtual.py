@@ -22,7 +22,7 @@ from ..scene.config import Scene
 from ..sim.rig import VirtualRig
 from ..transport import StateCalibration
 
-__all__ = ["DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "decoding_accuracy", "simulate_calibration",
+__all__ = ["DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "decoding_accuracy", "simulate_calibration", "true_responses",
            "simulate_markdown", "simulate_scene"]
 
 
@@ -199,6 +199,12 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
         del capture  # a capture stack is hundreds of MB: never hold two while simulating the next
 
 
+def true_responses(scene) -> list[ResponseCurve]:
+    """The scene's projectors' own response curves (the simulator's truth, not a fit)."""
+    return [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
+            for p in scene.projectors]
+
+
 def _oracle_calibration(scene: Scene, device, black_threshold: float = 40,
                         dim_threshold: float = DIM_THRESHOLD) -> VirtualCalibration:
     t0 = time.perf_counter()
@@ -221,9 +227,7 @@ def _oracle_calibration(scene: Scene, device, black_threshold: float = 40,
         states[st.name] = StateCalibration(prj_xy, weight, [(p.width, p.height) for p in scene.projectors],
                                            colour_weight=colour if dark.shape[0] > 1 else None, dim=dim)
         black[st.name] = dark.cpu()
-    responses = [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
-                 for p in scene.projectors]
-    return VirtualCalibration(rig=rig, states=states, black=black, responses=responses,
+    return VirtualCalibration(rig=rig, states=states, black=black, responses=true_responses(scene),
                               seconds=time.perf_counter() - t0, oracle=True)
 
 
