@@ -39,6 +39,7 @@ REGISTER_MIN_CELLS = 0.1
 _BLURS = (2.0, 1.0, 0.0)  # cells; Gauss-Newton steps per blur below
 _STEPS = 3
 _RIDGE = 1e-6
+_FIT_ROWS = 100_000  # rows per target the fit samples (evenly)
 _HUBER = 1.5  # robust scales (median absolute deviations) past which a pixel's residual counts linearly
 
 
@@ -98,7 +99,9 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
     total = moved.clone()
     energy = {"still": 0.0, "moved": 0.0}
     for k, target in enumerate(targets):
-        rows = torch.nonzero(first.row_target == k)[:, 0].cpu()
+        every = torch.nonzero(first.row_target == k)[:, 0].cpu()
+        # 15 numbers per target and projector need no million rows: an even sample of them, every row moved.
+        rows = every[::max(1, len(every) // _FIT_ROWS)]
         pixels = first.row_pixel[rows].cpu()
         cal = states[target.state]
         basis = _affine_basis(pixels, w_cam, h_cam)
@@ -137,9 +140,10 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
         left = res - jac @ step
         energy["moved"] += float((robust * left.pow(2)).sum())
         energy["still"] += _photometric_residual(light, base, weight, usable, residual0, robust)
+        basis = _affine_basis(first.row_pixel[every].cpu(), w_cam, h_cam)
         for j in range(n_proj):
-            total[rows, j, 0] += basis @ theta[j, :3]
-            total[rows, j, 1] += basis @ theta[j, 3:6]
+            total[every, j, 0] += basis @ theta[j, :3]
+            total[every, j, 1] += basis @ theta[j, 3:6]
     change = (total - moved).norm(dim=-1)  # (rows, J)
     reached = torch.zeros_like(change, dtype=torch.bool)
     for j in range(n_proj):
@@ -163,6 +167,16 @@ def _photometric_residual(light, xy, weight, usable, residual, robust) -> float:
     root = robust.sqrt()[:, None]
     fit = torch.linalg.lstsq(jac * root, residual[:, None] * root).solution
     return float((robust * (residual - (jac @ fit)[:, 0]).pow(2)).sum())
+
+
+def _capture_miss(candidate: list, old, p: torch.Tensor, measured: torch.Tensor) -> float:
+    """How far a model's prediction of a capture of ``p`` (on ``old``'s columns) is from the capture."""
+    from ..solve.refine import carry_patterns
+
+    carried = carry_patterns(p, old, candidate[0])
+    predicted = (torch.cat([o.A(carried[:, c:c + 1]) for c, o in enumerate(candidate)], 1)
+                 if len(candidate) > 1 else candidate[0].A(carried))
+    return float((measured - predicted).double().pow(2).sum())
 
 
 class Reregister:
@@ -193,8 +207,6 @@ class Reregister:
         self.done = False
 
     def __call__(self, ops, p, measured):
-        from ..solve.refine import carry_patterns
-
         if self.done:
             return None
         if self.calibrated is None:
@@ -205,23 +217,27 @@ class Reregister:
         if median < REGISTER_MIN_CELLS:
             self.done = True
             return None
-        candidates = {"as it was": list(ops), "rows moved": [o.with_rows_moved(moves) for o in self.calibrated],
-                      "rebuilt": self._rebuilt(ops[0], moves)}
-        misses = {}
-        for name, candidate in candidates.items():
+        # One candidate at a time, the better kept: each is an operator of the full rig (the paper's at full
+        # size holds 9-12 M nonzeros and their transpose), and three at once doubled a run's peak memory.
+        makers = {"rows moved": lambda: [o.with_rows_moved(moves) for o in self.calibrated],
+                  "rebuilt": lambda: self._rebuilt(ops[0], moves)}
+        misses = {"as it was": _capture_miss(list(ops), ops[0], p, measured)}
+        best, best_ops = "as it was", None
+        for name, make in makers.items():
+            candidate = make()
             if candidate is None:
                 continue
-            carried = carry_patterns(p, ops[0], candidate[0])
-            predicted = (torch.cat([o.A(carried[:, c:c + 1]) for c, o in enumerate(candidate)], 1)
-                         if len(candidate) > 1 else candidate[0].A(carried))
-            misses[name] = float((measured - predicted).double().pow(2).sum())
-        fit["model"] = min(misses, key=misses.get)
+            misses[name] = _capture_miss(candidate, ops[0], p, measured)
+            if misses[name] < misses[best]:
+                best, best_ops = name, candidate
+            del candidate
+        fit["model"] = best
         fit["capture_miss"] = {name: round(v, 4) for name, v in misses.items()}
-        if fit["model"] == "as it was":
+        if best_ops is None:
             self.done = True
             return None
         self.moves = moves
-        return candidates[fit["model"]]
+        return best_ops
 
     def _rebuilt(self, op, moves):
         """The transport built as calibrated from maps moved by ``moves`` (cell shares and edge pixels

@@ -385,8 +385,10 @@ class TransportOperator(nn.Module):
             rows.append(row[keep])
             cells.append(offsets[projector[keep]] + cy[keep] * w[keep] + cx[keep])
             vals.append((self.val[keep].double() * share[keep]).to(self.val.dtype))
+        del x, y, x0, y0, fx, fy, move, cell, w, h  # a full rig's are tens of millions of entries each
         rows, cells, vals = torch.cat(rows), torch.cat(cells), torch.cat(vals)
         used, column = torch.unique(cells, return_inverse=True)
+        del cells
         owner = torch.searchsorted(offsets, used, right=True) - 1
         matrix = csr_from_coo(rows, column, vals, (self.shape[0], len(used)))
         return TransportOperator(matrix, self.rhs, owner, used - offsets[owner], self.projector_sizes,
