@@ -98,12 +98,12 @@ def moved_cells(scene, shown) -> float:
     return worst
 
 
-def loop_curve(history: list[dict], counts) -> dict:
-    """Mean row PSNR of the best captured iterate (by loss) among the first n captures, per n."""
+def loop_curve(history: list[dict], counts, score: str = "psnr_db") -> dict:
+    """Mean row PSNR (or SSIM) of the best captured iterate (by loss) among the first n captures, per n."""
     out = {}
     for n in counts:
         best = min(history[:n], key=lambda h: h["loss"])
-        out[n] = statistics.fmean(best["psnr_db"])
+        out[n] = statistics.fmean(best[score])
     return out
 
 
@@ -134,6 +134,7 @@ def run_case(data, cal, kind, value, captures: int, frames: int) -> dict:
         "ceiling": [t["ceiling"]["psnr_db"] for t in targets],
         "ceiling_ssim": [t["ceiling"]["ssim"] for t in targets],
         "loop": {str(n): v for n, v in loop_curve(refine["history"], counts).items()},
+        "loop_ssim": {str(n): v for n, v in loop_curve(refine["history"], counts, "ssim").items()},
         "best_capture": refine["best_capture"],
         "update_s": round(statistics.fmean(steps), 4) if steps else 0.0,
         "run_s": round(seconds, 2),
@@ -163,25 +164,27 @@ def markdown(result: dict) -> str:
 
 def chart(result: dict, path: Path) -> None:
     scenes = result["scenes"]
-    fig = Figure(figsize=(5.2 * len(scenes), 4.4), dpi=120)
+    fig = Figure(figsize=(5.2 * len(scenes), 8.4), dpi=120)
     for i, (scene, cases) in enumerate(scenes.items()):
-        ax = fig.add_subplot(1, len(scenes), i + 1)
-        for c in cases:
-            if c["kind"] == "none" or c["value"] != CHANGES[c["kind"]][1]:
-                continue
-            xs = [int(n) for n in c["loop"]]
-            line = ax.plot(xs, [v - statistics.fmean(c["ceiling"]) for v in c["loop"].values()], marker="o",
-                           label=f"{c['kind']} {c['value']:g}")[0]
-            ax.axhline(statistics.fmean(c["stale"]) - statistics.fmean(c["ceiling"]), color=line.get_color(),
-                       ls=":", lw=0.8)
-        ax.axhline(0, color="k", lw=0.8)
-        ax.axhline(-0.3, color="grey", ls="--", lw=0.8)
-        ax.set_xscale("log")
-        ax.set_xlabel("captures of patterns per state")
-        ax.set_ylabel("mean PSNR minus the shown world's ceiling (dB)")
-        ax.set_title(scene)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        for row, (key, final, ceiling, unit) in enumerate((("loop", "stale", "ceiling", "PSNR (dB)"),
+                                                           ("loop_ssim", "stale_ssim", "ceiling_ssim", "SSIM"))):
+            ax = fig.add_subplot(2, len(scenes), row * len(scenes) + i + 1)
+            for c in cases:
+                if c["kind"] == "none" or c["value"] != CHANGES[c["kind"]][1]:
+                    continue
+                top = statistics.fmean(c[ceiling])
+                xs = [int(n) for n in c[key]]
+                line = ax.plot(xs, [v - top for v in c[key].values()], marker="o", label=f"{c['kind']} {c['value']:g}")[0]
+                ax.axhline(statistics.fmean(c[final]) - top, color=line.get_color(), ls=":", lw=0.8)
+            ax.axhline(0, color="k", lw=0.8)
+            if row == 0:
+                ax.axhline(-0.3, color="grey", ls="--", lw=0.8)
+            ax.set_xscale("log")
+            ax.set_xlabel("captures of patterns per state")
+            ax.set_ylabel(f"mean {unit} minus the shown world's ceiling")
+            ax.set_title(scene)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
     fig.suptitle("Camera in the loop after a change (large magnitude); dotted: stale model; dashed: 0.3 dB")
     fig.tight_layout()
     fig.savefig(path)

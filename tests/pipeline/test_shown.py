@@ -44,6 +44,9 @@ def test_a_brighter_projector_is_won_back_to_the_shown_worlds_ceiling(calibratio
                                                        "rotation_deg": [0.0, 0.0, 0.0], "gain": 1.3, "exponent": 1.0}}}
     refine = report["refine"]
     assert refine["captures_per_state"] == 5 and len(refine["history"]) == 5
+    # Each capture's SSIM per target, from the captured rows: the kept one's above the stale capture's.
+    ssims = [sum(h["ssim"]) / len(h["ssim"]) for h in refine["history"]]
+    assert all(len(h["ssim"]) == 2 for h in refine["history"]) and ssims[refine["best_capture"]] > ssims[0]
     ceilings = [row["ceiling"]["psnr_db"] for row in report["targets"]]
     assert max(c - s["psnr_db"] for c, s in zip(ceilings, refine["start"])) > 1.0  # the stale model loses a dB...
     for ceiling, row in zip(ceilings, report["targets"]):

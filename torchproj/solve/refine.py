@@ -59,8 +59,8 @@ class RefineResult:
         patterns: :math:`(N_{cols}, C)` the best captured iterate's values (in the bounds).
         images: per projector the uint8 images of ``patterns`` (what to show).
         best: which capture it was (0: the start).
-        history: per capture, ``{capture, loss, psnr_db (per target, from the captured rows),
-            solve_s}``; ``loss`` is :func:`captured_loss`.
+        history: per capture, ``{capture, loss, psnr_db and ssim (per target, from the captured
+            rows), step, solve_s}``; ``loss`` is :func:`captured_loss` (or the image objective's).
         time_s: the loop's time, captures included.
     """
 
@@ -93,6 +93,15 @@ def _rows(ops, values: torch.Tensor) -> torch.Tensor:
 
 def _targets(ops) -> torch.Tensor:
     return ops[0].rhs if len(ops) == 1 else torch.cat([o.rhs for o in ops], 1)
+
+
+def _captured_ssim(op, measured: torch.Tensor, targets: torch.Tensor) -> list[float]:
+    """Each target's SSIM (:func:`torchproj.metrics.ssim`) of captured rows placed on the camera."""
+    from ..metrics import ssim
+
+    images = op.to_camera((measured / op.scale).clamp(0, 1)).double()
+    wanted = op.to_camera(targets / op.scale).double()
+    return [float(ssim(images[k], wanted[k], mask)) for k, mask in enumerate(op.camera_masks())]
 
 
 def captured_loss(op, measured: torch.Tensor) -> tuple[float, list[float]]:
@@ -185,7 +194,8 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
                 image_loss = ImageLoss(ops[0], p, image.l2_weight, image.psnr_drop, offset=measured - ops[0].A(p))
             with torch.no_grad():
                 loss = float(image_loss.of_rows(measured))
-        history.append({"capture": k, "loss": loss, "psnr_db": psnr_db, "step": step})
+        history.append({"capture": k, "loss": loss, "psnr_db": psnr_db, "ssim": _captured_ssim(ops[0], measured, targets),
+                        "step": step})
         new_ops = remodel(ops, p, measured) if remodel is not None and k < iterations else None
         if new_ops is not None:
             new_ops = _operators(new_ops)
