@@ -45,8 +45,8 @@ from .solvers import check_bounds, solve_fista
 __all__ = ["REFINE_SOLVER_ITERATIONS", "RefineResult", "captured_loss", "carry_patterns", "refine_patterns"]
 
 # FISTA iterations per loop step: the start is the last iterate, one capture away from the optimum,
-# so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.93-0.97 s
-# (1.45 s the first after re-registering: it builds the new model's Q), and 60 kept the same captured
+# so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.87-0.98 s
+# (1.41 s the first after re-registering: it builds the new model's Q) and 60 kept the same captured
 # PSNR (19.37 / 17.65 dB).
 REFINE_SOLVER_ITERATIONS = 30
 
