@@ -4,7 +4,7 @@ import torchproj
 
 SURFACE = {
     "": [
-        "BUILTIN_SCENES", "CalibrationBundle", "ClampedAdam", "InputError", "OBJECTIVES", "ProjectionModel",
+        "BUILTIN_SCENES", "CalibrationBundle", "ClampedAdam", "ImageLoss", "InputError", "OBJECTIVES", "ProjectionModel",
         "ResponseCurve", "SOLVERS", "SSIMLoss", "Scene", "SolveResult", "StateCalibration", "Target",
         "TorchprojError", "TransportOperator", "VirtualCalibration", "VirtualRig", "__version__",
         "build_transport", "calib", "calibrate_folders", "calibrate_virtual", "core", "crosstalk", "decode_gray",
@@ -63,6 +63,17 @@ SURFACE = {
         "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "placement_error",
         "pose_error", "position_markdown", "random_pose_near", "rig_procam", "scan_distance", "scan_surface"],
 }
+
+
+def test_every_name_readme_calls_from_the_top_level_exists():
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    names = set(re.findall(r"`torchproj\.([A-Za-z_]\w*)", readme))
+    assert names, "README names no torchproj.X"
+    missing = sorted(n for n in names if not hasattr(torchproj, n))
+    assert not missing, f"README names torchproj.{missing}, which do not exist"
 
 
 def test_public_api_surface():

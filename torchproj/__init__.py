@@ -24,12 +24,12 @@ from .pipeline import (VirtualCalibration, calibrate_virtual, evaluate_patterns,
                        scene_targets, shown_world, target_image)
 from .scene import BUILTIN_SCENES, Scene, load_scene  # noqa: E402
 from .sim import VirtualRig  # noqa: E402
-from .solve import (OBJECTIVES, SOLVERS, ClampedAdam, ProjectionModel, SolveResult, make_patterns,  # noqa: E402
+from .solve import (OBJECTIVES, SOLVERS, ClampedAdam, ImageLoss, ProjectionModel, SolveResult, make_patterns,  # noqa: E402
                     refine_patterns, solve_adam, solve_eo, solve_fista, solve_lf, solve_patterns, solve_pgd, solve_ssim)
 from .transport import StateCalibration, Target, TransportOperator, build_transport  # noqa: E402
 
 __all__ = [
-    "BUILTIN_SCENES", "CalibrationBundle", "ClampedAdam", "InputError", "OBJECTIVES", "ProjectionModel", "ResponseCurve",
+    "BUILTIN_SCENES", "CalibrationBundle", "ClampedAdam", "ImageLoss", "InputError", "OBJECTIVES", "ProjectionModel", "ResponseCurve",
     "SOLVERS", "SSIMLoss", "Scene", "SolveResult", "StateCalibration", "Target", "TorchprojError", "TransportOperator",
     "VirtualCalibration", "VirtualRig", "__version__", "build_transport", "calib", "calibrate_folders",
     "calibrate_virtual", "core", "crosstalk", "decode_gray", "evaluate_patterns", "experiments", "graycode_patterns",

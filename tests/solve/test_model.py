@@ -89,6 +89,19 @@ def test_state_dict_restores_patterns_scale_and_refuses_another_rig():
         elsewhere.load_state_dict(state)
 
 
+def test_state_dict_with_patterns_outside_the_box_is_refused_before_loading():
+    model = ProjectionModel(operator(), bounds=(0.0, 1.0))
+    state = {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in model.state_dict().items()}
+    state["patterns"][0, 0] = 5.0
+    before = model.patterns.detach().clone()
+    with pytest.raises(InputError, match=r"outside this model's bounds \[0, 1\]"):
+        model.load_state_dict(state)
+    assert torch.equal(model.patterns.detach(), before)  # nothing loaded
+    wide = ProjectionModel(operator(), bounds=(-0.5, 5.0))  # the same patterns fit a wider box
+    wide.load_state_dict(state)
+    assert float(wide.patterns.max()) == 5.0
+
+
 def test_patterns_are_the_ones_make_patterns_sends():
     op = operator()
     responses = [ResponseCurve(torch.ones(1), torch.tensor([2.2]), torch.zeros(1)),

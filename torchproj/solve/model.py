@@ -106,6 +106,18 @@ class ProjectionModel(nn.Module):
         self.register_buffer("targets", operator.to_camera(operator.rhs / operator.scale))
         self.register_buffer("mask", operator.camera_masks())
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # The box is the model's contract (the constructor enforces it on ``start``): patterns from a
+        # checkpoint outside it are refused before anything is loaded, not clamped without a word.
+        patterns = state_dict.get(prefix + "patterns")
+        if isinstance(patterns, torch.Tensor) and patterns.numel():
+            lo, hi = self.bounds
+            low, high = float(patterns.min()), float(patterns.max())
+            check(low >= lo - 1e-6 and high <= hi + 1e-6,
+                  f"the state_dict's patterns lie in [{low:.4g}, {high:.4g}], outside this model's bounds "
+                  f"[{lo:g}, {hi:g}]: clamp them, or build the model with the bounds they were trained in")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     @classmethod
     def from_calibration(cls, calibration, targets: list[Target], *, bounds=(0.0, 1.0), footprint: str = "nearest",
                          scale: float | None = None, start: str | torch.Tensor | None = "l2",
