@@ -28,6 +28,7 @@ import dataclasses
 
 import torch
 import torch.nn.functional as F
+from kornia.filters import gaussian_blur2d
 
 from ..core.checks import check
 from ..transport import Target
@@ -44,14 +45,11 @@ _HUBER = 1.5  # robust scales (median absolute deviations) past which a pixel's 
 
 
 def _blurred(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """An (H, W) image blurred by a Gaussian of ``sigma`` cells (3 sigma each side, edges replicated)."""
     if sigma <= 0:
         return image
-    radius = int(3 * sigma + 0.5)
-    x = torch.arange(-radius, radius + 1, dtype=image.dtype)
-    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
-    kernel = kernel / kernel.sum()
-    out = F.conv2d(F.pad(image[None, None], (radius, radius, 0, 0), mode="replicate"), kernel.view(1, 1, 1, -1))
-    return F.conv2d(F.pad(out, (0, 0, radius, radius), mode="replicate"), kernel.view(1, 1, -1, 1))[0, 0]
+    size = 2 * int(3 * sigma + 0.5) + 1
+    return gaussian_blur2d(image[None, None], (size, size), (sigma, sigma), border_type="replicate")[0, 0]
 
 
 def _sample(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
@@ -114,6 +112,8 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
         for sigma in _BLURS:
             light = [_blurred(img, sigma) for img in grey_light]
             grads = [torch.gradient(img) for img in light]  # (d/dy, d/dx)
+            # What each projector adds where the model has it now: fixed within a blur level.
+            still = [torch.where(ok, wt * _sample(img, at), 0.0) for img, at, wt, ok in zip(light, base, weight, usable)]
             for _ in range(_STEPS):
                 model = torch.zeros_like(residual0)
                 columns = []
@@ -122,7 +122,7 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
                     at = base[j] + torch.stack([basis @ theta[j, :3], basis @ theta[j, 3:6]], 1)
                     seen = torch.where(ok, _sample(light[j], at), 0.0)
                     gain = 1 + theta[j, 6]
-                    model += torch.where(ok, weight[j] * (gain * seen - _sample(light[j], base[j])), 0.0)
+                    model += torch.where(ok, weight[j] * gain * seen, 0.0) - still[j]
                     gx = torch.where(ok, gain * weight[j] * _sample(grads[j][1], at), 0.0)
                     gy = torch.where(ok, gain * weight[j] * _sample(grads[j][0], at), 0.0)
                     columns += [gx[:, None] * basis, gy[:, None] * basis, torch.where(ok, weight[j] * seen, 0.0)[:, None]]
@@ -139,31 +139,25 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
                 offset = offset + step[-1]
         left = res - jac @ step
         energy["moved"] += float((robust * left.pow(2)).sum())
-        energy["still"] += _photometric_residual(light, base, weight, usable, residual0, robust)
+        energy["still"] += _photometric_residual(still, residual0, robust)
         basis = _affine_basis(first.row_pixel[every].cpu(), w_cam, h_cam)
         for j in range(n_proj):
             total[every, j, 0] += basis @ theta[j, :3]
             total[every, j, 1] += basis @ theta[j, 3:6]
     change = (total - moved).norm(dim=-1)  # (rows, J)
-    reached = torch.zeros_like(change, dtype=torch.bool)
-    for j in range(n_proj):
-        reached[:, j] = torch.isin(torch.arange(first.shape[0]), _rows_reaching(first, j))
+    reached = torch.zeros_like(change, dtype=torch.bool)  # rows with an entry in a column of projector j
+    reached[torch.repeat_interleave(torch.arange(first.shape[0]), first.crow.diff().cpu()),
+            first.column_projector[first.col].cpu()] = True
     median = max((float(change[reached[:, j], j].median()) for j in range(n_proj) if bool(reached[:, j].any())),
                  default=0.0)
     explained = 1 - energy["moved"] / energy["still"] if energy["still"] > 0 else 0.0
     return total, median, explained
 
 
-def _rows_reaching(op, j: int) -> torch.Tensor:
-    """The rows with an entry in a column of projector ``j``."""
-    row = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff().cpu())
-    return torch.unique(row[(op.column_projector[op.col] == j).cpu()])
-
-
-def _photometric_residual(light, xy, weight, usable, residual, robust) -> float:
-    """The (robustly weighted) residual energy left by a gain per projector and one offset, nothing moved."""
-    columns = [torch.where(ok, wt * _sample(img, c), 0.0) for img, c, wt, ok in zip(light, xy, weight, usable)]
-    jac = torch.stack(columns + [torch.ones_like(residual)], 1)
+def _photometric_residual(still: list[torch.Tensor], residual: torch.Tensor, robust: torch.Tensor) -> float:
+    """The (robustly weighted) residual energy left by a gain per projector (on ``still``, each
+    projector's light where the model has it) and one offset, nothing moved."""
+    jac = torch.stack(still + [torch.ones_like(residual)], 1)
     root = robust.sqrt()[:, None]
     fit = torch.linalg.lstsq(jac * root, residual[:, None] * root).solution
     return float((robust * (residual - (jac @ fit)[:, 0]).pow(2)).sum())
