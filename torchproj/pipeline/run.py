@@ -147,13 +147,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         refine_relax: the share of each capture's defect the loop takes (1: all).
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
-                                       outside, chains)
-    check(isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE,
-          f"refine must be a whole number of updates in 0..{MAX_REFINE}, got {refine!r}")
-    check(not refine or gain_offset is None, "the loop refines the images as they are: drop --gain/--offset or --refine")
-    check(isinstance(refine_frames, int) and not isinstance(refine_frames, bool) and 1 <= refine_frames <= MAX_REFINE,
-          f"refine_frames must be a whole number of captures in 1..{MAX_REFINE}, got {refine_frames!r}")
-    check(0 < refine_relax <= 1, f"refine_relax must be in (0, 1], got {refine_relax!r}")
+                                       outside, chains, (refine, refine_frames, refine_relax))
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     check_footprint(footprint)
     t_total = time.perf_counter()
@@ -225,9 +219,18 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                      solution=solution, scene=scene)
 
 
-def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside, chains):
+def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside, chains,
+               loop=(0, 1, 1.0)):
     """:func:`run_virtual`'s options checked together, before any work; returns the oracle's name (or
-    None), the bounds in linear light and the image objective (None for least squares)."""
+    None), the bounds in linear light and the image objective (None for least squares). ``loop``:
+    ``(refine, refine_frames, refine_relax)``."""
+    refine, frames, relax = loop
+    check(isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE,
+          f"refine must be a whole number of updates in 0..{MAX_REFINE}, got {refine!r}")
+    check(not refine or gain_offset is None, "the loop refines the images as they are: drop --gain/--offset or --refine")
+    check(isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_REFINE,
+          f"refine_frames must be a whole number of captures in 1..{MAX_REFINE}, got {frames!r}")
+    check(0 < relax <= 1, f"refine_relax must be in (0, 1], got {relax!r}")
     bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)
     oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
