@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.calib import (calibrate_folders, calibrate_projector, checker_patterns, graycode_patterns, load_bundle, read_graycode_folder,
+from torchproj.calib import (calibrate_folders, calibrate_projector, checker_patterns, graycode_patterns, primary_patterns, load_bundle, read_graycode_folder,
                              write_graycode_folder)
-from torchproj.calib.capture import CHECKER_NAMES, RAMP_NAMES
+from torchproj.calib.capture import CHECKER_NAMES, PRIMARY_NAMES, RAMP_NAMES
 from torchproj.pipeline import simulate_calibration
 from torchproj.cli import main
 from torchproj.core import CaptureError, read_image, write_image
@@ -48,11 +48,14 @@ def test_sequence_is_what_the_virtual_rig_shows(scene, tmp_path):
     manifest = json.loads((tmp_path / "seq" / "sequence.json").read_text())
     files = [e["file"] for e in manifest["images"]]
     gray = graycode_patterns(256, 192)
-    assert len(files) == len(gray) + 4 and files[len(gray):] == [*RAMP_NAMES, *CHECKER_NAMES]
+    assert len(files) == len(gray) + 7 and files[len(gray):] == [*RAMP_NAMES, *CHECKER_NAMES, *PRIMARY_NAMES]
     assert [e["kind"] for e in manifest["images"]][len(gray) - 2:len(gray)] == ["white", "black"]
-    assert [(e["kind"], e["inverse"]) for e in manifest["images"][-2:]] == [("checker", False), ("checker", True)]
+    assert [(e["kind"], e["inverse"]) for e in manifest["images"][-5:-3]] == [("checker", False), ("checker", True)]
+    # The primaries last: full-field red, green, blue, what a colour camera's mixing is measured from.
+    for k, name in enumerate(PRIMARY_NAMES):
+        assert torch.equal(read_image(tmp_path / "seq" / name), primary_patterns(256, 192)[k])
     shown = torch.cat([gray, checker_patterns(256, 192)])
-    for i, k in ((0, 0), (5, 5), (len(gray) - 1, len(gray) - 1), (-2, len(gray)), (-1, len(gray) + 1)):
+    for i, k in ((0, 0), (5, 5), (len(gray) - 1, len(gray) - 1), (-5, len(gray)), (-4, len(gray) + 1)):
         assert torch.equal(read_image(tmp_path / "seq" / files[i]), shown[k])
     # What the virtual rig shows: the same images, the checkerboard pair after the ramps.
     p = scene.projectors[0]
@@ -238,7 +241,8 @@ class _RigCamera:
         self.rig, self.state, self.j, self.display = rig, state, projector, display
 
     def grab(self):
-        shown = torch.from_numpy(self.display.image.astype(np.float32) / 255)[None, None]
+        image = torch.from_numpy(self.display.image.astype(np.float32) / 255)
+        shown = image.permute(2, 0, 1)[None] if image.dim() == 3 else image[None, None]  # a primary is (H, W, 3)
         shot = self.rig.capture(self.state, {self.j: shown})[0]
         return (shot[0] * 255).round().to(torch.uint8).numpy()
 

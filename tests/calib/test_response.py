@@ -67,3 +67,43 @@ def test_response_is_fitted_per_colour_channel():
     cal = calibrate_projector(simulate_calibration(rig, "far", 0), (256, 192))
     assert cal.response.b.shape == (3,)
     assert torch.allclose(cal.response.b, torch.tensor([1.8, 2.2, 2.6]), atol=0.05)
+    # The camera saw the primaries mixed (the default for a colour camera): the fit measured it, as
+    # shares of each channel's white, and took it out of the ramp before fitting each primary's curve.
+    from torchproj.core.conventions import DEFAULT_COLOUR_MIXING
+
+    assert torch.allclose(cal.response.mixing, torch.tensor(DEFAULT_COLOUR_MIXING), atol=0.01)
+
+
+def test_colour_mixing_is_measured_as_shares_of_white_and_undone_by_compensation():
+    from torchproj.calib import fit_colour_mixing, primary_patterns
+    from torchproj.calib.response import ResponseCurve
+    from torchproj.scene import parse_scene
+
+    from ..helpers import small_config
+
+    mixing = [[0.6, 0.3, 0.0], [0.1, 0.7, 0.2], [0.0, 0.25, 0.9]]
+    data = small_config("colour_two_planes", camera=(320, 240), projector=(128, 96))
+    data["projectors"][1]["colour_mixing"] = mixing
+    rig = VirtualRig(parse_scene(data))
+    cap = simulate_calibration(rig, "near", 1)
+    assert cap.primaries.shape == (3, 3, 240, 320)
+    shares = torch.tensor(mixing) / torch.tensor(mixing).sum(1, keepdim=True)
+    fitted = fit_colour_mixing(cap.primaries, cap.white, cap.black)
+    assert torch.allclose(fitted, shares, atol=0.01) and torch.allclose(fitted.sum(1), torch.ones(3))
+    # Compensation shows what the camera's channels should see: a pure green request is met in the
+    # camera (the primaries' light is the mixing's inverse of it), not by green light alone.
+    curve = ResponseCurve(torch.ones(3), torch.tensor([2.0, 2.2, 2.4]), torch.zeros(3), shares)
+    want = (shares @ torch.tensor([0.2, 0.7, 0.4])).view(3, 1, 1).expand(3, 4, 5)  # a colour the primaries give
+    x = curve.to_pattern(want)
+    assert torch.allclose(curve(x), want, atol=1e-5)
+    assert not torch.allclose(x, want ** (1 / curve.b.view(3, 1, 1)), atol=0.01)
+    # A colour no primaries give (a pure red the mixing always lifts green for) is clipped, not wrapped.
+    assert float(curve.to_pattern(torch.tensor([1.0, 0.0, 0.0]).view(3, 1, 1)).min()) == 0.0
+    # Too dark to measure: an error that says so.
+    import pytest
+
+    from torchproj.core import InputError
+
+    with pytest.raises(InputError, match="lit well enough"):
+        fit_colour_mixing(cap.primaries, cap.black + 0.01, cap.black)
+    assert primary_patterns(4, 2)[1, :, 0, 0].tolist() == [0.0, 1.0, 0.0]

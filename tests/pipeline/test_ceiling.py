@@ -10,6 +10,7 @@ from torchproj.cli import main
 from torchproj.core import InputError
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, light_transport, run_markdown, run_virtual,
                                 scene_targets, solve_on_light_transport)
+from torchproj.pipeline.ceiling import bounce_terms
 from torchproj.scene import parse_scene
 from torchproj.solve import solve_patterns
 from torchproj.transport import build_transport
@@ -54,6 +55,30 @@ def test_prediction_is_the_noise_free_capture(name):
     # Same rows and right-hand side as the operator it was built on (its targets and scale).
     assert all(torch.equal(op.row_pixel, rows.row_pixel) and op.scale == rows.scale for op in ops)
     torch.testing.assert_close(torch.cat([op.rhs for op in ops], 1), rows.rhs)
+
+
+def test_the_bounce_term_adds_what_the_simulator_bounces():
+    """With interreflection, ``A l + B l`` (the direct transport and the :class:`BounceTerm`) is the
+    noise-free capture less black, every row and channel; without B the corner misses by the bounce."""
+    scene, cal, targets, rows, ops = _exact("corner_screens")
+    terms = bounce_terms(cal.rig, targets, ops)
+    assert len(ops) == len(terms) == 3
+    light = torch.rand(ops[0].shape[1], 1, generator=torch.Generator().manual_seed(0)) * 0.6
+    images = ops[0].to_images(light)
+    shown = {j: images[j][None] ** (1 / torch.tensor(p.response_b).view(-1, 1, 1)) for j, p in enumerate(scene.projectors)}
+    seen = cal.rig.capture("corner", shown, noise=False, quantise=False)[0]
+    dark = cal.rig.capture("corner", {}, noise=False, quantise=False)[0]
+    above_black = (seen - dark).flatten(1)
+    for c, (op, term) in enumerate(zip(ops, terms)):
+        captured = above_black[c, op.row_pixel]
+        torch.testing.assert_close(op.A(light)[:, 0] + term.forward(light)[:, 0], captured, rtol=1e-4, atol=1e-5)
+        bounced = term.forward(light)[:, 0]
+        assert float(bounced.mean()) > 0.05 * float(captured.mean())  # a corner bounces a good share
+        # The adjoint is the forward map's transpose.
+        r = torch.rand(op.shape[0], 1, generator=torch.Generator().manual_seed(c), dtype=torch.float64)
+        v = torch.rand(op.shape[1], 1, generator=torch.Generator().manual_seed(9 + c), dtype=torch.float64)
+        assert float((term.forward(v.float()).double() * r).sum()) == pytest.approx(
+            float((term.adjoint(r.float()).double() * v).sum()), rel=1e-4)
 
 
 def test_each_rows_light_sums_to_the_calibration_weight():

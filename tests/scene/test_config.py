@@ -234,3 +234,40 @@ def test_a_focused_projector_reads_millimetres_and_says_so():
     assert (upper.focus_distance, upper.aperture, lower.focus_distance) == (0.8, 0.01, None)
     assert upper.blur_diameter(1.0)[0] == pytest.approx(upper.fx * 0.01 * 0.25)
     assert "focused at 0.8 m, aperture 10 mm" in scene.describe()
+
+
+def _colour(mixing=None, channels=3):
+    data = small_config("colour_two_planes", channels=channels)
+    for p in data["projectors"]:  # the shipped rig switches mixing off; these are a user's scenes
+        p.pop("colour_mixing")
+    if mixing is not None:
+        data["projectors"][0]["colour_mixing"] = mixing
+    return data
+
+
+def test_colour_mixing_is_on_for_colour_cameras_unless_switched_off():
+    from torchproj.core.conventions import DEFAULT_COLOUR_MIXING
+
+    upper, lower = parse_scene(_colour()).projectors
+    assert upper.colour_mixing == lower.colour_mixing == DEFAULT_COLOUR_MIXING
+    assert parse_scene(_colour("none")).projectors[0].colour_mixing is None
+    grey = parse_scene(small_config()).projectors[0]
+    assert grey.colour_mixing is None
+    mine = [[0.8, 0.2, 0.0], [0.1, 0.8, 0.1], [0.0, 0.3, 0.7]]
+    scene = parse_scene(_colour(mine))
+    assert scene.projectors[0].colour_mixing == tuple(map(tuple, mine))
+    assert "colour mixing [[0.8, 0.2, 0.0]" in scene.describe()
+
+
+@pytest.mark.parametrize("mixing, channels, message", [
+    ([[1, 0, 0], [0, 1, 0], [0, 0, 1]], 1, "projectors[0].colour_mixing: needs a colour camera"),
+    ([[1, 0], [0, 1]], 3, "projectors[0].colour_mixing: must be 3 rows"),
+    ("lots", 3, "projectors[0].colour_mixing: must be 3 rows"),
+    ([[1, 0, 0], [0, 1, -0.1], [0, 0, 1]], 3, r"projectors[0].colour_mixing[1][2]: must be at least 0"),
+    ([[1, 0, 0], [0, 0, 0], [0, 0, 1]], 3, "projectors[0].colour_mixing[1]: is all zero"),
+    ([[0.5, 0.5, 0], [0.5, 0.5, 0], [0, 0, 1]], 3, "projectors[0].colour_mixing: mixes the primaries so much"),
+])
+def test_bad_colour_mixing_names_the_field(mixing, channels, message):
+    with pytest.raises(ConfigError) as err:
+        parse_scene(_colour(mixing, channels))
+    assert str(err.value).startswith(message)

@@ -264,3 +264,32 @@ def test_rig_warns_when_camera_samples_cannot_resolve_projector_cells():
         warnings.simplefilter("error")
         VirtualRig(small_scene("box_positions", camera=(200, 150), projector=(256, 192)))
         VirtualRig(small_scene("paper_two_planes"))
+
+
+def test_colour_mixing_shows_each_primary_in_every_channel_by_its_share():
+    # By hand: a camera channel c sees sum_p M[c, p] L_p of the primaries. Pure primary p less black
+    # is M[c, p] K_c (a unit of light through channel c's geometry and albedo K_c), white less black
+    # sum_p M[c, p] K_c, so their ratio is M[c, p] / sum_p M[c, p] at every lit pixel, whatever the
+    # albedo, fall-off and vignetting.
+    mixing = ((0.7, 0.2, 0.0), (0.1, 0.9, 0.2), (0.05, 0.1, 0.6))  # rows need not sum to 1
+    data = small_config("colour_two_planes", supersampling=1)
+    data["projectors"][0]["colour_mixing"] = [list(r) for r in mixing]
+    rig = VirtualRig(parse_scene(data))
+    h, w = rig.scene.projectors[0].height, rig.scene.projectors[0].width
+    shots = rig.radiance("near", {0: torch.cat([torch.eye(3)[:, :, None, None].expand(3, 3, h, w),
+                                                torch.ones(1, 3, h, w), torch.zeros(1, 3, h, w)])})
+    black, white = shots[4], shots[3]
+    lit = (white - black).min(0).values > 0.2 * (white - black).max()
+    M = torch.tensor(mixing)
+    for p in range(3):
+        ratio = ((shots[p] - black) / (white - black))[:, lit]  # (3 channels, pixels)
+        assert torch.allclose(ratio, (M[:, p] / M.sum(1))[:, None].expand_as(ratio), atol=1e-4)
+    # Without mixing, red light reaches the red channel only.
+    data["projectors"][0]["colour_mixing"] = "none"
+    plain = VirtualRig(parse_scene(data)).radiance("near", {0: torch.cat([torch.eye(3)[:1, :, None, None].expand(1, 3, h, w),
+                                                                          torch.zeros(1, 3, h, w)])})
+    assert float((plain[0, 1:] - plain[1, 1:]).abs().max()) < 1e-6
+    # The white channel's light is the row sum times the unmixed light: the ceiling's channel gain.
+    gain = ((white - black) / (plain[0] - plain[1]).clamp_min(1e-9))[0, lit]
+    assert float(gain.median()) == pytest.approx(float(M.sum(1)[0]), rel=1e-3)
+    assert torch.allclose(rig.channel_gain(0), M.sum(1))

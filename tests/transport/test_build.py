@@ -593,8 +593,12 @@ def test_prediction_uses_each_channels_weight():
 def test_colour_weights_predict_a_tinted_capture():
     """colour_two_planes' planes are tinted (albedo 0.85 / 0.8 / 0.7 and 0.75 / 0.8 / 0.85) and its
     projectors' primaries differ: one grey weight misses each channel's light by its tint, the
-    channel's own weight does not. Uniform light, so that only the weights are judged."""
-    scene = parse_scene(small_config("colour_two_planes", camera=(200, 150), projector=(128, 96)), name="tinted")
+    channel's own weight does not. Uniform light, so that only the weights are judged (and no colour
+    mixing, whose own test is in tests/calib/test_response.py)."""
+    data = small_config("colour_two_planes", camera=(200, 150), projector=(128, 96))
+    for p in data["projectors"]:
+        p["colour_mixing"] = "none"
+    scene = parse_scene(data, name="tinted")
     cal = calibrate_virtual(scene, progress=False)
     g = torch.Generator().manual_seed(0)
     for name, state in cal.states.items():

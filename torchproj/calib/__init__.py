@@ -23,7 +23,7 @@ from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
 from .pipeline import (DIM_THRESHOLD, FEW_DECODED, DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder,
                        warn_if_few_decoded)
-from .response import ResponseCurve, fit_response, measure_ramp, ramp_pattern
+from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp, primary_patterns, ramp_pattern
 from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, triangulate_map, write_ply
 
 __all__ = [
@@ -55,6 +55,7 @@ __all__ = [
     "decode_gray",
     "fill_holes",
     "find_edge_pixels",
+    "fit_colour_mixing",
     "fit_homography",
     "fit_plane",
     "fit_response",
@@ -65,6 +66,7 @@ __all__ = [
     "load_bundle",
     "measure_blur",
     "measure_ramp",
+    "primary_patterns",
     "ramp_pattern",
     "read_graycode_folder",
     "read_opencv_calibration",

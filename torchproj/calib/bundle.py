@@ -56,14 +56,15 @@ import numpy as np
 import torch
 
 from ..core.checks import SIZE_LIMIT
+from ..core.conventions import MAX_MIXING_CONDITION
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
 from .edges import EdgePixels
-from .capture import CHECKER_NAMES, DEFAULT_NAMES, RAMP_NAMES, read_graycode_folder
+from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, read_graycode_folder
 from .graycode import CellShares, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import ProjectorCalibration, calibrate_projector, warn_if_few_decoded
-from .response import ResponseCurve, ramp_pattern
+from .response import ResponseCurve, primary_patterns, ramp_pattern
 
 __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
            "write_sequence"]
@@ -102,6 +103,11 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
         for name, img in zip(CHECKER_NAMES, checker_patterns(width, height)):
             write_image(folder / name, img)
             entries.append({"file": name, "kind": "checker", "inverse": name != CHECKER_NAMES[0]})
+    # A colour camera's channels each see some of every primary: the three full-field primaries
+    # measure how much (fit_colour_mixing). A grey camera's calibration leaves them unread.
+    for name, img in zip(PRIMARY_NAMES, primary_patterns(width, height)):
+        write_image(folder / name, img)
+        entries.append({"file": name, "kind": "primary", "channel": name.removesuffix(".png")})
     manifest = {"version": BUNDLE_VERSION, "projector": [width, height], "order": "show and capture in this order; "
                 "save each capture under the same file name", "images": entries}
     if (nx, ny) != graycode_bits(width, height):
@@ -514,7 +520,8 @@ def _ramp(values: dict, where: str, channels: int) -> tuple[torch.Tensor, torch.
 
 
 def _response(values: dict, where: str) -> ResponseCurve:
-    """A bundle's response curve, refused where no projector could have it (``a x^b + c`` must rise)."""
+    """A bundle's response curve, refused where no projector could have it (``a x^b + c`` must rise,
+    a colour mixing must be a 3 x 3 of shares that a camera can tell apart)."""
     try:
         a, b, c = (torch.tensor(values[k], dtype=torch.float32).reshape(-1) for k in ("a", "b", "c"))
     except (RuntimeError, TypeError, ValueError):
@@ -524,4 +531,14 @@ def _response(values: dict, where: str) -> ResponseCurve:
     if not ((a > 0).all() and (b > 0).all()):
         raise CaptureError(f"{where}: y = a x^b + c needs a > 0 and b > 0 (a projector's light rises with its "
                            f"input), got a={a.tolist()}, b={b.tolist()}; was it edited? Calibrate again")
-    return ResponseCurve(a, b, c)
+    mixing = values.get("mixing")
+    if mixing is not None:
+        try:
+            mixing = torch.tensor(mixing, dtype=torch.float32)
+        except (RuntimeError, TypeError, ValueError):
+            mixing = torch.zeros(0)
+        if (mixing.shape != (3, 3) or not bool(torch.isfinite(mixing).all()) or bool((mixing < 0).any())
+                or float(torch.linalg.cond(mixing.double())) > MAX_MIXING_CONDITION):
+            raise CaptureError(f"{where}: mixing must be 3 rows of 3 shares >= 0 that tell the primaries apart, got "
+                               f"{values.get('mixing')}; was it edited? Calibrate again")
+    return ResponseCurve(a, b, c, mixing)

@@ -5,7 +5,8 @@ order, then the all-white capture, then the all-black one, named by a template t
 ``graycode_{:02d}.png`` (``graycode_00.png`` ... ``graycode_41.png`` for a 1024x768 projector).
 Optional photometric captures sit beside them as ``ramp.png`` and ``ramp_mirrored.png``, and the
 optional checkerboard pair (:func:`~torchproj.calib.checker_patterns`) as ``checker.png`` and
-``checker_inverse.png``.
+``checker_inverse.png``, and, for a colour camera, the full-field primaries
+(:func:`~torchproj.calib.primary_patterns`) as ``red.png``, ``green.png`` and ``blue.png``.
 """
 
 from __future__ import annotations
@@ -22,11 +23,12 @@ from ..core.imageio import read_image, write_image
 from .graycode import sequence_bits
 
 __all__ = ["GraycodeCapture", "read_graycode_folder", "write_graycode_folder", "DEFAULT_NAMES",
-           "RAMP_NAMES", "CHECKER_NAMES"]
+           "RAMP_NAMES", "CHECKER_NAMES", "PRIMARY_NAMES"]
 
 DEFAULT_NAMES = "graycode_{:02d}.png"
 RAMP_NAMES = ("ramp.png", "ramp_mirrored.png")
 CHECKER_NAMES = ("checker.png", "checker_inverse.png")
+PRIMARY_NAMES = ("red.png", "green.png", "blue.png")
 _DARK = 8 / 255  # a white capture whose brightest pixel is below this saw no projector light
 
 
@@ -40,6 +42,8 @@ class GraycodeCapture:
         ramp: :math:`(2, C, H, W)` ramp and mirrored ramp captures, or None if absent.
         checker: :math:`(2, C, H, W)` captures of the checkerboard and its inverse
             (:func:`~torchproj.calib.checker_patterns`), or None if absent.
+        primaries: :math:`(3, C, H, W)` captures of full-field red, green and blue
+            (:func:`~torchproj.calib.primary_patterns`), or None if absent.
     """
 
     patterns: torch.Tensor
@@ -47,6 +51,7 @@ class GraycodeCapture:
     black: torch.Tensor
     ramp: torch.Tensor | None = None
     checker: torch.Tensor | None = None
+    primaries: torch.Tensor | None = None
 
 
 def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, int],
@@ -99,16 +104,25 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
     ramp_paths = [folder / n for n in RAMP_NAMES]
     if all(p.is_file() for p in ramp_paths):
         ramp = _read_extra(ramp_paths, white.shape, paths[0].name)
-    checker = None
-    checker_paths = [folder / n for n in CHECKER_NAMES]
-    present = [p.is_file() for p in checker_paths]
-    if any(present) and not all(present):
-        have, lack = (checker_paths[0], checker_paths[1]) if present[0] else (checker_paths[1], checker_paths[0])
-        raise CaptureError(f"{lack}: missing, while {have.name} is there: the checkerboard is read as a pair; capture "
-                           "the other one, or move both out of the folder to calibrate without them")
-    if all(present):
-        checker = _read_extra(checker_paths, white.shape, paths[0].name)
-    return GraycodeCapture(patterns=stack[:-2], white=white, black=black, ramp=ramp, checker=checker)
+    checker = _read_set(folder, CHECKER_NAMES, white.shape, paths[0].name, "the checkerboard is read as a pair")
+    primaries = _read_set(folder, PRIMARY_NAMES, white.shape, paths[0].name, "the primaries are read as a set of three")
+    return GraycodeCapture(patterns=stack[:-2], white=white, black=black, ramp=ramp, checker=checker,
+                          primaries=primaries)
+
+
+def _read_set(folder: Path, names: tuple[str, ...], shape, first: str, why: str) -> torch.Tensor | None:
+    """Captures that come as a set (the checkerboard pair, the three primaries): all, or None where
+    none is there; a set with some missing is refused, naming one."""
+    paths = [folder / n for n in names]
+    present = [p.is_file() for p in paths]
+    if not any(present):
+        return None
+    if not all(present):
+        lack = paths[present.index(False)]
+        have = paths[present.index(True)]
+        raise CaptureError(f"{lack}: missing, while {have.name} is there: {why}; capture the rest, or move "
+                           f"{', '.join(names)} out of the folder to calibrate without them")
+    return _read_extra(paths, shape, first)
 
 
 def _read_extra(paths: list[Path], shape, first: str) -> torch.Tensor:
@@ -149,7 +163,8 @@ def write_graycode_folder(folder: str | os.PathLike, capture: GraycodeCapture, b
     images = list(capture.patterns) + [capture.white, capture.black]
     for i, img in enumerate(images):
         write_image(folder / names.format(i), img, bits)
-    for files, shots in ((RAMP_NAMES, capture.ramp), (CHECKER_NAMES, capture.checker)):
+    for files, shots in ((RAMP_NAMES, capture.ramp), (CHECKER_NAMES, capture.checker),
+                         (PRIMARY_NAMES, capture.primaries)):
         if shots is not None:
             for name, img in zip(files, shots):
                 write_image(folder / name, img, bits)

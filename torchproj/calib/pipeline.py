@@ -16,7 +16,7 @@ from .homography import HomographyFit, check_plane, fit_homography, homography_m
 from .maps import fill_holes, inverse_map
 from .blur import measure_blur
 from .edges import EdgePixels, find_edge_pixels
-from .response import ResponseCurve, fit_response, measure_ramp
+from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
 
 __all__ = ["DIM_THRESHOLD", "FEW_DECODED", "DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder",
            "warn_if_few_decoded"]
@@ -197,7 +197,14 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         columns = dec.prj_xy[..., 0] if fit is None else prj_xy[..., 0]
         levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, columns,
                                         projector_size[0], ramp_steps)
+        mixing = None
+        if capture.primaries is not None and capture.white.shape[0] == 3:
+            mixing = fit_colour_mixing(capture.primaries, capture.white, capture.black, dec.valid)
+            # Channel c saw sum_p mixing[c, p] r_p(x) of the grey ramp: the primaries' own curves
+            # are the measured levels through the mixing's inverse.
+            measured = measured @ torch.linalg.inv(mixing.double()).T.to(measured)
         response = fit_response(levels, measured)
+        response.mixing = mixing
         ramp = (levels, measured)
         timings["response"] = time.perf_counter() - t0
     colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None

@@ -18,7 +18,7 @@ from scipy.optimize import curve_fit
 
 from ..core.checks import check, check_shape
 
-__all__ = ["ResponseCurve", "ramp_pattern", "measure_ramp", "fit_response"]
+__all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
 
 
 def ramp_pattern(width: int, height: int, steps: int = 32, mirrored: bool = False) -> torch.Tensor:
@@ -39,31 +39,96 @@ class ResponseCurve:
     """``y = a x^b + c`` per colour channel (tensors of shape (C,)), x and y in [0, 1].
 
     Methods take images :math:`(..., C, H, W)`; C may be 1 with a 3-channel curve or vice versa.
+
+    ``mixing``, for a colour camera, is the :math:`(3, 3)` share of each projector primary (column)
+    that each camera channel (row) sees, rows summing to 1 (:func:`fit_colour_mixing`): the camera's
+    channel c then sees ``sum_p mixing[c, p] y_p``. Solvers work in what the camera sees, one
+    channel at a time; :meth:`to_pattern` takes that back to the primaries. None: each channel sees
+    its own primary alone.
     """
 
     a: torch.Tensor
     b: torch.Tensor
     c: torch.Tensor
+    mixing: torch.Tensor | None = None
 
     def _params(self):
         return (t.view(-1, 1, 1) for t in (self.a, self.b, self.c))
 
+    def _mixes(self, x: torch.Tensor) -> bool:
+        return self.mixing is not None and x.dim() >= 3 and x.shape[-3] == 3
+
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        """Relative light for pattern values x."""
+        """Relative light for pattern values x, as the camera's channels see it."""
         a, b, c = self._params()
-        return a * x.clamp(0, 1) ** b + c
+        y = a * x.clamp(0, 1) ** b + c
+        if self._mixes(y):
+            y = torch.einsum("cp,...phw->...chw", self.mixing.to(y), y)
+        return y
 
     def to_pattern(self, y: torch.Tensor) -> torch.Tensor:
         """Pattern values that make the projector emit relative light y (0 = its black, 1 = its white).
 
         This is the inverse response used for compensation, ``f^-1(f(0) + y (f(1) - f(0)))``,
-        which for ``a x^b + c`` is ``y^(1/b)``.
+        which for ``a x^b + c`` is ``y^(1/b)``. With ``mixing``, y is what the camera's channels
+        see: the primaries' light is ``mixing^-1 y`` first, and light no primary can give (a
+        colour outside the projector's gamut as this camera sees it) is clipped to [0, 1].
         """
         _, b, _ = self._params()
+        if self._mixes(y):
+            y = torch.einsum("pc,...chw->...phw", torch.linalg.inv(self.mixing.double()).to(y), y)
         return y.clamp(0, 1) ** (1 / b)
 
     def as_dict(self) -> dict:
-        return {"a": self.a.tolist(), "b": self.b.tolist(), "c": self.c.tolist()}
+        out = {"a": self.a.tolist(), "b": self.b.tolist(), "c": self.c.tolist()}
+        if self.mixing is not None:
+            out["mixing"] = [[round(v, 6) for v in row] for row in self.mixing.tolist()]
+        return out
+
+
+def primary_patterns(width: int, height: int) -> torch.Tensor:
+    """Full-field red, green and blue, :math:`(3, 3, H, W)`: what a colour camera's channels see of
+    each primary alone gives the projector's colour mixing (:func:`fit_colour_mixing`)."""
+    return torch.eye(3)[:, :, None, None].expand(3, 3, height, width).clone()
+
+
+# Below this white minus black (in [0, 1]) a pixel's primaries are too dark to divide by.
+_MIXING_CONTRAST = 0.05
+
+
+def fit_colour_mixing(primaries: torch.Tensor, white: torch.Tensor, black: torch.Tensor,
+                      lit: torch.Tensor | None = None) -> torch.Tensor:
+    """The share of each projector primary that each camera channel sees.
+
+    A colour camera's channels do not see one primary each: a DLP's or LCD's red, green and blue
+    overlap the Bayer filters' pass bands, so red light lifts the green channel too. Whatever the
+    surface's albedo and the projector's fall-off, the ratio ``(primary_p - black) / (white - black)``
+    in channel c is the share of channel c's white that primary p gives (the other primaries' black
+    level cancels against the black capture); its median over the well-lit pixels is ``mixing[c, p]``.
+    The method is ours (the paper's camera and projector are grey); rows are normalised to sum to 1,
+    as white is the sum of the primaries.
+
+    Args:
+        primaries: :math:`(3, 3, H, W)` captures of :func:`primary_patterns` (primary, channel).
+        white, black: :math:`(3, H, W)` captures.
+        lit: optional :math:`(H, W)` pixels to use (e.g. decoded ones); those with white - black
+            under 0.05 in any channel are left out as well.
+
+    Returns:
+        :math:`(3, 3)` mixing, rows camera channels, columns primaries.
+    """
+    check_shape(primaries, "primaries", [3, 3, "H", "W"])
+    check_shape(white, "white", [3, primaries.shape[2], primaries.shape[3]])
+    span = (white - black).float()
+    ok = (span >= _MIXING_CONTRAST).all(0)
+    if lit is not None:
+        ok &= lit
+    check(int(ok.sum()) >= 100, f"only {int(ok.sum())} pixels are lit well enough (white - black >= "
+                                f"{_MIXING_CONTRAST:g} in every channel) to measure the projector's colour mixing; "
+                                "check exposure and that the projector lights the scene")
+    share = ((primaries - black).float() / span.clamp_min(1e-6))[:, :, ok]  # (primary, channel, M)
+    mixing = share.median(-1).values.T.clamp_min(0)  # (channel, primary)
+    return mixing / mixing.sum(1, keepdim=True)
 
 
 def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_x: torch.Tensor,

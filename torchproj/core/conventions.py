@@ -22,13 +22,26 @@ are ``(H, W, 2)`` with the last axis ``(x, y)``; invalid entries are NaN.
 **Images.** Inside the library images are float tensors ``(C, H, W)`` with values in ``[0, 1]``
 (C = 1 or 3). 8-bit or 16-bit integers appear only at file edges (reading captures, writing
 patterns).
+
+**Colour.** Channels are ``(R, G, B)``. A projector's colour mixing (how a colour camera sees its
+primaries) is a 3 x 3 matrix whose row c is camera channel c and column p projector primary p:
+channel c sees ``sum_p mixing[c, p] light_p``. No mixing is the identity.
 """
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["pixel_grid", "round_to_pixel"]
+__all__ = ["DEFAULT_COLOUR_MIXING", "MAX_MIXING_CONDITION", "pixel_grid", "round_to_pixel"]
+
+# The virtual rig's colour mixing where a scene gives none: a projector's primaries against a Bayer
+# camera's filters, green leaking most (its band sits between the others), each row summing to 1 so
+# that white looks as without mixing. A typical magnitude we chose, not a measured device.
+DEFAULT_COLOUR_MIXING = ((0.88, 0.10, 0.02),
+                         (0.07, 0.86, 0.07),
+                         (0.02, 0.12, 0.86))
+# A mixing whose condition number passes this cannot be undone: the camera cannot tell the primaries apart.
+MAX_MIXING_CONDITION = 50.0
 
 
 def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:

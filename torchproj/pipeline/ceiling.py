@@ -11,12 +11,15 @@ The exact entry of row r (camera pixel r) and cell c of projector j, in camera v
 the solver's linear relative light l (0 = the cell's black, 1 = its white), follows the physics
 contract (:mod:`torchproj.sim.rig`) with a linear camera (``gamma`` 1): the cell emits
 ``power_j (a_j l + black) vignette_j(c)`` above nothing, so one unit of l adds
-``exposure * T_j[r, c] * power_j * a_j * vignette_j(c)``, where ``T_j`` holds the radiance each
-unit of emitted light sends to the pixel (albedo, fall-off, angle, shadows and the camera samples
+``exposure * T_j[r, c] * power_j * a_j * vignette_j(c)`` (times camera channel k's share of
+white, ``sum_p M_j[k, p]``, where the projector's colour mixes; l is then what channel k sees),
+where ``T_j`` holds the radiance each unit of emitted light sends to the pixel (albedo, fall-off, angle, shadows and the camera samples
 that fall in the cell). Calibration's weight ``w_j(r)`` is this row's sum over the cells.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import torch
 
@@ -69,6 +72,10 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
     # A state of grey surfaces holds one matrix per projector, one with a coloured surface three;
     # where any target's state has three, every state's rows are given per channel.
     n_albedo = max(len(rig.geometry(t.state).transport[0]) for t in targets)
+    # Colour mixing whose rows do not sum alike gives each channel its own share of white.
+    gains = [rig.channel_gain(j).to(device) for j in range(len(scene.projectors))]
+    if rows.rhs.shape[1] == 3 and any(bool((g != g[0]).any()) for g in gains):
+        n_albedo = 3
     check(n_albedo == 1 or rows.rhs.shape[1] == n_albedo,
           f"the surfaces' albedo differs per colour channel, so the exact light needs {n_albedo}-channel targets; "
           f"got {rows.rhs.shape[1]}")
@@ -85,7 +92,9 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
             unit = scene.camera.exposure * (on - off)
             for channel in range(n_albedo):
                 r, c, v = _gather_rows(geo.transport[j][min(channel, len(geo.transport[j]) - 1)], pixels)
-                entries[channel].append((which[r.to(device)], (c + offsets[j]).to(device), (v * unit[c]).to(device)))
+                gain = gains[j][min(channel, len(gains[j]) - 1)]
+                entries[channel].append((which[r.to(device)], (c + offsets[j]).to(device),
+                                         (v * unit[c]).to(device) * gain))
     parts = [[torch.cat(piece) for piece in zip(*channel)] for channel in entries]
     used = torch.unique(parts[0][1])
     lit = torch.zeros(rows.shape[0], dtype=torch.bool, device=device)
@@ -105,21 +114,131 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
     return ops
 
 
+class BounceTerm:
+    """The light bounced once between surfaces (:mod:`torchproj.sim.bounce`) on an operator's rows, as
+    a linear map of its columns' values in one colour channel: the exact light is ``A q + B q``.
+
+    ``B = D T S``: S sums each column's unit light into its source block (times the camera channel's
+    share of white), T carries the sources' light to the receivers (albedos included), D interpolates
+    receivers to the rows' pixels and shows them through the pixels' albedo and the exposure. B is
+    dense (every cell that lights a source reaches every row that source sees), but of low rank: its
+    products cost a few hundred thousand operations, not a matrix.
+    """
+
+    def __init__(self, rig, targets: list[Target], rows: TransportOperator, channel: int):
+        scene = rig.scene
+        device, dtype = rows.rhs.device, rows.rhs.dtype
+        self.rows = rows.shape[0]
+        sizes = [(p.width, p.height) for p in scene.projectors]
+        bounces = {t.state: rig.geometry(t.state).bounce for t in targets}
+        first = next(b for b in bounces.values() if b is not None)
+        starts = [0]
+        for (width, height), block in zip(sizes, first.blocks):
+            starts.append(starts[-1] + (-(-height // block)) * (-(-width // block)))
+        self.sources = starts[-1]
+        projector = rows.column_projector.long()
+        cell = rows.column_cell.long()
+        widths = torch.tensor([w for w, _ in sizes], device=device)[projector]
+        blocks = torch.tensor(first.blocks, device=device)[projector]
+        block_cols = -(-widths // blocks)
+        source = torch.tensor(starts[:-1], device=device)[projector] + (cell // widths // blocks) * block_cols \
+            + (cell % widths) // blocks
+        unit = torch.empty(len(cell), dtype=dtype, device=device)
+        for j, proj in enumerate(scene.projectors):
+            on, off = (rig.emitted(j, torch.full((1, 1, proj.height, proj.width), v, device=rig.device))[0, 0]
+                       for v in (1.0, 0.0))
+            mine = projector == j
+            gain = rig.channel_gain(j)[min(channel, scene.camera.channels - 1)]
+            unit[mine] = (scene.camera.exposure * (on - off) * gain).to(device, dtype)[cell[mine]]
+        self.source, self.unit = source, unit
+        self.states = []  # per state: (rows, interpolation CSR (rows, R) times albedo, transfer (R, S))
+        for state, bounce in bounces.items():
+            which = torch.nonzero(torch.isin(rows.row_target, torch.tensor(
+                [k for k, t in enumerate(targets) if t.state == state], device=device)))[:, 0]
+            if bounce is None or not len(which):
+                continue
+            albedo = bounce.receiver_albedo[min(channel, bounce.receiver_albedo.shape[0] - 1)].reshape(-1)
+            pixels = rows.row_pixel[which].to(rig.device)
+            r, c, v = _gather_rows(bounce.interpolation, pixels)
+            v = v * albedo[pixels[r]]
+            spread = csr_from_coo(r.to(device), c.long().to(device), v.to(device, dtype),
+                                  (len(which), bounce.transfer.shape[0]))
+            transfer = bounce.transfer * bounce.source_albedo[min(channel, bounce.source_albedo.shape[0] - 1)]
+            self.states.append((which, spread, transfer.to(device, dtype)))
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """:math:`(N_{cols}, 1)` values -> :math:`(N_{rows}, 1)` bounced camera values."""
+        flux = torch.zeros(self.sources, q.shape[1], dtype=q.dtype, device=q.device).index_add_(
+            0, self.source, q * self.unit[:, None])
+        out = torch.zeros(self.rows, q.shape[1], dtype=q.dtype, device=q.device)
+        for which, spread, transfer in self.states:
+            out[which] = spread @ (transfer @ flux)
+        return out
+
+    def adjoint(self, r: torch.Tensor) -> torch.Tensor:
+        flux = torch.zeros(self.sources, r.shape[1], dtype=r.dtype, device=r.device)
+        for which, spread, transfer in self.states:
+            flux += transfer.T @ (spread.transpose(0, 1) @ r[which])
+        return flux[self.source] * self.unit[:, None]
+
+
+def bounce_terms(rig, targets: list[Target], ops: list[TransportOperator]) -> list[BounceTerm] | None:
+    """Per colour channel of ``ops`` (:func:`light_transport`'s), its :class:`BounceTerm`; None where no
+    target's state bounces light."""
+    if all(rig.geometry(t.state).bounce is None for t in targets):
+        return None
+    channels = len(ops) if len(ops) > 1 else ops[0].rhs.shape[1]
+    return [BounceTerm(rig, targets, ops[0], c) for c in range(channels)]
+
+
 def solve_on_light_transport(ops: list[TransportOperator], bounds: tuple[float, float], responses, *,
                              solver: str = "fista", max_iter: int = 2000, progress=None, objective="l2",
-                             outside: str = "clip"):
+                             outside: str = "clip", world=None, targets: list[Target] | None = None):
     """Solve on :func:`light_transport`'s operators as :func:`~torchproj.solve.make_patterns` does.
 
     With one operator per colour channel each channel is solved alone (least squares with a box
     separates over channels), and their solutions are joined; an image objective couples the
     channels, so it needs one operator (surfaces whose albedo is the same in every channel).
 
+    Light that bounces between surfaces (``interreflection``) is no sparse matrix: given the
+    ``world`` (a :class:`~torchproj.pipeline.VirtualCalibration`) and the ``targets``, the direct
+    transport's answer is corrected against the world's noise-free captures
+    (:func:`~torchproj.solve.refine_patterns`) and then solved on the exact light, direct plus
+    :class:`BounceTerm`, with the channels coupled through any colour mixing
+    (:func:`~torchproj.solve.mixing.solve_through_mixing`); an image objective keeps the direct
+    transport's answer.
+
     Returns:
         ``(result, light, patterns)`` as :func:`~torchproj.solve.make_patterns`; ``result`` joins
         the channels' results (objective summed, iterations the most any channel took).
     """
-    from ..solve import make_patterns
+    from ..solve import make_patterns, refine_patterns
+    from ..solve.compensate import projectable_patterns
+    from ..solve.mixing import solve_through_mixing
+    from .shown import rig_measure
 
     check(solver != "eo", "the exact light transport has no epipolar chains for eo to walk: choose another solver")
-    return make_patterns(ops, solver, bounds, responses, max_iter=max_iter, progress=progress, objective=objective,
-                         outside=outside)
+    result, light, patterns = make_patterns(ops, solver, bounds, responses, max_iter=max_iter, progress=progress,
+                                            objective=objective, outside=outside)
+    bounce = None if world is None or objective not in (None, "l2") else bounce_terms(world.rig, targets, ops)
+    if bounce is not None:
+        check(0 <= bounds[0] and bounds[1] <= 1, "the exact light with interreflection is solved within [0, 1]: "
+                                                 f"give bounds within 0,255, got {bounds}")
+        # The bounce's few large singular values (a whole image's light lands everywhere) set FISTA's
+        # step, which then crawls on the direct light's detail: the direct transport's answer is first
+        # corrected against the exact (noise-free) captures, whose fixed point is near the optimum,
+        # then FISTA on the exact light takes it the rest of the way.
+        corrected = refine_patterns(ops, result.patterns, rig_measure(world, ops, targets, noise=False), bounds,
+                                    responses, iterations=BOUNCE_UPDATES, outside=outside,
+                                    solver_iterations=BOUNCE_SOLVER_ITERATIONS)
+        result = dataclasses.replace(result, patterns=corrected.patterns)
+        result = solve_through_mixing(ops, result, [r.mixing for r in responses], bounds, extra=bounce,
+                                      max_iter=BOUNCE_ITERATIONS)
+        result.info["bounce"] = {"corrections": BOUNCE_UPDATES, **result.info.pop("mixing")}
+        light, patterns = projectable_patterns(ops[0], result.patterns, bounds, responses, outside)
+    return result, light, patterns
+
+
+# With interreflection: corrections of the direct answer against the exact captures (FISTA iterations
+# each), then FISTA iterations on the exact light, direct plus bounce.
+BOUNCE_UPDATES, BOUNCE_SOLVER_ITERATIONS, BOUNCE_ITERATIONS = 8, 100, 300

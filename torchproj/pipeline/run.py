@@ -28,7 +28,7 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
-from .virtual import VirtualCalibration, calibrate_virtual
+from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
 
@@ -288,8 +288,9 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     timings["transport"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if exact:
-        result, _, patterns = solve_on_light_transport(ops, bounds, cal.responses, solver=solver, max_iter=max_iter,
-                                                       progress=progress, objective=image, outside=outside)
+        result, _, patterns = solve_on_light_transport(ops, bounds, true_responses(cal.rig.scene), solver=solver,
+                                                       max_iter=max_iter, progress=progress, objective=image,
+                                                       outside=outside, world=cal, targets=targets)
     elif gain_offset is not None:
         result, op, patterns = _solve_gain_offset(op, states, targets, bounds, gain_offset, cal.responses,
                                                   max_iter, progress, device, footprint, outside)
@@ -333,8 +334,11 @@ def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_
 def _ceiling(cal, states, targets, bounds, footprint, progress, device, outside) -> list[TargetScore]:
     """The targets' scores when solved on the simulator's own light transport, on the same rows."""
     rows = build_transport(states, targets, merge=False, footprint=footprint, device=device)
-    _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds, cal.responses,
-                                              max_iter=CEILING_ITERATIONS, progress=progress, outside=outside)
+    # The exact light, shown through the projectors' exact responses: a response fit the world biases
+    # (light bouncing between surfaces lifts the ramp's captures) is calibration's error, not the ceiling's.
+    _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds,
+                                              true_responses(cal.rig.scene), max_iter=CEILING_ITERATIONS,
+                                              progress=progress, outside=outside, world=cal, targets=targets)
     return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states, paper=False).targets
 
 

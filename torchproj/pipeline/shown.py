@@ -38,7 +38,7 @@ def shown_world(cal: VirtualCalibration, scene=None) -> VirtualCalibration:
     return dataclasses.replace(cal, rig=rig, black=black, responses=true_responses(rig.scene))
 
 
-def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: int = 1):
+def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: int = 1, noise: bool = True):
     """The captured rows of patterns on the virtual rig, for :func:`~torchproj.solve.refine_patterns`.
 
     Args:
@@ -47,6 +47,8 @@ def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: in
             (they share rows; column c of the result is channel c).
         targets: the targets it was built for (a row's state is its target's).
         frames: captures averaged per state and iteration (camera noise falls as its square root).
+        noise: False measures the expected captures (no noise, no quantisation) above the expected
+            black frame: the exact light, for a ceiling.
 
     Returns:
         ``measure(images) -> (N_rows, C)``: camera values above the state's black frame at each row's
@@ -61,13 +63,16 @@ def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: in
         [k for k, s in enumerate(states) if s == state], device=op.row_target.device)))[:, 0]
         for state in dict.fromkeys(states)}
     channels = len(ops) if len(ops) > 1 else op.rhs.shape[1]
+    black = world.black if noise else {state: world.rig.capture(state, {}, noise=False, quantise=False)[0].cpu()
+                                       for state in rows_of}
 
     def measure(images: list[torch.Tensor]) -> torch.Tensor:
         shown = {j: (img.float() / 255)[None].to(world.rig.device) for j, img in enumerate(images)}
         rows = torch.empty(op.shape[0], channels, dtype=op.rhs.dtype, device=op.rhs.device)
         for state, which in rows_of.items():
-            shots = world.rig.capture(state, {j: s.expand(frames, -1, -1, -1) for j, s in shown.items()})
-            above = (shots.mean(0).cpu() - world.black[state]).flatten(1)  # (C_cam, H W)
+            shots = world.rig.capture(state, {j: s.expand(frames, -1, -1, -1) for j, s in shown.items()},
+                                      noise=noise, quantise=noise)
+            above = (shots.mean(0).cpu() - black[state]).flatten(1)  # (C_cam, H W)
             pixels = op.row_pixel[which].cpu()
             values = above[:, pixels].T  # (rows, C_cam)
             rows[which] = (values if values.shape[1] == channels else values.mean(1, keepdim=True)).to(rows)

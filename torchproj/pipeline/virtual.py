@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..calib import (DIM_THRESHOLD, GraycodeCapture, ResponseCurve, calibrate_projector, checker_patterns, graycode_bits,
-                     graycode_patterns, ramp_pattern, sequence_bits, warn_if_few_decoded)
+                     graycode_patterns, primary_patterns, ramp_pattern, sequence_bits, warn_if_few_decoded)
 from ..core.checks import check
 from ..core.errors import InputError
 from ..scene.config import Scene
@@ -32,7 +32,8 @@ def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp
 
     The projector shows its Gray code (the first ``bits`` pairs per axis of it, if given), white,
     black, the ramp and mirrored ramp and, after a full Gray code, the checkerboard pair
-    (:func:`~torchproj.calib.checker_patterns`): what ``torchproj sequence`` writes. The other
+    (:func:`~torchproj.calib.checker_patterns`) and, for a colour camera, the three primaries
+    (:func:`~torchproj.calib.primary_patterns`): what ``torchproj sequence`` writes. The other
     projectors stay on showing black, as on a real bench.
     """
     index = projector if isinstance(projector, int) else [p.name for p in rig.scene.projectors].index(projector)
@@ -44,8 +45,12 @@ def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp
     gray = graycode_patterns(proj.width, proj.height, bits)
     images = rig.capture(state, {index: torch.cat([gray, *extra])}, noise=noise)
     n = gray.shape[0]
+    # A colour camera also sees the three primaries alone (its colour mixing); a 3-channel pattern
+    # is a separate capture, so that the grey sequence is not held three times over.
+    primaries = rig.capture(state, {index: primary_patterns(proj.width, proj.height)}, noise=noise) \
+        if rig.scene.camera.channels == 3 else None
     return GraycodeCapture(patterns=images[:n - 2], white=images[n - 2], black=images[n - 1], ramp=images[n:n + 2],
-                           checker=images[n + 2:n + 4] if full else None)
+                           checker=images[n + 2:n + 4] if full else None, primaries=primaries)
 
 
 @dataclass
@@ -200,9 +205,15 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
 
 
 def true_responses(scene) -> list[ResponseCurve]:
-    """The scene's projectors' own response curves (the simulator's truth, not a fit)."""
-    return [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]))
+    """The scene's projectors' own response curves and colour mixings (the simulator's truth, not a fit)."""
+    return [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]),
+                          None if p.colour_mixing is None else _shares(torch.tensor(p.colour_mixing)))
             for p in scene.projectors]
+
+
+def _shares(mixing: torch.Tensor) -> torch.Tensor:
+    """A colour mixing as shares of each channel's white (rows summing to 1), as calibration measures it."""
+    return mixing / mixing.sum(1, keepdim=True)
 
 
 def _oracle_calibration(scene: Scene, device, black_threshold: float = 40,

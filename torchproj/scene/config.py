@@ -23,8 +23,9 @@ import numpy as np
 import yaml
 
 from ..core.checks import SIZE_LIMIT
+from ..core.conventions import DEFAULT_COLOUR_MIXING, MAX_MIXING_CONDITION
 from ..core.errors import ConfigError
-from .fields import Fields
+from .fields import Fields, vector
 from .pose import parse_pose
 from .show import ShowChanges, parse_show
 
@@ -46,7 +47,8 @@ __all__ = [
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
-                  "two_screens", "box_positions", "paper_defocus", "paper_bumped", "sphere_three_projectors")
+                  "two_screens", "box_positions", "paper_defocus", "paper_bumped", "sphere_three_projectors",
+                  "corner_screens")
 
 
 def config_dir() -> Path:
@@ -94,6 +96,9 @@ class Projector(Pinhole):
     axis) with an aperture of diameter ``aperture`` metres. A cell's light then reaches a surface
     point at depth z spread over a disc (the circle of confusion) of diameter
     :meth:`blur_diameter` cells; None (the default) is a pinhole, sharp at every depth.
+
+    ``colour_mixing``: with a colour camera, how much of each primary each camera channel sees
+    (conventions module, "Colour"); None: each channel sees its own primary alone.
     """
 
     name: str = ""
@@ -105,6 +110,7 @@ class Projector(Pinhole):
     power: float = 1.0
     focus_distance: float | None = None
     aperture: float = 0.0
+    colour_mixing: tuple[tuple[float, ...], ...] | None = None
 
     @property
     def centre(self) -> np.ndarray:
@@ -220,6 +226,7 @@ class Scene:
     targets: list[TargetSpec] = field(default_factory=list)
     source: Path | None = field(default=None, compare=False)
     show: ShowChanges | None = None  # what changed after calibration (torchproj.scene.show)
+    interreflection: bool = False  # one bounce of projector light between surfaces (torchproj.sim.bounce)
 
     def describe(self) -> str:
         """What the scene holds, one line per device, surface and state (``torchproj scene``)."""
@@ -230,12 +237,16 @@ class Scene:
                          f"{np.round(p.centre, 3).tolist()} m, response x^{'/'.join(f'{b:g}' for b in p.response_b)}, "
                          f"black {p.black_level:g}"
                          + (f", focused at {p.focus_distance:g} m, aperture {p.aperture * 1000:g} mm"
-                            if p.focus_distance is not None else ""))
+                            if p.focus_distance is not None else "")
+                         + (f", colour mixing {[list(row) for row in p.colour_mixing]}"
+                            if p.colour_mixing is not None else ""))
         lines.append(f"  camera: {cam.width}x{cam.height}, f={cam.fx:g}px, {cam.channels} channel(s), "
                      f"{cam.bit_depth}-bit, {cam.supersampling}x{cam.supersampling} samples per pixel")
         lines += [f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m"
                   for s in self.surfaces.values()]
         lines += [f"  state {st.name}: {', '.join(st.surfaces)}" for st in self.states]
+        if self.interreflection:
+            lines.append("  interreflection: one bounce of projector light between surfaces")
         if self.show is not None:
             lines.append(f"  shown after calibration with changes: {self.show.as_dict()}")
         return "\n".join(lines)
@@ -292,7 +303,36 @@ def _intrinsics(f: Fields, width: int, height: int) -> tuple[float, float, float
 _MAX_APERTURE_MM = 200.0
 
 
-def _parse_projector(f: Fields, index: int) -> Projector:
+def _colour_mixing(f: Fields, channels: int) -> tuple[tuple[float, ...], ...] | None:
+    """A projector's ``colour_mixing``: three rows (camera channels R, G, B) of three shares
+    (primaries), ``none`` for none; absent: :data:`~torchproj.core.conventions.DEFAULT_COLOUR_MIXING`
+    with a colour camera, none with a grey one."""
+    value = f.raw("colour_mixing", "default")
+    if value == "default":
+        return DEFAULT_COLOUR_MIXING if channels == 3 else None
+    if value == "none":
+        return None
+    where = f.where("colour_mixing")
+    if channels != 3:
+        raise ConfigError(where, "needs a colour camera (camera.channels: 3): a grey camera sums the primaries",
+                          "drop it, or set camera.channels to 3")
+    if not isinstance(value, list) or len(value) != 3:
+        raise ConfigError(where, f"must be 3 rows (camera channels R, G, B) of 3 shares (primaries), or 'none', got "
+                                 f"{value!r}", "e.g. [[0.9, 0.1, 0.0], [0.05, 0.9, 0.05], [0.0, 0.1, 0.9]]")
+    rows = tuple(vector(row, f"{where}[{i}]", 3, lo=0, hi=1) for i, row in enumerate(value))
+    for i, row in enumerate(rows):
+        if sum(row) <= 0:
+            raise ConfigError(f"{where}[{i}]", "is all zero: that camera channel would see no projector light",
+                              "give it the share of each primary it sees")
+    cond = float(np.linalg.cond(np.array(rows)))
+    if not cond <= MAX_MIXING_CONDITION:
+        raise ConfigError(where, f"mixes the primaries so much that the camera cannot tell them apart (condition "
+                                 f"number {cond:.3g}, over {MAX_MIXING_CONDITION:g})",
+                          "each row's largest share should be its own primary's (the diagonal)")
+    return rows
+
+
+def _parse_projector(f: Fields, index: int, channels: int = 1) -> Projector:
     name = f.text("name", f"projector{index}")
     width, height = _resolution(f)
     fx, fy, cx, cy = _intrinsics(f, width, height)
@@ -307,6 +347,7 @@ def _parse_projector(f: Fields, index: int) -> Projector:
         black_level=f.number("black_level", 0.01, lo=0, hi=1),
         vignetting=f.number("vignetting", 0.0, lo=0, hi=0.99),
         power=f.number("power", 1.0, lo=0, strict_lo=True),
+        colour_mixing=_colour_mixing(f, channels),
     )
     if f.has("focus"):
         lens = f.sub("focus")
@@ -452,6 +493,18 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
     return targets
 
 
+def _interreflection(top: Fields, surfaces: dict[str, Surface]) -> bool:
+    """``interreflection``: true simulates one bounce of projector light between the (opaque) surfaces."""
+    value = top.raw("interreflection", False)
+    if not isinstance(value, bool):
+        raise ConfigError(top.where("interreflection"), f"must be true or false, got {value!r}")
+    screens = sorted(name for name, s in surfaces.items() if s.transmittance > 0)
+    if value and screens:
+        raise ConfigError(top.where("interreflection"), f"is simulated between opaque surfaces, and {screens} pass "
+                                                        "light on (transmittance)", "drop one or the other")
+    return value
+
+
 def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene",
                 size_limit: float = SIZE_LIMIT) -> Scene:
     """Validate a scene mapping (as loaded from YAML) into a :class:`Scene`.
@@ -464,11 +517,12 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     projectors_raw = top.raw("projectors")
     if not isinstance(projectors_raw, list) or not projectors_raw:
         raise ConfigError("projectors", "must be a non-empty list of projectors")
-    projectors = [_parse_projector(Fields(p, f"projectors[{i}]"), i) for i, p in enumerate(projectors_raw)]
+    camera = _parse_camera(top.sub("camera"))
+    projectors = [_parse_projector(Fields(p, f"projectors[{i}]"), i, camera.channels)
+                  for i, p in enumerate(projectors_raw)]
     names = [p.name for p in projectors]
     if len(set(names)) != len(names):
         raise ConfigError("projectors", f"names must be unique, got {names}")
-    camera = _parse_camera(top.sub("camera"))
     surfaces_f = top.sub("surfaces")
     surfaces = {}
     for key in surfaces_f.data:
@@ -498,6 +552,7 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     scene = Scene(
         name=top.text("name", name), projectors=projectors, camera=camera, surfaces=surfaces, states=states,
         ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0), targets=targets, show=show,
+        interreflection=_interreflection(top, surfaces),
     )
     top.done()
     _check_in_front(scene)

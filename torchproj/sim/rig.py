@@ -4,7 +4,9 @@ Physics (DESIGN.md, "Physics contract"): a camera sample ray hits surface point 
 semi-transparent screens in front, each passing ``transmittance`` of the light on). Projector j lights
 X with irradiance ``E_j = L_j(u_j) * max(0, n.l_j) / d_j^2`` where u_j is X projected into projector j,
 ``L_j`` the light of the LCD cell containing u_j, d_j the distance to the projector centre, and zero
-where X is shadowed from j. A projector with a lens focused elsewhere (``focus`` in its config) blurs:
+where X is shadowed from j. A colour camera's channel c sees ``sum_p M_j[c, p] L_{j,p}`` of projector
+j's primaries p (its ``colour_mixing`` M_j; conventions module, "Colour"). With ``interreflection``
+the light also bounces once between surfaces (:mod:`torchproj.sim.bounce`). A projector with a lens focused elsewhere (``focus`` in its config) blurs:
 ``L_j`` is then the mean light over the circle of confusion around u_j at X's depth (thin lens;
 shadows stay those of the lens centre). The radiance towards the camera is ``albedo / pi * (sum_j E_j + ambient)``;
 the camera model (:mod:`torchproj.sim.camera`) turns it into pixel values.
@@ -30,6 +32,7 @@ from ..core.conventions import pixel_grid, round_to_pixel
 from ..core.lens import DISC_POINTS, GOLDEN_ANGLE, disc_points
 from ..core.sparse import csr_tensor
 from ..scene.config import SAMPLE_SPACING, Projector, Scene, Surface, supersampling_for
+from .bounce import Bounce, cast_bounce
 from .camera import apply_camera
 from .primitives import make_caster
 
@@ -52,6 +55,8 @@ class StateGeometry:
         points: :math:`(H, W, 3)` world point seen at each pixel centre, NaN where no surface.
         normals: :math:`(H, W, 3)` unit normals there, turned towards the camera.
         surface_id: :math:`(H, W)` index into the state's surface list, -1 where no surface.
+        bounce: with ``interreflection``, the light bounced once between surfaces
+            (:mod:`torchproj.sim.bounce`); None without.
     """
 
     state: str
@@ -61,6 +66,7 @@ class StateGeometry:
     points: torch.Tensor
     normals: torch.Tensor
     surface_id: torch.Tensor
+    bounce: Bounce | None = None
 
 
 @dataclass
@@ -276,8 +282,10 @@ class VirtualRig:
                               for ch in range(n_alb)])
 
         truth = self._centre_truth(casters, transmit)
+        bounce = cast_bounce(scene, casters, albedo, truth["points"], truth["normals"], truth["surface_id"],
+                             self.device) if scene.interreflection else None
         return StateGeometry(state=state_name, transport=transport,
-                             ambient=ambient.reshape(n_alb, cam.height, cam.width), **truth)
+                             ambient=ambient.reshape(n_alb, cam.height, cam.width), bounce=bounce, **truth)
 
     def _materials(self, surfaces: list[Surface]):
         """Ray casters, albedos :math:`(S, A)` (A = 1 for grey, else 3), transmittances :math:`(S,)`
@@ -404,7 +412,8 @@ class VirtualRig:
 
     # ------------------------------------------------------------------------------ capture
     def emitted(self, j: int, patterns: torch.Tensor) -> torch.Tensor:
-        """Light of each LCD cell of projector j for pattern values in [0, 1].
+        """Light of each LCD cell of projector j for pattern values in [0, 1], per primary (before
+        the camera's colour mixing, which :meth:`radiance` applies).
 
         Args:
             patterns: :math:`(N, C, H_j, W_j)` pattern values.
@@ -444,20 +453,30 @@ class VirtualRig:
         # sequence, whose dense operands need a transposed copy each way.
         base = geo.ambient.reshape(-1, cam.height * cam.width).expand(out_c, -1).clone()
         varying = []
-        for j in range(len(self.scene.projectors)):
+        fluxes = [None] * len(self.scene.projectors)  # per projector, its light summed per bounce source
+        for j, proj in enumerate(self.scene.projectors):
             if j in by_index and n > 1:
                 varying.append(j)
                 continue
             light = self._light(j, by_index.get(j))  # (1, Cp, M)
             for ch in range(out_c):
                 base[ch].addmv_(geo.transport[j][min(ch, len(geo.transport[j]) - 1)], light[0, min(ch, light.shape[1] - 1)])
+            if geo.bounce is not None:
+                fluxes[j] = geo.bounce.flux(j, light, (proj.width, proj.height))
         total = base.expand(n, -1, -1).clone()
         for j in varying:
-            mats = geo.transport[j]
+            mats, proj = geo.transport[j], self.scene.projectors[j]
+            flux = []
             for i in range(n):
-                light = self._light(j, by_index[j][i:i + 1])[0]  # image by image: a sequence's light at once is large
+                light = self._light(j, by_index[j][i:i + 1])  # image by image: a sequence's light at once is large
                 for ch in range(out_c):
-                    total[i, ch].addmv_(mats[min(ch, len(mats) - 1)], light[min(ch, light.shape[0] - 1)])
+                    total[i, ch].addmv_(mats[min(ch, len(mats) - 1)], light[0, min(ch, light.shape[1] - 1)])
+                if geo.bounce is not None:
+                    flux.append(geo.bounce.flux(j, light, (proj.width, proj.height)))
+            if flux:
+                fluxes[j] = torch.cat(flux)
+        if geo.bounce is not None:
+            geo.bounce.add_to(total, fluxes)
         return total.reshape(n, out_c, cam.height, cam.width)
 
     def _check_patterns(self, patterns: dict) -> tuple[dict[int, torch.Tensor], int]:
@@ -477,8 +496,17 @@ class VirtualRig:
         check(len(sizes) <= 1, f"every projector must show the same number of images, got {sorted(sizes)}")
         return by_index, (sizes.pop() if sizes else 1)
 
+    def channel_gain(self, j: int) -> torch.Tensor:
+        """:math:`(C,)` how much of projector j's white each camera channel sees, relative to no
+        colour mixing: the mixing's row sums (ones without mixing, or for a grey camera)."""
+        mixing = self.scene.projectors[j].colour_mixing
+        if mixing is None:
+            return torch.ones(self.scene.camera.channels, device=self.device)
+        return torch.tensor(mixing, device=self.device).sum(1)
+
     def _light(self, j: int, patterns: torch.Tensor | None) -> torch.Tensor:
-        """Emitted light of projector j for :math:`(N, C_p, H_j, W_j)` patterns, :math:`(N, C_p, H_j W_j)`;
+        """Emitted light of projector j for :math:`(N, C_p, H_j, W_j)` patterns as the camera's
+        channels see it, :math:`(N, C_p, H_j W_j)` (3 channels where the projector's primaries mix);
         None: one black image."""
         proj = self.scene.projectors[j]
         if patterns is None:
@@ -486,6 +514,12 @@ class VirtualRig:
         light = self.emitted(j, patterns)
         if self.scene.camera.channels == 1 and light.shape[1] == 3:
             light = light.mean(1, keepdim=True)  # a grey sensor integrates the three primaries
+        mixing = self.scene.projectors[j].colour_mixing
+        if mixing is not None:
+            # What each camera channel sees of the primaries (conventions module, "Colour").
+            mixing = torch.tensor(mixing, dtype=light.dtype, device=light.device)
+            light = (light * mixing.sum(1).view(1, 3, 1) if light.shape[1] == 1
+                     else torch.einsum("cp,npm->ncm", mixing, light))
         return light
 
     def capture(self, state: str, patterns: dict[str | int, torch.Tensor], seed: int | None = None,
@@ -549,6 +583,8 @@ class VirtualRig:
             :math:`(C, P)` values in [0, 1], C the camera's channel count.
         """
         cam = self.scene.camera
+        check(not self.scene.interreflection, f"scene {self.scene.name!r}: surfaces placed anywhere are captured "
+                                              "with direct light only; drop interreflection from the scene")
         by_index, n = self._check_patterns(patterns)
         check(n == 1, f"capture_surfaces shows one image per projector, got {n}")
         shown = sorted(by_index)

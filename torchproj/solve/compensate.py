@@ -143,6 +143,9 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
             paper's, two projectors) or ``components`` (connected components of the transport).
         solver_options: further keywords for the solver (e.g. ``{"normalise": "clip"}`` for ``lf``).
 
+    Where ``responses`` hold a colour camera's mixing of the primaries, an ``l2`` solve with bounds
+    within [0, 1] is refined with the channels coupled through it (:mod:`torchproj.solve.mixing`).
+
     Returns:
         ``(result, light, patterns)``: the :class:`SolveResult` (for an image-space objective, its
         ``info["start"]`` is the solver's own result), per projector the linear light
@@ -150,6 +153,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     """
     from . import solve_patterns
     from .eo import solve_eo
+    from .mixing import solve_through_mixing
     from .objectives import image_objective, solve_ssim
 
     image = image_objective(objective)
@@ -178,6 +182,12 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
     # threshold is calibrated on it); an image objective departs from it on purpose.
     warn_if_ill_posed(ops, result.patterns)
+    mixings = [r.mixing for r in responses]
+    if image is None and result.patterns.shape[1] == 3 and any(m is not None for m in mixings) and 0 <= bounds[0] \
+            and bounds[1] <= 1:
+        # A colour camera sees the primaries mixed: the channels' answer, brought into what the
+        # primaries can give, is refined with the channels coupled (torchproj.solve.mixing).
+        result = solve_through_mixing(ops, result, mixings, bounds)
     if image is not None:
         start = result
         result = solve_ssim(ops[0], bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=start.patterns,
