@@ -55,7 +55,8 @@ SURFACE = {
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
         "affine_psnr", "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "choose_footprint",
         "decoding_accuracy", "default_images", "evaluate_patterns", "ghost_images", "light_transport",
-        "rig_measure", "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image", "shown_world",
+        "refine_bundle", "rig_measure", "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image",
+        "shown_world",
         "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle", "solve_on_light_transport",
         "target_image", "true_responses"],
     "experiments": [

@@ -150,6 +150,24 @@ def cmd_solve(args) -> int:
     return 0
 
 
+def cmd_refine(args) -> int:
+    from .pipeline.bench_loop import refine_bundle
+
+    report = refine_bundle(args.bundle, args.targets, args.out, iterations=args.iterations, **_solver_args(args),
+                           objective=_objective(args), footprint=args.footprint, colour_weights=args.colour_weights,
+                           maps=args.maps, plane_tolerance=args.plane_tolerance, max_iter=args.max_iter,
+                           register=not args.no_register, device=args.device)
+    for s in report["steps"]:
+        print(f"step {s['step']}: PSNR " + " / ".join(f"{v:.2f}" for v in s["psnr_db"]) + " dB")
+    if "waiting" in report:
+        w = report["waiting"]
+        print(f"show {w['show']} (every projector at once), photograph each state into "
+              + ", ".join(w["photos"]) + ", then run this command again")
+    else:
+        print(f"done: the best photos were step {report['done']['best_step']}'s; patterns in {report['done']['patterns']}")
+    return 0
+
+
 def cmd_decode(args) -> int:
     from .calib import decode_folder
 
@@ -263,6 +281,19 @@ def _real_rig_commands(sub) -> None:
     p.add_argument("bundle", type=Path, help="bundle folder from torchproj calibrate")
     p.add_argument("--targets", nargs="+", required=True, metavar="STATE=IMAGE",
                    help="the image to show in each state (a file, or a scikit-image name such as astronaut)")
+    solve_options(p)
+    map_options(p)
+
+    p = command(sub, "refine", cmd_refine, "the camera loop on a bench, in turns over a folder: write the patterns to "
+                "show, read your photos of each state, write the next patterns (run again after each photo)",
+                out_help="the loop's working folder (your photos go into it; nothing you put there is removed)")
+    p.add_argument("bundle", type=Path, help="bundle folder from torchproj calibrate")
+    p.add_argument("--targets", nargs="+", required=True, metavar="STATE=IMAGE",
+                   help="the image to show in each state (a file, or a scikit-image name such as astronaut)")
+    p.add_argument("--iterations", type=int, default=4, metavar="N",
+                   help="updates after the first photos: N + 1 photos per state in all (default 4)")
+    p.add_argument("--no-register", action="store_true",
+                   help="do not fit the light's moves from the photos (nothing moved since calibration)")
     solve_options(p)
     map_options(p)
 

@@ -1,0 +1,97 @@
+"""``torchproj refine``: the camera loop on a bench, in turns over a folder, with the virtual rig as the
+person who shows the patterns and takes the photos."""
+
+import json
+
+import pytest
+import torch
+
+from torchproj.calib import write_graycode_folder
+from torchproj.cli import main
+from torchproj.core import CaptureError, InputError, read_image, write_image
+from torchproj.pipeline import simulate_calibration
+from torchproj.pipeline.bench_loop import refine_bundle
+from torchproj.scene import parse_scene, shown_scene
+from torchproj.sim import VirtualRig
+
+from ..helpers import small_config
+
+TARGETS = ["near=camera", "far=coffee"]
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory):
+    """A small two-plane bench calibrated from files, and the world the patterns are then shown in:
+    the upper projector's lamp 25% brighter than at calibration."""
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    scene = parse_scene(data, name="bench")
+    root = tmp_path_factory.mktemp("bench")
+    rig = VirtualRig(scene)
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            write_graycode_folder(root / "captures" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
+    assert main(["calibrate", str(root / "captures"), "--projector", "128x96", "--out", str(root / "calib")]) == 0
+    data["show"] = {"projectors": {"upper": {"gain": 1.25}}}
+    world = VirtualRig(shown_scene(parse_scene(data, name="bench")))
+    return root / "calib", world
+
+
+def photograph(world, step):
+    """What a person does between turns: show the step's patterns, photograph each state."""
+    shown = {p.name: read_image(step / "patterns" / f"{p.name}.png")[None] for p in world.scene.projectors}
+    (step / "captures").mkdir(exist_ok=True)
+    for state in ("near", "far"):
+        write_image(step / "captures" / f"{state}.png", world.capture(state, shown)[0])
+
+
+def test_the_loop_runs_in_turns_and_wins_back_a_brighter_lamp(bench, tmp_path, capsys):
+    calib, world = bench
+    out = tmp_path / "loop"
+    args = ["refine", str(calib), "--targets", *TARGETS, "--iterations", "3", "--no-register", "--out", str(out)]
+    assert main(args) == 0
+    assert "show " in capsys.readouterr().out and (out / "step_00" / "patterns" / "upper.png").is_file()
+    for k in range(4):
+        report = json.loads((out / "report.json").read_text())
+        assert report["waiting"]["step"] == k and len(report["steps"]) == k
+        photograph(world, out / f"step_{k:02d}")
+        mine = out / f"step_{k:02d}" / "captures" / "near.png"
+        before = mine.read_bytes()
+        assert main(args) == 0
+        assert mine.read_bytes() == before  # the person's photos are never touched
+    report = json.loads((out / "report.json").read_text())
+    assert "done" in report and len(report["steps"]) == 4
+    first, best = report["steps"][0]["psnr_db"], report["steps"][report["done"]["best_step"]]["psnr_db"]
+    assert sum(best) > sum(first) + 1.0  # the brighter lamp's miss is won back (measured ~+3 dB)
+    assert (out / "best" / "patterns" / "lower.png").is_file()
+    assert "Done: the best photos were step" in (out / "report.md").read_text()
+
+
+def test_bad_photos_and_a_changed_loop_are_refused_naming_the_file(bench, tmp_path):
+    calib, world = bench
+    out = tmp_path / "loop"
+    refine_bundle(calib, TARGETS, out, iterations=2, register=False)
+    step = out / "step_00"
+    (step / "captures").mkdir()
+    write_image(step / "captures" / "middle.png", torch.zeros(1, 150, 200))
+    with pytest.raises(CaptureError, match=r"middle.png: names no state of this loop's targets \(near, far\)"):
+        refine_bundle(calib, TARGETS, out, iterations=2, register=False)
+    (step / "captures" / "middle.png").unlink()
+    write_image(step / "captures" / "near.png", torch.zeros(1, 100, 200))
+    write_image(step / "captures" / "far.png", torch.zeros(1, 150, 200))
+    with pytest.raises(CaptureError, match=r"near.png: size \(1, 100, 200\) .* gives \(1, 150, 200\)"):
+        refine_bundle(calib, TARGETS, out, iterations=2, register=False)
+    # Other options than the loop was started with: its photos are of other patterns.
+    with pytest.raises(InputError, match="started with other iterations"):
+        refine_bundle(calib, TARGETS, out, iterations=5, register=False)
+    # A folder of someone else's files is not taken over.
+    (tmp_path / "theirs").mkdir()
+    (tmp_path / "theirs" / "NOTES.txt").write_text("mine")
+    with pytest.raises(InputError, match="holds files but no loop.json"):
+        refine_bundle(calib, TARGETS, tmp_path / "theirs", iterations=2)
+    # A target image that changed after the first turn gives other patterns: refused.
+    write_image(tmp_path / "t.png", torch.rand(1, 60, 80, generator=torch.Generator().manual_seed(1)))
+    other = tmp_path / "other"
+    refine_bundle(calib, [f"near={tmp_path / 't.png'}", "far=coffee"], other, iterations=1, register=False)
+    write_image(tmp_path / "t.png", torch.rand(1, 60, 80, generator=torch.Generator().manual_seed(2)))
+    with pytest.raises(InputError, match="other patterns for this step"):
+        refine_bundle(calib, [f"near={tmp_path / 't.png'}", "far=coffee"], other, iterations=1, register=False)

@@ -1,0 +1,209 @@
+"""The camera loop on a bench, over files (``torchproj refine``).
+
+On the virtual rig the loop captures by itself (:func:`~torchproj.pipeline.run_virtual`'s
+``refine``); on a bench a person (or ``torchproj capture``) shows the patterns and takes the photos.
+``refine_bundle`` therefore runs in turns over a working folder:
+
+    FOLDER/loop.json                        the loop's options (a later turn must give the same)
+    FOLDER/step_K/patterns/PROJECTOR.png    what to show in step K, every projector at once
+    FOLDER/step_K/captures/STATE.png        the camera's photo of each target's state, taken by you
+    FOLDER/best/patterns/PROJECTOR.png      after the last step: the best captured patterns
+    FOLDER/report.json, report.md           each step's captured PSNR per target, so far
+
+Each turn replays the loop (:func:`~torchproj.solve.refine_patterns`) from the start over the
+captures already in the folder: the solve and every update are deterministic, so the same patterns
+come back, and a step whose photos are missing is where the turn stops, after writing that step's
+patterns. Nothing the person put there is ever removed or overwritten. A photo of the wrong size or
+colour, or named after no state of the calibration, is refused naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from ..calib import load_bundle
+from ..core.checks import check
+from ..core.errors import CaptureError, InputError
+from ..core.imageio import read_image, write_image
+from ..core.output import write_json
+from ..solve import check_solve_options, image_objective, make_patterns
+from ..solve.refine import captured_loss, refine_patterns
+from ..transport import DEFAULT_FOOTPRINT, StateCalibration, select_maps
+from .footprint import AUTO, check_footprint, choose_footprint
+from .real_rig import _bundle_targets
+from .register import Reregister
+from .run import build_operators
+
+__all__ = ["refine_bundle"]
+
+LOOP_FILE = "loop.json"
+
+
+class _Waiting(Exception):
+    """Raised inside the loop's ``measure`` where a step's photos are not there yet."""
+
+    def __init__(self, step: int, missing: list[str]):
+        super().__init__(step)
+        self.step, self.missing = step, missing
+
+
+def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver: str = "fista", bounds_8bit=(0, 255),
+                  objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT, plane_tolerance: float = 1.0,
+                  colour_weights: str = "channel", outside: str = "clip", chains: str = "epipolar",
+                  max_iter: int | None = None, register: bool = True, device="cpu") -> dict:
+    """One turn of the camera loop over files (module docstring).
+
+    Args:
+        bundle: a calibration bundle's folder (``torchproj calibrate``).
+        targets: ``"STATE=IMAGE"`` strings, as :func:`~torchproj.pipeline.solve_bundle`.
+        folder: the loop's working folder (created on the first turn).
+        iterations: updates after the first photos: ``iterations + 1`` photos per state in all.
+        register: fit the light's moves from each capture (:class:`~torchproj.pipeline.register.Reregister`),
+            for a projector or camera that moved since calibration.
+        solver, bounds_8bit, objective, maps, footprint, plane_tolerance, colour_weights, outside,
+            chains, max_iter, device: as :func:`~torchproj.pipeline.solve_bundle` (the start's solve).
+
+    Returns:
+        the report: ``waiting`` (the step whose photos are wanted, and which) or ``done``, and per
+        captured step its loss and PSNR per target.
+    """
+    folder = Path(folder)
+    check(isinstance(iterations, int) and 0 <= iterations <= 100, f"iterations must be a whole number in [0, 100], "
+                                                                   f"got {iterations!r}")
+    options = {"bundle": str(Path(bundle).resolve()), "targets": [str(t) for t in targets], "iterations": iterations,
+               "solver": solver, "bounds_8bit": list(bounds_8bit), "objective": str(objective), "maps": maps,
+               "footprint": footprint, "plane_tolerance": plane_tolerance, "colour_weights": colour_weights,
+               "outside": outside, "chains": chains, "max_iter": max_iter, "register": register}
+    _check_options(folder, options)
+    bundle = load_bundle(bundle)
+    lo, hi = check_solve_options(solver, bounds_8bit, len(bundle.projectors), outside, chains)
+    image = image_objective(objective)
+    check_footprint(footprint)
+    wanted = _bundle_targets(bundle, targets)
+    fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
+              if bundle.homographies else None)
+    states, _, _ = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
+    if image is not None:
+        colour_weights = "grey"  # an image objective couples the channels
+    if footprint == AUTO:
+        footprint = choose_footprint(states, wanted, (lo, hi), device=device).footprint
+    ops = build_operators(states, wanted, merge=False, footprint=footprint, colour_weights=colour_weights,
+                          device=device)
+    responses = bundle.response_curves()
+    start, _, _ = make_patterns(ops, solver, (lo, hi), responses, calibrations=states, objective=image,
+                                outside=outside, chains=chains, max_iter=max_iter, progress=False)
+    names = [name for name, _, _ in bundle.projectors]
+    shape = (bundle.channels, bundle.camera_size[1], bundle.camera_size[0])
+    steps = []
+    measure = _folder_measure(folder, names, wanted, bundle.black, ops, shape, steps)
+    remodel = Reregister(states, wanted, footprint=footprint, colour_weights=colour_weights, device=device) \
+        if register else None
+    report = {"options": options, "camera": list(shape), "steps": steps}
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / LOOP_FILE, options)
+    try:
+        refined = refine_patterns(ops, start.patterns, measure, (lo, hi), responses, iterations=iterations,
+                                  objective=image or "l2", outside=outside, remodel=remodel, progress=False)
+    except _Waiting as wait:
+        report["waiting"] = {"step": wait.step, "photos": wait.missing,
+                             "show": str(folder / f"step_{wait.step:02d}" / "patterns")}
+    else:
+        best = folder / "best" / "patterns"
+        best.mkdir(parents=True, exist_ok=True)
+        for name, img in zip(names, refined.images):
+            write_image(best / f"{name}.png", img.float() / 255)
+        report["done"] = {"best_step": refined.best, "patterns": str(best)}
+    write_json(folder / "report.json", report)
+    (folder / "report.md").write_text(refine_markdown(report))
+    return report
+
+
+def _check_options(folder: Path, options: dict) -> None:
+    """A later turn must ask for the same loop: its photos were taken of that loop's patterns."""
+    path = folder / LOOP_FILE
+    if not path.is_file():
+        check(not folder.exists() or not any(folder.iterdir()), f"{folder}: exists and holds files but no {LOOP_FILE}: "
+                                                                "give the loop a folder of its own (a new --out)")
+        return
+    try:
+        before = json.loads(path.read_text())
+    except (OSError, ValueError):
+        raise CaptureError(f"{path}: unreadable; give the loop a new --out folder") from None
+    changed = sorted(k for k in options if before.get(k) != options[k])
+    check(not changed, f"{folder}: its loop was started with other {', '.join(changed)} ({', '.join(f'{k}={before.get(k)!r}' for k in changed)}): "
+                       "its photos are of that loop's patterns; give the same options or a new --out folder")
+
+
+def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, shape, steps: list):
+    """The loop's ``measure`` over the working folder: step K's photos, or the patterns to show and a stop."""
+    op = ops[0]
+    states = list(dict.fromkeys(t.state for t in targets))
+    rows_of = {s: torch.nonzero(torch.isin(op.row_target, torch.tensor(
+        [k for k, t in enumerate(targets) if t.state == s], device=op.row_target.device)))[:, 0] for s in states}
+    channels = len(ops) if len(ops) > 1 else op.rhs.shape[1]
+
+    def measure(images: list[torch.Tensor]) -> torch.Tensor:
+        k = len(steps)
+        step = folder / f"step_{k:02d}"
+        _write_or_compare(step / "patterns", names, images)
+        captures = step / "captures"
+        present = {p.stem: p for p in captures.iterdir() if p.is_file()} if captures.is_dir() else {}
+        for stem, path in present.items():
+            if stem not in states:
+                raise CaptureError(f"{path}: names no state of this loop's targets ({', '.join(states)}); rename it "
+                                   "STATE.png or move it out of the folder")
+        missing = [f"{captures / s}.png" for s in states if s not in present]
+        if missing:
+            raise _Waiting(k, missing)
+        rows = torch.empty(op.shape[0], channels, dtype=op.rhs.dtype, device=op.rhs.device)
+        for state, which in rows_of.items():
+            photo = read_image(present[state])
+            if tuple(photo.shape) != shape:
+                raise CaptureError(f"{present[state]}: size {tuple(photo.shape)} (C, H, W), but the calibration's camera "
+                                   f"gives {shape}; take the photo with the camera and settings of the calibration")
+            above = (photo - black[state].to(photo)).flatten(1)
+            values = above[:, op.row_pixel[which].cpu()].T
+            rows[which] = (values if values.shape[1] == channels else values.mean(1, keepdim=True)).to(rows)
+        loss, psnr = captured_loss(ops, rows)
+        steps.append({"step": k, "loss": loss, "psnr_db": psnr})
+        return rows
+
+    return measure
+
+
+def _write_or_compare(folder: Path, names: list[str], images: list[torch.Tensor]) -> None:
+    """Write a step's patterns; where they are there already (an earlier turn), check that the replay
+    gave the same (a changed bundle or target file would not)."""
+    for name, img in zip(names, images):
+        path = folder / f"{name}.png"
+        if not path.is_file():
+            folder.mkdir(parents=True, exist_ok=True)
+            write_image(path, img.float() / 255)
+            continue
+        shown = (read_image(path) * 255).round()
+        differ = float(((shown - img.float().cpu()).abs() > 1).float().mean()) if shown.shape == img.shape else 1.0
+        if differ > 1e-3:
+            raise InputError(f"{path}: the loop now gives other patterns for this step ({differ:.1%} of the cells) than "
+                             "it wrote before: the bundle or a target image changed since; give a new --out folder")
+
+
+def refine_markdown(report: dict) -> str:
+    """``report.md`` of ``torchproj refine``."""
+    lines = ["# Camera loop on a bench", "",
+             "Each step's photos against the targets: the loss the loop minimises and the PSNR per target "
+             "(camera values above the calibration's black, on the targets' pixels).", "",
+             "| step | loss | PSNR per target (dB) |", "|---|---|---|"]
+    for s in report["steps"]:
+        lines.append(f"| {s['step']} | {s['loss']:.4g} | {' / '.join(f'{v:.2f}' for v in s['psnr_db'])} |")
+    if "waiting" in report:
+        w = report["waiting"]
+        lines += ["", f"Waiting for step {w['step']}: show `{w['show']}` (every projector at once), photograph each "
+                  "state and save the photos as " + ", ".join(f"`{p}`" for p in w["photos"]) + "; then run the same "
+                  "command again."]
+    else:
+        d = report["done"]
+        lines += ["", f"Done: the best photos were step {d['best_step']}'s; its patterns are in `{d['patterns']}`."]
+    return "\n".join(lines) + "\n"
