@@ -24,16 +24,14 @@ from pathlib import Path
 
 import torch
 
-from ..calib import load_bundle
 from ..core.checks import check
 from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..core.output import write_json
-from ..solve import check_solve_options, image_objective, make_patterns
+from ..solve import make_patterns
 from ..solve.refine import captured_loss, refine_patterns
-from ..transport import DEFAULT_FOOTPRINT, StateCalibration, select_maps
-from .footprint import AUTO, check_footprint, choose_footprint
-from .real_rig import _bundle_targets
+from ..transport import DEFAULT_FOOTPRINT
+from .real_rig import bundle_problem
 from .register import Reregister
 from .run import build_operators
 
@@ -78,18 +76,11 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
                "footprint": footprint, "plane_tolerance": plane_tolerance, "colour_weights": colour_weights,
                "outside": outside, "chains": chains, "max_iter": max_iter, "register": register}
     _check_options(folder, options)
-    bundle = load_bundle(bundle)
-    lo, hi = check_solve_options(solver, bounds_8bit, len(bundle.projectors), outside, chains)
-    image = image_objective(objective)
-    check_footprint(footprint)
-    wanted = _bundle_targets(bundle, targets)
-    fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
-              if bundle.homographies else None)
-    states, _, _ = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
-    if image is not None:
-        colour_weights = "grey"  # an image objective couples the channels
-    if footprint == AUTO:
-        footprint = choose_footprint(states, wanted, (lo, hi), device=device).footprint
+    problem = bundle_problem(bundle, targets, solver=solver, bounds_8bit=bounds_8bit, objective=objective, maps=maps,
+                             footprint=footprint, plane_tolerance=plane_tolerance, colour_weights=colour_weights,
+                             outside=outside, chains=chains, device=device)
+    bundle, wanted, states, (lo, hi), image = problem.bundle, problem.targets, problem.states, problem.bounds, problem.image
+    footprint, colour_weights = problem.footprint, problem.colour_weights
     ops = build_operators(states, wanted, merge=False, footprint=footprint, colour_weights=colour_weights,
                           device=device)
     responses = bundle.response_curves()

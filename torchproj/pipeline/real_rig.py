@@ -67,21 +67,26 @@ def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
     return targets
 
 
-def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
-                 objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT,
-                 plane_tolerance: float = 1.0, max_iter: int | None = None, device="cpu", progress=None,
-                 outside: str = "clip", chains: str = "epipolar", colour_weights: str = "channel") -> BundleSolution:
-    """Solve the patterns that show each image in its state, from a bench's calibration.
+@dataclass
+class BundleProblem:
+    """What a bundle and its targets ask of a solve, checked: the one place ``solve`` and ``refine`` read
+    their options (:func:`bundle_problem`)."""
 
-    Args:
-        bundle: a :class:`~torchproj.calib.CalibrationBundle` or its folder (``torchproj calibrate``).
-        targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
-            scikit-image test-image name per state.
-        solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
-        device, outside, chains, colour_weights: as :func:`~torchproj.pipeline.run_virtual`; the
-        predicted views use the weights the solve used.
-    """
-    t0 = time.perf_counter()
+    bundle: CalibrationBundle
+    targets: list[Target]
+    states: dict[str, StateCalibration]
+    bounds: tuple[float, float]  # linear light
+    image: object  # the image objective, or None for least squares
+    footprint: str  # the footprint solved with (auto resolved)
+    colour_weights: str
+    maps: str
+    fits: dict | None
+    choice: object = None  # the FootprintChoice where footprint was auto
+
+
+def bundle_problem(bundle, targets: list, *, solver: str, bounds_8bit, objective, maps: str, footprint: str,
+                   plane_tolerance: float, colour_weights: str, outside: str, chains: str, device) -> BundleProblem:
+    """Load and check a bundle, its targets and the solve's options (:func:`solve_bundle`'s arguments)."""
     image = image_objective(objective)
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     bundle = bundle if isinstance(bundle, CalibrationBundle) else load_bundle(bundle)
@@ -97,6 +102,30 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     if footprint == AUTO:
         choice = choose_footprint(states, wanted, (lo, hi), device=device)
         footprint = choice.footprint
+    return BundleProblem(bundle, wanted, states, (lo, hi), image, footprint, colour_weights, maps, fits, choice)
+
+
+def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
+                 objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT,
+                 plane_tolerance: float = 1.0, max_iter: int | None = None, device="cpu", progress=None,
+                 outside: str = "clip", chains: str = "epipolar", colour_weights: str = "channel") -> BundleSolution:
+    """Solve the patterns that show each image in its state, from a bench's calibration.
+
+    Args:
+        bundle: a :class:`~torchproj.calib.CalibrationBundle` or its folder (``torchproj calibrate``).
+        targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
+            scikit-image test-image name per state.
+        solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
+        device, outside, chains, colour_weights: as :func:`~torchproj.pipeline.run_virtual`; the
+        predicted views use the weights the solve used.
+    """
+    t0 = time.perf_counter()
+    problem = bundle_problem(bundle, targets, solver=solver, bounds_8bit=bounds_8bit, objective=objective, maps=maps,
+                             footprint=footprint, plane_tolerance=plane_tolerance, colour_weights=colour_weights,
+                             outside=outside, chains=chains, device=device)
+    bundle, wanted, states, maps, fits = problem.bundle, problem.targets, problem.states, problem.maps, problem.fits
+    lo, hi = problem.bounds
+    image, choice, footprint, colour_weights = problem.image, problem.choice, problem.footprint, problem.colour_weights
     # Bilinear rows almost never repeat: merging them costs time and saves nothing (run_virtual).
     ops = build_operators(states, wanted, merge=image is None and footprint == "nearest", footprint=footprint,
                           colour_weights=colour_weights, device=device)
