@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -153,10 +154,11 @@ def cmd_solve(args) -> int:
 def cmd_refine(args) -> int:
     from .pipeline.bench_loop import refine_bundle
 
-    report = refine_bundle(args.bundle, args.targets, args.out, iterations=args.iterations, **_solver_args(args),
-                           objective=_objective(args), footprint=args.footprint, colour_weights=args.colour_weights,
-                           maps=args.maps, plane_tolerance=args.plane_tolerance, max_iter=args.max_iter,
-                           register=not args.no_register, device=args.device)
+    with _live_bench(args) as live:
+        report = refine_bundle(args.bundle, args.targets, args.out, iterations=args.iterations, **_solver_args(args),
+                               objective=_objective(args), footprint=args.footprint, colour_weights=args.colour_weights,
+                               maps=args.maps, plane_tolerance=args.plane_tolerance, max_iter=args.max_iter,
+                               register=not args.no_register, device=args.device, live=live)
     for s in report["steps"]:
         print(f"step {s['step']}: PSNR " + " / ".join(f"{v:.2f}" for v in s["psnr_db"]) + " dB")
     if "waiting" in report:
@@ -166,6 +168,52 @@ def cmd_refine(args) -> int:
     else:
         print(f"done: the best photos were step {report['done']['best_step']}'s; patterns in {report['done']['patterns']}")
     return 0
+
+
+@contextlib.contextmanager
+def _live_bench(args):
+    """``refine --camera``: a full-screen window per projector at its ``--screen`` and the camera, closed
+    afterwards; None without ``--camera``."""
+    if args.camera is None:
+        yield None
+        return
+    from .calib import load_bundle
+    from .core import InputError
+    from .pipeline.acquire import LiveBench, OpenCVCamera, OpenCVDisplay
+
+    names = [name for name, _, _ in load_bundle(args.bundle).projectors]
+    screens = dict(args.screen or [])
+    unknown = sorted(set(screens) - set(names))
+    if unknown:
+        raise InputError(f"--screen names projector(s) {unknown} the bundle does not have; its projectors: {names}")
+    if len(names) > 1 and set(screens) != set(names):
+        raise InputError(f"--camera shows every projector at once: give each its screen, --screen NAME=X,Y for "
+                         f"{sorted(set(names) - set(screens))}")
+    opened = []
+    try:
+        displays = {}
+        for name in names:
+            displays[name] = OpenCVDisplay(*screens.get(name, (0, 0)), name=f"torchproj {name}")
+            opened.append(displays[name])
+        camera = OpenCVCamera(args.camera)
+        opened.append(camera)
+        yield LiveBench(displays, camera, settle_s=args.settle, frames=args.frames,
+                        prompt=lambda state: input(f"place the scene in state {state!r}, then press Enter "))
+    finally:
+        for device in opened:
+            device.close()
+
+
+def _screen(text: str) -> tuple[str, tuple[int, int]]:
+    """``NAME=X,Y``: a projector's screen corner in the desktop."""
+    name, sep, corner = text.partition("=")
+    try:
+        x, y = (int(v) for v in corner.split(","))
+    except ValueError:
+        sep = ""
+    if not (sep and name):
+        raise argparse.ArgumentTypeError(f"expected NAME=X,Y (a projector's screen corner, e.g. upper=1920,0), got {text!r}")
+    return name, (x, y)
 
 
 def cmd_decode(args) -> int:
@@ -294,6 +342,12 @@ def _real_rig_commands(sub) -> None:
                    help="updates after the first photos: N + 1 photos per state in all (default 4)")
     p.add_argument("--no-register", action="store_true",
                    help="do not fit the light's moves from the photos (nothing moved since calibration)")
+    p.add_argument("--camera", type=int, metavar="N", help="live: show the patterns full-screen and photograph each "
+                   "state with OpenCV camera N (a prompt asks you to set up each state), the whole loop in one run")
+    p.add_argument("--screen", type=_screen, action="append", metavar="NAME=X,Y",
+                   help="live: the top-left corner of a projector's screen in the desktop (repeat per projector)")
+    p.add_argument("--settle", type=float, default=0.2, help="live: seconds between showing and grabbing (default 0.2)")
+    p.add_argument("--frames", type=int, default=1, help="live: camera frames averaged per photo (default 1)")
     solve_options(p)
     map_options(p)
 

@@ -95,3 +95,61 @@ def test_bad_photos_and_a_changed_loop_are_refused_naming_the_file(bench, tmp_pa
     write_image(tmp_path / "t.png", torch.rand(1, 60, 80, generator=torch.Generator().manual_seed(2)))
     with pytest.raises(InputError, match="other patterns for this step"):
         refine_bundle(calib, [f"near={tmp_path / 't.png'}", "far=coffee"], other, iterations=1, register=False)
+
+
+class _Projector:
+    """A display that is one of the virtual rig's projectors: remembers what it shows."""
+
+    def __init__(self):
+        self.image = None
+
+    def show(self, image):
+        self.image = image
+
+
+class _Camera:
+    """A camera on the virtual rig: photographs the state the prompt last set up, lit by the displays."""
+
+    def __init__(self, world, displays):
+        self.world, self.displays, self.state = world, displays, None
+
+    def grab(self):
+        shown = {name: torch.from_numpy(d.image.astype("float32") / 255).permute(2, 0, 1)[None]
+                 if d.image.ndim == 3 else torch.from_numpy(d.image.astype("float32") / 255)[None, None]
+                 for name, d in self.displays.items()}
+        return (self.world.capture(self.state, shown)[0, 0] * 255).round().to(torch.uint8).numpy()
+
+
+def test_a_live_bench_runs_the_whole_loop_in_one_turn(bench, tmp_path):
+    from torchproj.pipeline.acquire import LiveBench
+
+    calib, world = bench
+    displays = {"upper": _Projector(), "lower": _Projector()}
+    camera = _Camera(world, displays)
+    asked = []
+
+    def prompt(state):
+        asked.append(state)
+        camera.state = state
+
+    report = refine_bundle(calib, TARGETS, tmp_path / "live", iterations=2, register=False,
+                           live=LiveBench(displays, camera, settle_s=0, prompt=prompt))
+    assert "done" in report and len(report["steps"]) == 3 and asked == ["near", "far"] * 3
+    assert (tmp_path / "live" / "step_02" / "captures" / "far.png").is_file()
+    assert sum(report["steps"][report["done"]["best_step"]]["psnr_db"]) > sum(report["steps"][0]["psnr_db"]) + 1.0
+    # A projector without a display is refused before anything is photographed.
+    with pytest.raises(CaptureError, match=r"no display for projector\(s\) \['lower'\]"):
+        refine_bundle(calib, TARGETS, tmp_path / "half", iterations=1, register=False,
+                      live=LiveBench({"upper": _Projector()}, camera, settle_s=0, prompt=prompt))
+
+
+def test_live_options_are_checked(bench, tmp_path, capsys):
+    calib, _ = bench
+    base = ["refine", str(calib), "--targets", *TARGETS, "--out", str(tmp_path / "x"), "--camera", "0"]
+    assert main([*base, "--screen", "upper=1920,0"]) == 2
+    assert "give each its screen, --screen NAME=X,Y for ['lower']" in capsys.readouterr().err
+    assert main([*base, "--screen", "left=0,0", "--screen", "upper=1,0"]) == 2
+    assert "--screen names projector(s) ['left']" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*base, "--screen", "upper"])
+    assert "expected NAME=X,Y" in capsys.readouterr().err

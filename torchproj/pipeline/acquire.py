@@ -24,7 +24,7 @@ from ..core.errors import CaptureError
 from ..core.imageio import read_image, write_image
 from ..calib.bundle import SEQUENCE_FILE
 
-__all__ = ["OpenCVCamera", "OpenCVDisplay", "capture_sequence"]
+__all__ = ["LiveBench", "OpenCVCamera", "OpenCVDisplay", "capture_sequence"]
 
 
 class OpenCVDisplay:
@@ -101,12 +101,58 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
     out_dir.mkdir(parents=True, exist_ok=True)
     for entry in manifest["images"]:
         pattern = read_image(sequence_dir / entry["file"])
-        display.show((pattern.permute(1, 2, 0).squeeze(-1).numpy() * 255).round().astype(np.uint8))
+        display.show(_to_screen(pattern))
         time.sleep(settle_s)
-        frame = np.asarray(camera.grab())
-        scale = 65535.0 if frame.dtype == np.uint16 else 255.0
-        image = torch.from_numpy(frame.astype(np.float32) / scale)
-        image = image[None] if image.dim() == 2 else image.permute(2, 0, 1)
-        write_image(out_dir / entry["file"], image, bits=16 if frame.dtype == np.uint16 else 8)
+        image, bits = _grab(camera)
+        write_image(out_dir / entry["file"], image, bits=bits)
     shutil.copyfile(manifest_path, out_dir / SEQUENCE_FILE)
     return out_dir
+
+
+def _to_screen(image: torch.Tensor) -> np.ndarray:
+    """A :math:`(C, H, W)` image in [0, 1] as the uint8 :math:`(H, W)` or :math:`(H, W, 3)` array a display shows."""
+    return (image.permute(1, 2, 0).squeeze(-1).cpu().numpy() * 255).round().astype(np.uint8)
+
+
+def _grab(camera, frames: int = 1) -> tuple[torch.Tensor, int]:
+    """The mean of ``frames`` grabs as a :math:`(C, H, W)` float image in [0, 1], and the camera's bit depth."""
+    total, bits = None, 8
+    for _ in range(frames):
+        frame = np.asarray(camera.grab())
+        bits = 16 if frame.dtype == np.uint16 else 8
+        image = torch.from_numpy(frame.astype(np.float32) / (65535.0 if bits == 16 else 255.0))
+        image = image[None] if image.dim() == 2 else image.permute(2, 0, 1)
+        total = image if total is None else total + image
+    return total / frames, bits
+
+
+class LiveBench:
+    """The bench in the camera loop, live (``torchproj refine --camera``): shows a step's patterns on
+    every projector at once and photographs each state, where the loop would wait for a person's photos.
+
+    Args:
+        displays: projector name -> a display (module docstring), one per projector.
+        camera: the camera.
+        settle_s: seconds between showing and grabbing.
+        frames: grabs averaged per photo (camera noise falls as their square root).
+        prompt: called with a state's name before it is photographed where there are several states
+            (a person moves the object there); None: no pause.
+    """
+
+    def __init__(self, displays: dict, camera, *, settle_s: float = 0.2, frames: int = 1, prompt=None):
+        self.displays, self.camera, self.settle_s, self.frames, self.prompt = displays, camera, settle_s, frames, prompt
+
+    def photograph(self, patterns: dict[str, torch.Tensor], states: list[str], folder: Path) -> None:
+        """Show ``patterns`` (projector name -> uint8 :math:`(C, H, W)`) and save ``folder/STATE.png`` per state."""
+        missing = sorted(set(patterns) - set(self.displays))
+        if missing:
+            raise CaptureError(f"no display for projector(s) {missing}; give each a screen (--screen NAME=X,Y)")
+        for name, image in patterns.items():
+            self.displays[name].show(_to_screen(image.float() / 255))
+        folder.mkdir(parents=True, exist_ok=True)
+        for state in states:
+            if self.prompt is not None and len(states) > 1:
+                self.prompt(state)
+            time.sleep(self.settle_s)
+            image, bits = _grab(self.camera, self.frames)
+            write_image(folder / f"{state}.png", image, bits=bits)

@@ -14,7 +14,9 @@ Each turn replays the loop (:func:`~torchproj.solve.refine_patterns`) from the s
 captures already in the folder: the solve and every update are deterministic, so the same patterns
 come back, and a step whose photos are missing is where the turn stops, after writing that step's
 patterns. Nothing the person put there is ever removed or overwritten. A photo of the wrong size or
-colour, or named after no state of the calibration, is refused naming the file.
+colour, or named after no state of the calibration, is refused naming the file. With a live bench
+(``torchproj refine --camera``, :class:`~torchproj.pipeline.acquire.LiveBench`) torchproj shows the
+patterns and takes the photos itself, into the same folder, and the loop runs to its end in one turn.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ class _Waiting(Exception):
 def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver: str = "fista", bounds_8bit=(0, 255),
                   objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT, plane_tolerance: float = 1.0,
                   colour_weights: str = "channel", outside: str = "clip", chains: str = "epipolar",
-                  max_iter: int | None = None, register: bool = True, device="cpu") -> dict:
+                  max_iter: int | None = None, register: bool = True, device="cpu", live=None) -> dict:
     """One turn of the camera loop over files (module docstring).
 
     Args:
@@ -61,6 +63,8 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
         iterations: updates after the first photos: ``iterations + 1`` photos per state in all.
         register: fit the light's moves from each capture (:class:`~torchproj.pipeline.register.Reregister`),
             for a projector or camera that moved since calibration.
+        live: None, or a :class:`~torchproj.pipeline.acquire.LiveBench` that shows each step's
+            patterns and takes its photos itself: the whole loop then runs in one turn.
         solver, bounds_8bit, objective, maps, footprint, plane_tolerance, colour_weights, outside,
             chains, max_iter, device: as :func:`~torchproj.pipeline.solve_bundle` (the start's solve).
 
@@ -89,7 +93,7 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
     names = [name for name, _, _ in bundle.projectors]
     shape = (bundle.channels, bundle.camera_size[1], bundle.camera_size[0])
     steps = []
-    measure = _folder_measure(folder, names, wanted, bundle.black, ops, shape, steps)
+    measure = _folder_measure(folder, names, wanted, bundle.black, ops, shape, steps, live)
     remodel = Reregister(states, wanted, footprint=footprint, colour_weights=colour_weights, device=device) \
         if register else None
     report = {"options": options, "camera": list(shape), "steps": steps}
@@ -128,8 +132,9 @@ def _check_options(folder: Path, options: dict) -> None:
                        "its photos are of that loop's patterns; give the same options or a new --out folder")
 
 
-def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, shape, steps: list):
-    """The loop's ``measure`` over the working folder: step K's photos, or the patterns to show and a stop."""
+def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, shape, steps: list, live=None):
+    """The loop's ``measure`` over the working folder: step K's photos (taken by ``live`` where they are
+    missing), or the patterns to show and a stop."""
     op = ops[0]
     states = list(dict.fromkeys(t.state for t in targets))
     rows_of = {s: torch.nonzero(torch.isin(op.row_target, torch.tensor(
@@ -146,6 +151,9 @@ def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, s
             if stem not in states:
                 raise CaptureError(f"{path}: names no state of this loop's targets ({', '.join(states)}); rename it "
                                    "STATE.png or move it out of the folder")
+        if live is not None and any(s not in present for s in states):
+            live.photograph(dict(zip(names, images)), [s for s in states if s not in present], captures)
+            present = {p.stem: p for p in captures.iterdir() if p.is_file()}
         missing = [f"{captures / s}.png" for s in states if s not in present]
         if missing:
             raise _Waiting(k, missing)
