@@ -144,3 +144,27 @@ def test_run_with_no_arguments_on_the_full_resolution_paper_rig(tmp_path, monkey
     assert near["ssim"] > 0.5 and far["ssim"] > 0.5
     # Its time is a benchmark's to measure (README "Measured"), never a test's: a busy machine is slow.
     assert set(report["timings_s"]) >= {"calibrate", "transport", "solve", "evaluate", "total"}
+
+
+def test_out_never_takes_a_persons_files_and_an_interrupt_exits_130(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "seq"
+    (out / "captures").mkdir(parents=True)
+    (out / "captures" / "graycode_00.png").write_bytes(b"theirs")
+    assert main(["sequence", "--projector", "64x48", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "holds captures, which torchproj did not write" in err and "nothing was touched" in err
+    assert (out / "captures" / "graycode_00.png").read_bytes() == b"theirs"
+    # Its own output it replaces; Ctrl-C (or SIGTERM) while writing leaves that whole and exits 130.
+    mine = tmp_path / "mine"
+    assert main(["sequence", "--projector", "64x48", "--out", str(mine)]) == 0
+    before = sorted(p.name for p in mine.iterdir())
+    import torchproj.calib as calib
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calib, "write_sequence", interrupted)
+    assert main(["sequence", "--projector", "64x48", "--out", str(mine)]) == 130
+    assert "interrupted; " in capsys.readouterr().err
+    assert sorted(p.name for p in mine.iterdir()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "seq"]

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -335,6 +337,7 @@ def _real_rig_commands(sub) -> None:
     p = command(sub, "refine", cmd_refine, "the camera loop on a bench, in turns over a folder: write the patterns to "
                 "show, read your photos of each state, write the next patterns (run again after each photo)",
                 out_help="the loop's working folder (your photos go into it; nothing you put there is removed)")
+    p.set_defaults(workspace=True)  # --out is the loop's working folder, added to, never replaced
     p.add_argument("bundle", type=Path, help="bundle folder from torchproj calibrate")
     p.add_argument("--targets", nargs="+", required=True, metavar="STATE=IMAGE",
                    help="the image to show in each state (a file, or a scikit-image name such as astronaut)")
@@ -376,9 +379,11 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchproj`` console command."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(join_negative_pairs(argv))
+    # SIGTERM (a scheduler stopping the job) unwinds like Ctrl-C, so that staging folders are removed.
+    previous = signal.signal(signal.SIGTERM, _interrupt) if threading.current_thread() is threading.main_thread() else None
     try:
         if getattr(args, "out", None) is not None:
-            check_output_folder(args.out)  # before the work, not after it
+            check_output_folder(args.out, replace=not getattr(args, "workspace", False))  # before the work
         with warnings.catch_warnings():
             # The library's warnings (a state that decoded little, a missing ramp) in the command's own voice.
             warnings.showwarning = lambda message, *_: print(f"torchproj {args.command}: warning: {message}",
@@ -390,6 +395,18 @@ def main(argv: list[str] | None = None) -> int:
     except (TorchprojError, OSError) as exc:  # OSError: a disk full or a folder that turned read-only mid-run
         print(f"torchproj {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        where = f"; {args.out} is as it was" if getattr(args, "out", None) is not None and \
+            not getattr(args, "workspace", False) else ""
+        print(f"torchproj {args.command}: interrupted{where}", file=sys.stderr)
+        return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

@@ -88,3 +88,58 @@ def test_atomic_output_leaves_nothing_on_failure(tmp_path):
         (stage / "report.json").write_text("{}")
     assert (out / "report.json").is_file()
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
+def test_an_output_folder_holding_a_persons_files_is_refused_and_left_whole(tmp_path):
+    from torchproj.core.output import MANIFEST
+
+    out = tmp_path / "run"
+    (out / "captures").mkdir(parents=True)
+    (out / "captures" / "mine.png").write_bytes(b"12345")
+    (out / "NOTES.txt").write_text("my notes")
+    with pytest.raises(InputError, match=r"holds NOTES.txt, captures, which torchproj did not write"):
+        with atomic_output(out) as stage:
+            (stage / "captures").mkdir()
+    assert (out / "captures" / "mine.png").read_bytes() == b"12345" and (out / "NOTES.txt").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no staging folder left behind
+    # A folder torchproj wrote is replaced whole: what the new result does not hold goes with the old one.
+    out = tmp_path / "mine"
+    with atomic_output(out) as stage:
+        (stage / "report.json").write_text("1")
+        (stage / "old.png").write_text("x")
+    assert sorted(p.name for p in out.iterdir()) == sorted([MANIFEST, "old.png", "report.json"])
+    with atomic_output(out) as stage:
+        (stage / "report.json").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "report.json"]
+    assert (out / "report.json").read_text() == "2" and oct(out.stat().st_mode & 0o777) != oct(0o700)
+    # ... unless the person has put something of theirs there since.
+    (out / "NOTES.txt").write_text("mine")
+    with pytest.raises(InputError, match="holds NOTES.txt"):
+        with atomic_output(out):
+            pass
+
+
+def test_an_interrupted_swap_leaves_the_old_result_whole(tmp_path, monkeypatch):
+    import os
+
+    from torchproj.core import output
+
+    out = tmp_path / "run"
+    with atomic_output(out) as stage:
+        (stage / "report.json").write_text("old")
+    real = os.replace
+    calls = []
+
+    def failing(src, dst):  # the second rename (the new result in) fails: a full disk, a signal
+        calls.append((src, dst))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(output.os, "replace", failing)
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_output(out) as stage:
+            (stage / "report.json").write_text("new")
+    monkeypatch.setattr(output.os, "replace", real)
+    assert (out / "report.json").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]

@@ -1,4 +1,16 @@
-"""Output folders that appear whole or not at all."""
+"""Output folders that appear whole or not at all, and never take a person's files with them.
+
+The contract every command that writes ``--out`` keeps (README, "Commands"):
+
+- ``--out`` is replaced only where torchproj wrote it: a missing or empty folder, or one whose every
+  entry is listed in the manifest (:data:`MANIFEST`) an earlier torchproj command left there. A
+  folder holding anything else (a person's captures, notes, an older tool's output) is refused
+  before any work begins, naming what is there; nothing in it is touched.
+- The new result is written beside it and swapped in whole by two renames (the old folder aside,
+  the new one in), then the old one is removed: an interruption at any moment (Ctrl-C, SIGTERM, a
+  full disk, a file that cannot be removed) leaves the complete old result or the complete new one
+  at ``--out``, never a mixture.
+"""
 
 from __future__ import annotations
 
@@ -6,23 +18,37 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import tempfile
+import warnings
 from pathlib import Path
 
 from .errors import InputError
 
-__all__ = ["atomic_output", "check_output_folder", "write_json"]
+__all__ = ["MANIFEST", "atomic_output", "check_output_folder", "write_json"]
+
+MANIFEST = ".torchproj-output.json"  # what torchproj wrote into an output folder, so that it may replace it
 
 
-def check_output_folder(out_dir: str | os.PathLike) -> Path:
+def check_output_folder(out_dir: str | os.PathLike, replace: bool = True) -> Path:
     """Raise :class:`InputError` unless ``out_dir`` is, or can become, a folder this process may write.
 
     Nothing is created: the nearest existing folder on the path is what is checked, so a refused
     output leaves no empty folders behind. Commands call it before their work, not after.
+    ``replace``: the command replaces the folder whole (:func:`atomic_output`), so a folder holding
+    anything torchproj did not write is refused (module docstring); False for a working folder a
+    command adds to (``torchproj refine``).
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output folder {out_dir}: is a file; choose a folder (or remove the file)")
+    if replace and out_dir.is_dir():
+        theirs = sorted(set(os.listdir(out_dir)) - _written(out_dir) - {MANIFEST})
+        if theirs:
+            shown = ", ".join(theirs[:5]) + (f" and {len(theirs) - 5} more" if len(theirs) > 5 else "")
+            raise InputError(f"output folder {out_dir}: holds {shown}, which torchproj did not write there; torchproj "
+                             "replaces only an output folder it wrote itself: give a new or empty --out folder (nothing "
+                             "was touched)")
     existing = out_dir
     while not existing.exists():
         existing = existing.parent
@@ -43,18 +69,55 @@ def atomic_output(out_dir: str | os.PathLike):
     out_dir = check_output_folder(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    old = None
     try:
         yield stage
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for item in stage.iterdir():
-            target = out_dir / item.name
-            if target.is_dir() and not target.is_symlink():
-                shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
-            os.replace(item, target)
+        write_json(stage / MANIFEST, {"written by": "torchproj", "written": sorted(os.listdir(stage))})
+        check_output_folder(out_dir)  # again: the person may have put something there while the work ran
+        with _signals_held():  # the two renames: no interruption between them
+            if out_dir.exists():
+                old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
+                os.replace(out_dir, old / out_dir.name)
+            os.replace(stage, out_dir)
+        os.chmod(out_dir, 0o777 & ~_umask())  # a staging folder is private; an output folder is as mkdir makes it
     finally:
+        if old is not None and not out_dir.exists() and (old / out_dir.name).exists():
+            os.replace(old / out_dir.name, out_dir)  # the new one did not go in: the old one goes back, whole
         shutil.rmtree(stage, ignore_errors=True)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+            if old.exists():
+                warnings.warn(f"{old}: the previous result (replaced whole) could not all be removed; remove it by hand",
+                              stacklevel=3)
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold Ctrl-C and SIGTERM (where the platform can) until the block is done."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _written(out_dir: Path) -> set[str]:
+    """The entries an earlier torchproj command listed in ``out_dir``'s manifest (none without one)."""
+    try:
+        listed = json.loads((out_dir / MANIFEST).read_text()).get("written", [])
+    except (OSError, ValueError, AttributeError):
+        return set()
+    return {name for name in listed if isinstance(name, str)}
 
 
 def write_json(path: str | os.PathLike, data) -> None:
