@@ -271,3 +271,8 @@ def test_bad_colour_mixing_names_the_field(mixing, channels, message):
     with pytest.raises(ConfigError) as err:
         parse_scene(_colour(mixing, channels))
     assert str(err.value).startswith(message)
+
+
+def test_a_misspelt_required_key_is_named():
+    message = _bad(lambda d: d["camera"].update(focl=d["camera"].pop("focal")))
+    assert message.startswith("camera.focal: is required") and "found 'focl': did you mean 'focal'?" in message

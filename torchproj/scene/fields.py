@@ -34,7 +34,10 @@ class Fields:
         if key in self.data and self.data[key] is not None:
             return self.data[key]
         if default is _MISSING:
-            raise ConfigError(self.where(key), "is required", "add it")
+            # A misspelt required key is missing too: name the key that is there instead.
+            close = difflib.get_close_matches(key, [str(k) for k in self.data if k != key], n=1)
+            raise ConfigError(self.where(key), "is required",
+                              f"found '{close[0]}': did you mean '{key}'?" if close else "add it")
         return default
 
     def has(self, key: str) -> bool:
