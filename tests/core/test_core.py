@@ -143,3 +143,15 @@ def test_an_interrupted_swap_leaves_the_old_result_whole(tmp_path, monkeypatch):
     monkeypatch.setattr(output.os, "replace", real)
     assert (out / "report.json").read_text() == "old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_json_reports_stay_json_whatever_the_scores(tmp_path):
+    import json
+    import math
+
+    from torchproj.core import write_json
+
+    write_json(tmp_path / "r.json", {"psnr_db": math.inf, "low": -math.inf, "gap": float("nan"), "rows": [1.5, math.inf]})
+    text = (tmp_path / "r.json").read_text()
+    assert "Infinity" not in text and "NaN" not in text
+    assert json.loads(text) == {"psnr_db": None, "low": None, "gap": None, "rows": [1.5, None]}

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -121,10 +122,11 @@ def _written(out_dir: Path) -> set[str]:
 
 
 def write_json(path: str | os.PathLike, data) -> None:
-    """Write JSON with stable key order and NaN spelled as null."""
+    """Write JSON with stable key order and NaN and infinities spelled as null (JSON has neither: a
+    target shown perfectly has an infinite PSNR, which Python's json would write as ``Infinity``)."""
 
     def clean(v):
-        if isinstance(v, float) and v != v:
+        if isinstance(v, float) and not math.isfinite(v):
             return None
         if isinstance(v, dict):
             return {k: clean(x) for k, x in v.items()}

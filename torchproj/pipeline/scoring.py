@@ -53,8 +53,9 @@ def score_image(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Ten
         estimate, values: :math:`(C, H, W)` in target units.
         covered: :math:`(H, W)` bool.
     """
+    # SSIM lies in [-1, 1]; an image equal to its target can come out a rounding error past 1.
     return {"psnr_db": psnr(estimate[:, covered], values[:, covered]),
-            "ssim": float(ssim(estimate.double(), values.double(), covered))}
+            "ssim": min(1.0, max(-1.0, float(ssim(estimate.double(), values.double(), covered))))}
 
 
 @dataclass
