@@ -3,6 +3,7 @@ import copy
 import numpy as np
 import pytest
 import torch
+import yaml
 from kornia.geometry.camera import project_points
 
 from torchproj.core import ConfigError
@@ -276,3 +277,29 @@ def test_bad_colour_mixing_names_the_field(mixing, channels, message):
 def test_a_misspelt_required_key_is_named():
     message = _bad(lambda d: d["camera"].update(focl=d["camera"].pop("focal")))
     assert message.startswith("camera.focal: is required") and "found 'focl': did you mean 'focal'?" in message
+
+
+def test_config_files_that_are_not_scenes_are_named(tmp_path):
+    with pytest.raises(ConfigError, match="is a folder"):
+        load_scene(tmp_path)
+    with pytest.raises(ConfigError, match="is not a regular file"):
+        load_scene("/dev/null")
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes("name: caf\xe9\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match=r"latin.yaml: is not UTF-8 text \(byte 9"):
+        load_scene(latin)
+    bomb = tmp_path / "bomb.yaml"
+    lines = ["a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"] + [f"{chr(98 + i)}: &{chr(98 + i)} [" + ", ".join(
+        [f"*{chr(97 + i)}"] * 10) + "]" for i in range(12)]
+    bomb.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError, match=r"bomb.yaml: uses 120 YAML aliases"):
+        load_scene(bomb)
+    huge = tmp_path / "huge.yaml"
+    huge.write_text(yaml.safe_dump(small_config()) + "seed: " + "9" * 5000 + "\n")
+    with pytest.raises(ConfigError, match="huge.yaml: holds a value YAML cannot read"):
+        load_scene(huge)
+
+
+def test_a_seed_past_64_bits_is_refused():
+    message = _bad(lambda d: d.update(seed=10**40))
+    assert message.startswith("seed: must be at most 9223372036854775807, got a number of 41 digits")

@@ -551,7 +551,8 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     show = parse_show(top.sub("show"), projectors) if top.has("show") else top.raw("show", None)
     scene = Scene(
         name=top.text("name", name), projectors=projectors, camera=camera, surfaces=surfaces, states=states,
-        ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0), targets=targets, show=show,
+        ambient=top.number("ambient", 0.0, lo=0), seed=top.integer("seed", 0, lo=0, hi=2**63 - 1), targets=targets,
+        show=show,
         interreflection=_interreflection(top, surfaces),
     )
     top.done()
@@ -623,6 +624,34 @@ def scale_config(data: dict, scale: float | None = None, *, camera: tuple[int, i
     return data
 
 
+# A scene config is a few kilobytes and names each value once; past these it is not one (or it is an
+# alias bomb, whose expansion takes minutes and gigabytes before any field is read).
+MAX_CONFIG_BYTES = 10_000_000
+MAX_YAML_ALIASES = 100
+
+
+def _read_yaml(path: Path):
+    """A config file's YAML data, or a :class:`ConfigError` naming the file and what is wrong with it."""
+    if path.stat().st_size > MAX_CONFIG_BYTES:
+        raise ConfigError(str(path), f"is {path.stat().st_size / 1e6:.0f} MB, larger than any scene config",
+                          "check that this is the scene's YAML file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(path), f"is not UTF-8 text (byte {exc.start}: {exc.object[exc.start:exc.start + 1]!r})",
+                          "save it as UTF-8") from None
+    try:
+        aliases = sum(isinstance(t, yaml.AliasToken) for t in yaml.scan(text))
+        if aliases > MAX_YAML_ALIASES:
+            raise ConfigError(str(path), f"uses {aliases} YAML aliases (*name), over {MAX_YAML_ALIASES}",
+                              "write the values out: a scene names each once")
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(str(path), f"is not valid YAML: {exc}") from None
+    except ValueError as exc:  # an integer past Python's digit limit
+        raise ConfigError(str(path), f"holds a value YAML cannot read: {str(exc).splitlines()[0]}") from None
+
+
 def load_scene(path: str | os.PathLike | None = None, scale: float | None = None,
                size_limit: float = SIZE_LIMIT) -> Scene:
     """Load a scene YAML file, or a built-in scene by name (None: the paper's two-plane rig).
@@ -648,14 +677,15 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
     path = Path(path)
     if not path.is_file() and path.suffix == "" and path.name in BUILTIN_SCENES:
         path = builtin_config(path.name)
+    if path.is_dir():
+        raise ConfigError("config", f"{str(path)!r} is a folder", "give the scene's YAML file")
+    if path.exists() and not path.is_file():
+        raise ConfigError("config", f"{str(path)!r} is not a regular file (a device or a pipe)", "give a YAML file")
     if not path.is_file():
         raise ConfigError("config", f"file {str(path)!r} not found",
                           f"give a YAML path, a built-in name ({list(BUILTIN_SCENES)}) or a procedural scene's "
                           "name (suite-SEED-INDEX)")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(path), f"is not valid YAML: {exc}") from None
+    data = _read_yaml(path)
     if scale is not None and isinstance(data, dict):
         data = scale_config(data, scale)
     scene = parse_scene(data, base_dir=path.parent, name=path.stem, size_limit=size_limit)

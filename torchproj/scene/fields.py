@@ -49,7 +49,7 @@ class Fields:
         return _number(value, self.where(key), lo, hi, strict_lo)
 
     def integer(self, key: str, default: Any = _MISSING, *, choices: Sequence[int] | None = None,
-                lo: int | None = None) -> int:
+                lo: int | None = None, hi: int | None = None) -> int:
         value = self.raw(key, default)
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(self.where(key), f"must be a whole number, got {value!r}")
@@ -57,6 +57,9 @@ class Fields:
             raise ConfigError(self.where(key), f"must be one of {list(choices)}, got {value}")
         if lo is not None and value < lo:
             raise ConfigError(self.where(key), f"must be at least {lo}, got {value}")
+        if hi is not None and value > hi:
+            shown = str(value) if value < 10**30 else f"a number of {len(str(value))} digits"
+            raise ConfigError(self.where(key), f"must be at most {hi}, got {shown}")
         return value
 
     def text(self, key: str, default: Any = _MISSING, *, choices: Sequence[str] | None = None) -> str:
