@@ -5,6 +5,7 @@ import warnings
 import pytest
 
 from torchproj.calib import FEW_DECODED
+from torchproj.core import InputError
 from torchproj.pipeline import calibrate_virtual, decoding_accuracy
 from torchproj.scene import parse_scene
 
@@ -37,3 +38,27 @@ def test_decoded_share_is_reported_and_warned_where_stripes_are_finer_than_the_c
     truth = decoding_accuracy(cal.states["near"].prj_xy[0], geo.prj_xy[0].cpu())
     placed = cal.decode["near"]["upper"]
     assert abs(truth.decoded - (placed["full"] + placed["partial"])) < 0.15
+
+
+def test_a_state_too_dim_to_decode_is_refused_before_calibrating(tmp_path, capsys):
+    """The far plane at 39/255 failed after minutes of calibration at the ramp; now it is refused at
+    once, saying how much exposure would do."""
+    import yaml
+
+    from torchproj.cli import main
+    from torchproj.pipeline.virtual import check_light
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["camera"]["exposure"] = 0.5  # the near plane passes, the far one (1 m, not 0.8) does not
+    with pytest.raises(InputError, match=r"state 'far': projector '\w+' lights it at most \d+/255 above black .* "
+                                         r"raise camera.exposure \(to about 0.\d+\)") as refused:
+        check_light(parse_scene(data))
+    path = tmp_path / "dim.yaml"
+    path.write_text(yaml.safe_dump(dict(data, name="dim")))
+    assert main(["run", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert "checked before calibrating" in capsys.readouterr().err and not (tmp_path / "out").exists()
+    # The exposure it names is enough.
+    import re
+
+    data["camera"]["exposure"] = float(re.search(r"to about ([\d.]+)", str(refused.value)).group(1))
+    check_light(parse_scene(data))

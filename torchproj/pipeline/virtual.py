@@ -22,7 +22,8 @@ from ..scene.config import Scene
 from ..sim.rig import VirtualRig
 from ..transport import StateCalibration
 
-__all__ = ["DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "decoding_accuracy", "simulate_calibration", "true_responses",
+__all__ = ["DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "check_light",
+           "decoding_accuracy", "simulate_calibration", "true_responses",
            "simulate_markdown", "simulate_scene"]
 
 
@@ -108,6 +109,45 @@ class VirtualCalibration:
     decode: dict | None = None
 
 
+# Camera pixels per axis at which check_light samples each state: enough to find a surface's brightest part.
+LIGHT_CHECK_GRID = 64
+
+
+def check_light(scene: Scene, device="cpu", threshold: float = 40 / 255) -> None:
+    """Refuse, before any calibration, a scene where a projector lights a state too dimly to decode.
+
+    Gray-code decoding keeps pixels whose white minus black passes ``threshold`` (the shadow mask of
+    :func:`~torchproj.calib.calibrate_projector`, 40/255); a projector whose brightest lit pixel in
+    a state stays under it decodes nothing there, and calibration fails minutes later at the ramp. The
+    white and black captures are simulated without noise at a grid of ``LIGHT_CHECK_GRID`` pixels per
+    axis (direct light only: a lower bound where light also bounces); a projector that reaches a
+    state's surfaces at all must pass the threshold somewhere on them.
+    """
+    cam = scene.camera
+    rig = VirtualRig(scene, device=device)
+    ys = torch.linspace(0, cam.height - 1, min(LIGHT_CHECK_GRID, cam.height), device=device).round().long()
+    xs = torch.linspace(0, cam.width - 1, min(LIGHT_CHECK_GRID, cam.width), device=device).round().long()
+    pixels = (ys[:, None] * cam.width + xs[None, :]).reshape(-1)
+    dim = []  # (peak, state, projector) under the threshold
+    for state in scene.states:
+        surfaces = [scene.surfaces[n] for n in state.surfaces]
+        black = rig.capture_surfaces(surfaces, {}, pixels, noise=False, direct_only=True)
+        for j, proj in enumerate(scene.projectors):
+            white = rig.capture_surfaces(surfaces, {j: torch.ones(1, 1, proj.height, proj.width, device=device)},
+                                         pixels, noise=False, direct_only=True)
+            peak = float((white - black).mean(0).max())
+            if 0 < peak < threshold:
+                dim.append((peak, state.name, proj.name))
+    if dim:
+        peak, state, name = min(dim)
+        others = f" (and {len(dim) - 1} more state-projector pair(s))" if len(dim) > 1 else ""
+        raise InputError(
+            f"state {state!r}: projector {name!r} lights it at most {peak * 255:.0f}/255 above black in its white "
+            f"capture{others}, and Gray-code decoding needs {threshold * 255:.0f}/255: raise camera.exposure (to about "
+            f"{cam.exposure * threshold / peak * 1.1:.3g}) or the projectors' power, or bring the surfaces closer "
+            "(checked before calibrating; nothing was simulated)")
+
+
 def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False,
                       bits: int | None = None, plane_tolerance: float = 1.0) -> VirtualCalibration:
     """Simulate and decode every state's calibration captures (Gray code, white, black, ramps and,
@@ -129,6 +169,7 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
         check(bits is None, "oracle calibration takes the exact geometry: it shows no Gray code to shorten; drop "
                             "--bits or --oracle")
         return _oracle_calibration(scene, device)
+    check_light(scene, device)
     t0 = time.perf_counter()
     rig = VirtualRig(scene, device=device)
     per_state: dict[str, list] = {}

@@ -564,7 +564,7 @@ class VirtualRig:
 
     def capture_surfaces(self, surfaces: list[Surface], patterns: dict[str | int, torch.Tensor],
                          pixels: torch.Tensor | None = None, seed: int | None = None,
-                         noise: bool = True) -> torch.Tensor:
+                         noise: bool = True, direct_only: bool = False) -> torch.Tensor:
         """Capture one set of patterns on surfaces placed anywhere, at some camera pixels only.
 
         For objects that move between captures (placing a box by watching it): the rays are cast
@@ -578,13 +578,16 @@ class VirtualRig:
             pixels: :math:`(P,)` flat row-major camera pixel indices; None: every pixel.
             seed: seed of this capture's noise (default: the rig's generator).
             noise: False gives the noise-free (still quantised) values.
+            direct_only: True accepts a scene with ``interreflection`` and captures its direct light
+                alone (less than the camera sees: a lower bound).
 
         Returns:
             :math:`(C, P)` values in [0, 1], C the camera's channel count.
         """
         cam = self.scene.camera
-        check(not self.scene.interreflection, f"scene {self.scene.name!r}: surfaces placed anywhere are captured "
-                                              "with direct light only; drop interreflection from the scene")
+        check(direct_only or not self.scene.interreflection, f"scene {self.scene.name!r}: surfaces placed anywhere are "
+                                                             "captured with direct light only; drop interreflection "
+                                                             "from the scene")
         by_index, n = self._check_patterns(patterns)
         check(n == 1, f"capture_surfaces shows one image per projector, got {n}")
         shown = sorted(by_index)
