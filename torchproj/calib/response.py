@@ -167,8 +167,10 @@ def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, p
         if int(sel.sum()) >= 5:
             levels.append(k / (steps - 1))
             response.append(norm[:, sel].median(1).values)
-    check(len(levels) >= 4, f"the ramp capture shows only {len(levels)} usable levels; "
-                            "check that the projector lights the scene and decoding succeeded")
+    check(len(levels) >= 4, f"the ramp capture shows only {len(levels)} usable levels (bars of at least 5 decoded "
+                            f"pixels with white - black over {min_contrast * 255:.0f}/255); check that the projector "
+                            "lights the scene and is bright enough against the camera's exposure, and that decoding "
+                            "succeeded")
     return torch.tensor(levels), torch.stack(response)
 
 
