@@ -84,6 +84,12 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
             for planar scenes; None: the full sequence.
     """
     folder = Path(folder)
+    if not (2 <= width and 2 <= height):
+        raise InputError(f"projector {width}x{height}: a Gray code needs at least 2 x 2 cells; check the projector's "
+                         "resolution (WIDTHxHEIGHT, e.g. 1024x768)")
+    if ramp_steps > width:
+        raise InputError(f"projector {width}x{height}: narrower than the ramp's {ramp_steps} bars; check the projector's "
+                         f"resolution, or give at most {width} ramp steps")
     folder.mkdir(parents=True, exist_ok=True)
     gray = graycode_patterns(width, height, bits)
     nx, ny = sequence_bits(width, height, bits)
