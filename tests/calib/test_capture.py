@@ -89,3 +89,16 @@ def test_corrupt_file(folder):
 def test_missing_folder(tmp_path):
     with pytest.raises(CaptureError, match="capture folder not found"):
         read_graycode_folder(tmp_path / "nope", (64, 48))
+
+
+def test_captures_that_decode_nothing_are_an_error_naming_the_folder(tmp_path):
+    """Identical captures (a frozen camera, every image the white one) decoded 0% and exited 0."""
+    from torchproj.calib import decode_folder
+
+    frozen = tmp_path / "frozen"
+    pats = graycode_patterns(64, 48)
+    same = pats[-2] * 0.8 + 0.1  # the white capture, every time
+    write_graycode_folder(frozen, GraycodeCapture(patterns=same.expand(len(pats) - 2, -1, -1, -1), white=same,
+                                                  black=same))
+    with pytest.raises(CaptureError, match=r"frozen: only 0.000% of the camera decoded; .* \(identical or saturated"):
+        decode_folder(frozen, (64, 48))

@@ -63,7 +63,7 @@ from ..core.imageio import write_image
 from .edges import EdgePixels
 from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, read_graycode_folder
 from .graycode import CellShares, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
-from .pipeline import ProjectorCalibration, calibrate_projector, warn_if_few_decoded
+from .pipeline import ProjectorCalibration, calibrate_projector, check_decoded, warn_if_few_decoded
 from .response import ResponseCurve, primary_patterns, ramp_pattern
 
 __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
@@ -71,8 +71,6 @@ __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bun
 
 BUNDLE_VERSION = 1
 SEQUENCE_FILE = "sequence.json"
-_MIN_DECODED = 0.001  # below this fraction of the camera decoded, a folder is an error
-_FEW_DECODED = 0.02  # below this, a warning
 
 
 def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_steps: int = 32,
@@ -280,13 +278,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
             raise CaptureError(f"{folder}: {exc}") from None
         if cal.homography is not None:
             homographies.setdefault(state, {})[name] = cal.homography.as_dict()
-        fraction = cal.decoding.valid_fraction
-        if fraction < _MIN_DECODED:
-            raise CaptureError(f"{folder}: only {fraction:.3%} of the camera decoded; is the projector aimed at the "
-                               "scene, in focus, and bright enough against room light? Capture again")
-        if fraction < _FEW_DECODED:
-            warnings.warn(f"{folder}: only {fraction:.1%} of the camera decoded; targets there will be small",
-                          stacklevel=2)
+        fraction = check_decoded(cal.decoding, folder)
         decoded_lit.setdefault(state, {})[name] = round(warn_if_few_decoded(cal.decoding, str(folder)), 4)
         decoded.setdefault(state, {})[name] = fraction
         maps.setdefault(state, []).append(_maps(cal))

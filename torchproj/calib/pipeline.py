@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from ..core.checks import check
+from ..core.errors import CaptureError
 from .capture import GraycodeCapture
 from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_shares, checker_shares, decode_gray,
                        graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
@@ -300,6 +301,24 @@ class DecodedFolder:
                        title=f"{self.report['capture_dir']}: {dec.valid_fraction:.1%} of the camera decoded")
 
 
+MIN_DECODED = 0.001  # below this fraction of the camera decoded, a capture folder is an error
+FEW_DECODED_CAMERA = 0.02  # below this, a warning
+
+
+def check_decoded(decoding, folder) -> float:
+    """The fraction of the camera a folder's captures decoded; an error naming the folder below
+    :data:`MIN_DECODED` (identical, saturated or unlit captures decode nothing), a warning below
+    :data:`FEW_DECODED_CAMERA`."""
+    fraction = decoding.valid_fraction
+    if fraction < MIN_DECODED:
+        raise CaptureError(f"{folder}: only {fraction:.3%} of the camera decoded; is the projector aimed at the scene, "
+                           "in focus, and bright enough against room light (identical or saturated captures decode "
+                           "nothing)? Capture again")
+    if fraction < FEW_DECODED_CAMERA:
+        warnings.warn(f"{folder}: only {fraction:.1%} of the camera decoded; targets there will be small", stacklevel=3)
+    return fraction
+
+
 def decode_folder(capture_dir, projector: tuple[int, int], *, calibration=None, names: str | None = None,
                   white_threshold: float = 5, black_threshold: float = 40, subpixel: bool = True,
                   fill_holes: int = 16, bits: int | None = None, plane_tolerance: float = 1.0) -> DecodedFolder:
@@ -323,6 +342,7 @@ def decode_folder(capture_dir, projector: tuple[int, int], *, calibration=None, 
     cal = calibrate_projector(capture, projector, white_threshold=white_threshold, black_threshold=black_threshold,
                               subpixel=subpixel, max_hole=fill_holes, bits=bits, plane_tolerance=plane_tolerance)
     dec = cal.decoding
+    check_decoded(dec, capture_dir)
     report = {"capture_dir": str(capture_dir), "projector": list(projector),
               "camera": [int(dec.valid.shape[1]), int(dec.valid.shape[0])],
               "valid_fraction": dec.valid_fraction, "read_s": round(t_read, 4),
