@@ -125,3 +125,13 @@ def test_paper_score_compares_with_a_direct_single_projector_capture(quarter_rig
     assert solved.affine_psnr_db >= solved.psnr_db
     assert "paper" not in evaluate_patterns(cal, model.to_patterns(), targets, scale=model.scale, noise=False,
                                             paper=False).targets[0].as_dict()
+
+
+def test_a_target_image_of_one_pixel_is_refused_naming_it(tmp_path):
+    from torchproj.core import write_image
+
+    write_image(tmp_path / "dot.png", torch.full((1, 1, 1), 0.5))
+    with pytest.raises(InputError, match=r"dot.png': 1x1 pixels; .* needs at least 2 x 2"):
+        target_image(str(tmp_path / "dot.png"), 1)
+    write_image(tmp_path / "pair.png", torch.full((1, 2, 2), 0.5))
+    assert target_image(str(tmp_path / "pair.png"), 3).shape == (3, 2, 2)

@@ -41,6 +41,9 @@ def target_image(name: str, channels: int) -> torch.Tensor:
                                         if raw.dtype.kind in "ui" else 1.0)
     if img.ndim == 2:
         img = img[..., None]
+    check(img.shape[0] >= 2 and img.shape[1] >= 2, f"image {name!r}: {img.shape[1]}x{img.shape[0]} pixels; a target "
+                                                    "image is stretched over its surfaces' pixels and needs at least "
+                                                    "2 x 2")
     img = img[..., :3]
     if img.shape[-1] == 1 and channels == 3:
         img = np.repeat(img, 3, -1)
