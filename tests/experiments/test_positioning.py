@@ -189,6 +189,11 @@ def test_position_refuses_bad_settings(box_scene):
     for kwargs in ({"trials": 0}, {"spread_mm": -1}, {"max_evaluations": 3}):
         with pytest.raises(InputError, match="must"):
             evaluate_positioning(box_scene, **kwargs)
+    # A start a metre off is a search of the room, not a placement: refused at once, saying how far is allowed.
+    with pytest.raises(InputError, match=r"spread_mm 1e\+09: .* give at most \d+"):
+        evaluate_positioning(box_scene, spread_mm=1e9)
+    with pytest.raises(InputError, match="spread_deg 90: .* give at most 45"):
+        evaluate_positioning(box_scene, spread_deg=90)
 
 
 def _fake_decode(folder, points):

@@ -319,13 +319,21 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     check(spread_mm >= 0 and spread_deg >= 0, "spread_mm and spread_deg must not be negative")
     check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
     positions = _positions(scene)
+    # A trial starts where the person first puts the object: near enough that the camera still sees it
+    # lit. Past a quarter of its distance from the projectors (or a quarter turn) it is a search of the
+    # room, which a 1e9 mm spread ran for minutes before failing on the projector's light.
+    prj_mid = np.mean([p.centre for p in scene.projectors], axis=0)
+    nearest_mm = min(float(np.linalg.norm(s.world_from_local[:3, 3] - prj_mid)) * 1000 for _, _, s in positions)
+    check(spread_mm <= nearest_mm / 4, f"spread_mm {spread_mm:g}: a trial would start up to that far from the goal, past "
+                                       f"a quarter of the object's {nearest_mm:.0f} mm from the projectors; give at most "
+                                       f"{nearest_mm / 4:.0f}")
+    check(spread_deg <= 45, f"spread_deg {spread_deg:g}: a trial would start turned up to that far; give at most 45")
     t_start = time.perf_counter()
     cal = calibration or calibrate_virtual(scene, device, progress)
     run = run_virtual(scene, calibration=cal, device=device, progress=progress, max_iter=max_iter, solver=solver,
                       bounds_8bit=bounds_8bit, outside=outside, chains=chains)
     scale = run.report["scale"]
     shown = {j: (p.float() / 255)[None].to(device) for j, p in enumerate(run.patterns)}
-    prj_mid = np.mean([p.centre for p in scene.projectors], axis=0)
     rng = np.random.default_rng(seed)
     rows, trial_rows, placed_trials, profiles = [], [], [], {}
     jobs = [(k, t) for k in range(len(positions)) for t in range(trials)]
