@@ -274,8 +274,13 @@ def test_capture_helper_with_a_fake_display_and_camera(scene, tmp_path):
 def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
     """A colour camera's bundle stores white minus black per channel; solve then models each channel
     with its own weight. A bundle without it (written before, or edited) falls back to the grey
-    weight, and one whose per-channel array has the wrong shape is refused."""
-    scene = parse_scene(small_config("colour_two_planes", camera=(200, 150), projector=(128, 96)), name="colour")
+    weight, and one whose per-channel array has the wrong shape is refused. The camera mixes the
+    primaries (a colour camera's default): the bundle holds each projector's measured mixing, and an
+    edited one that cannot be undone is refused."""
+    data = small_config("colour_two_planes", camera=(200, 150), projector=(128, 96))
+    for p in data["projectors"]:
+        p.pop("colour_mixing")
+    scene = parse_scene(data, name="colour")
     rig, root = VirtualRig(scene), tmp_path / "captures"
     for st in scene.states:
         for j, p in enumerate(scene.projectors):
@@ -290,8 +295,19 @@ def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
                                atol=1e-6)
     assert np.abs(stored["colour_contrast"] - (capture.white - capture.black).numpy()).mean() < 0.01
     np.testing.assert_allclose(stored["colour_contrast"].mean(0), stored["contrast"], atol=1e-6)
+    from torchproj.core.conventions import DEFAULT_COLOUR_MIXING
+
+    meta = json.loads((calib / "bundle.json").read_text())
+    for response in meta["responses"]:
+        np.testing.assert_allclose(response["mixing"], DEFAULT_COLOUR_MIXING, atol=0.01)
     args = ["solve", str(calib), "--targets", "far=astronaut", "near=chelsea"]
     assert main([*args, "--out", str(tmp_path / "channel")]) == 0
+    edited = json.loads((calib / "bundle.json").read_text())
+    edited["responses"][0]["mixing"] = [[0.5, 0.5, 0.0], [0.5, 0.5, 0.0], [0.0, 0.0, 1.0]]
+    (calib / "bundle.json").write_text(json.dumps(edited))
+    assert main([*args, "--out", str(tmp_path / "singular")]) == 2
+    assert "mixing must be 3 rows of 3 shares >= 0 that tell the primaries apart" in capsys.readouterr().err
+    (calib / "bundle.json").write_text(json.dumps(meta))
     assert json.loads((tmp_path / "channel" / "report.json").read_text())["colour_weights"] == "channel"
     assert main([*args, "--colour-weights", "grey", "--out", str(tmp_path / "grey")]) == 0
     assert json.loads((tmp_path / "grey" / "report.json").read_text())["colour_weights"] == "grey"
