@@ -13,6 +13,22 @@ def _threads():
     torch.set_num_threads(2)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _calibration_cache(tmp_path_factory):
+    """Commands the tests run keep their calibrations in a folder of the session's, not the user's cache."""
+    import os
+
+    from torchproj.pipeline.cache import CACHE_DIR_ENV
+
+    before = os.environ.get(CACHE_DIR_ENV)
+    os.environ[CACHE_DIR_ENV] = str(tmp_path_factory.mktemp("calibration_cache"))
+    yield
+    if before is None:
+        os.environ.pop(CACHE_DIR_ENV, None)
+    else:
+        os.environ[CACHE_DIR_ENV] = before
+
+
 @pytest.fixture
 def chessboard():
     if not (CHESSBOARD / "capture_0" / "graycode_41.png").is_file():

@@ -74,7 +74,8 @@ def cmd_run(args) -> int:
                          oracle=args.oracle, gain_offset=gain_offset, maps=args.maps,
                          plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
                          footprint=args.footprint, ceiling=args.ceiling, colour_weights=args.colour_weights,
-                         refine=args.refine, refine_frames=args.refine_frames, refine_relax=args.refine_relax)
+                         refine=args.refine, refine_frames=args.refine_frames, refine_relax=args.refine_relax,
+                         cache=not args.no_cache)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0
 
@@ -255,6 +256,9 @@ def _virtual_rig_commands(sub) -> None:
                    "loop step, against camera noise (default 1)")
     p.add_argument("--refine-relax", type=float, default=1.0, metavar="R", help="the share of each capture's "
                    "defect the loop takes, in (0, 1]: below 1 it averages camera noise over captures (default 1)")
+    p.add_argument("--no-cache", action="store_true", help="simulate the calibration even where the same scene was "
+                   "calibrated before (kept in the user cache folder, or $TORCHPROJ_CACHE_DIR; at most "
+                   "$TORCHPROJ_CACHE_MAX_GB, default 2, the least recently used removed first)")
     p.add_argument("--gain", type=limits, metavar="LO,HI", help="also optimise a gain per target (fista; e.g. 0.5,1.5)")
     p.add_argument("--offset", type=limits, metavar="LO,HI", help="... and an offset (fista; e.g. -0.2,0.2)")
     map_options(p, bits=BITS_HELP + "; each capture is then read through one homography (planar scenes only)")

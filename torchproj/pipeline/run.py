@@ -28,6 +28,7 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_targets
+from .cache import cached_calibration
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
@@ -79,7 +80,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 objective="l2", footprint: str = DEFAULT_FOOTPRINT, ceiling: bool = False, outside: str = "clip",
                 chains: str = "epipolar", solver_options: dict | None = None,
                 colour_weights: str = "channel", refine: int = 0, refine_frames: int = 1,
-                refine_relax: float = 1.0) -> RunResult:
+                refine_relax: float = 1.0, cache: bool = False) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -145,14 +146,24 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             start's scores. 0: none.
         refine_frames: captures averaged per state and update (camera noise).
         refine_relax: the share of each capture's defect the loop takes (1: all).
+        cache: read the simulated calibration from the cache where the same scene was calibrated
+            before, else keep it there (:mod:`.cache`; ``torchproj run`` does unless ``--no-cache``);
+            report.json ``calibration_cache`` says ``read``, ``stored``, ``recomputed`` or ``off``.
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains, (refine, refine_frames, refine_relax))
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     check_footprint(footprint)
     t_total = time.perf_counter()
-    cal = calibration or calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
-                                           plane_tolerance=plane_tolerance)
+    cached = None
+    if calibration is not None:
+        cal = calibration
+    elif cache:
+        cal, cached = cached_calibration(scene, device=device, progress=progress, oracle=oracle is not None, bits=bits,
+                                         plane_tolerance=plane_tolerance)
+    else:
+        cal = calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
+                                plane_tolerance=plane_tolerance)
     timings = {"calibrate": cal.seconds if calibration is None else 0.0}
     world = shown_world(cal, scene)
     t0 = time.perf_counter()
@@ -201,6 +212,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     if choice is not None:
         report["footprint_choice"] = choice.as_dict()
     report["colour_weights"] = "channel" if len(solved.ops) > 1 and not exact else "grey"
+    report["calibration_cache"] = cached or "off"
     report["outside"] = outside
     if solver == "eo":
         report["chains"] = chains

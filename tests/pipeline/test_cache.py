@@ -1,0 +1,73 @@
+"""The calibration cache: read back whole, keyed by everything a calibration depends on, never trusted when broken."""
+
+import json
+
+import pytest
+import torch
+import yaml
+
+from torchproj.cli import main
+from torchproj.pipeline import run_virtual
+from torchproj.pipeline.cache import CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, calibration_key
+from torchproj.scene import parse_scene
+
+from ..helpers import small_config
+
+
+def _scene(**camera):
+    return parse_scene(small_config(camera=(200, 150), projector=(128, 96), **camera), name="small")
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv(CACHE_DIR_ENV, str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
+def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
+    scene = _scene()
+    first = run_virtual(scene, cache=True, progress=False).report
+    second = run_virtual(scene, cache=True, progress=False).report
+    plain = run_virtual(scene, progress=False).report
+    assert (first["calibration_cache"], second["calibration_cache"], plain["calibration_cache"]) == ("stored", "read", "off")
+    # The rig's noise continues where calibration left it: the same captures, to the last bit.
+    for a, b, c in zip(first["targets"], second["targets"], plain["targets"]):
+        assert a["psnr_db"] == b["psnr_db"] == c["psnr_db"] and a["ssim"] == b["ssim"]
+    assert second["timings_s"]["calibrate"] < 0.5 * first["timings_s"]["calibrate"]
+    assert len(list(cache.glob("*.pt"))) == 1
+
+
+def test_the_key_follows_the_scene_and_options_not_its_name_targets_or_show():
+    scene = _scene()
+    key = calibration_key(scene, oracle=False, bits=None, plane_tolerance=1.0)
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    renamed = parse_scene(dict(data, show={"ambient": 0.05}), name="other")
+    assert calibration_key(renamed, oracle=False, bits=None, plane_tolerance=1.0) == key
+    assert calibration_key(_scene(exposure=1.7), oracle=False, bits=None, plane_tolerance=1.0) != key
+    assert calibration_key(scene, oracle=False, bits=3, plane_tolerance=1.0) != key
+
+
+def test_a_broken_entry_is_recomputed_and_the_cache_keeps_to_its_size(cache, monkeypatch):
+    scene = _scene()
+    cal, how = cached_calibration(scene)
+    assert how == "stored"
+    (entry,) = cache.glob("*.pt")
+    entry.write_bytes(entry.read_bytes()[:1000])  # truncated: a full disk, a killed writer
+    with pytest.warns(UserWarning, match="is unreadable"):
+        again, how = cached_calibration(scene)
+    assert how == "recomputed"
+    torch.testing.assert_close(again.black["near"], cal.black["near"])
+    # Past the cap the least recently used go first, never the entry just written.
+    monkeypatch.setenv(CACHE_MAX_ENV, "1e-9")
+    cached_calibration(_scene(exposure=1.7))
+    assert len(list(cache.glob("*.pt"))) == 1
+
+
+def test_no_cache_from_the_command_line(cache, tmp_path):
+    config = tmp_path / "small.yaml"
+    config.write_text(yaml.safe_dump(dict(small_config(camera=(200, 150), projector=(128, 96)), name="small")))
+    assert main(["run", str(config), "--no-cache", "--out", str(tmp_path / "a")]) == 0
+    assert json.loads((tmp_path / "a" / "report.json").read_text())["calibration_cache"] == "off"
+    assert not cache.exists()
+    assert main(["run", str(config), "--out", str(tmp_path / "b")]) == 0
+    assert json.loads((tmp_path / "b" / "report.json").read_text())["calibration_cache"] == "stored"

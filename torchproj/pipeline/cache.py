@@ -1,0 +1,167 @@
+"""Simulated calibrations kept between runs: the same scene calibrated again is read, not simulated.
+
+Simulating a scene's calibration (every state and projector's Gray code, ramps, checkerboard) is
+most of a ``torchproj run``; a second run of the same scene with another solver or objective repeated
+all of it. :func:`cached_calibration` keys a calibration by everything it depends on:
+
+- the scene as calibrated: every device, surface and state, canonically serialised, with the
+  contents of any mesh file (its name, targets and ``show:`` changes do not enter: calibration
+  happens before them);
+- the calibration's options (``oracle``, ``bits``, ``plane_tolerance``);
+- the code: a digest of the package's own source files, so that any change to how the rig
+  simulates or how calibration decodes makes a new key (a version number would not, between
+  releases).
+
+Entries live in the platform's user cache folder (``platformdirs``; ``TORCHPROJ_CACHE_DIR``
+overrides it), are written whole (a temporary file renamed into place), and the least recently used
+are removed past ``TORCHPROJ_CACHE_MAX_GB`` (default 2). An entry that does not load, or whose key
+does not match, is removed and recomputed, never trusted. The rig's noise generator is stored with
+the calibration, so that a run from the cache captures exactly what a run without it does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..scene.config import Scene
+from ..sim.rig import VirtualRig
+from .virtual import VirtualCalibration, calibrate_virtual
+
+__all__ = ["CACHE_DIR_ENV", "CACHE_MAX_ENV", "cache_dir", "cached_calibration", "calibration_key"]
+
+CACHE_DIR_ENV = "TORCHPROJ_CACHE_DIR"
+CACHE_MAX_ENV = "TORCHPROJ_CACHE_MAX_GB"
+_DEFAULT_MAX_GB = 2.0
+_CODE_DIGEST: str | None = None
+
+
+def cache_dir() -> Path:
+    """Where calibrations are kept: ``$TORCHPROJ_CACHE_DIR``, else the platform's user cache folder."""
+    if os.environ.get(CACHE_DIR_ENV):
+        return Path(os.environ[CACHE_DIR_ENV])
+    import platformdirs
+
+    return Path(platformdirs.user_cache_dir("torchproj")) / "calibrations"
+
+
+def _code_digest() -> str:
+    """A digest of the package's source files (once per process)."""
+    global _CODE_DIGEST
+    if _CODE_DIGEST is None:
+        root = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for path in sorted(root.rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+        _CODE_DIGEST = h.hexdigest()
+    return _CODE_DIGEST
+
+
+def _canonical(value):
+    """Plain JSON values for a scene's dataclasses: arrays as lists, mesh files by their contents."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _canonical(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, Path):
+        return {"file": str(value), "sha256": hashlib.sha256(value.read_bytes()).hexdigest() if value.is_file() else None}
+    return value
+
+
+def calibration_key(scene: Scene, **options) -> str:
+    """The cache key of ``scene`` calibrated with ``options`` (module docstring)."""
+    calibrated = dataclasses.replace(scene, name="", targets=[], show=None, source=None)
+    text = json.dumps({"scene": _canonical(calibrated), "options": _canonical(options), "code": _code_digest()},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def cached_calibration(scene: Scene, *, device="cpu", progress=None, oracle: bool = False, bits: int | None = None,
+                       plane_tolerance: float = 1.0) -> tuple[VirtualCalibration, str]:
+    """:func:`~torchproj.pipeline.calibrate_virtual` through the cache.
+
+    Returns:
+        ``(calibration, how)``: ``how`` is ``"read"`` (from the cache), ``"stored"`` (simulated
+        and kept) or ``"recomputed"`` (an entry that would not load was replaced).
+    """
+    key = calibration_key(scene, oracle=oracle, bits=bits, plane_tolerance=plane_tolerance)
+    folder = cache_dir()
+    path = folder / f"{key}.pt"
+    how = "stored"
+    if path.is_file():
+        t0 = time.perf_counter()
+        cal = _load(path, key, scene, device)
+        if cal is not None:
+            os.utime(path)  # recently used: evicted last
+            cal.seconds = time.perf_counter() - t0  # what this run spent on calibration: reading it
+            return cal, "read"
+        how = "recomputed"
+    cal = calibrate_virtual(scene, device, progress, oracle=oracle, bits=bits, plane_tolerance=plane_tolerance)
+    _store(folder, path, key, cal)
+    return cal, how
+
+
+def _load(path: Path, key: str, scene: Scene, device) -> VirtualCalibration | None:
+    try:
+        # The cache is this user's own folder, written by torchproj; the entry is checked against its key.
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+        if not isinstance(payload, dict) or payload.get("key") != key:
+            raise ValueError("its key does not match its name")
+        fields = payload["calibration"]
+        rig = VirtualRig(scene, device=device)
+        rig.generator.set_state(payload["generator"])
+        return VirtualCalibration(rig=rig, **fields)
+    except Exception as exc:  # whatever is wrong with it, it is not trusted
+        warnings.warn(f"calibration cache entry {path} is unreadable ({type(exc).__name__}: {exc}); recomputing it",
+                      stacklevel=3)
+        path.unlink(missing_ok=True)
+        return None
+
+
+def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> None:
+    fields = {f.name: getattr(cal, f.name) for f in dataclasses.fields(cal) if f.name != "rig"}
+    payload = {"key": key, "calibration": fields, "generator": cal.rig.generator.get_state()}
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt", dir=folder)
+        os.close(fd)
+        try:
+            torch.save(payload, tmp)
+            os.replace(tmp, path)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+        _evict(folder, keep=path)
+    except OSError as exc:  # a full or read-only cache folder costs the next run its time, not this run
+        warnings.warn(f"could not keep the calibration in {folder} ({exc}); the next run will simulate it again",
+                      stacklevel=3)
+
+
+def _evict(folder: Path, keep: Path) -> None:
+    """Remove the least recently used entries past the size cap (never the one just written)."""
+    try:
+        cap = float(os.environ.get(CACHE_MAX_ENV, _DEFAULT_MAX_GB)) * 1e9
+    except ValueError:
+        cap = _DEFAULT_MAX_GB * 1e9
+    entries = sorted((p for p in folder.glob("*.pt") if p != keep), key=lambda p: p.stat().st_mtime)
+    total = keep.stat().st_size + sum(p.stat().st_size for p in entries)
+    for p in entries:
+        if total <= cap:
+            break
+        total -= p.stat().st_size
+        p.unlink(missing_ok=True)
