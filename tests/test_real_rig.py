@@ -122,7 +122,8 @@ def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_r
 def test_a_shortened_sequence_from_folders_matches_the_virtual_run(scene, tmp_path):
     assert main(["sequence", "--projector", "256x192", "--bits", "3", "--out", str(tmp_path / "seq")]) == 0
     manifest = json.loads((tmp_path / "seq" / "sequence.json").read_text())
-    assert manifest["bits"] == [3, 3] and len(manifest["images"]) == 16
+    # 12 Gray-code images, white, black, the two ramps and the three primaries (read with a colour camera).
+    assert manifest["bits"] == [3, 3] and len(manifest["images"]) == 19
     assert [e["bit"] for e in manifest["images"][:12:2]] == [0, 1, 2, 0, 1, 2]
     assert torch.equal(read_image(tmp_path / "seq" / "graycode_07.png"), graycode_patterns(256, 192, 3)[7])
     # The rig's captures of that sequence, stored as a bench would store them (sequence.json beside).
