@@ -1,0 +1,57 @@
+"""The same scene again: `torchproj run` with and without the calibration cache, each in a fresh process.
+
+    python benchmarks/run_again.py --out benchmarks/results/run_again
+
+On the default scene (the paper's rig), with an empty cache folder of its own: ``run --no-cache``
+(the cold run), ``run`` (simulates and keeps the calibration), then ``run --solver pgd`` and
+``run --objective ssim`` (read it). Wall time, peak resident memory and the stage timings of
+``report.json``; writes ``results.json`` and ``results.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from calibration_speed import _CLI, _timed
+from common import machine, write_results
+
+from torchproj.pipeline.cache import CACHE_DIR_ENV
+
+RUNS = (("cold, --no-cache", ["--no-cache"]), ("first, keeps the calibration", []),
+        ("again, --solver pgd", ["--solver", "pgd"]), ("again, --objective ssim", ["--objective", "ssim"]))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/run_again"))
+    args = parser.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        os.environ[CACHE_DIR_ENV] = str(Path(tmp) / "cache")  # the children inherit it
+        for k, (label, extra) in enumerate(RUNS):
+            out, peak = Path(tmp) / f"run{k}", Path(tmp) / f"run{k}.peak"
+            wall = _timed([sys.executable, "-c", _CLI, str(peak), "run", *extra, "--out", str(out)])
+            report = json.loads((out / "report.json").read_text())
+            rows.append({"run": label, "wall_s": round(wall, 2), "peak_rss_gb": round(int(peak.read_text()) / 1024**2, 2),
+                         "calibration_cache": report["calibration_cache"], "timings_s": report["timings_s"],
+                         "psnr_db": [round(t["psnr_db"], 3) for t in report["targets"]]})
+            print(rows[-1], flush=True)
+    result = {"machine": machine(), "rows": rows}
+    lines = [f"# The same scene again ({result['machine']})", "", "Command: `python benchmarks/run_again.py`; the default "
+             "scene, each run a fresh process.", "",
+             "| run | wall (s) | peak (GB) | calibration | stages (report.json, s) | PSNR (dB) |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in r["timings_s"].items())
+        lines.append(f"| {r['run']} | {r['wall_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['calibration_cache']} | {stages} | "
+                     + " / ".join(f"{v:.2f}" for v in r["psnr_db"]) + " |")
+    write_results(args.out, result, "\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
