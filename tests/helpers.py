@@ -111,3 +111,19 @@ def area_captures(true_map, camera, projector, samples=8):
 def curved_map(x, y):
     """A smooth, slightly curved map at 0.55-1.1 cells per camera pixel."""
     return torch.stack([0.55 * x + 0.004 * x * x + 0.07 * y + 3.3, 0.6 * y + 0.003 * y * y - 0.05 * x + 5.1], -1)
+
+
+class RigDisplay:
+    """A projector that is one of the virtual rig's, standing in for a display (``show(image)``):
+    remembers what it was told to show."""
+
+    def __init__(self):
+        self.image = None
+
+    def show(self, image):
+        self.image = image
+
+    def pattern(self) -> torch.Tensor:
+        """What it shows as the rig takes patterns: :math:`(1, C, H, W)` in [0, 1]."""
+        image = torch.from_numpy(self.image.astype(np.float32) / 255)
+        return image.permute(2, 0, 1)[None] if image.dim() == 3 else image[None, None]

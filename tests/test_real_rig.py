@@ -17,7 +17,7 @@ from torchproj.pipeline import run_virtual
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
 
-from .helpers import CHESSBOARD, small_config
+from .helpers import CHESSBOARD, RigDisplay, small_config
 
 
 @pytest.fixture(scope="module")
@@ -225,16 +225,6 @@ def test_calibrate_real_captures_matches_decode(tmp_path, capsys):
         np.testing.assert_allclose(m["prj_xy"].numpy(), dec["prj_xy_refined"], equal_nan=True)
 
 
-class _RigDisplay:
-    """A projector that is one of the virtual rig's: remembers what it was told to show."""
-
-    def __init__(self):
-        self.image = None
-
-    def show(self, image):
-        self.image = image
-
-
 class _RigCamera:
     """A camera that photographs the virtual rig while the display's projector shows its image."""
 
@@ -242,9 +232,7 @@ class _RigCamera:
         self.rig, self.state, self.j, self.display = rig, state, projector, display
 
     def grab(self):
-        image = torch.from_numpy(self.display.image.astype(np.float32) / 255)
-        shown = image.permute(2, 0, 1)[None] if image.dim() == 3 else image[None, None]  # a primary is (H, W, 3)
-        shot = self.rig.capture(self.state, {self.j: shown})[0]
+        shot = self.rig.capture(self.state, {self.j: self.display.pattern()})[0]
         return (shot[0] * 255).round().to(torch.uint8).numpy()
 
 
@@ -254,7 +242,7 @@ def test_capture_helper_with_a_fake_display_and_camera(scene, tmp_path):
     assert main(["sequence", "--projector", "256x192", "--out", str(tmp_path / "seq")]) == 0
     rig = VirtualRig(scene)
     for j, p in enumerate(scene.projectors):
-        display = _RigDisplay()
+        display = RigDisplay()
         capture_sequence(tmp_path / "seq", tmp_path / "captures" / "near" / p.name, display,
                          _RigCamera(rig, "near", j, display), settle_s=0)
     bundle = calibrate_folders(tmp_path / "captures")  # sizes from the copied sequence.json
@@ -269,7 +257,7 @@ def test_capture_helper_with_a_fake_display_and_camera(scene, tmp_path):
                      .float().mean()) > 0.99
         assert float(response.b[0]) == pytest.approx(scene.projectors[j].response_b[0], abs=0.05)
     with pytest.raises(CaptureError, match="sequence.json"):
-        capture_sequence(tmp_path, tmp_path / "x", _RigDisplay(), None)
+        capture_sequence(tmp_path, tmp_path / "x", RigDisplay(), None)
 
 
 def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):

@@ -14,7 +14,7 @@ from torchproj.pipeline.bench_loop import refine_bundle
 from torchproj.scene import parse_scene, shown_scene
 from torchproj.sim import VirtualRig
 
-from ..helpers import small_config
+from ..helpers import RigDisplay, small_config
 
 TARGETS = ["near=camera", "far=coffee"]
 
@@ -97,16 +97,6 @@ def test_bad_photos_and_a_changed_loop_are_refused_naming_the_file(bench, tmp_pa
         refine_bundle(calib, [f"near={tmp_path / 't.png'}", "far=coffee"], other, iterations=1, register=False)
 
 
-class _Projector:
-    """A display that is one of the virtual rig's projectors: remembers what it shows."""
-
-    def __init__(self):
-        self.image = None
-
-    def show(self, image):
-        self.image = image
-
-
 class _Camera:
     """A camera on the virtual rig: photographs the state the prompt last set up, lit by the displays."""
 
@@ -114,9 +104,7 @@ class _Camera:
         self.world, self.displays, self.state = world, displays, None
 
     def grab(self):
-        shown = {name: torch.from_numpy(d.image.astype("float32") / 255).permute(2, 0, 1)[None]
-                 if d.image.ndim == 3 else torch.from_numpy(d.image.astype("float32") / 255)[None, None]
-                 for name, d in self.displays.items()}
+        shown = {name: d.pattern() for name, d in self.displays.items()}
         return (self.world.capture(self.state, shown)[0, 0] * 255).round().to(torch.uint8).numpy()
 
 
@@ -124,7 +112,7 @@ def test_a_live_bench_runs_the_whole_loop_in_one_turn(bench, tmp_path):
     from torchproj.pipeline.acquire import LiveBench
 
     calib, world = bench
-    displays = {"upper": _Projector(), "lower": _Projector()}
+    displays = {"upper": RigDisplay(), "lower": RigDisplay()}
     camera = _Camera(world, displays)
     asked = []
 
@@ -140,7 +128,7 @@ def test_a_live_bench_runs_the_whole_loop_in_one_turn(bench, tmp_path):
     # A projector without a display is refused before anything is photographed.
     with pytest.raises(CaptureError, match=r"no display for projector\(s\) \['lower'\]"):
         refine_bundle(calib, TARGETS, tmp_path / "half", iterations=1, register=False,
-                      live=LiveBench({"upper": _Projector()}, camera, settle_s=0, prompt=prompt))
+                      live=LiveBench({"upper": RigDisplay()}, camera, settle_s=0, prompt=prompt))
 
 
 def test_live_options_are_checked(bench, tmp_path, capsys):
