@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from ..core.checks import check, check_finite
-from ..transport.build import StateCalibration, Target, build_transport
+from ..transport.build import DEFAULT_FOOTPRINT, StateCalibration, Target, build_transport
 from ..transport.operator import TransportOperator
 from .compensate import projectable_patterns
 from .solvers import check_bounds
@@ -119,7 +119,7 @@ class ProjectionModel(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @classmethod
-    def from_calibration(cls, calibration, targets: list[Target], *, bounds=(0.0, 1.0), footprint: str = "nearest",
+    def from_calibration(cls, calibration, targets: list[Target], *, bounds=(0.0, 1.0), footprint: str = DEFAULT_FOOTPRINT,
                          scale: float | None = None, start: str | torch.Tensor | None = "l2",
                          device="cpu") -> "ProjectionModel":
         """Build the operator (rows on camera pixels) and the model from a calibration and targets.
@@ -127,7 +127,8 @@ class ProjectionModel(nn.Module):
         Args:
             calibration: see :func:`calibration_parts`.
             targets: one :class:`~torchproj.transport.Target` per image to show.
-            footprint, scale: as in :func:`~torchproj.transport.build_transport`.
+            footprint, scale: as in :func:`~torchproj.transport.build_transport` (the default footprint is
+                ``torchproj run``'s, so that a script trains the model ``run`` solves).
             start: ``"l2"``: the least-squares optimum in the box (FISTA to a 1e-6 relative
                 change; about a second at full size), the best start for any image loss measured
                 (``benchmarks/objectives.py``); None: the middle of the box; or a tensor.
