@@ -36,8 +36,8 @@ SURFACE = {
     "transport": [
         "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target",
         "TransportOperator", "build_channel_transports", "build_transport", "cell_blocks", "csr_from_coo",
-        "fit_homography", "geometric_weights", "group_rows", "has_colour_weights", "homography_map", "map_slope", "normal_form", "normal_map", "planar_calibration", "point_map", "select_maps", "target_on_camera",
-        "triangulate_rays"],
+        "fit_homography", "geometric_weights", "group_rows", "has_colour_weights", "homography_map", "map_slope", "normal_form", "normal_map", "planar_calibration", "point_map", "retarget_rhs", "select_maps",
+        "target_on_camera", "triangulate_rays"],
     "metrics": [
         "SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [
@@ -48,7 +48,7 @@ SURFACE = {
         "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns",
         "refine_patterns", "solve_adam",
         "solve_eo", "solve_fista", "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim",
-        "to_projectable"],
+        "solve_target_sets", "to_projectable"],
     "pipeline": [
         "AUTO_TOLERANCE_DB", "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy",
         "EVALUATION", "FootprintChoice", "ORACLES",

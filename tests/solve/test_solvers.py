@@ -1,5 +1,7 @@
 """Solvers against scipy's bounded least squares and float64 dense algebra."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -291,3 +293,26 @@ def test_channel_operators_reach_each_channels_bounded_optimum():
         make_patterns(ops, "fista", (0.0, 1.0), linear, objective="ssim")
     with pytest.raises(InputError, match="one single-channel operator per colour channel"):
         make_patterns([ops[0], build_transport(cals, targets(channels=3), merge=False)], "fista", (0.0, 1.0), linear)
+
+
+def test_target_sets_solved_side_by_side_equal_each_solved_alone(quarter_rig):
+    """Frames on one transport: the same rows for new images (retarget_rhs equals building
+    the transport again), and each frame's values as its own solve gives them."""
+    from torchproj.pipeline import scene_targets
+    from torchproj.solve import solve_target_sets
+    from torchproj.transport import build_transport, retarget_rhs
+
+    scene, cal = quarter_rig
+    targets = scene_targets(scene, None, cal.rig)
+    op = build_transport(cal.states, targets, merge=False, footprint="area")
+    g = torch.Generator().manual_seed(0)
+    frames = [[dataclasses.replace(t, image=torch.rand(1, 48, 64, generator=g)) for t in targets] for _ in range(4)]
+    rhs = [retarget_rhs(op, cal.states, f) for f in frames]
+    rebuilt = build_transport(cal.states, frames[1], merge=False, footprint="area", scale=op.scale)
+    torch.testing.assert_close(rhs[1], rebuilt.rhs)
+    values, joint = solve_target_sets(op, rhs, max_iter=2000, tol=1e-9)
+    for r, v in zip(rhs, values):
+        alone = solve_fista(op.with_rhs(r), max_iter=2000, tol=1e-9).patterns
+        assert float(op.with_rhs(r).objective(v)) <= float(op.with_rhs(r).objective(alone)) * (1 + 1e-3) + 1e-9
+    with pytest.raises(InputError, match="one image per target"):
+        retarget_rhs(op, cal.states, frames[0][:1])

@@ -6,7 +6,7 @@ from .gain_offset import solve_gain_offset
 from .model import ProjectionModel, calibration_parts
 from .objectives import OBJECTIVES, PSNR_DROP_DB, ImageLoss, ImageObjective, image_objective, solve_ssim
 from .refine import REFINE_SOLVER_ITERATIONS, RefineResult, captured_loss, refine_patterns
-from .solvers import (LF_NORMALISE, OUTSIDE, ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd,
+from .solvers import (LF_NORMALISE, OUTSIDE, ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd, solve_target_sets,
                       to_projectable)
 
 SOLVERS = {"lf": solve_lf, "eo": solve_eo, "pgd": solve_pgd, "fista": solve_fista, "adam": solve_adam}
@@ -24,4 +24,4 @@ __all__ = ["CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "LF_NORMALISE
            "check_solve_options",
            "compensate", "component_chains", "epipolar_bands", "epipolar_chains", "fundamental_between_projectors", "image_objective",
            "make_patterns", "projectable_patterns", "refine_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",
-           "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "to_projectable"]
+           "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "solve_target_sets", "to_projectable"]

@@ -20,7 +20,7 @@ from ..core.checks import check, check_finite
 from ..core.progress import progress_bar
 from ..transport.operator import SUM_RUN, TransportOperator
 
-__all__ = ["OUTSIDE", "LF_NORMALISE", "SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "to_projectable",
+__all__ = ["OUTSIDE", "LF_NORMALISE", "SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "solve_target_sets", "to_projectable",
            "check_bounds"]
 
 
@@ -127,6 +127,29 @@ def solve_fista(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500
     others, coarsest first. With ``x0`` the solve starts there instead.
     """
     return _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate=True)
+
+
+def solve_target_sets(op: TransportOperator, rhs_sets: list[torch.Tensor], bounds=(0.0, 1.0), *, max_iter: int = 300,
+                      tol: float = 1e-6, progress: bool | None = None) -> tuple[list[torch.Tensor], "SolveResult"]:
+    """Many sets of targets on one transport at once: FISTA on their right-hand sides side by side.
+
+    Least squares in a box separates over columns, so B target sets (frames of a video, points of a
+    sweep; :func:`~torchproj.transport.retarget_rhs` gives each) are one problem with B times the
+    columns: every iteration is one sparse product with more columns, which costs far less than B
+    products (``python benchmarks/batch_solves.py``). The iterations run until the set that
+    converges last does.
+
+    Args:
+        op: the transport; its own ``rhs`` is not used.
+        rhs_sets: per set, :math:`(N_{rows}, C)` targets in camera units.
+
+    Returns:
+        per set its :math:`(N_{cols}, C)` values, and the joint :class:`SolveResult`.
+    """
+    check(len(rhs_sets) >= 1, "give at least one set of targets")
+    widths = [r.shape[1] for r in rhs_sets]
+    joint = solve_fista(op.with_rhs(torch.cat(rhs_sets, 1)), bounds, max_iter=max_iter, tol=tol, progress=progress)
+    return list(torch.split(joint.patterns, widths, 1)), joint
 
 
 # Coarse levels only give a start: a loose stop and a cap keep them a small share of the work.

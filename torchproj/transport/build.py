@@ -40,7 +40,8 @@ from ..core.sparse import csr_tensor
 from .operator import TransportOperator
 
 __all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
-           "build_transport", "build_channel_transports", "group_rows", "has_colour_weights", "map_slope"]
+           "build_transport", "build_channel_transports", "group_rows", "has_colour_weights", "map_slope",
+           "retarget_rhs"]
 
 # A colour camera's weights: one white minus black per channel (build_channel_transports), or their
 # mean for every channel (build_transport). Per channel is what run and solve use where calibration
@@ -910,3 +911,39 @@ def build_channel_transports(calibrations: dict[str, StateCalibration], targets:
                                      rows.target, scale, target_count=len(targets), row_pixel=rows.pixel,
                                      camera_size=(rows.camera[1], rows.camera[0])).to(device))
     return ops
+
+
+def retarget_rhs(op, calibrations: dict[str, StateCalibration], targets: list[Target]) -> torch.Tensor:
+    """The right-hand side other images give on an operator's rows, without building ``A`` again.
+
+    An operator whose rows are camera pixels (``merge=False``) keeps its rows for any images on the
+    same regions: a target's rows are the lit pixels its region covers, whatever the image shows.
+    So a frame of a video or a point of a parameter sweep needs only ``scale * values`` at the rows'
+    pixels (:meth:`TransportOperator.with_rhs`).
+
+    Args:
+        op: the operator, built for ``len(targets)`` targets with ``merge=False``.
+        calibrations: the states it was built from.
+        targets: the new images, one per target of ``op``, on the same states, masks and corners.
+
+    Returns:
+        :math:`(N_{rows}, C)`, C the images' channels.
+    """
+    check(op.row_pixel is not None, "new images on an operator's rows need rows that are camera pixels: build it "
+                                    "with merge=False")
+    check(len(targets) == op.target_count, f"give one image per target of the operator ({op.target_count}), got "
+                                           f"{len(targets)}")
+    channels = {t.image.shape[0] for t in targets}
+    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
+    rhs = torch.empty(op.shape[0], channels.pop(), dtype=op.rhs.dtype)
+    for k, target in enumerate(targets):
+        lit = calibrations[target.state].lit()
+        mask = lit if target.mask is None else target.mask.to(torch.bool) & lit
+        values, covered = target_on_camera(target, mask)
+        rows = torch.nonzero(op.row_target.cpu() == k)[:, 0]
+        pixels = op.row_pixel.cpu()[rows]
+        check(bool(covered.reshape(-1)[pixels].all()), f"target {target.name or k!r}: the new image covers other pixels "
+                                                       "than the operator's rows (another state, mask or corners): "
+                                                       "build the transport for it")
+        rhs[rows] = (op.scale * values.reshape(values.shape[0], -1)[:, pixels].T).to(rhs)
+    return rhs.to(op.rhs.device)
