@@ -6,7 +6,7 @@ import warnings
 
 import torch
 
-__all__ = ["csr_tensor", "spmm"]
+__all__ = ["csr_from_coo", "csr_tensor", "spmm"]
 
 _INT32_LIMIT = 2**31 - 1
 
@@ -41,3 +41,15 @@ def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None)
     if out is None:
         out = torch.empty(matrix.shape[0], x.shape[1], dtype=x.dtype, device=x.device)
     return torch.addmm(out, matrix, x, beta=0, out=out)
+
+
+def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """A CSR matrix from COO triplets (duplicates summed, columns sorted within each row)."""
+    n_rows, n_cols = shape
+    key = rows * n_cols + cols
+    key, inverse = torch.unique(key, return_inverse=True)
+    merged = torch.zeros(key.shape[0], dtype=vals.dtype, device=vals.device).index_add_(0, inverse, vals)
+    r, c = key // n_cols, key % n_cols
+    crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=vals.device)
+    crow[1:] = torch.cumsum(torch.bincount(r, minlength=n_rows), 0)
+    return csr_tensor(crow, c, merged, shape)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.sparse import csr_tensor, spmm
+from ..core.sparse import csr_from_coo, spmm
 from ..scene.config import Projector
 
 __all__ = ["Bounce", "RECEIVERS", "SOURCES", "cast_bounce"]
@@ -122,10 +122,7 @@ def _interpolation(surface_id: torch.Tensor, k: int) -> torch.Tensor:
         vals.append(weight[same])
     rows, cols, vals = torch.cat(rows), torch.cat(cols), torch.cat(vals)
     total = torch.zeros(height * width, device=surface_id.device).index_add_(0, rows, vals)
-    order = torch.argsort(rows * (h * w) + cols)
-    crow = torch.zeros(height * width + 1, dtype=torch.int64, device=rows.device)
-    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=height * width), 0)
-    return csr_tensor(crow, cols[order], (vals / total[rows])[order], (height * width, h * w))
+    return csr_from_coo(rows, cols, vals / total[rows], (height * width, h * w))
 
 
 def _sources(proj: Projector, device) -> tuple[int, torch.Tensor, torch.Tensor]:

@@ -18,24 +18,12 @@ import torch
 from torch import nn
 
 from ..core.checks import check, check_finite, check_shape
-from ..core.sparse import csr_tensor, spmm
+from ..core.sparse import csr_from_coo, csr_tensor, spmm
 
 __all__ = ["TransportOperator", "normal_form", "NormalEquations", "ProductNormalEquations", "csr_from_coo", "cell_blocks"]
 
 # Below this many columns a coarser level saves nothing worth its setup.
 _MIN_COARSE_COLUMNS = 64
-
-
-def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
-    """A CSR matrix from COO triplets (duplicates summed, columns sorted within each row)."""
-    n_rows, n_cols = shape
-    key = rows * n_cols + cols
-    key, inverse = torch.unique(key, return_inverse=True)
-    merged = torch.zeros(key.shape[0], dtype=vals.dtype, device=vals.device).index_add_(0, inverse, vals)
-    r, c = key // n_cols, key % n_cols
-    crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=vals.device)
-    crow[1:] = torch.cumsum(torch.bincount(r, minlength=n_rows), 0)
-    return csr_tensor(crow, c, merged, shape)
 
 
 def cell_blocks(column_projector: torch.Tensor, column_cell: torch.Tensor, projector_sizes: list[tuple[int, int]]):
