@@ -35,6 +35,7 @@ from ..solve.refine import captured_loss, refine_patterns
 from ..transport import DEFAULT_FOOTPRINT
 from .real_rig import bundle_problem
 from .register import Reregister
+from .shown import CapturedRows
 from .run import build_operators
 
 __all__ = ["refine_bundle"]
@@ -135,11 +136,8 @@ def _check_options(folder: Path, options: dict) -> None:
 def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, shape, steps: list, live=None):
     """The loop's ``measure`` over the working folder: step K's photos (taken by ``live`` where they are
     missing), or the patterns to show and a stop."""
-    op = ops[0]
-    states = list(dict.fromkeys(t.state for t in targets))
-    rows_of = {s: torch.nonzero(torch.isin(op.row_target, torch.tensor(
-        [k for k, t in enumerate(targets) if t.state == s], device=op.row_target.device)))[:, 0] for s in states}
-    channels = len(ops) if len(ops) > 1 else op.rhs.shape[1]
+    read = CapturedRows(ops, targets)
+    states = list(read.rows_of)
 
     def measure(images: list[torch.Tensor]) -> torch.Tensor:
         k = len(steps)
@@ -157,15 +155,14 @@ def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, s
         missing = [f"{captures / s}.png" for s in states if s not in present]
         if missing:
             raise _Waiting(k, missing)
-        rows = torch.empty(op.shape[0], channels, dtype=op.rhs.dtype, device=op.rhs.device)
-        for state, which in rows_of.items():
+        above = {}
+        for state in states:
             photo = read_image(present[state])
             if tuple(photo.shape) != shape:
                 raise CaptureError(f"{present[state]}: size {tuple(photo.shape)} (C, H, W), but the calibration's camera "
                                    f"gives {shape}; take the photo with the camera and settings of the calibration")
-            above = (photo - black[state].to(photo)).flatten(1)
-            values = above[:, op.row_pixel[which].cpu()].T
-            rows[which] = (values if values.shape[1] == channels else values.mean(1, keepdim=True)).to(rows)
+            above[state] = photo - black[state].to(photo)
+        rows = read(above)
         loss, psnr = captured_loss(ops, rows)
         steps.append({"step": k, "loss": loss, "psnr_db": psnr})
         return rows

@@ -25,6 +25,7 @@ import torch
 
 from ..core.checks import check
 from ..transport import Target, TransportOperator, csr_from_coo
+from .shown import CapturedRows, rig_measure
 
 __all__ = ["check_linear_camera", "light_transport", "solve_on_light_transport"]
 
@@ -152,10 +153,9 @@ class BounceTerm:
             unit[mine] = (scene.camera.exposure * (on - off) * gain).to(device, dtype)[cell[mine]]
         self.source, self.unit = source, unit
         self.states = []  # per state: (rows, interpolation CSR (rows, R) times albedo, transfer (R, S))
-        for state, bounce in bounces.items():
-            which = torch.nonzero(torch.isin(rows.row_target, torch.tensor(
-                [k for k, t in enumerate(targets) if t.state == state], device=device)))[:, 0]
-            if bounce is None or not len(which):
+        for state, which in CapturedRows(rows, targets).rows_of.items():
+            bounce = bounces[state]
+            if bounce is None:
                 continue
             albedo = bounce.receiver_albedo[min(channel, bounce.receiver_albedo.shape[0] - 1)].reshape(-1)
             pixels = rows.row_pixel[which].to(rig.device)
@@ -215,7 +215,6 @@ def solve_on_light_transport(ops: list[TransportOperator], bounds: tuple[float, 
     from ..solve import make_patterns, refine_patterns
     from ..solve.compensate import projectable_patterns
     from ..solve.mixing import solve_through_mixing
-    from .shown import rig_measure
 
     check(solver != "eo", "the exact light transport has no epipolar chains for eo to walk: choose another solver")
     result, light, patterns = make_patterns(ops, solver, bounds, responses, max_iter=max_iter, progress=progress,

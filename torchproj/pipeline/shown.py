@@ -19,7 +19,7 @@ from ..sim import VirtualRig
 from ..transport import Target
 from .virtual import VirtualCalibration, true_responses
 
-__all__ = ["rig_measure", "shown_world"]
+__all__ = ["CapturedRows", "rig_measure", "shown_world"]
 
 
 def shown_world(cal: VirtualCalibration, scene=None) -> VirtualCalibration:
@@ -36,6 +36,36 @@ def shown_world(cal: VirtualCalibration, scene=None) -> VirtualCalibration:
     rig = VirtualRig(shown_scene(scene), device=cal.rig.device)
     black = {state: rig.capture(state, {})[0].cpu() for state in cal.black}
     return dataclasses.replace(cal, rig=rig, black=black, responses=true_responses(rig.scene))
+
+
+class CapturedRows:
+    """Reads an operator's rows out of camera images, one image per state (a row's state is its
+    target's): what every camera loop measures, on the virtual rig (:func:`rig_measure`) or a bench.
+
+    Args:
+        op: the operator (rows on camera pixels), or one per colour channel with the same rows.
+        targets: the targets it was built for.
+    """
+
+    def __init__(self, op, targets: list[Target]):
+        ops = list(op) if isinstance(op, (list, tuple)) else [op]
+        self.op = ops[0]
+        check(self.op.row_pixel is not None, "the loop measures camera pixels: build the operator with merge=False")
+        self.channels = len(ops) if len(ops) > 1 else self.op.rhs.shape[1]
+        states = [t.state for t in targets]
+        self.rows_of = {state: torch.nonzero(torch.isin(self.op.row_target, torch.tensor(
+            [k for k, s in enumerate(states) if s == state], device=self.op.row_target.device)))[:, 0]
+            for state in dict.fromkeys(states)}
+
+    def __call__(self, above: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``above``: per state, :math:`(C_{cam}, H, W)` camera values above black. Returns the rows,
+        :math:`(N_{rows}, C)` (a grey operator of a colour camera takes the channels' mean)."""
+        op = self.op
+        rows = torch.empty(op.shape[0], self.channels, dtype=op.rhs.dtype, device=op.rhs.device)
+        for state, which in self.rows_of.items():
+            values = above[state].flatten(1)[:, op.row_pixel[which].cpu()].T  # (rows, C_cam)
+            rows[which] = (values if values.shape[1] == self.channels else values.mean(1, keepdim=True)).to(rows)
+        return rows
 
 
 def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: int = 1, noise: bool = True):
@@ -55,29 +85,17 @@ def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: in
         pixel; ``measure.captures`` counts the captures taken per state.
     """
     check(isinstance(frames, int) and frames >= 1, f"frames must be a whole number >= 1, got {frames!r}")
-    ops = list(op) if isinstance(op, (list, tuple)) else [op]
-    op = ops[0]
-    check(op.row_pixel is not None, "the loop measures camera pixels: build the operator with merge=False")
-    states = [t.state for t in targets]
-    rows_of = {state: torch.nonzero(torch.isin(op.row_target, torch.tensor(
-        [k for k, s in enumerate(states) if s == state], device=op.row_target.device)))[:, 0]
-        for state in dict.fromkeys(states)}
-    channels = len(ops) if len(ops) > 1 else op.rhs.shape[1]
+    read = CapturedRows(op, targets)
     black = world.black if noise else {state: world.rig.capture(state, {}, noise=False, quantise=False)[0].cpu()
-                                       for state in rows_of}
+                                       for state in read.rows_of}
 
     def measure(images: list[torch.Tensor]) -> torch.Tensor:
         shown = {j: (img.float() / 255)[None].to(world.rig.device) for j, img in enumerate(images)}
-        rows = torch.empty(op.shape[0], channels, dtype=op.rhs.dtype, device=op.rhs.device)
-        for state, which in rows_of.items():
-            shots = world.rig.capture(state, {j: s.expand(frames, -1, -1, -1) for j, s in shown.items()},
-                                      noise=noise, quantise=noise)
-            above = (shots.mean(0).cpu() - black[state]).flatten(1)  # (C_cam, H W)
-            pixels = op.row_pixel[which].cpu()
-            values = above[:, pixels].T  # (rows, C_cam)
-            rows[which] = (values if values.shape[1] == channels else values.mean(1, keepdim=True)).to(rows)
+        above = {state: world.rig.capture(state, {j: s.expand(frames, -1, -1, -1) for j, s in shown.items()},
+                                          noise=noise, quantise=noise).mean(0).cpu() - black[state]
+                 for state in read.rows_of}
         measure.captures += frames
-        return rows
+        return read(above)
 
     measure.captures = 0
     return measure
