@@ -46,6 +46,16 @@ def _gather_rows(matrix: torch.Tensor, pixels: torch.Tensor):
     return row, col[index], val[index]
 
 
+def _unit_light(rig, j: int) -> torch.Tensor:
+    """:math:`(H_j W_j,)` what one unit of projector j's linear light adds to each cell's emission
+    (power * a * vignette: a white cell's light less a black one's), in camera values (times the
+    exposure)."""
+    proj = rig.scene.projectors[j]
+    on, off = (rig.emitted(j, torch.full((1, 1, proj.height, proj.width), v, device=rig.device))[0, 0]
+               for v in (1.0, 0.0))
+    return rig.scene.camera.exposure * (on - off)
+
+
 def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list[TransportOperator]:
     """The simulator's own light transport on the camera pixels of an operator's rows (module docstring).
 
@@ -81,16 +91,12 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
           f"the surfaces' albedo differs per colour channel, so the exact light needs {n_albedo}-channel targets; "
           f"got {rows.rhs.shape[1]}")
     entries = [[] for _ in range(n_albedo)]  # per albedo channel: (row, global column, value) pieces
+    units = [_unit_light(rig, j) for j in range(len(scene.projectors))]
     for k, target in enumerate(targets):
         which = torch.nonzero(rows.row_target == k)[:, 0]
         pixels = rows.row_pixel[which].to(rig.device)
         geo = rig.geometry(target.state)
-        for j, proj in enumerate(scene.projectors):
-            # What one unit of linear light adds to each cell's emission (power * a * vignette: a white
-            # cell's light less a black one's), in camera values (times the exposure).
-            on, off = (rig.emitted(j, torch.full((1, 1, proj.height, proj.width), v, device=rig.device))[0, 0]
-                       for v in (1.0, 0.0))
-            unit = scene.camera.exposure * (on - off)
+        for j, unit in enumerate(units):
             for channel in range(n_albedo):
                 r, c, v = _gather_rows(geo.transport[j][min(channel, len(geo.transport[j]) - 1)], pixels)
                 gain = gains[j][min(channel, len(gains[j]) - 1)]
@@ -145,12 +151,10 @@ class BounceTerm:
         source = torch.tensor(starts[:-1], device=device)[projector] + (cell // widths // blocks) * block_cols \
             + (cell % widths) // blocks
         unit = torch.empty(len(cell), dtype=dtype, device=device)
-        for j, proj in enumerate(scene.projectors):
-            on, off = (rig.emitted(j, torch.full((1, 1, proj.height, proj.width), v, device=rig.device))[0, 0]
-                       for v in (1.0, 0.0))
+        for j in range(len(scene.projectors)):
             mine = projector == j
             gain = rig.channel_gain(j)[min(channel, scene.camera.channels - 1)]
-            unit[mine] = (scene.camera.exposure * (on - off) * gain).to(device, dtype)[cell[mine]]
+            unit[mine] = (_unit_light(rig, j) * gain).to(device, dtype)[cell[mine]]
         self.source, self.unit = source, unit
         self.states = []  # per state: (rows, interpolation CSR (rows, R) times albedo, transfer (R, S))
         for state, which in CapturedRows(rows, targets).rows_of.items():
