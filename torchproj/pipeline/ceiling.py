@@ -136,20 +136,11 @@ class BounceTerm:
         scene = rig.scene
         device, dtype = rows.rhs.device, rows.rhs.dtype
         self.rows = rows.shape[0]
-        sizes = [(p.width, p.height) for p in scene.projectors]
         bounces = {t.state: rig.geometry(t.state).bounce for t in targets}
         first = next(b for b in bounces.values() if b is not None)
-        starts = [0]
-        for (width, height), block in zip(sizes, first.blocks):
-            starts.append(starts[-1] + (-(-height // block)) * (-(-width // block)))
-        self.sources = starts[-1]
         projector = rows.column_projector.long()
         cell = rows.column_cell.long()
-        widths = torch.tensor([w for w, _ in sizes], device=device)[projector]
-        blocks = torch.tensor(first.blocks, device=device)[projector]
-        block_cols = -(-widths // blocks)
-        source = torch.tensor(starts[:-1], device=device)[projector] + (cell // widths // blocks) * block_cols \
-            + (cell % widths) // blocks
+        source, self.sources = first.source_of([(p.width, p.height) for p in scene.projectors], projector, cell)
         unit = torch.empty(len(cell), dtype=dtype, device=device)
         for j in range(len(scene.projectors)):
             mine = projector == j

@@ -79,6 +79,22 @@ class Bounce:
         image = F.pad(image, (0, cols * block - width, 0, rows * block - height))
         return image.reshape(*image.shape[:2], rows, block, cols, block).sum((3, 5)).flatten(2)
 
+    def source_of(self, sizes: list[tuple[int, int]], projector: torch.Tensor,
+                  cell: torch.Tensor) -> tuple[torch.Tensor, int]:
+        """Each cell's source, numbered as :meth:`flux` and ``transfer`` number them (projector by
+        projector, blocks row-major), and the number of sources.
+
+        Args:
+            sizes: per projector ``(width, height)``.
+            projector, cell: :math:`(M,)` a cell's projector and row-major index.
+        """
+        counts = [-(-h // b) * -(-w // b) for (w, h), b in zip(sizes, self.blocks)]
+        device = cell.device
+        starts = torch.tensor([0, *counts], device=device).cumsum(0)[projector]
+        widths = torch.tensor([w for w, _ in sizes], device=device)[projector]
+        blocks = torch.tensor(self.blocks, device=device)[projector]
+        return starts + (cell // widths // blocks) * -(-widths // blocks) + (cell % widths) // blocks, sum(counts)
+
     def add_to(self, radiance: torch.Tensor, fluxes: list[torch.Tensor]) -> torch.Tensor:
         """Add the bounced light to :math:`(N, C, H W)` radiance, in place, image by image.
 
