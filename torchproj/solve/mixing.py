@@ -108,8 +108,12 @@ def solve_through_mixing(ops, result, mixings: list[torch.Tensor | None], bounds
 
 def _curvature(channels, mix, extra, light, q, iterations: int = 30) -> float:
     """An upper bound of the coupled objective's curvature: the largest channel's, by power iteration
-    on its (direct plus extra) operator, times the mixing's largest squared singular value, plus 1%."""
+    on its (direct plus extra) operator, times the mixing's largest squared singular value, plus 1%.
+    Seeded, unlike :meth:`~torchproj.transport.TransportOperator.lipschitz`: the same patterns come
+    back each time, which ``torchproj refine``'s replay relies on."""
     worst = 0.0
+    if extra is None:  # channels on one operator share its curvature: one power iteration per operator
+        channels = list({id(op): (op, c) for op, c in channels}.values())
     for op, c in channels:
         v = torch.rand(q.shape[0], 1, generator=torch.Generator().manual_seed(0), dtype=q.dtype).to(q.device)
         value = 0.0
