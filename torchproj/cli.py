@@ -184,6 +184,7 @@ def _live_bench(args):
     from .core import InputError
     from .pipeline.acquire import LiveBench, OpenCVCamera, OpenCVDisplay
 
+    LiveBench({}, None, settle_s=args.settle, frames=args.frames)  # its checks, before any window opens
     names = [name for name, _, _ in load_bundle(args.bundle).projectors]
     screens = dict(args.screen or [])
     unknown = sorted(set(screens) - set(names))

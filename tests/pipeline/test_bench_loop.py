@@ -141,3 +141,9 @@ def test_live_options_are_checked(bench, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([*base, "--screen", "upper"])
     assert "expected NAME=X,Y" in capsys.readouterr().err
+    both = ["--screen", "upper=0,0", "--screen", "lower=1,0"]
+    for option, message in ((["--frames", "0"], "frames must be a whole number of camera frames, at least 1"),
+                            (["--settle", "nan"], "settle must be seconds in [0, 60]"),
+                            (["--settle", "-1"], "settle must be seconds in [0, 60]")):
+        assert main([*base, *both, *option]) == 2
+        assert message in capsys.readouterr().err and not (tmp_path / "x").exists()

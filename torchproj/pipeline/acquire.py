@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core.errors import CaptureError
+from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..calib.bundle import SEQUENCE_FILE
 
@@ -140,6 +140,10 @@ class LiveBench:
     """
 
     def __init__(self, displays: dict, camera, *, settle_s: float = 0.2, frames: int = 1, prompt=None):
+        if not (isinstance(frames, int) and frames >= 1):
+            raise InputError(f"frames must be a whole number of camera frames, at least 1, got {frames!r}")
+        if not (isinstance(settle_s, (int, float)) and 0 <= settle_s <= 60):
+            raise InputError(f"settle must be seconds in [0, 60], got {settle_s!r}")
         self.displays, self.camera, self.settle_s, self.frames, self.prompt = displays, camera, settle_s, frames, prompt
 
     def photograph(self, patterns: dict[str, torch.Tensor], states: list[str], folder: Path) -> None:
