@@ -1,6 +1,6 @@
 """torchproj: multi-projector depth-dependent projection in PyTorch.
 
-What a user reaches for is here; each room (sub-package) holds the rest:
+What a user reaches for is here; each sub-package holds the rest:
 
 - :mod:`torchproj.scene`: rig and scene descriptions (``load_scene``).
 - :mod:`torchproj.sim`: the virtual rig (``VirtualRig``).
@@ -16,24 +16,25 @@ Conventions (pixel centres, ``(x, y)`` order, frames) are stated once in :mod:`t
 
 __version__ = "0.1.0"
 
-from . import calib, core, experiments, metrics, pipeline, scene, sim, solve, transport  # noqa: E402
-from .calib import CalibrationBundle, ResponseCurve, calibrate_folders, decode_gray, graycode_patterns, load_bundle  # noqa: E402
-from .core import InputError, TorchprojError  # noqa: E402
-from .metrics import SSIMLoss, crosstalk, psnr, ssim  # noqa: E402
-from .pipeline import (VirtualCalibration, calibrate_virtual, evaluate_patterns, rig_measure, run_virtual,  # noqa: E402
-                       scene_targets, shown_world, target_image)
-from .scene import BUILTIN_SCENES, Scene, load_scene  # noqa: E402
-from .sim import VirtualRig  # noqa: E402
-from .solve import (OBJECTIVES, SOLVERS, ClampedAdam, ImageLoss, ProjectionModel, SolveResult, make_patterns,  # noqa: E402
-                    refine_patterns, solve_adam, solve_eo, solve_fista, solve_lf, solve_patterns, solve_pgd, solve_ssim)
-from .transport import StateCalibration, Target, TransportOperator, build_transport  # noqa: E402
+from ._lazy import lazy_names  # noqa: E402
 
-__all__ = [
-    "BUILTIN_SCENES", "CalibrationBundle", "ClampedAdam", "ImageLoss", "InputError", "OBJECTIVES", "ProjectionModel", "ResponseCurve",
-    "SOLVERS", "SSIMLoss", "Scene", "SolveResult", "StateCalibration", "Target", "TorchprojError", "TransportOperator",
-    "VirtualCalibration", "VirtualRig", "__version__", "build_transport", "calib", "calibrate_folders",
-    "calibrate_virtual", "core", "crosstalk", "decode_gray", "evaluate_patterns", "experiments", "graycode_patterns",
-    "load_bundle", "load_scene", "make_patterns", "metrics", "pipeline", "psnr", "refine_patterns", "rig_measure",
-    "run_virtual", "scene", "scene_targets", "shown_world", "sim", "solve", "solve_adam", "solve_eo", "solve_fista", "solve_lf", "solve_patterns",
-    "solve_pgd", "solve_ssim", "ssim", "target_image", "transport",
-]
+# Each sub-package's names on the face, imported on first use (torchproj._lazy): `import torchproj`
+# and the `torchproj` command start without torch.
+_OFFERED = {
+    "calib": "CalibrationBundle ResponseCurve calibrate_folders decode_gray graycode_patterns load_bundle",
+    "core": "InputError TorchprojError",
+    "experiments": "",
+    "metrics": "SSIMLoss crosstalk psnr ssim",
+    "pipeline": "VirtualCalibration calibrate_virtual evaluate_patterns rig_measure run_virtual scene_targets "
+                "shown_world target_image",
+    "scene": "BUILTIN_SCENES Scene load_scene",
+    "sim": "VirtualRig",
+    "solve": "OBJECTIVES SOLVERS ClampedAdam ImageLoss ProjectionModel SolveResult make_patterns refine_patterns "
+             "solve_adam solve_eo solve_fista solve_lf solve_patterns solve_pgd solve_ssim",
+    "transport": "StateCalibration Target TransportOperator build_transport",
+}
+_WHERE = {**{package: package for package in _OFFERED},
+          **{name: package for package, names in _OFFERED.items() for name in names.split()}}
+__getattr__, __dir__ = lazy_names(__name__, _WHERE)
+
+__all__ = sorted(["__version__", *_WHERE])

@@ -383,10 +383,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``torchproj`` console command."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(join_negative_pairs(argv))
-    # SIGTERM (a scheduler stopping the job) unwinds like Ctrl-C, so that staging folders are removed.
+    # SIGTERM (a scheduler stopping the job) unwinds like Ctrl-C, so that staging folders are removed;
+    # both are caught from here on, the parser's imports of the library included.
     previous = signal.signal(signal.SIGTERM, _interrupt) if threading.current_thread() is threading.main_thread() else None
+    args = None
     try:
+        args = build_parser().parse_args(join_negative_pairs(argv))
         if getattr(args, "out", None) is not None:
             check_output_folder(args.out, replace=not getattr(args, "workspace", False))  # before the work
         with warnings.catch_warnings():
@@ -398,16 +400,21 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
     except (TorchprojError, OSError) as exc:  # OSError: a disk full or a folder that turned read-only mid-run
-        print(f"torchproj {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{_who(args)}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        where = f"; {args.out} is as it was" if getattr(args, "out", None) is not None and \
-            not getattr(args, "workspace", False) else ""
-        print(f"torchproj {args.command}: interrupted{where}", file=sys.stderr)
+        out = getattr(args, "out", None)
+        where = f"; {out} is as it was" if out is not None and not getattr(args, "workspace", False) else ""
+        print(f"{_who(args)}: interrupted{where}", file=sys.stderr)
         return 130
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _who(args) -> str:
+    """The command's name in its messages (``torchproj`` alone before the arguments are parsed)."""
+    return "torchproj" if args is None else f"torchproj {args.command}"
 
 
 def _interrupt(signum, frame):

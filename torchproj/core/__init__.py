@@ -1,25 +1,16 @@
-"""Shared errors, input checks, conventions and image I/O (imports no other room)."""
+"""Shared errors, input checks, conventions and image I/O (imports no other sub-package).
 
-from .checks import check, check_finite, check_image, check_shape
-from .conventions import pixel_grid, round_to_pixel
-from .errors import CaptureError, ConfigError, InputError, TorchprojError
-from .imageio import read_image, to_uint, write_image
-from .output import atomic_output, write_json
+Imported on first use (:mod:`torchproj._lazy`): the command reads its errors and output contract
+from here before anything has imported torch.
+"""
 
-__all__ = [
-    "CaptureError",
-    "ConfigError",
-    "InputError",
-    "TorchprojError",
-    "atomic_output",
-    "check",
-    "check_finite",
-    "check_image",
-    "check_shape",
-    "pixel_grid",
-    "read_image",
-    "round_to_pixel",
-    "to_uint",
-    "write_image",
-    "write_json",
-]
+from .._lazy import lazy_names
+
+_WHERE = {**dict.fromkeys(("check", "check_finite", "check_image", "check_shape"), "checks"),
+          **dict.fromkeys(("pixel_grid", "round_to_pixel"), "conventions"),
+          **dict.fromkeys(("CaptureError", "ConfigError", "InputError", "TorchprojError"), "errors"),
+          **dict.fromkeys(("read_image", "to_uint", "write_image"), "imageio"),
+          **dict.fromkeys(("atomic_output", "write_json"), "output")}
+__getattr__, __dir__ = lazy_names(__name__, _WHERE)
+
+__all__ = sorted(_WHERE)
