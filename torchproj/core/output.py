@@ -3,9 +3,10 @@
 The contract every command that writes ``--out`` keeps (README, "Commands"):
 
 - ``--out`` is replaced only where torchproj wrote it: a missing or empty folder, or one whose every
-  entry is listed in the manifest (:data:`MANIFEST`) an earlier torchproj command left there. A
-  folder holding anything else (a person's captures, notes, an older tool's output) is refused
-  before any work begins, naming what is there; nothing in it is touched.
+  file and folder, at any depth, is listed in the manifest (:data:`MANIFEST`) an earlier torchproj
+  command left there. A folder holding anything else (a person's captures, notes, a file they added
+  inside ``captures/``, an older tool's output) is refused before any work begins, naming what is
+  there; nothing in it is touched.
 - The new result is written beside it and swapped in whole by two renames (the old folder aside,
   the new one in), then the old one is removed: an interruption at any moment (Ctrl-C, SIGTERM, a
   full disk, a file that cannot be removed) leaves the complete old result or the complete new one
@@ -44,9 +45,9 @@ def check_output_folder(out_dir: str | os.PathLike, replace: bool = True) -> Pat
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output folder {out_dir}: is a file; choose a folder (or remove the file)")
     if replace and out_dir.is_dir():
-        theirs = sorted(set(os.listdir(out_dir)) - _written(out_dir) - {MANIFEST})
+        theirs = _not_written(out_dir)
         if theirs:
-            shown = ", ".join(theirs[:5]) + (f" and {len(theirs) - 5} more" if len(theirs) > 5 else "")
+            shown = ", ".join(theirs[:5]) + (" and more" if len(theirs) > 5 else "")
             raise InputError(f"output folder {out_dir}: holds {shown}, which torchproj did not write there; torchproj "
                              "replaces only an output folder it wrote itself: give a new or empty --out folder (nothing "
                              "was touched)")
@@ -73,7 +74,7 @@ def atomic_output(out_dir: str | os.PathLike):
     old = None
     try:
         yield stage
-        write_json(stage / MANIFEST, {"written by": "torchproj", "written": sorted(os.listdir(stage))})
+        write_json(stage / MANIFEST, {"written by": "torchproj", "written": sorted(_entries(stage))})
         check_output_folder(out_dir)  # again: the person may have put something there while the work ran
         with _signals_held():  # the two renames: no interruption between them
             if out_dir.exists():
@@ -112,13 +113,36 @@ def _umask() -> int:
     return mask
 
 
-def _written(out_dir: Path) -> set[str]:
-    """The entries an earlier torchproj command listed in ``out_dir``'s manifest (none without one)."""
+def _entries(folder: Path):
+    """Every file and folder under ``folder``, at any depth, as a relative POSIX path (links not followed)."""
+    for root, dirs, files in os.walk(folder):
+        base = Path(root).relative_to(folder)
+        for name in dirs + files:
+            yield (base / name).as_posix()
+
+
+def _not_written(out_dir: Path, limit: int = 6) -> list[str]:
+    """Up to ``limit`` entries of ``out_dir`` that its manifest does not list (all of them without one).
+
+    An entry counts at any depth: a person's file put inside a folder torchproj wrote is theirs.
+    """
     try:
         listed = json.loads((out_dir / MANIFEST).read_text()).get("written", [])
+        written = {name for name in listed if isinstance(name, str)}
     except (OSError, ValueError, AttributeError):
-        return set()
-    return {name for name in listed if isinstance(name, str)}
+        written = set()
+    theirs = []
+    for root, dirs, files in os.walk(out_dir):
+        base = Path(root).relative_to(out_dir)
+        for name in sorted(dirs + files):
+            entry = (base / name).as_posix()
+            if entry != MANIFEST and entry not in written:
+                theirs.append(entry)
+                if name in dirs:
+                    dirs.remove(name)  # a folder of theirs is named, not walked
+            if len(theirs) >= limit:
+                return sorted(theirs)
+    return sorted(theirs)
 
 
 def write_json(path: str | os.PathLike, data) -> None:
