@@ -135,3 +135,30 @@ def test_a_target_image_of_one_pixel_is_refused_naming_it(tmp_path):
         target_image(str(tmp_path / "dot.png"), 1)
     write_image(tmp_path / "pair.png", torch.full((1, 2, 2), 0.5))
     assert target_image(str(tmp_path / "pair.png"), 3).shape == (3, 2, 2)
+
+
+def test_a_constant_target_is_warned_about_and_its_report_row_says_why(quarter_rig, tmp_path):
+    import json
+    import math
+
+    from torchproj.core import write_json
+
+    scene, cal = quarter_rig
+    images = [torch.zeros(1, 30, 40), target_image("camera", 1)]
+    targets = scene_targets(scene, images, rig=cal.rig)
+    model = ProjectionModel.from_calibration(cal, targets)
+    with pytest.warns(UserWarning, match=r"target '.*': its image is one value over its \d+ pixels") as caught:
+        ev = evaluate_patterns(cal, model.to_patterns(), targets, scale=model.scale, noise=False, paper=False)
+    assert len(caught) == 1  # the detailed target is not warned about
+    dark, detailed = ev.targets
+    assert dark.constant_target and not detailed.constant_target and detailed.notes() == {}
+    assert math.isinf(dark.affine_psnr_db)  # a gain and offset reproduce a constant exactly
+    write_json(tmp_path / "r.json", [s.as_dict() for s in ev.targets])
+    rows = json.loads((tmp_path / "r.json").read_text())
+    assert rows[0]["affine_psnr_db"] is None and "one value" in rows[0]["notes"]["target"]
+    assert "notes" not in rows[1]
+    # A capture equal to its target: the infinite PSNR is null in JSON, with the reason beside it.
+    perfect = type(dark)(name="p", state=dark.state, psnr_db=math.inf, ssim=1.0, crosstalk=0.0, pixels=4,
+                         estimate=detailed.values, values=detailed.values, covered=detailed.covered,
+                         affine_psnr_db=math.inf)
+    assert set(perfect.notes()) == {"psnr_db", "affine_psnr_db"}

@@ -7,6 +7,8 @@ from the physics, never computed as ``A p``, so calibration errors show in the s
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -86,11 +88,39 @@ class TargetScore:
     affine_psnr_db: float = float("nan")
     paper: dict | None = None
 
+    @property
+    def constant_target(self) -> bool:
+        """Whether the target is one value over its scored pixels: a score of brightness alone."""
+        values = self.values[:, self.covered]
+        return values.numel() == 0 or bool(values.max() - values.min() <= 1e-6)
+
+    def notes(self) -> dict:
+        """Why a score of this row is degenerate: field -> reason (empty for an ordinary target).
+
+        JSON has no infinity or NaN, so ``report.json`` writes such a score as null; the reason
+        stands beside it here.
+        """
+        notes = {}
+        if self.constant_target:
+            notes["target"] = ("the target image is one value over its pixels: PSNR measures brightness alone, SSIM "
+                               "compares no structure, and a gain and offset reproduce it exactly (affine PSNR "
+                               "infinite)")
+        for field in ("psnr_db",) if self.constant_target else ("psnr_db", "affine_psnr_db"):
+            value = getattr(self, field)
+            if math.isinf(value):
+                notes[field] = ("infinite: the capture equals the target exactly over its pixels" if field == "psnr_db"
+                                else "infinite: a gain and offset bring the capture exactly onto the target")
+            elif math.isnan(value):
+                notes[field] = "undefined: no pixel was scored"
+        return notes
+
     def as_dict(self) -> dict:
         """The row of ``report.json``."""
         row = {"name": self.name, "state": self.state, "psnr_db": self.psnr_db, "ssim": self.ssim,
                "crosstalk": self.crosstalk, "ghost": self.ghost, "pixels": self.pixels,
                "affine_psnr_db": self.affine_psnr_db}
+        notes = self.notes()
+        row = row if not notes else {**row, "notes": notes}
         return row if self.paper is None else {**row, "paper": self.paper}
 
 
@@ -153,6 +183,10 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
                                   ghost=explained_share(estimate - values, ghosts[k], covered),
                                   affine_psnr_db=affine_psnr(estimate, values, covered),
                                   paper=None if references is None else score_image(estimate, references[k], covered)))
+        if scores[-1].constant_target:
+            warnings.warn(f"target {target.name!r}: its image is one value over its {scores[-1].pixels} pixels, so its "
+                          "PSNR measures brightness alone and its SSIM compares no structure; give an image with "
+                          "detail to score the patterns", stacklevel=2)
     return PatternEvaluation(scores, captures)
 
 
