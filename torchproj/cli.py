@@ -47,7 +47,11 @@ def _scene(args):
 
 
 def cmd_scene(args) -> int:
-    print(_scene(args).describe())
+    from .pipeline import describe_light
+
+    scene = _scene(args)
+    print(scene.describe())
+    print(describe_light(scene))
     return 0
 
 
@@ -404,7 +408,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         out = getattr(args, "out", None)
-        where = f"; {out} is as it was" if out is not None and not getattr(args, "workspace", False) else ""
+        where = f"; {out} is as it was" if out is not None and not getattr(args, "workspace", False) else \
+            "; nothing was written" if args is None else ""
         print(f"{_who(args)}: interrupted{where}", file=sys.stderr)
         return 130
     finally:

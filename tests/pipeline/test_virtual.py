@@ -62,3 +62,35 @@ def test_a_state_too_dim_to_decode_is_refused_before_calibrating(tmp_path, capsy
 
     data["camera"]["exposure"] = float(re.search(r"to about ([\d.]+)", str(refused.value)).group(1))
     check_light(parse_scene(data))
+
+
+def test_white_levels_are_the_rigs_white_minus_black_and_the_scene_command_prints_them(capsys, tmp_path):
+    """Against the full-resolution noiseless captures of the same rig: the grid's brightest pixel can
+    only miss the brightest of all by the light's variation between grid points."""
+    import yaml
+
+    import torch
+
+    from torchproj.cli import main
+    from torchproj.pipeline import white_levels
+    from torchproj.sim import VirtualRig
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["camera"]["exposure"] = 0.5
+    scene = parse_scene(data)
+    levels = white_levels(scene)
+    rig = VirtualRig(scene)
+    for state in scene.states:
+        black = rig.capture(state.name, {}, noise=False)[0]
+        for j, proj in enumerate(scene.projectors):
+            white = rig.capture(state.name, {j: torch.ones(1, 1, proj.height, proj.width)}, noise=False)[0]
+            full = float((white - black).mean(0).max())
+            assert full * 0.97 <= levels[state.name, proj.name] <= full + 1e-6, (state.name, proj.name)
+    path = tmp_path / "dim.yaml"
+    path.write_text(yaml.safe_dump(dict(data, name="dim")))
+    assert main(["scene", str(path)]) == 0
+    printed = capsys.readouterr().out
+    for (_state, name), peak in levels.items():
+        verdict = "too dim" if peak < 40 / 255 else "ok"
+        assert f"{name} {peak * 255:.0f} ({verdict}" in printed, printed
+    assert "too dim" in printed  # the far plane at this exposure

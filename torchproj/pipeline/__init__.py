@@ -18,7 +18,8 @@ from .scoring import (EVALUATION, PatternEvaluation, TargetScore, affine_psnr, e
                       score_image)
 from .targets import DEFAULT_IMAGES, default_images, scene_images, scene_targets, target_image
 from .virtual import (DecodingAccuracy, VirtualCalibration, calibrate_rig, calibrate_virtual, check_calibration,
-                      decoding_accuracy, simulate_calibration, simulate_markdown, simulate_scene, true_responses)
+                      decoding_accuracy, describe_light, simulate_calibration, simulate_markdown, simulate_scene,
+                      true_responses, white_levels)
 
 __all__ = [
     "AUTO_TOLERANCE_DB", "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "FootprintChoice", "ORACLES",
@@ -27,4 +28,5 @@ __all__ = [
     "affine_psnr", "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual", "scene_images",
     "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle",
     "refine_bundle", "rig_measure", "shown_world", "solve_on_light_transport", "target_image", "true_responses",
+    "describe_light", "white_levels",
 ]

@@ -22,9 +22,9 @@ from ..scene.config import Scene
 from ..sim.rig import VirtualRig
 from ..transport import StateCalibration
 
-__all__ = ["DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual", "check_calibration", "check_light",
-           "decoding_accuracy", "simulate_calibration", "true_responses",
-           "simulate_markdown", "simulate_scene"]
+__all__ = ["DECODE_THRESHOLD", "DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual",
+           "check_calibration", "check_light", "decoding_accuracy", "describe_light", "simulate_calibration",
+           "simulate_markdown", "simulate_scene", "true_responses", "white_levels"]
 
 
 def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp_steps: int = 32,
@@ -109,43 +109,73 @@ class VirtualCalibration:
     decode: dict | None = None
 
 
-# Camera pixels per axis at which check_light samples each state: enough to find a surface's brightest part.
+DECODE_THRESHOLD = 40 / 255  # the shadow mask of calibrate_projector: white minus black below it is not decoded
+# Camera pixels per axis at which white_levels samples each state: enough to find a surface's brightest part.
 LIGHT_CHECK_GRID = 64
 
 
-def check_light(scene: Scene, device="cpu", threshold: float = 40 / 255) -> None:
-    """Refuse, before any calibration, a scene where a projector lights a state too dimly to decode.
+def white_levels(scene: Scene, device="cpu") -> dict[tuple[str, str], float]:
+    """Each projector's brightest white-minus-black camera value in each state, from the rig's light model.
 
-    Gray-code decoding keeps pixels whose white minus black passes ``threshold`` (the shadow mask of
-    :func:`~torchproj.calib.calibrate_projector`, 40/255); a projector whose brightest lit pixel in
-    a state stays under it decodes nothing there, and calibration fails minutes later at the ramp. The
-    white and black captures are simulated without noise at a grid of ``LIGHT_CHECK_GRID`` pixels per
-    axis (direct light only: a lower bound where light also bounces); a projector that reaches a
-    state's surfaces at all must pass the threshold somewhere on them.
+    White and black captures are simulated without noise at a grid of ``LIGHT_CHECK_GRID`` pixels per
+    axis (direct light only: a lower bound where light also bounces); no calibration is needed. A
+    value of 0 means the projector does not reach the state's surfaces.
+
+    Returns:
+        ``(state, projector) -> value`` in [0, 1] camera units.
     """
     cam = scene.camera
     rig = VirtualRig(scene, device=device)
     ys = torch.linspace(0, cam.height - 1, min(LIGHT_CHECK_GRID, cam.height), device=device).round().long()
     xs = torch.linspace(0, cam.width - 1, min(LIGHT_CHECK_GRID, cam.width), device=device).round().long()
     pixels = (ys[:, None] * cam.width + xs[None, :]).reshape(-1)
-    dim = []  # (peak, state, projector) under the threshold
+    levels = {}
     for state in scene.states:
         surfaces = [scene.surfaces[n] for n in state.surfaces]
         black = rig.capture_surfaces(surfaces, {}, pixels, noise=False, direct_only=True)
         for j, proj in enumerate(scene.projectors):
             white = rig.capture_surfaces(surfaces, {j: torch.ones(1, 1, proj.height, proj.width, device=device)},
                                          pixels, noise=False, direct_only=True)
-            peak = float((white - black).mean(0).max())
-            if 0 < peak < threshold:
-                dim.append((peak, state.name, proj.name))
+            levels[state.name, proj.name] = float((white - black).mean(0).max())
+    return levels
+
+
+def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD) -> None:
+    """Refuse, before any calibration, a scene where a projector lights a state too dimly to decode.
+
+    Gray-code decoding keeps pixels whose white minus black passes ``threshold`` (the shadow mask of
+    :func:`~torchproj.calib.calibrate_projector`, 40/255); a projector whose brightest lit pixel in
+    a state stays under it (:func:`white_levels`) decodes nothing there, and calibration fails
+    minutes later at the ramp. A projector that reaches a state's surfaces at all must pass the
+    threshold somewhere on them.
+    """
+    dim = sorted((peak, state, name) for (state, name), peak in white_levels(scene, device).items()
+                 if 0 < peak < threshold)
     if dim:
-        peak, state, name = min(dim)
+        peak, state, name = dim[0]
         others = f" (and {len(dim) - 1} more state-projector pair(s))" if len(dim) > 1 else ""
         raise InputError(
             f"state {state!r}: projector {name!r} lights it at most {peak * 255:.0f}/255 above black in its white "
             f"capture{others}, and Gray-code decoding needs {threshold * 255:.0f}/255: raise camera.exposure (to about "
-            f"{cam.exposure * threshold / peak * 1.1:.3g}) or the projectors' power, or bring the surfaces closer "
-            "(checked before calibrating; nothing was simulated)")
+            f"{scene.camera.exposure * threshold / peak * 1.1:.3g}) or the projectors' power, or bring the surfaces "
+            "closer (checked before calibrating; nothing was simulated)")
+
+
+def describe_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD) -> str:
+    """Lines for ``torchproj scene``: each state's brightest white level per projector against the
+    decoder's threshold (:func:`white_levels`)."""
+    lines = [f"white level per state and projector (brightest pixel, white minus black, of 255; decoding needs "
+             f"{threshold * 255:.0f}; saturation at 255):"]
+    levels = white_levels(scene, device)
+    for state in scene.states:
+        cells = []
+        for proj in scene.projectors:
+            peak = levels[state.name, proj.name]
+            verdict = "does not reach it" if peak == 0 else "too dim: raise camera.exposure or move closer" \
+                if peak < threshold else "saturates" if peak >= 1 else "ok"
+            cells.append(f"{proj.name} {peak * 255:.0f} ({verdict})")
+        lines.append(f"  state {state.name}: " + ", ".join(cells))
+    return "\n".join(lines)
 
 
 def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = False,
