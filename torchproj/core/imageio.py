@@ -66,5 +66,12 @@ def write_image(path: str | os.PathLike, image: torch.Tensor, bits: int = 8) -> 
     arr = to_uint(image, bits)
     if arr.ndim == 3:
         arr = arr[:, :, ::-1]
-    if not cv2.imwrite(str(path), arr):
-        raise OSError(f"{path}: could not be written")
+    # Encoded here and written by Python, so that a write the disk refuses raises the OSError that says
+    # why (cv2.imwrite returns False and prints libpng's "Write Error" to the terminal).
+    try:
+        ok, encoded = cv2.imencode(Path(path).suffix, arr)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise OSError(f"{path}: cannot be written as an image of format {Path(path).suffix or '(no suffix)'!r}")
+    Path(path).write_bytes(encoded.tobytes())

@@ -70,7 +70,11 @@ def atomic_output(out_dir: str | os.PathLike):
     """
     out_dir = check_output_folder(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    except OSError as exc:
+        raise OSError(exc.errno, f"{exc.strerror or exc}: cannot make a folder beside {out_dir} for the new result; "
+                                 f"{out_dir} is as it was") from None
     old = None
     try:
         yield stage
@@ -82,6 +86,15 @@ def atomic_output(out_dir: str | os.PathLike):
                 os.replace(out_dir, old / out_dir.name)
             os.replace(stage, out_dir)
         os.chmod(out_dir, 0o777 & ~_umask())  # a staging folder is private; an output folder is as mkdir makes it
+    except OSError as exc:
+        inside = _inside(exc.filename, stage)
+        if exc.filename is not None and inside is None:
+            raise  # about another file (an input), which names itself
+        # Named as the person will look for it: the staging folder is gone by the time they read this. A
+        # write the disk refuses part-way through a file names no file.
+        what = "" if inside is None else f" while writing {inside} of the new result"
+        raise OSError(exc.errno, f"{exc.strerror or exc}{what}; {out_dir} is as it was and nothing of the new result "
+                                 "was kept") from None
     finally:
         if old is not None and not out_dir.exists() and (old / out_dir.name).exists():
             os.replace(old / out_dir.name, out_dir)  # the new one did not go in: the old one goes back, whole
@@ -91,6 +104,14 @@ def atomic_output(out_dir: str | os.PathLike):
             if old.exists():
                 warnings.warn(f"{old}: the previous result (replaced whole) could not all be removed; remove it by hand",
                               stacklevel=3)
+
+
+def _inside(filename, folder: Path) -> str | None:
+    """``filename`` relative to ``folder`` where it lies inside it, else None."""
+    try:
+        return Path(os.fsdecode(filename)).resolve().relative_to(folder.resolve()).as_posix()
+    except (TypeError, ValueError):
+        return None
 
 
 @contextlib.contextmanager
@@ -129,7 +150,7 @@ def _not_written(out_dir: Path, limit: int = 6) -> list[str]:
     try:
         listed = json.loads((out_dir / MANIFEST).read_text()).get("written", [])
         written = {name for name in listed if isinstance(name, str)}
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, TypeError):  # no manifest, or one that is not ours: nothing listed
         written = set()
     theirs = []
     for root, dirs, files in os.walk(out_dir):

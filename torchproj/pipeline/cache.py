@@ -147,7 +147,9 @@ def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> None:
         finally:
             Path(tmp).unlink(missing_ok=True)
         _evict(folder, keep=path)
-    except OSError as exc:  # a full or read-only cache folder costs the next run its time, not this run
+    # A full or read-only cache folder costs the next run its time, not this run (torch.save reports a
+    # write the disk refused as a RuntimeError).
+    except (OSError, RuntimeError) as exc:
         warnings.warn(f"could not keep the calibration in {folder} ({exc}); the next run will simulate it again",
                       stacklevel=3)
 
