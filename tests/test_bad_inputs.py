@@ -156,8 +156,12 @@ def test_bad_run_options_are_refused_cleanly_or_run(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def capture_root(tmp_path_factory):
-    """A tiny rig's calibration captures as a bench stores them, and its calibration bundle."""
-    root = tmp_path_factory.mktemp("fuzz")
+    return capture_root_for(tmp_path_factory.mktemp("fuzz"))
+
+
+def capture_root_for(root: Path) -> Path:
+    """A tiny rig's calibration captures as a bench stores them (``root/captures``), and its calibration
+    bundle (``root/bundle``), made with ``torchproj calibrate``."""
     data = tiny_config()
     data["states"] = sorted(data["states"], key=lambda s: s["name"])
     scene = parse_scene(data, name="tiny")
