@@ -9,6 +9,7 @@ import torch
 __all__ = ["csr_from_coo", "csr_tensor", "spmm"]
 
 _INT32_LIMIT = 2**31 - 1
+_WIDENED = (torch.float16, torch.bfloat16)  # stored in 16 bits, multiplied in float32
 
 
 def csr_tensor(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
@@ -38,6 +39,13 @@ def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None)
     ``out`` (:math:`(M, K)`, same dtype and device) lets iterative solvers reuse one buffer; its
     contents are ignored.
     """
+    if x.device.type == "meta":  # shapes only (a model moved to the meta device): no values to multiply
+        return torch.empty(matrix.shape[0], x.shape[1], dtype=x.dtype, device=x.device)
+    if x.dtype in _WIDENED:
+        # The sparse kernels take no 16-bit floats (MKL: "not implemented for 'Half'"): the values are
+        # stored in 16 bits and the product accumulates in float32, rounded once at the end.
+        wide = spmm(matrix.to(torch.float32), x.to(torch.float32))
+        return wide.to(x.dtype) if out is None else out.copy_(wide)
     if out is None:
         out = torch.empty(matrix.shape[0], x.shape[1], dtype=x.dtype, device=x.device)
     return torch.addmm(out, matrix, x, beta=0, out=out)

@@ -147,8 +147,29 @@ class ProjectionModel(nn.Module):
         """Camera value of a target value of 1 (:attr:`TransportOperator.scale`)."""
         return self.operator.scale
 
-    def forward(self) -> torch.Tensor:
-        return self.operator.to_camera(self.operator.A(self.patterns) / self.operator.scale)
+    def forward(self, patterns: torch.Tensor | None = None) -> torch.Tensor:
+        """The camera image of every target (target units), for the model's patterns or others.
+
+        Args:
+            patterns: None (the model's own), :math:`(N, C)` like :attr:`patterns`, or a batch
+                :math:`(B, N, C)` (a sweep, a population, frames of a video): one sparse product for
+                the whole batch, its members side by side in the product's columns.
+
+        Returns:
+            :math:`(K, C, H, W)`, or :math:`(B, K, C, H, W)` for a batch.
+        """
+        p = self.patterns if patterns is None else patterns
+        n, c = self.patterns.shape
+        check(p.dim() in (2, 3) and tuple(p.shape[-2:]) == (n, c),
+              f"patterns must be ({n}, {c}) like the model's, or a batch (B, {n}, {c}); got {tuple(p.shape)}")
+        op = self.operator
+        if p.dim() == 2:
+            return op.to_camera(op.A(p) / op.scale)
+        b = p.shape[0]
+        # (B, N, C) -> (N, C B): column c B + b of the product is member b's channel c.
+        rows = op.A(p.permute(1, 2, 0).reshape(n, c * b)) / op.scale
+        images = op.to_camera(rows)  # (K, C B, H, W)
+        return images.reshape(images.shape[0], c, b, *images.shape[2:]).permute(2, 0, 1, 3, 4)
 
     def straight_through(self, captured: torch.Tensor) -> torch.Tensor:
         """The camera images with a capture's values and the model's gradient: camera in the loop

@@ -49,19 +49,75 @@ def cell_blocks(column_projector: torch.Tensor, column_cell: torch.Tensor, proje
     return block, blocks // cells_per_projector, blocks % cells_per_projector, block_sizes
 
 
+class _Matrices:
+    """``M`` and ``M^T`` as one argument that is not a tensor: torch.func's transforms wrap every tensor
+    argument of a function they pass through, and a sparse CSR tensor cannot be wrapped (it has no
+    strides). The matrices are constants of the operator; only ``x`` is differentiated or batched."""
+
+    __slots__ = ("forward", "adjoint")
+
+    def __init__(self, forward: torch.Tensor, adjoint: torch.Tensor):
+        self.forward, self.adjoint = forward, adjoint
+
+    def transposed(self) -> "_Matrices":
+        return _Matrices(self.adjoint, self.forward)
+
+
 class _Apply(torch.autograd.Function):
     """``M x`` with backward ``M^T g``, itself a product of this function, so that derivatives of
-    any order flow (a Hessian-vector product of an image-space loss is a double backward)."""
+    any order flow (a Hessian-vector product of an image-space loss is a double backward), and with
+    the forward-mode and batching rules torch.func asks for (``jvp``: ``M x_t``, linear; ``vmap``: a
+    batch of ``x`` is one product with the batch folded into the columns)."""
 
     @staticmethod
-    def forward(ctx, x, forward_matrix, adjoint_matrix):
-        ctx.matrices = (forward_matrix, adjoint_matrix)
-        return spmm(forward_matrix, x)
+    def forward(x, matrices):
+        return spmm(matrices.forward, x)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.matrices = inputs[1]
 
     @staticmethod
     def backward(ctx, grad):
-        forward_matrix, adjoint_matrix = ctx.matrices
-        return _Apply.apply(grad, adjoint_matrix, forward_matrix), None, None
+        return _Apply.apply(grad, ctx.matrices.transposed()), None
+
+    @staticmethod
+    def jvp(ctx, x_tangent, _):
+        return _Apply.apply(x_tangent, ctx.matrices)
+
+    @staticmethod
+    def vmap(info, in_dims, x, matrices):
+        if in_dims[0] is None:
+            return _Apply.apply(x, matrices), None
+        x = x.movedim(in_dims[0], -1)  # (N, C, B): the batch beside the channels, one product for all
+        n, c, b = x.shape
+        return _Apply.apply(x.reshape(n, c * b), matrices).reshape(-1, c, b), 2
+
+
+@torch.library.custom_op("torchproj::transport_product", mutates_args=())
+def _compiled_product(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, t_crow: torch.Tensor,
+                      t_col: torch.Tensor, t_val: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``M x`` for ``torch.compile``: the matrix (and its transpose, for the backward) as the dense
+    arrays of its CSR form, which a compiled graph can carry (a sparse tensor it cannot). Opaque to
+    the compiler, which calls torch's sparse kernel here as eager does."""
+    return spmm(csr_tensor(crow, col, val, (crow.numel() - 1, x.shape[0])), x)
+
+
+@_compiled_product.register_fake
+def _(crow, col, val, t_crow, t_col, t_val, x):
+    return x.new_empty(crow.numel() - 1, x.shape[1])
+
+
+def _compiled_setup(ctx, inputs, output):
+    ctx.arrays = inputs[:6]
+
+
+def _compiled_backward(ctx, grad):
+    crow, col, val, t_crow, t_col, t_val = ctx.arrays
+    return None, None, None, None, None, None, _compiled_product(t_crow, t_col, t_val, crow, col, val, grad)
+
+
+_compiled_product.register_autograd(_compiled_backward, setup_context=_compiled_setup)
 
 
 class TransportOperator(nn.Module):
@@ -106,13 +162,13 @@ class TransportOperator(nn.Module):
         counts = matrix.crow_indices().diff()
         check(bool((counts > 0).all()), f"{int((counts == 0).sum())} rows of A are empty: every target pixel must be "
                                         "lit by at least one projector (drop unlit pixels from the target)")
-        self.register_buffer("crow", matrix.crow_indices())
-        self.register_buffer("col", matrix.col_indices())
-        self.register_buffer("val", matrix.values())
+        # The CSR arrays as dense tensors of their own, not views into a sparse tensor: a compiled graph
+        # (torch.compile) can carry the one and not the other.
         transposed = _transpose(matrix)  # A^T in CSR, for an adjoint as fast as the forward product
-        self.register_buffer("t_crow", transposed.crow_indices())
-        self.register_buffer("t_col", transposed.col_indices())
-        self.register_buffer("t_val", transposed.values())
+        for prefix, m in (("", matrix), ("t_", transposed)):
+            self.register_buffer(prefix + "crow", m.crow_indices().clone())
+            self.register_buffer(prefix + "col", m.col_indices().clone())
+            self.register_buffer(prefix + "val", m.values().clone())
         self.register_buffer("rhs", rhs)
         self.register_buffer("column_projector", column_projector)
         self.register_buffer("column_cell", column_cell)
@@ -156,9 +212,13 @@ class TransportOperator(nn.Module):
 
     # ------------------------------------------------------------------------------- matrices
     def _csr(self, transpose: bool = False) -> torch.Tensor:
-        if transpose:
-            return csr_tensor(self.t_crow, self.t_col, self.t_val, self.shape[::-1])
-        return csr_tensor(self.crow, self.col, self.val, self.shape)
+        # Built outside torch.func's transforms (grad, jvp, vmap), which cannot construct a sparse tensor
+        # ("Sparse CSR tensors do not have strides"): the arrays are the operator's buffers, constants
+        # that no transform differentiates or batches.
+        with torch._C._DisableFuncTorch():
+            if transpose:
+                return csr_tensor(self.t_crow, self.t_col, self.t_val, self.shape[::-1])
+            return csr_tensor(self.crow, self.col, self.val, self.shape)
 
     @property
     def channels(self) -> int:
@@ -177,6 +237,8 @@ class TransportOperator(nn.Module):
         if x.dim() == 1:
             x = x[:, None]
         check_shape(x, name, [n, "C"])
+        if torch.compiler.is_compiling():
+            return x  # device and dtype are the compiled graph's guards; its tracer cannot compare devices
         check(x.device == self.val.device, f"{name} is on {x.device} but the operator is on {self.val.device}; "
                                             "move one with .to(device)")
         check(x.dtype == self.val.dtype, f"{name} has dtype {x.dtype} but the operator holds {self.val.dtype}")
@@ -185,12 +247,16 @@ class TransportOperator(nn.Module):
     def A(self, p: torch.Tensor) -> torch.Tensor:
         """``A p``: :math:`(N_{cols}, C)` (or :math:`(N_{cols},)`) -> :math:`(N_{rows}, C)`."""
         p = self._check_vector(p, "p", self.shape[1])
-        return _Apply.apply(p, self._csr(), self._csr(transpose=True))
+        if torch.compiler.is_compiling():
+            return _compiled_product(self.crow, self.col, self.val, self.t_crow, self.t_col, self.t_val, p)
+        return _Apply.apply(p, _Matrices(self._csr(), self._csr(transpose=True)))
 
     def A_adjoint(self, r: torch.Tensor) -> torch.Tensor:
         """``A^T r``: :math:`(N_{rows}, C)` -> :math:`(N_{cols}, C)`."""
         r = self._check_vector(r, "r", self.shape[0])
-        return _Apply.apply(r, self._csr(transpose=True), self._csr())
+        if torch.compiler.is_compiling():
+            return _compiled_product(self.t_crow, self.t_col, self.t_val, self.crow, self.col, self.val, r)
+        return _Apply.apply(r, _Matrices(self._csr(transpose=True), self._csr()))
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
         return self.A(p)
