@@ -126,3 +126,20 @@ class TestBadInput:
         a, b = images()
         with pytest.raises(InputError, match="estimate must have shape"):
             SSIMLoss(b, blob())(a[:, :, :-1])
+
+
+def test_the_loss_has_second_derivatives_and_they_are_autograds():
+    """SSIMLoss's closed-form gradient gave no graph under create_graph=True (a Hessian-vector
+    product failed); its second derivatives now match autograd through ssim_map."""
+    a, b = images(1, shape=(11, 12))
+    mask = torch.ones(11, 12, dtype=torch.bool)
+    mask[:2, :3] = False
+    loss = SSIMLoss(b, mask)
+    x = a.clone().requires_grad_(True)
+    assert torch.autograd.gradgradcheck(loss, (x,))
+    v = torch.rand_like(a)
+    (g,) = torch.autograd.grad(loss(x), x, create_graph=True)
+    (hv,) = torch.autograd.grad((g * v).sum(), x)
+    (g_ref,) = torch.autograd.grad(1 - ssim(x, b.clone().requires_grad_(True), mask), x, create_graph=True)
+    (hv_ref,) = torch.autograd.grad((g_ref * v).sum(), x)
+    torch.testing.assert_close(hv, hv_ref, rtol=1e-9, atol=1e-12)

@@ -131,12 +131,18 @@ class _MeanSSIM(torch.autograd.Function):
         inverse = (b1 * b2).reciprocal_()
         s = a1 * a2 * inverse
         ctx.save_for_backward(x, y, uy, weight, ux, a1, a2, b1, b2, inverse, s)
+        ctx.reference, ctx.c1, ctx.c2 = reference, c1, c2  # constants, for a differentiable backward
         return torch.dot(s.reshape(-1), weight.reshape(-1))
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         x, y, uy, weight, ux, a1, a2, b1, b2, inverse, s = ctx.saved_tensors
+        if torch.is_grad_enabled():
+            # create_graph=True (a Hessian-vector product, a gradient penalty): the gradient must itself be
+            # differentiable, so it is taken through autograd from x, whose graph the saved input keeps.
+            # The reference's parts are constants: B1 and B2 hold them beside the estimate's.
+            value = torch.dot(_ssim_of(x, *ctx.reference, ctx.c1, ctx.c2).reshape(-1), weight.reshape(-1))
+            return torch.autograd.grad(value, x, grad, create_graph=True)[0], None, None, None, None
         w = weight * grad
         q = w * inverse
         d_a1, d_a2 = q * a2, q.mul_(a1)
@@ -146,6 +152,16 @@ class _MeanSSIM(torch.autograd.Function):
         d_ux = (d_a1 * uy).add_(d_b1 * ux).sub_((ux * d_b2).add_(uy * d_a2), alpha=_COV).mul_(2)
         m_ux, m_uxx, m_uxy = _local_mean_adjoint(torch.stack([d_ux, d_b2.mul_(_COV), d_a2.mul_(2 * _COV)]))
         return m_ux.add_(m_uxx.mul_(x), alpha=2).add_(m_uxy.mul_(y)), None, None, None, None
+
+
+def _ssim_of(x, y, uy, b1_reference, b2_reference, c1: float, c2: float) -> torch.Tensor:
+    """The SSIM map of :class:`_MeanSSIM`'s forward in out-of-place operations, for autograd."""
+    ux, uxx, uxy = _local_mean(torch.stack([x, x * x, x * y]))
+    a1 = 2 * ux * uy + c1
+    a2 = 2 * _COV * (uxy - ux * uy) + c2
+    b1 = ux * ux + b1_reference
+    b2 = _COV * (uxx - ux * ux) + b2_reference
+    return a1 * a2 / (b1 * b2)
 
 
 def _bounding_box(mask: torch.Tensor, name: str) -> tuple[int, int, int, int]:
@@ -178,7 +194,8 @@ class SSIMLoss(nn.Module):
     """``1 - ssim(estimate, reference, mask)`` against a fixed reference, per image.
 
     The reference's local statistics and each mask's crop are computed once, and the gradient is
-    in closed form (first order only; use :func:`ssim_map` for higher orders).
+    in closed form; under ``create_graph=True`` (a Hessian-vector product, a gradient penalty) it is
+    taken through autograd instead, so derivatives of any order flow.
 
     Args:
         reference: :math:`(C, H, W)` or :math:`(B, C, H, W)`.
