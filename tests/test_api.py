@@ -4,7 +4,8 @@ import torchproj
 
 SURFACE = {
     "": [
-        "BUILTIN_SCENES", "CalibrationBundle", "ClampedAdam", "ImageLoss", "InputError", "OBJECTIVES", "ProjectionModel",
+        "BUILTIN_SCENES", "CalibrationBundle", "ClampedAdam", "ImageLoss", "InputError", "OBJECTIVES", "PSNRBudget",
+        "ProjectionModel",
         "ResponseCurve", "SOLVERS", "SSIMLoss", "Scene", "SolveResult", "StateCalibration", "Target",
         "TorchprojError", "TransportOperator", "VirtualCalibration", "VirtualRig", "__version__",
         "build_transport", "calib", "calibrate_folders", "calibrate_virtual", "core", "crosstalk", "decode_gray",
@@ -42,10 +43,10 @@ SURFACE = {
         "SSIMLoss", "crosstalk", "explained_share", "model_space_psnr", "psnr", "ssim", "ssim_map"],
     "solve": [
         "CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "LF_NORMALISE", "OBJECTIVES", "OUTSIDE",
-        "PSNR_DROP_DB", "ProjectionModel", "REFINE_SOLVER_ITERATIONS", "RefineResult", "SOLVERS", "SolveResult",
+        "PSNRBudget", "PSNR_DROP_DB", "ProjectionModel", "REFINE_SOLVER_ITERATIONS", "RefineResult", "SOLVERS", "SolveResult",
         "calibration_parts", "captured_loss", "check_bounds",
         "check_solve_options", "compensate", "component_chains", "epipolar_bands", "epipolar_chains",
-        "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns",
+        "fundamental_between_projectors", "image_objective", "make_patterns", "projectable_patterns", "psnr_hinge",
         "refine_patterns", "solve_adam",
         "solve_eo", "solve_fista", "solve_gain_offset", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim",
         "solve_target_sets", "to_projectable"],
@@ -54,11 +55,11 @@ SURFACE = {
         "EVALUATION", "FootprintChoice", "ORACLES",
         "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
         "affine_psnr", "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "choose_footprint",
-        "decoding_accuracy", "default_images", "evaluate_patterns", "ghost_images", "light_transport",
+        "decoding_accuracy", "default_images", "describe_light", "evaluate_patterns", "ghost_images", "light_transport",
         "refine_bundle", "rig_measure", "run_markdown", "run_virtual", "scene_images", "scene_targets", "score_image",
         "shown_world",
         "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle", "solve_on_light_transport",
-        "target_image", "true_responses"],
+        "target_image", "true_responses", "white_levels"],
     "experiments": [
         "DepthSweep", "PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance",
         "depth_sweep", "evaluate_positioning", "feedback_profile", "place_by_feedback", "placement_error",
@@ -83,3 +84,25 @@ def test_public_api_surface():
         assert sorted(module.__all__) == sorted(names), room or "torchproj"
         for name in names:
             assert hasattr(module, name), f"{room or 'torchproj'}.{name}"
+
+
+def test_help_lists_the_face_one_line_each():
+    """``help(torchproj)`` opens with every top-level name, each on a line of its own group."""
+    import re
+
+    listed = set(re.findall(r"``(\w+)``", torchproj.__doc__))
+    face = set(torchproj.__all__) - {"__version__"}
+    assert face <= listed, f"help(torchproj) does not list {sorted(face - listed)}"
+    assert all(len(line) <= 120 for line in torchproj.__doc__.splitlines())
+
+
+def test_importing_torchproj_or_its_command_imports_no_torch():
+    """The face is imported on first use: the command parses its arguments, and Ctrl-C is caught,
+    before torch has been imported (a second or more)."""
+    import subprocess
+    import sys
+
+    code = "import sys, torchproj, torchproj.cli; print('torch' in sys.modules); torchproj.ProjectionModel; " \
+           "print('torch' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["False", "True"]

@@ -1,17 +1,44 @@
 """torchproj: multi-projector depth-dependent projection in PyTorch.
 
-What a user reaches for is here; each sub-package holds the rest:
+The face, one line each (each sub-package holds the rest; conventions, pixel centres and ``(x, y)``
+order, are stated once in :mod:`torchproj.core.conventions`):
 
-- :mod:`torchproj.scene`: rig and scene descriptions (``load_scene``).
-- :mod:`torchproj.sim`: the virtual rig (``VirtualRig``).
-- :mod:`torchproj.calib`: Gray code, decoding, response fit, capture folders and bundles (``load_bundle``).
-- :mod:`torchproj.transport`: the sparse light-transport operator ``i = A p`` (``TransportOperator``).
-- :mod:`torchproj.solve`: box-constrained solvers, ``ClampedAdam``, the image-space ``ProjectionModel``.
-- :mod:`torchproj.metrics`: PSNR, SSIM (differentiable), crosstalk.
-- :mod:`torchproj.pipeline`: the whole workflow on the virtual rig (``calibrate_virtual``, ``evaluate_patterns``).
-- :mod:`torchproj.experiments`: depth sweeps and the positioning test.
+Scenes and the virtual rig
+- ``load_scene``: a scene from a YAML file, a built-in name or ``suite-SEED-INDEX``.
+- ``Scene``: a validated rig and scene description; ``BUILTIN_SCENES``: the shipped scenes' names.
+- ``VirtualRig``: the simulated rig, which captures any pattern sequence.
 
-Conventions (pixel centres, ``(x, y)`` order, frames) are stated once in :mod:`torchproj.core.conventions`.
+Calibration
+- ``calibrate_virtual``: simulate and decode a scene's calibration; ``VirtualCalibration``: its result.
+- ``calibrate_folders``: calibrate a bench's capture folders; ``load_bundle``: read a saved calibration.
+- ``CalibrationBundle``: what calibration recovered; ``ResponseCurve``: a projector's ``a x^b + c``.
+- ``graycode_patterns``: the Gray-code sequence to show; ``decode_gray``: decode its captures.
+
+Light transport
+- ``Target``: an image to show in one state; ``scene_targets``: a scene's targets; ``target_image``: an image by name.
+- ``StateCalibration``: one state's maps; ``build_transport``: the sparse operator ``i = A p`` of targets.
+- ``TransportOperator``: ``A``, ``A_adjoint`` and the maps back to cells and camera pixels (an ``nn.Module``).
+
+Solving
+- ``solve_patterns``: solve by name (``SOLVERS``); ``solve_fista``, ``solve_pgd``, ``solve_adam``, ``solve_lf``,
+  ``solve_eo``: each solver; ``SolveResult``: what they return.
+- ``make_patterns``: solve and compensate to 8-bit projector images.
+- ``solve_ssim``: least squares refined on SSIM within a PSNR budget (``OBJECTIVES``); ``ImageLoss``: its loss.
+- ``refine_patterns``: camera in the loop, patterns corrected from captures; ``rig_measure``: the rig's captures for it.
+
+Training like a network
+- ``ProjectionModel``: patterns as an ``nn.Parameter``; ``forward()`` predicts each target's camera image.
+- ``ClampedAdam``: Adam that keeps parameters in the box.
+- ``SSIMLoss``: the reported SSIM as a loss; ``PSNRBudget``: each target within a PSNR budget.
+
+Scores and workflow
+- ``evaluate_patterns``: show patterns on the virtual rig and score every target.
+- ``psnr``, ``ssim``, ``crosstalk``: the scores.
+- ``run_virtual``: the whole ``torchproj run`` workflow; ``shown_world``: a calibration's world as shown.
+- ``InputError``, ``TorchprojError``: the errors torchproj raises (``ValueError`` subclasses).
+
+Sub-packages: ``scene``, ``sim``, ``calib``, ``transport``, ``solve``, ``metrics``, ``pipeline``,
+``experiments``, ``core``.
 """
 
 __version__ = "0.1.0"
@@ -29,7 +56,7 @@ _OFFERED = {
                 "shown_world target_image",
     "scene": "BUILTIN_SCENES Scene load_scene",
     "sim": "VirtualRig",
-    "solve": "OBJECTIVES SOLVERS ClampedAdam ImageLoss ProjectionModel SolveResult make_patterns refine_patterns "
+    "solve": "OBJECTIVES SOLVERS ClampedAdam ImageLoss PSNRBudget ProjectionModel SolveResult make_patterns refine_patterns "
              "solve_adam solve_eo solve_fista solve_lf solve_patterns solve_pgd solve_ssim",
     "transport": "StateCalibration Target TransportOperator build_transport",
 }

@@ -4,7 +4,8 @@ from .compensate import check_solve_options, compensate, make_patterns, projecta
 from .eo import CHAINS, component_chains, epipolar_bands, epipolar_chains, fundamental_between_projectors, solve_eo
 from .gain_offset import solve_gain_offset
 from .model import ProjectionModel, calibration_parts
-from .objectives import OBJECTIVES, PSNR_DROP_DB, ImageLoss, ImageObjective, image_objective, solve_ssim
+from .objectives import (OBJECTIVES, PSNR_DROP_DB, ImageLoss, ImageObjective, PSNRBudget, image_objective, psnr_hinge,
+                         solve_ssim)
 from .refine import REFINE_SOLVER_ITERATIONS, RefineResult, captured_loss, refine_patterns
 from .solvers import (LF_NORMALISE, OUTSIDE, ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd, solve_target_sets,
                       to_projectable)
@@ -20,8 +21,8 @@ def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> So
     return SOLVERS[method](op, bounds, **kwargs)
 
 
-__all__ = ["CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "LF_NORMALISE", "OBJECTIVES", "OUTSIDE", "PSNR_DROP_DB", "ProjectionModel", "REFINE_SOLVER_ITERATIONS", "RefineResult", "SOLVERS", "SolveResult", "calibration_parts", "captured_loss", "check_bounds",
+__all__ = ["CHAINS", "ClampedAdam", "ImageLoss", "ImageObjective", "LF_NORMALISE", "OBJECTIVES", "OUTSIDE", "PSNRBudget", "PSNR_DROP_DB", "ProjectionModel", "REFINE_SOLVER_ITERATIONS", "RefineResult", "SOLVERS", "SolveResult", "calibration_parts", "captured_loss", "check_bounds",
            "check_solve_options",
            "compensate", "component_chains", "epipolar_bands", "epipolar_chains", "fundamental_between_projectors", "image_objective",
-           "make_patterns", "projectable_patterns", "refine_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",
+           "make_patterns", "projectable_patterns", "psnr_hinge", "refine_patterns", "solve_adam", "solve_eo", "solve_fista", "solve_gain_offset",
            "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "solve_target_sets", "to_projectable"]
