@@ -303,3 +303,14 @@ def test_config_files_that_are_not_scenes_are_named(tmp_path):
 def test_a_seed_past_64_bits_is_refused():
     message = _bad(lambda d: d.update(seed=10**40))
     assert message.startswith("seed: must be at most 9223372036854775807, got a number of 41 digits")
+
+
+@pytest.mark.parametrize("name", ["", "  ", "a/b", "..", ".", "a\\\\b", "tab\there"])
+@pytest.mark.parametrize("where", ["projectors", "states"])
+def test_a_name_that_cannot_name_an_output_file_is_refused(name, where):
+    """Projector, state and target names become files and folders (patterns/NAME.png,
+    captures/STATE/PROJECTOR): an empty one failed at the very end, writing patterns/.png."""
+    data = small_config()
+    data[where][0]["name"] = name
+    with pytest.raises(ConfigError, match=rf"{where}\[0\]\.name: .* cannot name a file or folder of the outputs"):
+        parse_scene(data)

@@ -333,7 +333,7 @@ def _colour_mixing(f: Fields, channels: int) -> tuple[tuple[float, ...], ...] | 
 
 
 def _parse_projector(f: Fields, index: int, channels: int = 1) -> Projector:
-    name = f.text("name", f"projector{index}")
+    name = f.name("name", f"projector{index}")
     width, height = _resolution(f)
     fx, fy, cx, cy = _intrinsics(f, width, height)
     pose = parse_pose(f.sub("pose"))
@@ -484,7 +484,7 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
                                   "paths are relative to the config file's folder; a name without a suffix "
                                   "is a scikit-image test image")
             image = str(path)
-        targets.append(TargetSpec(name=tf.text("name", f"target{i}"), state=state,
+        targets.append(TargetSpec(name=tf.name("name", f"target{i}"), state=state,
                                   surfaces=None if surfaces is None else list(surfaces), image=image))
         tf.done()
     names = [t.name for t in targets]
@@ -542,7 +542,7 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
             if not isinstance(m, str) or m not in surfaces:
                 raise ConfigError(sf.where("surfaces"), f"names unknown surface {m!r}",
                                   f"known: {sorted(surfaces)}")
-        states.append(State(name=sf.text("name", f"state{i}"), surfaces=list(members)))
+        states.append(State(name=sf.name("name", f"state{i}"), surfaces=list(members)))
         sf.done()
     state_names = [s.name for s in states]
     if len(set(state_names)) != len(state_names):

@@ -70,6 +70,16 @@ class Fields:
             raise ConfigError(self.where(key), f"must be one of {list(choices)}, got {value!r}")
         return value
 
+    def name(self, key: str, default: Any = _MISSING) -> str:
+        """Text that names a file or folder of the outputs (``patterns/NAME.png``, ``captures/STATE/NAME``):
+        not empty, no path separator, not ``.`` or ``..``, no control characters."""
+        value = self.text(key, default)
+        bad = [c for c in value if c in "/\\" or ord(c) < 32]
+        if not value.strip() or value in (".", "..") or bad:
+            raise ConfigError(self.where(key), f"{value!r} cannot name a file or folder of the outputs",
+                              "give a name of letters, digits, '-' or '_', without '/'")
+        return value
+
     def vector(self, key: str, n: int, default: Any = _MISSING, *, lo: float | None = None,
                strict_lo: bool = False) -> tuple[float, ...]:
         value = self.raw(key, default)
