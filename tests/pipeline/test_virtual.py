@@ -94,3 +94,12 @@ def test_white_levels_are_the_rigs_white_minus_black_and_the_scene_command_print
         verdict = "too dim" if peak < 40 / 255 else "ok"
         assert f"{name} {peak * 255:.0f} ({verdict}" in printed, printed
     assert "too dim" in printed  # the far plane at this exposure
+
+
+def test_a_state_saturated_by_room_light_is_refused_before_calibrating():
+    from torchproj.pipeline.virtual import check_light
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["ambient"] = 1e6
+    with pytest.raises(InputError, match=r"state '\w+': the black capture saturates the camera \(room light alone"):
+        check_light(parse_scene(data))

@@ -93,8 +93,8 @@ def atomic_output(out_dir: str | os.PathLike):
         # Named as the person will look for it: the staging folder is gone by the time they read this. A
         # write the disk refuses part-way through a file names no file.
         what = "" if inside is None else f" while writing {inside} of the new result"
-        raise OSError(exc.errno, f"{exc.strerror or exc}{what}; {out_dir} is as it was and nothing of the new result "
-                                 "was kept") from None
+        message = f"{exc.strerror or exc}{what}; {out_dir} is as it was and nothing of the new result was kept"
+        raise (OSError(message) if exc.errno is None else OSError(exc.errno, message)) from None
     finally:
         if old is not None and not out_dir.exists() and (old / out_dir.name).exists():
             os.replace(old / out_dir.name, out_dir)  # the new one did not go in: the old one goes back, whole

@@ -27,7 +27,7 @@ from .footprint import AUTO, check_footprint, choose_footprint
 from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
-from .targets import scene_targets
+from .targets import scene_images, scene_targets
 from .cache import cached_calibration
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
@@ -154,6 +154,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                                        outside, chains, (refine, refine_frames, refine_relax))
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     check_footprint(footprint)
+    images = scene_images(scene) if images is None else images  # a missing image file is refused before the work
     t_total = time.perf_counter()
     cached = None
     if calibration is not None:

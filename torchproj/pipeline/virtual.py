@@ -119,25 +119,32 @@ def white_levels(scene: Scene, device="cpu") -> dict[tuple[str, str], float]:
 
     White and black captures are simulated without noise at a grid of ``LIGHT_CHECK_GRID`` pixels per
     axis (direct light only: a lower bound where light also bounces); no calibration is needed. A
-    value of 0 means the projector does not reach the state's surfaces.
+    value of 0 means the projector does not reach the state's surfaces, or the black capture is
+    already saturated where it would (:func:`check_light` tells which).
 
     Returns:
         ``(state, projector) -> value`` in [0, 1] camera units.
     """
+    return _light_levels(scene, device)[0]
+
+
+def _light_levels(scene: Scene, device) -> tuple[dict[tuple[str, str], float], dict[str, float]]:
+    """:func:`white_levels`, and per state the median of its black capture over the grid."""
     cam = scene.camera
     rig = VirtualRig(scene, device=device)
     ys = torch.linspace(0, cam.height - 1, min(LIGHT_CHECK_GRID, cam.height), device=device).round().long()
     xs = torch.linspace(0, cam.width - 1, min(LIGHT_CHECK_GRID, cam.width), device=device).round().long()
     pixels = (ys[:, None] * cam.width + xs[None, :]).reshape(-1)
-    levels = {}
+    levels, blacks = {}, {}
     for state in scene.states:
         surfaces = [scene.surfaces[n] for n in state.surfaces]
         black = rig.capture_surfaces(surfaces, {}, pixels, noise=False, direct_only=True)
+        blacks[state.name] = float(black.mean(0).median())
         for j, proj in enumerate(scene.projectors):
             white = rig.capture_surfaces(surfaces, {j: torch.ones(1, 1, proj.height, proj.width, device=device)},
                                          pixels, noise=False, direct_only=True)
             levels[state.name, proj.name] = float((white - black).mean(0).max())
-    return levels
+    return levels, blacks
 
 
 def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD) -> None:
@@ -147,10 +154,17 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD)
     :func:`~torchproj.calib.calibrate_projector`, 40/255); a projector whose brightest lit pixel in
     a state stays under it (:func:`white_levels`) decodes nothing there, and calibration fails
     minutes later at the ramp. A projector that reaches a state's surfaces at all must pass the
-    threshold somewhere on them.
+    threshold somewhere on them; a state whose black capture is saturated by room light shows no
+    projector at all.
     """
-    dim = sorted((peak, state, name) for (state, name), peak in white_levels(scene, device).items()
-                 if 0 < peak < threshold)
+    levels, blacks = _light_levels(scene, device)
+    for state, black in blacks.items():
+        if black >= 1 - 1 / 255 and not any(levels[state, p.name] >= threshold for p in scene.projectors):
+            raise InputError(
+                f"state {state!r}: the black capture saturates the camera (room light alone, ambient "
+                f"{scene.ambient:g} at exposure {scene.camera.exposure:g}), so no projector's light can be seen: "
+                "lower camera.exposure or ambient (checked before calibrating; nothing was simulated)")
+    dim = sorted((peak, state, name) for (state, name), peak in levels.items() if 0 < peak < threshold)
     if dim:
         peak, state, name = dim[0]
         others = f" (and {len(dim) - 1} more state-projector pair(s))" if len(dim) > 1 else ""
