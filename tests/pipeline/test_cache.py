@@ -33,7 +33,6 @@ def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
     # The rig's noise continues where calibration left it: the same captures, to the last bit.
     for a, b, c in zip(first["targets"], second["targets"], plain["targets"]):
         assert a["psnr_db"] == b["psnr_db"] == c["psnr_db"] and a["ssim"] == b["ssim"]
-    assert second["timings_s"]["calibrate"] < 0.5 * first["timings_s"]["calibrate"]
     assert len(list(cache.glob("*.pt"))) == 1
 
 
