@@ -229,3 +229,14 @@ def test_rows_moved_carry_their_light_where_the_move_says(op, kind):
     assert torch.allclose(moved.A(ones), op.A(ones.new_ones(op.shape[1], 1)), atol=1e-9)
     if kind == "none":
         assert torch.allclose(moved.dense(), op.dense())
+
+
+def test_an_operator_with_its_normal_equations_cached_can_be_deep_copied(op):
+    import copy
+
+    op.normal_equations("matrix")
+    twin = copy.deepcopy(op)
+    assert twin.val.data_ptr() != op.val.data_ptr()
+    p = torch.rand(op.shape[1], op.channels, dtype=op.val.dtype)
+    torch.testing.assert_close(twin.A(p), op.A(p))
+    torch.testing.assert_close(twin.normal_equations("matrix").q, op.normal_equations("matrix").q)

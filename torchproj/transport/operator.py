@@ -330,6 +330,16 @@ class TransportOperator(nn.Module):
             setattr(self, key, maker.from_operator(self))
         return getattr(self, key)
 
+    def __deepcopy__(self, memo):
+        # The cached normal equations hold sparse tensors, which deepcopy cannot copy (a model built by
+        # ProjectionModel.from_calibration, whose least-squares start cached them, could not be copied);
+        # a copy builds its own when asked.
+        new = type(self).__new__(type(self))
+        memo[id(self)] = new
+        for key, value in self.__dict__.items():
+            new.__dict__[key] = None if key in ("_normal", "_products") else copy.deepcopy(value, memo)
+        return new
+
     def forget_normal_equations(self) -> None:
         """Drop the cached ``Q`` (:meth:`normal_equations` builds it again when asked): a solve over one
         operator per colour channel then holds one ``Q`` at a time (0.2 GB each on the full-size RGB rig
