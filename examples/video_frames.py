@@ -1,6 +1,6 @@
 """A video's frames at two depths: a batch of target sets solved together, then refined as one batch.
 
-    python examples/video_frames.py                      # 8 frames, the paper's rig at quarter size
+    python examples/video_frames.py                      # 8 frames, the paper's rig at quarter size, ~11 s
     python examples/video_frames.py --frames 16 --scale 0.5
 
 Each frame asks for its own pair of images: the near plane pans across scikit-image's astronaut, the
