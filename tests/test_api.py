@@ -106,3 +106,20 @@ def test_importing_torchproj_or_its_command_imports_no_torch():
            "print('torch' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert done.stdout.split() == ["False", "True"]
+
+
+def test_the_commands_parser_imports_no_torch_and_offers_the_librarys_choices():
+    """``torchproj --help`` took seconds and 320 MB importing the library for its option lists; the
+    lists live in core.choices, and each is the one the library uses."""
+    import subprocess
+    import sys
+
+    code = "import sys; from torchproj.cli import build_parser; build_parser(); print('torch' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["False"]
+    from torchproj import calib, pipeline, solve, transport
+    from torchproj.core import choices
+
+    assert tuple(solve.SOLVERS) == choices.SOLVER_NAMES
+    assert solve.OBJECTIVES is choices.OBJECTIVES and transport.FOOTPRINTS is choices.FOOTPRINTS
+    assert pipeline.ORACLES is choices.ORACLES and calib.DIM_THRESHOLD == choices.DIM_THRESHOLD

@@ -1,4 +1,8 @@
-"""The ``torchproj`` command: it parses arguments and calls the library's rooms, nothing more."""
+"""The ``torchproj`` command: it parses arguments and calls the library, nothing more.
+
+It imports the library only inside the command that runs (the parser reads its choices from
+:mod:`torchproj.core.choices`), so ``torchproj --help`` answers in a fraction of a second.
+"""
 
 from __future__ import annotations
 
@@ -242,7 +246,7 @@ def _virtual_rig_commands(sub) -> None:
     p = command(sub, "scene", cmd_scene, "check a scene config and print what it describes", out="")
     config_option(p)
 
-    from .pipeline import ORACLES
+    from .core.choices import ORACLES
 
     p = command(sub, "run", cmd_run, "the main job on the virtual rig: calibrate, solve, project, capture, "
                  "evaluate", out="out/run")
@@ -318,7 +322,7 @@ def _real_rig_commands(sub) -> None:
                    "the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
 
-    from .calib import DIM_THRESHOLD
+    from .core.choices import DIM_THRESHOLD
 
     p = command(sub, "calibrate", cmd_calibrate, "decode every state and projector of a capture root into a "
                  "calibration bundle", out_help="bundle folder")
@@ -376,7 +380,10 @@ def _real_rig_commands(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchproj", description=__doc__.splitlines()[0] if __doc__ else None)
+    parser = argparse.ArgumentParser(
+        prog="torchproj", description="Multi-projector depth-dependent projection: patterns that show a chosen image "
+        "on each of several surfaces or positions. Start with `torchproj run` (the built-in virtual rig); `torchproj "
+        "COMMAND --help` for a command's options.")
     parser.add_argument("--version", action="version", version=f"torchproj {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _virtual_rig_commands(sub)

@@ -27,7 +27,7 @@ def positive_int(text: str) -> int:
 
 
 def projector_size(text: str) -> tuple[int, int]:
-    from .scene import SIZE_LIMIT
+    from .core.choices import SIZE_LIMIT
 
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -90,7 +90,7 @@ def command(sub, name: str, func, help: str, out: str | None = None, out_help: s
 
 
 def config_option(p, default: str = "paper_two_planes") -> None:
-    from .scene import SIZE_LIMIT
+    from .core.choices import SIZE_LIMIT
 
     p.add_argument("config", nargs="?", default=default, help=f"YAML file or built-in name (default: {default})")
     p.add_argument("--size-limit", type=float, default=SIZE_LIMIT, metavar="N", help="refuse a scene with more camera "
@@ -98,6 +98,8 @@ def config_option(p, default: str = "paper_two_planes") -> None:
 
 
 def device(text: str) -> str:
+    if text == "cpu":  # always there; checked without importing torch, so that --help answers at once
+        return text
     from .core.checks import check_device
     from .core.errors import InputError
 
@@ -118,9 +120,9 @@ def device_options(p, max_iter: bool = True) -> None:
 
 def solver_options(p) -> None:
     """The pattern solver and its bounds (``run``, ``solve``, ``position``)."""
-    from .solve import CHAINS, OUTSIDE, SOLVERS
+    from .core.choices import CHAINS, OUTSIDE, SOLVER_NAMES
 
-    p.add_argument("--solver", default="fista", choices=list(SOLVERS), help="pattern solver (default: fista)")
+    p.add_argument("--solver", default="fista", choices=list(SOLVER_NAMES), help="pattern solver (default: fista)")
     p.add_argument("--bounds", type=bounds, default=(0.0, 255.0), metavar="LO,HI",
                    help="solver bounds in 8-bit units as in the paper (default 0,255; eo with -100,255 is EO_-100^255)")
     p.add_argument("--outside", default="clip", choices=list(OUTSIDE),
@@ -133,8 +135,7 @@ def solver_options(p) -> None:
 
 def solve_options(p) -> None:
     """The options of every command that solves patterns (``run``, ``solve``)."""
-    from .solve import OBJECTIVES, PSNR_DROP_DB
-    from .transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, FOOTPRINTS
+    from .core.choices import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, FOOTPRINTS, OBJECTIVES, PSNR_DROP_DB
 
     solver_options(p)
     p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
@@ -157,7 +158,7 @@ def solve_options(p) -> None:
 
 
 def map_options(p, maps: bool = True, bits: str | None = None) -> None:
-    from .transport import MAPS
+    from .core.choices import MAPS
 
     if maps:
         p.add_argument("--maps", default="decoded", choices=list(MAPS),

@@ -31,7 +31,7 @@ FEW_DECODED = 0.7
 # Such a pixel is no target pixel of its own, but where another projector lights it, this one's light
 # there belongs in its row (StateCalibration.dim). Our choice, not the paper's (README, "The ceiling",
 # measures it against none; other values are not benchmarked).
-DIM_THRESHOLD = 10
+from ..core.choices import DIM_THRESHOLD  # noqa: E402  (10; there, for the command's parser)
 
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:

@@ -16,7 +16,7 @@ from .errors import InputError
 # refused before any work: the default scene casts 1.7e7 rays per state (3.8 s, README's table), so
 # the limit is ~6x that in time and memory; a mistyped size (60000 x 40000, supersampling 200) would
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
-SIZE_LIMIT = 10 ** 8
+from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
 __all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_device"]
 

@@ -33,7 +33,7 @@ from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
 
-ORACLES = ("geometry", "transport")  # what an oracle run takes from the simulator (run_virtual's ``oracle``)
+from ..core.choices import ORACLES  # noqa: E402  what an oracle run takes from the simulator (run_virtual's ``oracle``)
 MAX_REFINE = 100  # camera-loop updates a run may ask for: each is a capture of every state
 CEILING_ITERATIONS = 3000  # FISTA's limit for the ceiling: it stops on its gap long before on the shipped scenes
 

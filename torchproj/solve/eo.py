@@ -49,7 +49,7 @@ from .solvers import SolveResult, _clamp_, _stop, check_bounds, coarse_start
 __all__ = ["CHAINS", "fundamental_between_projectors", "epipolar_bands", "epipolar_chains", "component_chains",
            "solve_eo"]
 
-CHAINS = ("epipolar", "components")  # solve_eo's independent problems, by name (it also takes an index)
+from ..core.choices import CHAINS  # noqa: E402  solve_eo's independent problems, by name (it also takes an index)
 
 
 def fundamental_between_projectors(calibrations: dict[str, StateCalibration], first: int = 0, second: int = 1,

@@ -36,10 +36,10 @@ from .solvers import ClampedAdam, SolveResult, check_bounds, solve_fista
 __all__ = ["ImageLoss", "ImageObjective", "OBJECTIVES", "PSNRBudget", "PSNR_DROP_DB", "image_objective", "psnr_hinge",
            "solve_ssim"]
 
-# Objective name -> weight w of the relative squared error (None: least squares itself).
-OBJECTIVES = {"l2": None, "ssim": 0.1, "mixed": 1.0}
-# The PSNR, per target, that an image objective may give up against the least-squares start (model, dB).
-PSNR_DROP_DB = 1.0
+# Objective name -> weight w of the relative squared error (None: least squares itself), and the PSNR
+# per target that an image objective may give up against the least-squares start (model, dB); both in
+# core.choices, which the command's parser reads.
+from ..core.choices import OBJECTIVES, PSNR_DROP_DB  # noqa: E402
 _HINGE = 1.0  # mu, per dB^2
 
 

@@ -56,7 +56,7 @@ def check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
     return lo, hi
 
 
-OUTSIDE = ("clip", "map")  # how a solution whose bounds leave [0, 1] is shown: to_projectable
+from ..core.choices import OUTSIDE  # noqa: E402  how a solution whose bounds leave [0, 1] is shown: to_projectable
 
 
 def check_outside(outside: str) -> None:

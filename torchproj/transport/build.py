@@ -47,12 +47,11 @@ __all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Tar
 # mean for every channel (build_transport). Per channel is what run and solve use where calibration
 # has it: on colour_two_planes it lifts the near target 0.9 dB, to the ceiling's colour balance
 # (benchmarks/models.py, README "The ceiling").
-COLOUR_WEIGHTS = ("channel", "grey")
-FOOTPRINTS = ("nearest", "bilinear", "area")  # the cells a camera pixel's light is modelled on (build_transport)
+# (COLOUR_WEIGHTS, FOOTPRINTS and DEFAULT_FOOTPRINT live in core.choices, which the command's parser reads.)
 # What run, solve and position model by default: the footprint closest to the exact-light ceiling on
 # the shipped scenes, for a few seconds more than nearest (benchmarks/models.py, README "The
 # ceiling"). build_transport's own default stays the paper's nearest cell, whose rows merge.
-DEFAULT_FOOTPRINT = "area"
+from ..core.choices import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, FOOTPRINTS  # noqa: E402
 
 # Points per axis at which a camera pixel's area is carried onto the projector by the ``area``
 # footprint: 4 x 4 shares a pixel's light among its cells to 1/16. box_positions' camera samples its

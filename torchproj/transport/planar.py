@@ -15,7 +15,7 @@ from ..calib.homography import HomographyFit, check_plane, fit_homography, homog
 
 __all__ = ["HomographyFit", "MAPS", "fit_homography", "homography_map", "planar_calibration", "select_maps"]
 
-MAPS = ("decoded", "homography")
+from ..core.choices import MAPS  # noqa: E402
 
 
 def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> tuple[dict, dict]:
