@@ -38,6 +38,12 @@ def test_run_writes_a_complete_report(config, tmp_path):
     for name in ("report.md", "overview.png", "patterns/upper.png", "patterns/lower.png", "captures/near.png",
                  "captures/far.png"):
         assert (out / name).is_file(), name
+    # report.md opens with a verdict on the weakest target, held against the paper's prototype, and a legend.
+    worst = min(report["targets"], key=lambda t: t["psnr_db"])
+    opening = (out / "report.md").read_text().split("\n\n")[1:3]
+    assert opening[0].startswith(f"**Verdict:** the weakest target, {worst['name']}, captures at "
+                                 f"{worst['psnr_db']:.1f} dB PSNR and SSIM {worst['ssim']:.2f}: ")
+    assert "the paper's prototype range (18.3-20.9 dB" in opening[0] and opening[1].startswith("Legend: PSNR in dB")
 
 
 def test_run_with_homography_maps_writes_the_fits(config, tmp_path):

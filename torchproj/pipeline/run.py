@@ -452,6 +452,35 @@ def _show_lines(report: dict) -> list[str]:
     return lines
 
 
+# The paper's prototype (EO_0^255 on two planes, its table of PSNR and SSIM per plane, scored against
+# its own baseline): what a reader can hold a run's scores against.
+PAPER_PROTOTYPE = {"psnr_db": (18.3, 20.9), "ssim": (0.58, 0.77)}
+
+
+def _verdict_lines(targets: list[dict], ceiling: bool) -> list[str]:
+    """report.md's opening: one line that says how the run came out, and a legend of the scores."""
+    if not targets:
+        return []
+    scored = [t for t in targets if t.get("psnr_db") is not None]
+    if not scored:
+        return ["**Verdict:** no target could be scored (see each row's notes).", ""]
+    worst = min(scored, key=lambda t: t["psnr_db"])
+    lo, hi = PAPER_PROTOTYPE["psnr_db"]
+    place = "above" if worst["psnr_db"] > hi else "within" if worst["psnr_db"] >= lo else "below"
+    verdict = (f"**Verdict:** the weakest target, {worst['name']}, captures at {worst['psnr_db']:.1f} dB PSNR and SSIM "
+               f"{worst['ssim']:.2f}: {place} the paper's prototype range ({lo}-{hi} dB, SSIM "
+               f"{PAPER_PROTOTYPE['ssim'][0]}-{PAPER_PROTOTYPE['ssim'][1]} per plane)")
+    if ceiling:
+        gap = max(t["ceiling"]["psnr_db"] - t["psnr_db"] for t in scored if t["ceiling"]["psnr_db"] is not None)
+        verdict += f", and at most {gap:.2f} dB below what the exact light allows (the ceiling)"
+    return [verdict + ".", "",
+            "Legend: PSNR in dB, higher is better (each 6 dB halves the RMS error; past about 30 dB a difference is "
+            "hard to see); SSIM 1 is the target's structure exactly, 0 none of it; crosstalk 0 means no trace of "
+            "another target's image, 1 its full image; ghost is the share of the error the other states' images "
+            "explain. Depth-dependent projection shares every projector between all targets, so two full "
+            "images rarely both reach 30 dB.", ""]
+
+
 def run_markdown(report: dict) -> str:
     """``report.md`` of a run: what ``report.json`` holds, as tables."""
     m, t = report["model"], report["timings_s"]
@@ -465,6 +494,7 @@ def run_markdown(report: dict) -> str:
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}"
              + (f" (values below 0 shown by {report.get('outside', 'clip')})" if below else ""), "",
+             *_verdict_lines(report["targets"], ceiling),
              f"Calibration: {report['calibration']}; maps: {report['maps']}; footprint: {footprint}"
              + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
                  f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"
@@ -476,7 +506,6 @@ def run_markdown(report: dict) -> str:
              *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
              *_image_objective_lines(report.get("image_objective")),
              *_show_lines(report),
-             f"Evaluation: {report['evaluation']}.", "",
              "| target | state | PSNR (dB) | SSIM | crosstalk | ghost | pixels | affine PSNR (dB) |"
              + (" paper PSNR (dB) | paper SSIM |" if paper else "")
              + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else "")
@@ -500,6 +529,7 @@ def run_markdown(report: dict) -> str:
     if ceiling:
         lines += ["", "Ceiling: the same targets, rows and bounds solved on the simulator's own light transport "
                       "(FISTA, least squares) and scored the same way: the best any calibration could give."]
+    lines += ["", f"How each score is computed: {report['evaluation']}."]
     if "homographies" in report:
         lines += ["", "Homographies (residual from decoded to fitted coordinates, projector pixels; for Gray-code "
                       "blocks, the distance outside the block over the pixels at block edges):", "",
