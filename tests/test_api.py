@@ -31,7 +31,7 @@ SURFACE = {
         "ResponseCurve", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane", "checker_patterns", "checker_shares",
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_colour_mixing", "fit_homography", "fit_plane", "fit_response",
         "graycode_bits", "graycode_patterns", "homography_map",
-        "inverse_map", "load_bundle", "measure_blur", "measure_ramp", "primary_patterns", "ramp_pattern", "read_graycode_folder",
+        "inverse_map", "largest_plane", "load_bundle", "measure_blur", "measure_ramp", "primary_patterns", "ramp_pattern", "read_graycode_folder",
         "read_opencv_calibration", "refine_subpixel", "sequence_bits", "stripe_contrast", "triangulate", "triangulate_map",
         "warn_if_few_decoded", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [

@@ -24,7 +24,8 @@ from .edges import EdgePixels, find_edge_pixels
 from .pipeline import (DIM_THRESHOLD, FEW_DECODED, DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder,
                        warn_if_few_decoded)
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp, primary_patterns, ramp_pattern
-from .triangulate import ProCamCalibration, fit_plane, read_opencv_calibration, triangulate, triangulate_map, write_ply
+from .triangulate import (ProCamCalibration, fit_plane, largest_plane, read_opencv_calibration, triangulate,
+                          triangulate_map, write_ply)
 
 __all__ = [
     "BUNDLE_VERSION",
@@ -63,6 +64,7 @@ __all__ = [
     "graycode_patterns",
     "homography_map",
     "inverse_map",
+    "largest_plane",
     "load_bundle",
     "measure_blur",
     "measure_ramp",

@@ -19,10 +19,11 @@ import torch
 from kornia.geometry.calibration import undistort_points
 from kornia.geometry.epipolar import triangulate_points
 
-from ..core.checks import check_shape
+from ..core.checks import check, check_shape
 from ..core.errors import CaptureError
 
-__all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "triangulate_map", "fit_plane", "write_ply"]
+__all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "triangulate_map", "fit_plane", "largest_plane",
+           "write_ply"]
 
 
 @dataclass
@@ -131,6 +132,48 @@ def fit_plane(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
     centred = points - centroid
     normal = torch.linalg.svd(centred, full_matrices=False)[2][2]
     return centroid, normal, centred @ normal
+
+
+def largest_plane(points: torch.Tensor, threshold: float, trials: int = 500, seed: int = 0,
+                  sample: int = 20000) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The plane most points lie on (RANSAC), refitted by least squares to the points within
+    ``threshold`` of it: a board's flatness from the board, where the scan also holds the wall
+    behind it and clutter (one least-squares plane through all of them measures none).
+
+    Hand-written (a dozen lines): scikit-image's ``ransac`` would need a plane model class of ours
+    all the same, and its model interface changes between releases (``estimate`` to ``from_estimate``).
+
+    Args:
+        points: :math:`(N, 3)`.
+        threshold: the largest distance from the plane of a point on it (the points' units).
+        trials: planes tried, each through three points drawn with ``seed``.
+        sample: points the trials are scored on (all of them where fewer).
+
+    Returns:
+        ``centroid`` (3,), unit ``normal`` (3,), signed ``residuals`` (N,) of every point, and
+        ``on_plane`` (N,) bool, within ``threshold`` of it. The plane is unbounded: clutter that
+        crosses it within ``threshold`` counts as on it, so give a threshold a few times the scan's
+        noise (a dent deeper than it is then off the plane).
+    """
+    check_shape(points, "points", ["N", 3])
+    check(points.shape[0] >= 3 and threshold > 0, f"need 3 points or more and a positive threshold, got "
+                                                  f"{points.shape[0]} and {threshold}")
+    g = torch.Generator().manual_seed(seed)
+    scored = points[torch.randperm(points.shape[0], generator=g)[:sample]]
+    three = points[torch.randint(points.shape[0], (trials, 3), generator=g)]
+    edge_1, edge_2 = three[:, 1] - three[:, 0], three[:, 2] - three[:, 0]
+    normals = torch.linalg.cross(edge_1, edge_2)
+    length = normals.norm(dim=1, keepdim=True)
+    # Three points on a line (to rounding: the sine of their angle under 1e-4) span no plane.
+    valid = length[:, 0] > 1e-4 * edge_1.norm(dim=1) * edge_2.norm(dim=1)
+    normals, anchors = normals[valid] / length[valid], three[valid, 0]
+    check(len(normals) > 0, "every trial drew three points on a line; are the points all collinear?")
+    counts = torch.stack([((scored - a) @ n).abs().lt(threshold).sum() for a, n in zip(anchors, normals)])
+    best = int(counts.argmax())
+    on_plane = ((points - anchors[best]) @ normals[best]).abs() < threshold
+    centroid, normal, _ = fit_plane(points[on_plane])
+    residuals = (points - centroid) @ normal
+    return centroid, normal, residuals, residuals.abs() < threshold
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
