@@ -44,12 +44,22 @@ def box_wireframe(world_from_local: np.ndarray, size) -> pv.PolyData:
     return box.transform(np.asarray(world_from_local, dtype=np.float64), inplace=False).extract_all_edges()
 
 
-def finish(plotter: pv.Plotter, out: Path | None, show: bool) -> pv.Plotter:
-    """Save the view as a PNG (creating its folder) and open a window if asked."""
+def finish(plotter: pv.Plotter, out: Path | None, show: bool, geometry: dict | None = None) -> pv.Plotter:
+    """Save the view as a PNG (creating its folder), its geometry with its values beside it, and open
+    a window if asked.
+
+    ``geometry``: name -> pyvista dataset; written as ``OUT.vtm`` (a multiblock file ParaView and
+    ``pyvista.read`` open, every point value kept), so that the view can be explored, not only looked at.
+    A window's screenshot is taken by ``show`` itself: an on-screen plotter has nothing to screenshot
+    before its window has rendered (``--show`` failed with "Nothing to screenshot").
+    """
     if out is not None:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        plotter.screenshot(str(out))
+        if geometry:
+            pv.MultiBlock(geometry).save(str(out.with_suffix(".vtm")))
     if show:
-        plotter.show()
+        plotter.show(screenshot=None if out is None else str(out))
+    elif out is not None:
+        plotter.screenshot(str(out))
     return plotter
