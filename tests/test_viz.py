@@ -76,21 +76,48 @@ def _box_front_points(pose, size, n=60):
     return local @ pose[:3, :3].T + pose[:3, 3]
 
 
-def test_positioning_view_colours_the_error(viz, tmp_path):
+def test_positioning_view_colours_the_signed_error(viz, tmp_path):
+    """Toward the rig (short of the goal) is positive, past it negative; the scan's values are written
+    beside the PNG, and the title names the RMSE and the placed pose's error."""
+    pv = pytest.importorskip("pyvista")
     box = load_scene("box_positions").surfaces["box_near"]
     goal, size = box.world_from_local, np.array(box.size)
-    normal = goal[:3, :3] @ np.array([0.0, 0.0, -1.0])
-    counts = {}
-    for shift_mm in (1, 12):
+    normal = goal[:3, :3] @ np.array([0.0, 0.0, -1.0])  # out of the face the rig sees
+    for shift_mm in (-3, 1, 12):
         placed = goal.copy()
         placed[:3, 3] += shift_mm / 1000 * normal
-        scan = {"points": _box_front_points(placed, size), "goal_pose": goal, "box_size": size}
+        scan = {"points": _box_front_points(placed, size), "goal_pose": goal, "box_size": size,
+                "placed_pose": placed, "start_pose": placed}
         out = tmp_path / f"shift{shift_mm}.png"
         viz["positioning"].draw_scan(scan, out, max_mm=15, window_size=(400, 300)).close()
-        counts[shift_mm] = _colours(out)
-    assert counts[1][1] > 50 and counts[12][1] > 50  # the wireframe is drawn
-    assert counts[1][2] > 2000  # and the scan
-    assert counts[12][0] > 500 and counts[1][0] < 0.1 * counts[12][0]
+        assert _colours(out)[1] > 50 and _colours(out)[2] > 2000  # the goal's red wireframe, and the scan
+        values = pv.read(out.with_suffix(".vtm"))["scan"]["signed distance to goal (mm)"]
+        assert np.allclose(values, shift_mm, atol=0.01), shift_mm
+
+
+def test_positioning_views_of_a_run_share_one_colour_scale(viz, tmp_path, capsys):
+    box = load_scene("box_positions").surfaces["box_near"]
+    goal, size = box.world_from_local, np.array(box.size)
+    (tmp_path / "scans").mkdir()
+    for name, shift_mm in (("near_0", 1), ("near_1", 9)):
+        placed = goal.copy()
+        placed[:3, 3] += shift_mm / 1000 * (goal[:3, :3] @ np.array([0.0, 0.0, -1.0]))
+        np.savez(tmp_path / "scans" / f"{name}.npz", points=_box_front_points(placed, size), goal_pose=goal,
+                 box_size=size, placed_pose=placed, start_pose=goal)
+    drawn = []
+    real = viz["positioning"].draw_scan
+
+    def spy(scan, out, max_mm=None, *args, **kwargs):
+        drawn.append(max_mm)
+        return real(scan, out, max_mm, *args, window_size=(300, 200))
+
+    viz["positioning"].draw_scan = spy
+    try:
+        assert viz["positioning"].main([str(tmp_path)]) == 0
+    finally:
+        viz["positioning"].draw_scan = real
+    assert len(drawn) == 2 and drawn[0] == drawn[1] == pytest.approx(9, abs=0.01)
+    assert (tmp_path / "views" / "near_0.png").is_file() and (tmp_path / "views" / "near_1.vtm").is_file()
 
 
 def test_point_cloud_view_fits_the_plane(viz, tmp_path):

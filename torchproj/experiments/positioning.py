@@ -77,16 +77,17 @@ def pose_error(pose: np.ndarray, goal: np.ndarray) -> dict:
             "rotation_deg": round(math.degrees(math.acos(float(np.clip(cos, -1, 1)))), 4)}
 
 
-def box_surface_distance(points: np.ndarray, world_from_local: np.ndarray, size) -> np.ndarray:
-    """Unsigned distance of world points :math:`(N, 3)` from the surface of a box (same units).
+def box_surface_distance(points: np.ndarray, world_from_local: np.ndarray, size, signed: bool = False) -> np.ndarray:
+    """Distance of world points :math:`(N, 3)` from the surface of a box (same units).
 
     Outside the box it is the distance to the nearest point of the box; inside, to the nearest face.
+    ``signed``: negative inside (a scanned face pushed past the goal's), positive outside (short of it).
     """
     local = (points - world_from_local[:3, 3]) @ world_from_local[:3, :3]
     q = np.abs(local) - np.asarray(size, dtype=np.float64) / 2
     outside = np.linalg.norm(np.maximum(q, 0), axis=1)
     inside = np.minimum(q.max(axis=1), 0)
-    return np.abs(outside + inside)
+    return outside + inside if signed else np.abs(outside + inside)
 
 
 def _posed(surface: Surface, pose: np.ndarray, name: str | None = None) -> Surface:
