@@ -16,14 +16,18 @@ from matplotlib.figure import Figure
 __all__ = ["decode_summary", "calibration_summary", "run_overview", "depth_selectivity", "positioning_feedback"]
 
 
+TITLE_PT, LABEL_PT, DPI = 11, 9, 110  # readable at a glance on a laptop screen
+
+
 def _map_panel(ax, data, title, cmap="viridis", label=None, **kw):
     im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, interpolation="nearest", **kw)
-    ax.set_title(title, fontsize=9)
+    ax.set_title(title, fontsize=TITLE_PT)
     ax.set_xticks([])
     ax.set_yticks([])
     cb = ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    cb.ax.tick_params(labelsize=LABEL_PT)
     if label:
-        cb.set_label(label, fontsize=8)
+        cb.set_label(label, fontsize=LABEL_PT)
 
 
 def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torch.Tensor,
@@ -53,12 +57,16 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
     """
     fig = Figure(figsize=(17, 3.4 * len(rows)))
     axes = fig.subplots(len(rows), 4, squeeze=False)
+    # One error scale for every row (they are compared), at the 99th percentile of the errors: a fixed
+    # 0-0.5 px scale left maps of 0.05 px errors nearly black.
+    errors = [row["error"][torch.isfinite(row["error"])] for row in rows if row.get("error") is not None]
+    top = max((float(torch.quantile(e.float()[:1_000_000], 0.99)) for e in errors if e.numel()), default=0.5)
     for ax_row, row in zip(axes, rows):
         _map_panel(ax_row[0], row["prj_xy"][..., 0].numpy(), f"{row['label']}: projector x", label="px")
         _map_panel(ax_row[1], row["prj_xy"][..., 1].numpy(), f"{row['label']}: projector y", label="px")
         if row.get("error") is not None:
             _map_panel(ax_row[2], row["error"].numpy(), "|decoded - true| (sub-pixel)", cmap="magma",
-                       label="projector px", vmin=0, vmax=0.5)
+                       label="projector px", vmin=0, vmax=max(top, 1e-3))
         elif row.get("valid") is not None:
             valid = row["valid"]
             _map_panel(ax_row[2], valid.float().numpy(), f"decoded ({float(valid.float().mean()):.1%} of the camera)",
@@ -74,33 +82,42 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
                     label=f"fit a x^b + c, b={float(response.b[0]):.3f}")
             if row.get("true_b") is not None:
                 ax.plot(x.numpy(), x.numpy() ** row["true_b"], "--", label=f"true x^{row['true_b']:.2f}")
-            ax.set_xlabel("pattern value x")
-            ax.set_ylabel("relative light")
-            ax.legend(fontsize=7)
-            ax.set_title("response (normalised by white - black)", fontsize=9)
+            ax.set_xlabel("pattern value x", fontsize=LABEL_PT)
+            ax.set_ylabel("relative light (white - black = 1)", fontsize=LABEL_PT)
+            ax.legend(fontsize=LABEL_PT)
+            ax.set_title("response (normalised by white - black)", fontsize=TITLE_PT)
         else:
             ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    fig.savefig(path, dpi=DPI)
 
 
 def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projector_names: list[str],
-                 targets: list) -> None:
+                 targets: list, title: str = "") -> None:
     """Projector patterns on top; one row per target: the target on the camera, the capture, the error.
 
     ``targets``: :class:`~torchproj.pipeline.TargetScore` per target; all three panels are cropped
-    to the target's pixels.
+    to the target's pixels, and every error map shares one colour scale. Where the top row has room
+    beside the patterns, it lists the scores.
     """
     n_cols = max(3, len(patterns))
-    fig = Figure(figsize=(4.2 * n_cols, 3.4 * (1 + len(targets))))
+    fig = Figure(figsize=(4.4 * n_cols, 3.6 * (1 + len(targets))))
     axes = fig.subplots(1 + len(targets), n_cols, squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
     for j, (pat, name) in enumerate(zip(patterns, projector_names)):
         img = pat.permute(1, 2, 0).numpy()
         axes[0, j].imshow(img[..., 0] if img.shape[2] == 1 else img, cmap="gray", vmin=0, vmax=255)
-        axes[0, j].set_title(f"pattern for projector {name} (8-bit)", fontsize=9)
-    for row, t in enumerate(targets, start=1):
+        axes[0, j].set_title(f"pattern for projector {name} (8-bit)", fontsize=TITLE_PT)
+    if len(patterns) < n_cols:  # the room beside the patterns: the scores, so no panel is empty
+        lines = ["scores (captured against target)", ""] + [
+            f"{t.name}: {t.psnr_db:.1f} dB PSNR, SSIM {t.ssim:.2f}, crosstalk {t.crosstalk:.2f}" for t in targets]
+        axes[0, n_cols - 1].text(0.0, 0.9, "\n".join(lines), fontsize=TITLE_PT, va="top", family="monospace",
+                                 transform=axes[0, n_cols - 1].transAxes)
+    errors = [(t.estimate - t.values).abs().mean(0, keepdim=True) for t in targets]
+    top = max((float(e[0][t.covered].quantile(0.99)) for e, t in zip(errors, targets) if t.covered.any()), default=0.5)
+    top = max(top, 1e-3)
+    for row, (t, err) in enumerate(zip(targets, errors), start=1):
         ys, xs = torch.nonzero(t.covered, as_tuple=True)
         y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
         mask = t.covered[y0:y1, x0:x1]
@@ -111,15 +128,17 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
             c = c.permute(1, 2, 0).numpy()
             return c[..., 0] if c.shape[2] == 1 else np.nan_to_num(c)
 
-        err = (t.estimate - t.values).abs().mean(0, keepdim=True)
-        for col, (img, title, kw) in enumerate([
-                (t.values, f"target {t.name}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
-                (t.estimate, f"captured: {t.psnr_db:.1f} dB, SSIM {t.ssim:.2f}", {"cmap": "gray", "vmin": 0, "vmax": 1}),
-                (err, f"|captured - target| (crosstalk {t.crosstalk:.2f})", {"cmap": "magma", "vmin": 0, "vmax": 0.5})]):
-            axes[row, col].imshow(crop(img), interpolation="nearest", **kw)
-            axes[row, col].set_title(title, fontsize=9)
+        for col, (img, panel_title) in enumerate([(t.values, f"target {t.name}"),
+                                                  (t.estimate, f"captured: {t.psnr_db:.1f} dB, SSIM {t.ssim:.2f}")]):
+            axes[row, col].imshow(crop(img), interpolation="nearest", cmap="gray", vmin=0, vmax=1)
+            axes[row, col].set_title(panel_title, fontsize=TITLE_PT)
+        axes[row, 2].axis("on")
+        _map_panel(axes[row, 2], crop(err), f"|captured - target| (crosstalk {t.crosstalk:.2f})", cmap="magma",
+                   label="error (target units, 1 = white)", vmin=0, vmax=top)
+    if title:
+        fig.suptitle(title, fontsize=TITLE_PT + 1)
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    fig.savefig(path, dpi=DPI)
 
 
 def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict[str, float] | None = None) -> None:
@@ -185,9 +204,12 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
+    styles = ("-", "--", ":", "-.")
     for t in trials:
         k = names.index(t["position"]) if t["position"] in names else 0
-        axes[3].plot(np.maximum.accumulate(np.asarray(t["history"])), color=colours[k % len(colours)], lw=1,
+        # Colour by position, line style by trial: a position's trials had one colour and could not be told apart.
+        axes[3].plot(np.maximum.accumulate(np.asarray(t["history"])), color=colours[k % len(colours)], lw=1.4,
+                     linestyle=styles[int(t["trial"]) % len(styles)],
                      label=f"{t['position']} #{t['trial']}: {t['rmse_mm']:.1f} mm")
     axes[3].set_xlabel("camera looks")
     axes[3].set_ylabel("best feedback so far (dB)")

@@ -66,7 +66,9 @@ class RunResult:
         (folder / "captures").mkdir(exist_ok=True)
         for state, shot in self.captures.items():
             write_image(folder / "captures" / f"{state}.png", shot, bits=self.scene.camera.bit_depth)
-        run_overview(folder / "overview.png", self.patterns, names, self.targets)
+        run_overview(folder / "overview.png", self.patterns, names, self.targets,
+                     title=f"torchproj run: scene {self.report['scene']}, solver {self.report['solver']}, footprint "
+                           f"{self.report.get('footprint', 'nearest')}")
         text = run_markdown(self.report)
         write_json(folder / "report.json", self.report)
         (folder / "report.md").write_text(text)
