@@ -216,3 +216,9 @@ def test_correspondences_view_triangulates_onto_the_planes(viz, tmp_path):
         images.append(read_image(out).numpy())
         assert _colours(out)[2] > 2000
     assert not np.array_equal(images[0], images[1])
+    # Only the pairs drawn are triangulated, and the view's clouds are written beside it with their values.
+    few = viz["correspondences"].correspondence_clouds(scene, tmp_path / "sim", points=500)
+    assert [len(c["points"]) for c in few] == [500] * 4
+    pv = pytest.importorskip("pyvista")
+    blocks = pv.read(tmp_path / "contrast.vtm")
+    assert sorted(blocks.keys()) == sorted(f"{c['state']}_{scene.projectors[c['projector']].name}" for c in clouds)

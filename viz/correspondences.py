@@ -2,7 +2,8 @@
 with the virtual rig's geometry, coloured by projector or by decoding contrast, with the camera and
 projector rays of a few sampled pairs and the devices' frusta.
 
-    python viz/correspondences.py SIMULATE_DIR [--colour projector|contrast] [--rays 6] [--out FILE.png] [--show]
+    python viz/correspondences.py SIMULATE_DIR [--colour projector|contrast] [--rays 6] [--points 40000]
+                                  [--out FILE.png] [--show]
 
 SIMULATE_DIR is what ``torchproj simulate --out`` wrote (its report names the scene config).
 Off-screen by default; ``--show`` opens a window where a display exists.
@@ -28,10 +29,15 @@ from torchproj.experiments import rig_procam  # noqa: E402
 from torchproj.scene import Scene, load_scene  # noqa: E402
 
 PROJECTOR_COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd"]
+# One colour per (state, projector) cloud, so that near and far, and overlapping clouds, differ.
+CLOUD_COLOURS = ["#d62728", "#1f77b4", "#ff7f0e", "#17becf", "#2ca02c", "#9467bd", "#8c564b", "#e377c2"]
+POINTS_PER_CLOUD = 40_000  # drawn per (state, projector); only these are triangulated
 
 
-def correspondence_clouds(scene: Scene, run_dir: Path) -> list[dict]:
-    """Triangulate every ``calibration/STATE/PROJECTOR/correspondence.npz`` of a simulate run.
+def correspondence_clouds(scene: Scene, run_dir: Path, points: int = POINTS_PER_CLOUD, seed: int = 0) -> list[dict]:
+    """Triangulate ``points`` sampled pairs of every ``calibration/STATE/PROJECTOR/correspondence.npz``
+    of a simulate run (every decoded pixel was triangulated and three in four then dropped: 29
+    minutes on a busy 2-core machine for a view of the full-size rig).
 
     Returns:
         per (state, projector): ``state``, ``projector`` (index), ``points`` (N, 3) world metres,
@@ -50,6 +56,9 @@ def correspondence_clouds(scene: Scene, run_dir: Path) -> list[dict]:
             valid = torch.isfinite(prj_xy).all(-1)
             if not bool(valid.any()):
                 continue
+            keep = torch.nonzero(valid.reshape(-1))[:, 0]
+            keep = keep[torch.randperm(len(keep), generator=torch.Generator().manual_seed(seed))[:points]].sort().values
+            valid = torch.zeros(valid.numel(), dtype=torch.bool).index_fill_(0, keep, True).reshape(valid.shape)
             in_cam = triangulate(grid[valid], prj_xy[valid], rig_procam(scene, j)).numpy()
             world = in_cam @ cam.world_from_cam[:3, :3].T + cam.world_from_cam[:3, 3]
             out.append({"state": st.name, "projector": j, "points": world,
@@ -60,6 +69,8 @@ def correspondence_clouds(scene: Scene, run_dir: Path) -> list[dict]:
 
 def draw_correspondences(scene: Scene, clouds: list[dict], out: Path | None, colour: str = "projector",
                          rays: int = 6, show: bool = False, seed: int = 0, window_size=(1000, 750)) -> pv.Plotter:
+    """Each (state, projector) cloud in a colour of its own (``colour="projector"``) or all by decoding
+    contrast, the devices' frusta with their names, sampled rays, and axes in metres."""
     if not clouds:
         raise SystemExit("no correspondences found: run torchproj simulate on the scene first")
     rng = np.random.default_rng(seed)
@@ -67,27 +78,39 @@ def draw_correspondences(scene: Scene, clouds: list[dict], out: Path | None, col
     plotter.set_background("white")
     cam = scene.camera
     plotter.add_mesh(frustum(cam.K, cam.width, cam.height, cam.world_from_cam, 0.3), color="black", line_width=2)
+    plotter.add_point_labels([cam.world_from_cam[:3, 3]], ["camera"], font_size=11, point_size=6, text_color="black",
+                             shape_opacity=0.6)
     for j, p in enumerate(scene.projectors):
-        plotter.add_mesh(frustum(p.K, p.width, p.height, p.world_from_prj, 0.3),
-                         color=PROJECTOR_COLOURS[j % len(PROJECTOR_COLOURS)], line_width=2)
-    for c in clouds:
-        # Every 4th point keeps the view light; the rays show which pair made a point.
-        cloud = pv.PolyData(c["points"][::4])
+        prj_colour = PROJECTOR_COLOURS[j % len(PROJECTOR_COLOURS)]
+        plotter.add_mesh(frustum(p.K, p.width, p.height, p.world_from_prj, 0.3), color=prj_colour, line_width=2)
+        plotter.add_point_labels([p.centre], [f"projector {p.name}"], font_size=11, point_size=6,
+                                 text_color=prj_colour, shape_opacity=0.6)
+    geometry = {}
+    for k, c in enumerate(clouds):
+        name = f"{c['state']} / {scene.projectors[c['projector']].name}"
+        cloud = pv.PolyData(c["points"])
+        cloud["decoding contrast"] = c["contrast"]
+        geometry[name.replace(" / ", "_")] = cloud
         if colour == "contrast":
-            cloud["decoding contrast"] = c["contrast"][::4]
             plotter.add_mesh(cloud, scalars="decoding contrast", cmap="viridis", point_size=2,
-                             scalar_bar_args={"title": "decoding contrast", "color": "black"})
+                             scalar_bar_args={"title": "decoding contrast (white - black)", "color": "black",
+                                              "vertical": True, "position_x": 0.86, "position_y": 0.2,
+                                              "height": 0.6})
         else:
-            plotter.add_mesh(cloud, color=PROJECTOR_COLOURS[c["projector"] % len(PROJECTOR_COLOURS)], point_size=2,
-                             opacity=0.6, label=f"{c['state']} / {scene.projectors[c['projector']].name}")
+            plotter.add_mesh(cloud, color=CLOUD_COLOURS[k % len(CLOUD_COLOURS)], point_size=2, label=name)
+        # The rays show which pair made a point: the camera's in black, the projector's in its colour.
         for i in rng.choice(len(c["points"]), size=min(rays, len(c["points"])), replace=False):
             x = c["points"][i]
             plotter.add_mesh(pv.Line(c["cam_centre"], x), color="black", line_width=1)
             plotter.add_mesh(pv.Line(c["prj_centre"], x), color=PROJECTOR_COLOURS[c["projector"] % 4], line_width=1)
     if colour != "contrast":
-        plotter.add_legend(bcolor="white", size=(0.25, 0.18), loc="lower right")
+        plotter.add_legend(bcolor="white", face="circle", size=(0.16, 0.03 + 0.03 * len(clouds)), loc="upper left")
+    plotter.show_bounds(grid=False, location="outer", xtitle="x (m)", ytitle="y (m)", ztitle="z (m)", color="black",
+                        font_size=8)
+    plotter.add_text(f"Triangulated correspondences of {scene.name}, world frame (m)", position="upper_edge",
+                     font_size=10, color="black")
     plotter.camera_position = [(1.6, -0.9, -0.9), (0.0, 0.0, 0.7), (0, -1, 0)]
-    return finish(plotter, out, show)
+    return finish(plotter, out, show, geometry=geometry)
 
 
 def main(argv=None) -> int:
@@ -95,6 +118,8 @@ def main(argv=None) -> int:
     parser.add_argument("run_dir", type=Path, help="output folder of torchproj simulate")
     parser.add_argument("--colour", choices=["projector", "contrast"], default="projector")
     parser.add_argument("--rays", type=int, default=6, help="sampled correspondences drawn as rays, per cloud")
+    parser.add_argument("--points", type=int, default=POINTS_PER_CLOUD,
+                        help=f"pairs triangulated and drawn per state and projector (default {POINTS_PER_CLOUD})")
     parser.add_argument("--out", type=Path, help="PNG to write (default RUN_DIR/correspondences.png)")
     parser.add_argument("--show", action="store_true", help="open a window (needs a display)")
     args = parser.parse_args(argv)
@@ -103,7 +128,7 @@ def main(argv=None) -> int:
         parser.error(f"{report} not found: give the --out folder of torchproj simulate")
     scene = load_scene(json.loads(report.read_text())["config"])
     out = args.out or args.run_dir / "correspondences.png"
-    draw_correspondences(scene, correspondence_clouds(scene, args.run_dir), out, args.colour, args.rays,
+    draw_correspondences(scene, correspondence_clouds(scene, args.run_dir, args.points), out, args.colour, args.rays,
                          args.show).close()
     print(f"wrote {out}")
     return 0

@@ -37,8 +37,13 @@ def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = Fa
             surf = scene.surfaces[name]
             plotter.add_mesh(surface_mesh(surf), color=colour, opacity=0.45 if surf.transmittance else 0.9,
                              label=f"{state.name}: {name}")
-    plotter.add_legend(bcolor="white", size=(0.3, 0.25))
-    plotter.add_axes()
+    # The legend in a corner the frusta leave free (it covered their lines), axes in metres and a title.
+    plotter.add_legend(bcolor="white", face="rectangle", loc="upper left",
+                       size=(0.18, 0.03 + 0.03 * sum(len(s.surfaces) for s in scene.states)))
+    plotter.show_bounds(grid=False, location="outer", xtitle="x (m)", ytitle="y (m)", ztitle="z (m)", color="black",
+                        font_size=8)
+    plotter.add_text(f"{scene.name}: camera (black), projectors (red), frusta {depth:g} m", position="upper_edge",
+                     font_size=10, color="black")
     plotter.camera_position = [(1.6, -0.9, -0.9), (0.0, 0.0, 0.7), (0, -1, 0)]
     return finish(plotter, out, show)
 
