@@ -2,7 +2,7 @@
 
     python benchmarks/model_miss.py --out benchmarks/results/model_miss
 
-Five measurements behind README's "The ceiling", on the scenes whose targets stay short of it:
+Five measurements behind docs/accuracy.md "The ceiling", on the scenes whose targets stay short of it:
 
 1. Ingredients. One calibration per scene; the default ``run`` (area footprint, shares' fit) on it,
    then with the simulator's exact projector coordinates swapped in where calibration mapped a

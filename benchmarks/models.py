@@ -49,7 +49,7 @@ from torchproj.transport import build, build_channel_transports, build_transport
 from torchproj.transport.build import _CHECKER_SWEEPS, _SHARE_OUTSIDE, _SHARE_REACH, _SHARE_SWEEPS
 
 BOUNDS = (0.0, 1.0)
-SHORT_BITS = 3  # the shortened sequence's pattern pairs per axis (README "Shortened sequences")
+SHORT_BITS = 3  # the shortened sequence's pattern pairs per axis (docs/real-bench.md "Shortened sequences")
 HOMOGRAPHY, SHORT = "area, homography maps", f"area, {SHORT_BITS}-bit Gray code"  # planar scenes' models
 # Models that read no checkerboard pair: their calibrations need the Gray code, white, black and ramps only.
 WITHOUT_CHECKER = ("nearest", "bilinear", "area-map", "area-gray")

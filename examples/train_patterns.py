@@ -13,7 +13,7 @@ trained patterns), ``overview.png``, ``patterns/`` and ``checkpoint.pt`` into ``
 
 ``--loss torchproj`` (default) optimises the SSIM the evaluation reports (scikit-image's definition,
 :func:`torchproj.metrics.ssim`); ``--loss kornia`` optimises kornia's, a different window and
-border (README's "Training patterns like a network" compares the two).
+border (docs/python.md "Training patterns like a network" compares the two).
 """
 
 from __future__ import annotations

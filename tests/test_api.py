@@ -71,7 +71,8 @@ def test_every_name_readme_calls_from_the_top_level_exists():
     import re
     from pathlib import Path
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    root = Path(__file__).resolve().parents[1]
+    readme = "\n".join(p.read_text() for p in [root / "README.md", *sorted((root / "docs").glob("*.md"))])
     names = set(re.findall(r"`torchproj\.([A-Za-z_]\w*)", readme))
     assert names, "README names no torchproj.X"
     missing = sorted(n for n in names if not hasattr(torchproj, n))

@@ -142,7 +142,7 @@ def test_run_with_no_arguments_on_the_full_resolution_paper_rig(tmp_path, monkey
     near, far = report["targets"]
     assert near["psnr_db"] > 17 and far["psnr_db"] > 16.5
     assert near["ssim"] > 0.5 and far["ssim"] > 0.5
-    # Its time is a benchmark's to measure (README "Measured"), never a test's: a busy machine is slow.
+    # Its time is a benchmark's to measure (docs/measured.md), never a test's: a busy machine is slow.
     assert set(report["timings_s"]) >= {"calibrate", "transport", "solve", "evaluate", "total"}
 
 

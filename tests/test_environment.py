@@ -1,4 +1,4 @@
-"""The environment mutated rather than the inputs: the output contract (README, "Commands";
+"""The environment mutated rather than the inputs: the output contract (docs/commands.md, "Commands";
 :mod:`torchproj.core.output`) under signals, failing writes and folders that hold a person's files.
 
 Each family is seeded. The contract asserted after every case: ``--out`` holds the complete old

@@ -132,7 +132,7 @@ def test_a_brighter_lamp_is_no_move(calibration):
 def test_the_loop_wins_back_a_bumped_projector():
     # The paper's rig at quarter size (a 400x300 camera, 256x192 projectors). On coarser rigs the moved
     # rows' bilinear split blurs what the area model knew of each pixel's cells, and the loop stops
-    # short of the ceiling (benchmarks/drift.py, README).
+    # short of the ceiling (benchmarks/drift.py, docs/camera-in-the-loop.md).
     data = small_config()
     calibration = calibrate_virtual(parse_scene(data, name="quarter"))
     data["show"] = {"projectors": {"upper": {"translation_mm": [2, 0, 0]}}}

@@ -11,7 +11,7 @@ captured ones (least squares over a grid of diameters), then a median over neigh
 because the blur follows depth, which varies smoothly on a surface.
 
 The paper has no defocus model (its projectors are taken as sharp at every depth); this estimator,
-its grid, sampling and median are our choices, measured in README ("The ceiling").
+its grid, sampling and median are our choices, measured in docs/accuracy.md ("The ceiling").
 """
 
 from __future__ import annotations

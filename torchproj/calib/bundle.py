@@ -227,7 +227,7 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
         layout[state_dir.name] = entries
     if not layout:
         raise CaptureError(f"{root}: no capture folders (expected {root}/STATE/PROJECTOR/{DEFAULT_NAMES.format(0)} "
-                           "...; see the README's capture layout)")
+                           "...; see docs/commands.md for the capture layout)")
     first_state, first = next(iter(layout.items()))
     names = [(n, s, b) for n, _, s, b in first]
     for state, entries in layout.items():

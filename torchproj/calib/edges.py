@@ -20,7 +20,7 @@ of candidates on two surfaces predicts ``a s_A + (1 - a) s_B``, with the share `
 the captured differences clearly better, is the pixel's model.
 
 The paper models one coordinate per decoded pixel; this model, its candidates and its thresholds are
-our choices, measured against the exact light in README ("The ceiling").
+our choices, measured against the exact light in docs/accuracy.md ("The ceiling").
 """
 
 from __future__ import annotations

@@ -384,7 +384,7 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
 # Light measured past cells n +- 1 (CellShares.outside) over this share is a footprint wider than
 # the two edges of n describe (defocus): noise alone stays below 0.035 on the virtual rig (99th
 # percentile). Calibration keeps such a partly decoded pixel's open cells rather than its means, and
-# the area footprint leaves its row's split alone (README "The ceiling").
+# the area footprint leaves its row's split alone (docs/accuracy.md "The ceiling").
 WIDE_SHARE = 0.05
 _BEYOND = 0.05  # a share of reliably decoded pixels beyond the projector that noise does not explain
 

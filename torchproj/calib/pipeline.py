@@ -23,13 +23,13 @@ __all__ = ["DIM_THRESHOLD", "FEW_DECODED", "DecodedFolder", "ProjectorCalibratio
            "warn_if_few_decoded"]
 
 # Below this share of its lit pixels decoded, a projector's calibration is warned about (measured on
-# the shipped scenes: README, "Bad inputs and odd captures").
+# the shipped scenes: docs/commands.md, "Bad inputs and odd captures").
 FEW_DECODED = 0.7
 
 # White minus black (8-bit units) down to which a projector's code is still read where it lights a
 # pixel too dimly for the shadow threshold (OpenCV's 40): grazing light, the limb of a curved object.
 # Such a pixel is no target pixel of its own, but where another projector lights it, this one's light
-# there belongs in its row (StateCalibration.dim). Our choice, not the paper's (README, "The ceiling",
+# there belongs in its row (StateCalibration.dim). Our choice, not the paper's (docs/accuracy.md, "The ceiling",
 # measures it against none; other values are not benchmarked).
 from ..core.choices import DIM_THRESHOLD  # noqa: E402  (10; there, for the command's parser)
 
@@ -164,7 +164,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
             # Their means place them between cells where the open cells' centre leaves them half a
             # block off; a second fit over them takes box_positions' faces from 0.020 to 0.016 cells
             # rms, the fully decoded pixels' too (their windows hold partly decoded ones). A third
-            # fit leaves the faces' error where it is (within 0.0001 cells rms): README "The ceiling".
+            # fit leaves the faces' error where it is (within 0.0001 cells rms): docs/accuracy.md "The ceiling".
             coarse = torch.where(sharp[..., None], shares.means(), coarse)
             mapped = refine_subpixel(coarse, seen.valid | seen.partial, spread=torch.where(sharp[..., None], 1, seen.spread),
                                      crease_ratio=crease_ratio)

@@ -13,7 +13,7 @@ import torch
 from .errors import InputError
 
 # Above this many camera rays per state (pixels x supersampling^2), or cells per projector, a rig is
-# refused before any work: the default scene casts 1.7e7 rays per state (3.8 s, README's table), so
+# refused before any work: the default scene casts 1.7e7 rays per state (3.8 s, docs/measured.md), so
 # the limit is ~6x that in time and memory; a mistyped size (60000 x 40000, supersampling 200) would
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)

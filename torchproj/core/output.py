@@ -1,6 +1,6 @@
 """Output folders that appear whole or not at all, and never take a person's files with them.
 
-The contract every command that writes ``--out`` keeps (README, "Commands"):
+The contract every command that writes ``--out`` keeps (docs/commands.md, "Commands"):
 
 - ``--out`` is replaced only where torchproj wrote it: a missing or empty folder, or one whose every
   file and folder, at any depth, is listed in the manifest (:data:`MANIFEST`) an earlier torchproj

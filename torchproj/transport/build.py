@@ -46,23 +46,23 @@ __all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Tar
 # A colour camera's weights: one white minus black per channel (build_channel_transports), or their
 # mean for every channel (build_transport). Per channel is what run and solve use where calibration
 # has it: on colour_two_planes it lifts the near target 0.9 dB, to the ceiling's colour balance
-# (benchmarks/models.py, README "The ceiling").
+# (benchmarks/models.py, docs/accuracy.md "The ceiling").
 # (COLOUR_WEIGHTS, FOOTPRINTS and DEFAULT_FOOTPRINT live in core.choices, which the command's parser reads.)
 # What run, solve and position model by default: the footprint closest to the exact-light ceiling on
-# the shipped scenes, for a few seconds more than nearest (benchmarks/models.py, README "The
+# the shipped scenes, for a few seconds more than nearest (benchmarks/models.py, docs/accuracy.md "The
 # ceiling"). build_transport's own default stays the paper's nearest cell, whose rows merge.
 from ..core.choices import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, FOOTPRINTS  # noqa: E402
 
 # Points per axis at which a camera pixel's area is carried onto the projector by the ``area``
 # footprint: 4 x 4 shares a pixel's light among its cells to 1/16. box_positions' camera samples its
 # pixels at the same 4 x 4 points, which flatters the model there; 8 x 8 and 12 x 12 against cameras
-# of 2-6 points per axis: benchmarks/area_grid.py, README "The ceiling".
+# of 2-6 points per axis: benchmarks/area_grid.py, docs/accuracy.md "The ceiling".
 _AREA_SAMPLES = 4
 # Where a camera pixel spans more than _STEEP_EXTENT cells along a projector axis (steep faces, a
 # cylinder's limb) and its rows are fitted to a checkerboard share, its square is sampled at
 # _STEEP_SAMPLES x _STEEP_SAMPLES points instead: there 4 x 4 points leave whole cells to one or two
 # samples each. Our choice (the paper models no footprint), measured by benchmarks/area_grid.py and
-# benchmarks/models.py (README "The ceiling").
+# benchmarks/models.py (docs/accuracy.md "The ceiling").
 _STEEP_EXTENT, _STEEP_SAMPLES = 1.0, 12
 _AREA_CHUNK, _BLUR_CHUNK = 1 << 18, 1 << 15  # rows per pass, sharp and blurred
 # Defocus discs narrower than this (cells) are taken as sharp: measure_blur reads diameters in half
@@ -86,11 +86,11 @@ _CHECKER_SWEEPS = 4
 # A row is left as it is where more light than WIDE_SHARE was measured past cells n +- 1 on an axis
 # (CellShares.outside) and the row holds no cell there: its measured shares then describe a wider
 # footprint (defocus) than the row can hold. 0.05 against 0.1 and no limit on paper_defocus:
-# README "The ceiling".
+# docs/accuracy.md "The ceiling".
 _SHARE_OUTSIDE = WIDE_SHARE
 # A row gains the cells across an edge of its decoded cell where more than this share of the pixel's
 # light was measured across it and the row holds none there (_reach_shares). The same 0.05 as above,
-# over the noise; 0.03 and 0.1 give the same scores on box_cylinders (README "The ceiling").
+# over the noise; 0.03 and 0.1 give the same scores on box_cylinders (docs/accuracy.md "The ceiling").
 _SHARE_REACH = 0.05
 
 
@@ -468,7 +468,7 @@ def _reach_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares,
     wider than the pixel every way; a limb or a steep face stretches a pixel's footprint one way),
     gains nothing. Blurred light comes from past the four neighbours too, and the neighbours alone
     would take all of it: on ``paper_defocus`` widening such rows costs the near target 0.034 SSIM.
-    Our choice (the paper models one cell per pixel): README "The ceiling" measures it against rows
+    Our choice (the paper models one cell per pixel): docs/accuracy.md "The ceiling" measures it against rows
     left short.
     """
     if not cells.numel():
@@ -557,7 +557,7 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
 
     Our choice, not the paper's (it models one cell per pixel): the virtual rig's camera samples a
     pixel at 3 x 3 points, a real one integrates it with its own sensitivity and lens blur; the
-    shares measure either, the parallelogram neither (README "The ceiling").
+    shares measure either, the parallelogram neither (docs/accuracy.md "The ceiling").
     """
     if not cells.numel():
         return values
