@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ..core.fused import fused
 from ..scene.config import Camera
 
 __all__ = ["apply_camera"]
@@ -30,20 +31,31 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
     """
     peak = (1 << camera.bit_depth) - 1
     out = torch.empty_like(radiance) if out is None else out
-    # One image at a time, in place: whole-stack temporaries of tens of millions of values cost
-    # more in memory traffic than the arithmetic itself.
+    noisy = generator is not None and (camera.full_well > 0 or camera.read_noise > 0)
+    # One image at a time: whole-stack temporaries of tens of millions of values cost more in memory
+    # traffic than the arithmetic. The noise is drawn here, from the rig's generator, so that a fused
+    # and an eager run capture the same images.
     for i in range(radiance.shape[0]):
-        v = radiance[i].mul_(camera.exposure) if out is radiance else radiance[i] * camera.exposure
-        if generator is not None and (camera.full_well > 0 or camera.read_noise > 0):
-            var = v.clamp_min(0).mul_(1.0 / camera.full_well) if camera.full_well > 0 else torch.zeros_like(v)
-            var.add_(camera.read_noise**2).sqrt_()
-            noise = torch.randn(v.shape, generator=generator, device=v.device, dtype=v.dtype)
-            v.addcmul_(noise, var)
-        v.clamp_(0, 1)
-        if camera.gamma != 1.0:
-            v.pow_(1.0 / camera.gamma)
-        if quantise:
-            v.mul_(peak).round_().div_(peak)
-        if out is not radiance:
-            out[i] = v
+        noise = torch.randn(radiance[i].shape, generator=generator, device=radiance.device,
+                            dtype=radiance.dtype) if noisy else None
+        out[i] = _sensor(radiance[i], noise, camera.exposure, 1.0 / camera.full_well if camera.full_well > 0 else 0.0,
+                         camera.read_noise ** 2, 1.0 / camera.gamma, float(peak) if quantise else 0.0)
     return out
+
+
+@fused
+def _sensor(radiance: torch.Tensor, noise: torch.Tensor | None, exposure: float, per_electron: float,
+            read_variance: float, inverse_gamma: float, peak: float) -> torch.Tensor:
+    """The sensor's chain for one image (:func:`apply_camera`), fused into one loop where torch can.
+
+    ``per_electron``: 1 / full well (0: no shot noise); ``peak``: 2^bits - 1, or 0 for no quantisation.
+    """
+    v = radiance * exposure
+    if noise is not None:
+        v = torch.addcmul(v, noise, (v.clamp_min(0) * per_electron + read_variance).sqrt())
+    v = v.clamp(0, 1)
+    if inverse_gamma != 1.0:
+        v = v.pow(inverse_gamma)
+    if peak:
+        v = (v * peak).round() / peak
+    return v
