@@ -314,3 +314,13 @@ def test_a_name_that_cannot_name_an_output_file_is_refused(name, where):
     data[where][0]["name"] = name
     with pytest.raises(ConfigError, match=rf"{where}\[0\]\.name: .* cannot name a file or folder of the outputs"):
         parse_scene(data)
+
+
+@pytest.mark.parametrize("text", ["name: " + "[" * 5000 + "]" * 5000, "camera: " + "{a: " * 2000 + "1" + "}" * 2000])
+def test_a_config_nested_past_any_scene_is_refused_before_yaml_recurses(tmp_path, text):
+    """PyYAML composes one level per Python call: 50,000 brackets ended in a RecursionError traceback."""
+    path = tmp_path / "deep.yaml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError, match=r"deep.yaml: nests lists and mappings \d+ deep, over 64") as refused:
+        load_scene(path)
+    assert "cannot read" not in str(refused.value)  # worded once, not wrapped in another message

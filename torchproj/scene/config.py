@@ -630,6 +630,14 @@ MAX_CONFIG_BYTES = 10_000_000
 MAX_YAML_ALIASES = 100
 
 
+# Collections open and close in the token stream; a config nested deeper than any scene needs is
+# refused before PyYAML's composer, which recurses per level, overflows Python's stack.
+_OPENING = (yaml.BlockMappingStartToken, yaml.BlockSequenceStartToken, yaml.FlowMappingStartToken,
+            yaml.FlowSequenceStartToken)
+_CLOSING = (yaml.BlockEndToken, yaml.FlowMappingEndToken, yaml.FlowSequenceEndToken)
+MAX_YAML_DEPTH = 64
+
+
 def _read_yaml(path: Path):
     """A config file's YAML data, or a :class:`ConfigError` naming the file and what is wrong with it."""
     if path.stat().st_size > MAX_CONFIG_BYTES:
@@ -641,13 +649,25 @@ def _read_yaml(path: Path):
         raise ConfigError(str(path), f"is not UTF-8 text (byte {exc.start}: {exc.object[exc.start:exc.start + 1]!r})",
                           "save it as UTF-8") from None
     try:
-        aliases = sum(isinstance(t, yaml.AliasToken) for t in yaml.scan(text))
+        aliases = depth = deepest = 0
+        for token in yaml.scan(text):  # the scanner is a loop; the composer after it recurses per level
+            aliases += isinstance(token, yaml.AliasToken)
+            if isinstance(token, _OPENING):
+                depth += 1
+                deepest = max(deepest, depth)
+            elif isinstance(token, _CLOSING):
+                depth -= 1
         if aliases > MAX_YAML_ALIASES:
             raise ConfigError(str(path), f"uses {aliases} YAML aliases (*name), over {MAX_YAML_ALIASES}",
                               "write the values out: a scene names each once")
+        if deepest > MAX_YAML_DEPTH:
+            raise ConfigError(str(path), f"nests lists and mappings {deepest} deep, over {MAX_YAML_DEPTH}",
+                              "a scene config is a few levels deep: check the brackets")
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(str(path), f"is not valid YAML: {exc}") from None
+    except ConfigError:
+        raise  # the limits above, already worded
     except ValueError as exc:  # an integer past Python's digit limit
         raise ConfigError(str(path), f"holds a value YAML cannot read: {str(exc).splitlines()[0]}") from None
 
