@@ -16,6 +16,7 @@ The contract every command that writes ``--out`` keeps (docs/commands.md, "Comma
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -134,36 +135,31 @@ def _umask() -> int:
     return mask
 
 
-def _entries(folder: Path):
-    """Every file and folder under ``folder``, at any depth, as a relative POSIX path (links not followed)."""
+def _entries(folder: Path, descend=None):
+    """Every file and folder under ``folder`` as a relative POSIX path (links not followed), at any
+    depth; ``descend(entry)`` False keeps the walk out of that folder (it is still named)."""
     for root, dirs, files in os.walk(folder):
         base = Path(root).relative_to(folder)
-        for name in dirs + files:
+        for name in sorted(dirs + files):
             yield (base / name).as_posix()
+        if descend is not None:
+            dirs[:] = [name for name in dirs if descend((base / name).as_posix())]
 
 
 def _not_written(out_dir: Path, limit: int = 6) -> list[str]:
     """Up to ``limit`` entries of ``out_dir`` that its manifest does not list (all of them without one).
 
-    An entry counts at any depth: a person's file put inside a folder torchproj wrote is theirs.
+    An entry counts at any depth: a person's file put inside a folder torchproj wrote is theirs; a
+    folder of theirs is named, not walked.
     """
     try:
         listed = json.loads((out_dir / MANIFEST).read_text()).get("written", [])
         written = {name for name in listed if isinstance(name, str)}
     except (OSError, ValueError, AttributeError, TypeError):  # no manifest, or one that is not ours: nothing listed
         written = set()
-    theirs = []
-    for root, dirs, files in os.walk(out_dir):
-        base = Path(root).relative_to(out_dir)
-        for name in sorted(dirs + files):
-            entry = (base / name).as_posix()
-            if entry != MANIFEST and entry not in written:
-                theirs.append(entry)
-                if name in dirs:
-                    dirs.remove(name)  # a folder of theirs is named, not walked
-            if len(theirs) >= limit:
-                return sorted(theirs)
-    return sorted(theirs)
+    theirs = (entry for entry in _entries(out_dir, descend=written.__contains__)
+              if entry != MANIFEST and entry not in written)
+    return sorted(itertools.islice(theirs, limit))
 
 
 def write_json(path: str | os.PathLike, data) -> None:
