@@ -246,17 +246,19 @@ class TransportOperator(nn.Module):
 
     def A(self, p: torch.Tensor) -> torch.Tensor:
         """``A p``: :math:`(N_{cols}, C)` (or :math:`(N_{cols},)`) -> :math:`(N_{rows}, C)`."""
-        p = self._check_vector(p, "p", self.shape[1])
-        if torch.compiler.is_compiling():
-            return _compiled_product(self.crow, self.col, self.val, self.t_crow, self.t_col, self.t_val, p)
-        return _Apply.apply(p, _Matrices(self._csr(), self._csr(transpose=True)))
+        return self._product(self._check_vector(p, "p", self.shape[1]), adjoint=False)
 
     def A_adjoint(self, r: torch.Tensor) -> torch.Tensor:
         """``A^T r``: :math:`(N_{rows}, C)` -> :math:`(N_{cols}, C)`."""
-        r = self._check_vector(r, "r", self.shape[0])
+        return self._product(self._check_vector(r, "r", self.shape[0]), adjoint=True)
+
+    def _product(self, x: torch.Tensor, adjoint: bool) -> torch.Tensor:
+        """``A x`` or ``A^T x``: under ``torch.compile`` the custom op on the CSR arrays, else the
+        autograd Function on the sparse matrices (torch.func's path)."""
+        arrays = (self.crow, self.col, self.val, self.t_crow, self.t_col, self.t_val)
         if torch.compiler.is_compiling():
-            return _compiled_product(self.t_crow, self.t_col, self.t_val, self.crow, self.col, self.val, r)
-        return _Apply.apply(r, _Matrices(self._csr(transpose=True), self._csr()))
+            return _compiled_product(*(arrays[3:] + arrays[:3] if adjoint else arrays), x)
+        return _Apply.apply(x, _Matrices(self._csr(transpose=adjoint), self._csr(transpose=not adjoint)))
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
         return self.A(p)
