@@ -59,8 +59,8 @@ def train(model, loss_name: str, steps: int, lr: float, l2_weight: float, checkp
     for step in range(1, steps + 1):
         optimizer.zero_grad()
         prediction = model()
-        ratio = budget.squared_error(prediction) / budget.reference_error
-        loss = (ssim_loss(prediction) + l2_weight * ratio + budget(prediction)).mean()
+        ratio = budget.ratio(prediction)  # once: the squared-error term and the budget share it
+        loss = (ssim_loss(prediction) + l2_weight * ratio + budget.hinge(ratio)).mean()
         loss.backward()
         optimizer.step()
         scheduler.step()

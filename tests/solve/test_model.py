@@ -302,6 +302,11 @@ def test_a_psnr_budget_holds_every_target_where_a_summed_loss_trades_one_away():
             return -10 * torch.log10(budget.squared_error(model()) / start)
 
     free, held = train(False), train(True)
+    model = ProjectionModel(operator())
+    with torch.no_grad():
+        budget = PSNRBudget(model.targets, model.mask, model() * 0.9, psnr_drop=1.0)
+        torch.testing.assert_close(budget(model()), budget.hinge(budget.ratio(model())))
+        torch.testing.assert_close(budget.psnr_change(model()), -10 * torch.log10(budget.ratio(model())))
     assert float(free[1]) < -3  # the failure: target 1 given away
     assert float(held.min()) > -1.3  # within the budget (a soft hinge: a little past it)
     with pytest.raises(InputError, match="psnr_drop and weight must be >= 0"):

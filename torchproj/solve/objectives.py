@@ -156,12 +156,20 @@ class PSNRBudget(nn.Module):
         pixels = self.weights.sum((-3, -2, -1)) * self.targets.shape[1]
         return ((prediction - self.targets) ** 2 * self.weights).sum((-3, -2, -1)) / pixels
 
+    def ratio(self, prediction: torch.Tensor) -> torch.Tensor:
+        """Each target's squared error over the reference's: :math:`(..., K)` (a loss term of its own)."""
+        return self.squared_error(prediction) / self.reference_error
+
+    def hinge(self, ratio: torch.Tensor) -> torch.Tensor:
+        """The budget's penalty for ratios :meth:`ratio` already gave (a loop that uses both)."""
+        return psnr_hinge(ratio, self.psnr_drop, self.weight)
+
     def psnr_change(self, prediction: torch.Tensor) -> torch.Tensor:
         """Each target's PSNR change against the reference, dB: :math:`(..., K)`."""
-        return -10 * torch.log10((self.squared_error(prediction) / self.reference_error).clamp_min(1e-12))
+        return -10 * torch.log10(self.ratio(prediction).clamp_min(1e-12))
 
     def forward(self, prediction: torch.Tensor) -> torch.Tensor:
-        return psnr_hinge(self.squared_error(prediction) / self.reference_error, self.psnr_drop, self.weight)
+        return self.hinge(self.ratio(prediction))
 
 
 class ImageLoss(nn.Module):
