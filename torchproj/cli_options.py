@@ -174,7 +174,10 @@ def map_options(p, maps: bool = True, bits: str | None = None) -> None:
 def decoding_options(p) -> None:
     """Thresholds and hole filling of ``calibrate`` and ``decode`` (OpenCV's defaults)."""
     p.add_argument("--white-threshold", type=float, default=5, help="8-bit units (OpenCV default 5)")
-    p.add_argument("--black-threshold", type=float, default=40, help="8-bit units (OpenCV default 40)")
+    from .core.choices import BLACK_THRESHOLD
+
+    p.add_argument("--black-threshold", type=float, default=BLACK_THRESHOLD,
+                   help=f"8-bit units (OpenCV default {BLACK_THRESHOLD})")
     p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
 
 

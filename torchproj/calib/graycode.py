@@ -42,6 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
+from ..core.choices import BLACK_THRESHOLD
 from .maps import depth_edges
 
 __all__ = ["CREASE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "checker_patterns",
@@ -323,7 +324,7 @@ def _open_cells(value: torch.Tensor, first_bad: torch.Tensor, bad: torch.Tensor,
 
 
 def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, projector_size: tuple[int, int],
-                white_threshold: float = 5, black_threshold: float = 40,
+                white_threshold: float = 5, black_threshold: float = BLACK_THRESHOLD,
                 bits: int | tuple[int, int] | None = None) -> GrayDecoding:
     """Decode a Gray-code capture into per-pixel projector coordinates.
 

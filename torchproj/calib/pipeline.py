@@ -31,7 +31,7 @@ FEW_DECODED = 0.7
 # Such a pixel is no target pixel of its own, but where another projector lights it, this one's light
 # there belongs in its row (StateCalibration.dim). Our choice, not the paper's (docs/accuracy.md, "The ceiling",
 # measures it against none; other values are not benchmarked).
-from ..core.choices import DIM_THRESHOLD  # noqa: E402  (10; there, for the command's parser)
+from ..core.choices import BLACK_THRESHOLD, DIM_THRESHOLD  # noqa: E402  (40 and 10; there, for the command's parser)
 
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:
@@ -98,7 +98,7 @@ class ProjectorCalibration:
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
-                        black_threshold: float = 40, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
+                        black_threshold: float = BLACK_THRESHOLD, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
                         max_hole: int = 16, ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
                         plane_tolerance: float = 1.0, crease_ratio: float = CREASE_RATIO) -> ProjectorCalibration:
     """Decode, refine, fill, invert and fit the response of one capture.
@@ -320,7 +320,7 @@ def check_decoded(decoding, folder) -> float:
 
 
 def decode_folder(capture_dir, projector: tuple[int, int], *, calibration=None, names: str | None = None,
-                  white_threshold: float = 5, black_threshold: float = 40, subpixel: bool = True,
+                  white_threshold: float = 5, black_threshold: float = BLACK_THRESHOLD, subpixel: bool = True,
                   fill_holes: int = 16, bits: int | None = None, plane_tolerance: float = 1.0) -> DecodedFolder:
     """Decode a folder of Gray-code captures and, with a camera-projector calibration, triangulate it.
 

@@ -15,3 +15,4 @@ DEFAULT_FOOTPRINT = "area"  # what run, solve and position model by default (tra
 MAPS = ("decoded", "homography")  # camera-to-projector maps (transport.planar)
 ORACLES = ("geometry", "transport")  # what an oracle run takes from the simulator (pipeline.run)
 DIM_THRESHOLD = 10  # 8-bit level under which a lit pixel is too dim to be a target pixel (calib.pipeline)
+BLACK_THRESHOLD = 40  # the decoder's shadow mask: white minus black (8-bit levels) of a lit pixel (OpenCV's default)

@@ -17,6 +17,7 @@ import torch
 from ..calib import (DIM_THRESHOLD, GraycodeCapture, ResponseCurve, calibrate_projector, checker_patterns, graycode_bits,
                      graycode_patterns, primary_patterns, ramp_pattern, sequence_bits, warn_if_few_decoded)
 from ..core.checks import check
+from ..core.choices import BLACK_THRESHOLD
 from ..core.errors import InputError
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
@@ -109,7 +110,7 @@ class VirtualCalibration:
     decode: dict | None = None
 
 
-DECODE_THRESHOLD = 40 / 255  # the shadow mask of calibrate_projector: white minus black below it is not decoded
+DECODE_THRESHOLD = BLACK_THRESHOLD / 255  # calibrate_projector's shadow mask, in camera values: below it, not decoded
 # Camera pixels per axis at which white_levels samples each state: enough to find a surface's brightest part.
 LIGHT_CHECK_GRID = 64
 
@@ -301,7 +302,7 @@ def _shares(mixing: torch.Tensor) -> torch.Tensor:
     return mixing / mixing.sum(1, keepdim=True)
 
 
-def _oracle_calibration(scene: Scene, device, black_threshold: float = 40,
+def _oracle_calibration(scene: Scene, device, black_threshold: float = BLACK_THRESHOLD,
                         dim_threshold: float = DIM_THRESHOLD) -> VirtualCalibration:
     t0 = time.perf_counter()
     rig = VirtualRig(scene, device=device)

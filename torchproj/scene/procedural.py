@@ -33,6 +33,7 @@ import re
 
 import numpy as np
 
+from ..core.choices import BLACK_THRESHOLD
 from ..core.errors import ConfigError
 from .config import Scene, parse_scene, supersampling_for
 from .pose import look_at, rotation_from_euler_deg
@@ -56,7 +57,7 @@ SUITE_IMAGES = ("astronaut", "camera", "coffee", "chelsea", "rocket", "brick", "
 _NAME = re.compile(r"^suite-(\d+)-(\d+)(-full)?$")
 # The decoder's shadow threshold (white minus black, torchproj.calib) and the margin the dimmest
 # target point keeps above it.
-_SHADOW, _MARGIN = 40 / 255, 1.25
+_SHADOW, _MARGIN = BLACK_THRESHOLD / 255, 1.25
 _RAYS = {"small": 1.5e6, "full": 1.7e7}  # camera sample rays per state, at most
 _DRAWS = 100  # draws of one scene before the last is kept, dim or not
 
