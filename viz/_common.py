@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe"]
+__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe", "side_bar"]
 
 
 def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, depth: float) -> pv.PolyData:
@@ -42,6 +42,13 @@ def box_wireframe(world_from_local: np.ndarray, size) -> pv.PolyData:
     sx, sy, sz = size
     box = pv.Box(bounds=(-sx / 2, sx / 2, -sy / 2, sy / 2, -sz / 2, sz / 2))
     return box.transform(np.asarray(world_from_local, dtype=np.float64), inplace=False).extract_all_edges()
+
+
+def side_bar(title: str, fmt: str = "%.2f") -> dict:
+    """``scalar_bar_args`` of a colour bar standing at the right edge, its title above its ticks (a
+    horizontal bar under the view put its title over them)."""
+    return {"title": title, "color": "black", "vertical": True, "position_x": 0.85, "position_y": 0.1,
+            "height": 0.7, "title_font_size": 12, "label_font_size": 11, "fmt": fmt}
 
 
 def finish(plotter: pv.Plotter, out: Path | None, show: bool, geometry: dict | None = None) -> pv.Plotter:

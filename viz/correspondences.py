@@ -21,7 +21,7 @@ import pyvista as pv
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, frustum  # noqa: E402
+from _common import finish, frustum, side_bar  # noqa: E402
 
 from torchproj.calib import triangulate  # noqa: E402
 from torchproj.core.conventions import pixel_grid  # noqa: E402
@@ -93,9 +93,7 @@ def draw_correspondences(scene: Scene, clouds: list[dict], out: Path | None, col
         geometry[name.replace(" / ", "_")] = cloud
         if colour == "contrast":
             plotter.add_mesh(cloud, scalars="decoding contrast", cmap="viridis", point_size=2,
-                             scalar_bar_args={"title": "decoding contrast (white - black)", "color": "black",
-                                              "vertical": True, "position_x": 0.86, "position_y": 0.2,
-                                              "height": 0.6})
+                             scalar_bar_args=side_bar("decoding contrast (white - black)"))
         else:
             plotter.add_mesh(cloud, color=CLOUD_COLOURS[k % len(CLOUD_COLOURS)], point_size=2, label=name)
         # The rays show which pair made a point: the camera's in black, the projector's in its colour.

@@ -21,7 +21,7 @@ import pyvista as pv
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish  # noqa: E402
+from _common import finish, side_bar  # noqa: E402
 
 from torchproj.calib import largest_plane  # noqa: E402
 
@@ -47,9 +47,8 @@ def draw_plane_fit(points: np.ndarray, out: Path | None, show: bool = False, lim
     points = np.asarray(points, dtype=np.float64)
     if len(points) < 3:
         raise SystemExit("fewer than 3 points: nothing to fit a plane to")
-    cloud_t = torch.as_tensor(points)
     threshold = DEFAULT_THRESHOLD if threshold is None else threshold
-    centroid, normal, residual, on_plane = (t.numpy() for t in largest_plane(cloud_t, threshold))
+    centroid, normal, residual, on_plane = (t.numpy() for t in largest_plane(torch.as_tensor(points), threshold))
     near = np.abs(residual[on_plane])
     top = limit if limit is not None else max(float(np.percentile(near, 99)), 1e-9)
     rms = float(np.sqrt(np.mean(residual[on_plane] ** 2)))
@@ -62,9 +61,7 @@ def draw_plane_fit(points: np.ndarray, out: Path | None, show: bool = False, lim
     if (~on_plane).any():
         plotter.add_mesh(cloud.extract_points(~on_plane, adjacent_cells=False), color="lightgrey", point_size=1)
     plotter.add_mesh(board, scalars=f"signed distance ({units})", cmap="RdBu_r", clim=(-top, top), point_size=2,
-                     scalar_bar_args={"title": f"signed distance to the plane ({units})", "color": "black",
-                                      "vertical": True, "position_x": 0.85, "position_y": 0.1, "height": 0.7,
-                                      "title_font_size": 12, "label_font_size": 11, "fmt": "%.2f"})
+                     scalar_bar_args=side_bar(f"signed distance to the plane ({units})"))
     plotter.add_text(f"Largest plane (RANSAC, within {threshold:.3g} {units}): {int(on_plane.sum())} of {len(points)} "
                      f"points, RMS {rms:.3g} {units}; grey: off the plane", font_size=10, color="black")
     plotter.camera_position = [centroid - normal * 3 * np.ptp(points, axis=0).max(), centroid, (0, -1, 0)]

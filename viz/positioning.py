@@ -19,7 +19,7 @@ import numpy as np
 import pyvista as pv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import box_wireframe, finish  # noqa: E402
+from _common import box_wireframe, finish, side_bar  # noqa: E402
 
 from torchproj.experiments import box_surface_distance, pose_error  # noqa: E402
 
@@ -49,9 +49,7 @@ def draw_scan(scan: dict, out: Path | None, max_mm: float | None = None, show: b
     cloud["signed distance to goal (mm)"] = dist_mm
     plotter.add_mesh(cloud, scalars="signed distance to goal (mm)", cmap="RdBu_r", clim=(-top, top), point_size=3,
                      render_points_as_spheres=False,
-                     scalar_bar_args={"title": "signed distance to goal box (mm)", "color": "black", "vertical": True,
-                                      "position_x": 0.85, "position_y": 0.1, "height": 0.7, "title_font_size": 12,
-                                      "label_font_size": 11, "fmt": "%.1f"})
+                     scalar_bar_args=side_bar("signed distance to goal box (mm)", "%.1f"))
     geometry = {"scan": cloud}
     legend = [["goal", "red"]]
     for key, colour, label in (("start_pose", "grey", "start"), ("placed_pose", "black", "placed")):
