@@ -223,3 +223,12 @@ def test_correspondences_view_triangulates_onto_the_planes(viz, tmp_path):
     pv = pytest.importorskip("pyvista")
     blocks = pv.read(tmp_path / "contrast.vtm")
     assert sorted(blocks.keys()) == sorted(f"{c['state']}_{scene.projectors[c['projector']].name}" for c in clouds)
+
+
+@pytest.mark.parametrize("script, argv", [("point_cloud", ["--threshold", "-1"]), ("point_cloud", ["--threshold", "nan"]),
+                                          ("correspondences", ["--points", "-5"]), ("positioning", ["--max-mm", "0"])])
+def test_a_views_bad_option_is_refused_by_its_parser(viz, tmp_path, capsys, script, argv):
+    """A negative --points took all but that many pairs; a NaN tolerance ended in a traceback."""
+    with pytest.raises(SystemExit) as refused:
+        viz[script].main([str(tmp_path), *argv])
+    assert refused.value.code == 2 and f"argument {argv[0]}" in capsys.readouterr().err

@@ -10,7 +10,7 @@ import re
 from pathlib import Path
 
 __all__ = ["BITS_HELP", "bounds", "command", "config_option", "decoding_options", "device_options", "existing_file",
-           "join_negative_pairs", "limits", "map_options", "named_projector_size", "positive_int", "projector_size", "solve_options",
+           "join_negative_pairs", "limits", "map_options", "named_projector_size", "positive_float", "positive_int", "projector_size", "solve_options",
            "solver_options"]
 
 
@@ -23,6 +23,17 @@ def positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number above 0 (a length, a tolerance)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
     return value
 
 

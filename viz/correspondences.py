@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import finish, frustum, side_bar  # noqa: E402
 
 from torchproj.calib import triangulate  # noqa: E402
+from torchproj.cli_options import positive_int  # noqa: E402
 from torchproj.core.conventions import pixel_grid  # noqa: E402
 from torchproj.experiments import rig_procam  # noqa: E402
 from torchproj.scene import Scene, load_scene  # noqa: E402
@@ -116,7 +117,7 @@ def main(argv=None) -> int:
     parser.add_argument("run_dir", type=Path, help="output folder of torchproj simulate")
     parser.add_argument("--colour", choices=["projector", "contrast"], default="projector")
     parser.add_argument("--rays", type=int, default=6, help="sampled correspondences drawn as rays, per cloud")
-    parser.add_argument("--points", type=int, default=POINTS_PER_CLOUD,
+    parser.add_argument("--points", type=positive_int, default=POINTS_PER_CLOUD,
                         help=f"pairs triangulated and drawn per state and projector (default {POINTS_PER_CLOUD})")
     parser.add_argument("--out", type=Path, help="PNG to write (default RUN_DIR/correspondences.png)")
     parser.add_argument("--show", action="store_true", help="open a window (needs a display)")

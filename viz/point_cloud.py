@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import finish, side_bar  # noqa: E402
 
 from torchproj.calib import largest_plane  # noqa: E402
+from torchproj.cli_options import positive_float  # noqa: E402
 
 # A few times a structured-light scan's noise in millimetres (0.3-0.6 mm on the shipped chessboard): a
 # tolerance derived from the scan itself (1% of its extent, then robust deviations) took in a strip of
@@ -72,7 +73,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("decode_dir", type=Path, help="output folder of torchproj decode --calibration")
     parser.add_argument("--out", type=Path, help="PNG to write (default DECODE_DIR/points.png)")
-    parser.add_argument("--threshold", type=float, help="largest distance of a point on the plane, in the calibration's "
+    parser.add_argument("--threshold", type=positive_float, help="largest distance of a point on the plane, in the calibration's "
                                                             f"units (default {DEFAULT_THRESHOLD:g}, for mm)")
     parser.add_argument("--units", default="mm", help="the calibration's length unit, for the labels (default mm)")
     parser.add_argument("--show", action="store_true", help="open a window (needs a display)")

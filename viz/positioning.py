@@ -21,6 +21,7 @@ import pyvista as pv
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import box_wireframe, finish, side_bar  # noqa: E402
 
+from torchproj.cli_options import positive_float  # noqa: E402
 from torchproj.experiments import box_surface_distance, pose_error  # noqa: E402
 
 
@@ -76,7 +77,7 @@ def main(argv=None) -> int:
     parser.add_argument("run_dir", type=Path, help="output folder of torchproj position")
     parser.add_argument("--trial", help="scan name, e.g. near_0 (default: every scan)")
     parser.add_argument("--out", type=Path, help="PNG to write (with --trial; default OUT_DIR/views/TRIAL.png)")
-    parser.add_argument("--max-mm", type=float, help="half-range of the colour scale in mm (default: the 99th "
+    parser.add_argument("--max-mm", type=positive_float, help="half-range of the colour scale in mm (default: the 99th "
                         "percentile of the absolute distances over every scan drawn)")
     parser.add_argument("--show", action="store_true", help="open a window (needs a display)")
     args = parser.parse_args(argv)
