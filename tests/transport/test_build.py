@@ -631,3 +631,78 @@ def test_a_states_map_slope_is_taken_once_and_again_when_the_map_changes():
     assert state._slope(0) is not first
     state.prj_xy[0] = state.prj_xy[0] * 2  # replaced
     torch.testing.assert_close(state._slope(0), map_slope(state.prj_xy[0]), equal_nan=True)
+
+
+def _counted(u, slope, ok, size, samples):
+    """A pixel's cells by counting its samples one by one in Python: the reference for the binned rows."""
+    w, h = size
+    offset = build.pixel_square(samples, u.dtype, u.device)
+    rows = []
+    for n in range(u.shape[0]):
+        found = {}
+        for o in offset:
+            x, y = (torch.nan_to_num(slope[n]) @ o + u[n] + 0.5).floor().tolist()
+            if ok[n] and 0 <= x < w and 0 <= y < h:
+                found[int(y) * w + int(x)] = found.get(int(y) * w + int(x), 0.0) + 1 / offset.shape[0]
+        rows.append(found)
+    return rows
+
+
+@pytest.mark.parametrize("samples", [4, 12])
+def test_sampled_rows_count_every_sample_in_order(samples):
+    """Rows binned on a window of cells and rows too wide for it (sorted) both hold each cell's share
+    of the samples, counted one by one, with their cells first and ascending: the layout the fit's
+    width classes and the assembly without a sort rely on."""
+    g = torch.Generator().manual_seed(samples)
+    n, size = 300, (40, 30)
+    u = torch.rand(n, 2, generator=g) * torch.tensor([44.0, 34.0]) - 2  # some past the border
+    slope = torch.randn(n, 2, 2, generator=g) * 0.6
+    slope[::7] *= 8  # wider than the window: these rows are sorted
+    ok = torch.rand(n, generator=g) > 0.1
+    cells, values = build._sampled_cells(u, slope, ok, size, None, samples)
+    expected = _counted(u, slope, ok, size, samples)
+    assert max(len(e) for e in expected) > build._WINDOW  # both paths ran
+    for row, want in enumerate(expected):
+        used = cells[row] >= 0
+        assert used.sum() == len(want) and bool(used[:len(want)].all()), row
+        got = cells[row][used].tolist()
+        assert got == sorted(want), row
+        assert values[row][used].tolist() == pytest.approx([want[c] for c in got], rel=1e-5), row
+    assert cells.shape[1] == max(1, max(len(e) for e in expected))
+
+
+def test_assembly_sorts_rows_that_come_unordered():
+    """Rows whose cells are not ascending (a row's slots in any order) give the same operator as the
+    same rows in order; a row naming a cell twice is refused."""
+    sizes = [(6, 5), (4, 4)]
+    cols = torch.tensor([[3, 1, -1, 31], [-1, 7, 2, -1], [40, -1, 0, 12]])
+    vals = torch.tensor([[0.1, 0.2, 0.0, 0.3], [0.0, 0.4, 0.5, 0.0], [0.6, 0.0, 0.7, 0.8]])
+    order = torch.argsort(torch.where(cols >= 0, cols, 99), dim=1)
+    unordered = build._assemble(cols, vals, sizes)
+    ordered = build._assemble(cols.gather(1, order), vals.gather(1, order), sizes)
+    for a, b in zip(unordered, ordered):
+        assert torch.equal(a, b)
+    assert unordered[0].tolist() == [0, 3, 5, 8]
+    with pytest.raises(InputError, match="one cell twice"):
+        build._assemble(torch.tensor([[3, 3]]), torch.tensor([[0.1, 0.2]]), sizes)
+
+
+def test_area_rows_fitted_in_width_classes_equal_one_pass():
+    """The shares' fit over rows in classes by width gives each row what one pass over all rows at
+    the widest gives it."""
+    full = calibrate_virtual(parse_scene(small_config()), progress=False).states
+    state = next(iter(full.values()))
+    assert state.shares is not None  # the fit runs
+    pixels = torch.nonzero(torch.isfinite(state.prj_xy[0]).all(-1).reshape(-1))[:, 0]
+    classes = build._WIDTH_CLASSES
+    cells, values = state._rows(0, pixels, "area")
+    try:
+        build._WIDTH_CLASSES = ()
+        wide_cells, wide_values = state._rows(0, pixels, "area")
+    finally:
+        build._WIDTH_CLASSES = classes
+    assert cells.shape[1] <= wide_cells.shape[1]
+    assert torch.equal(cells, wide_cells[:, :cells.shape[1]])
+    assert not bool((wide_cells[:, cells.shape[1]:] >= 0).any())
+    torch.testing.assert_close(values, wide_values[:, :cells.shape[1]])
+    assert len({int(u) for u in (cells >= 0).sum(1)}) > 2  # rows of several widths

@@ -234,8 +234,12 @@ class StateCalibration:
         if self.edges is not None:
             cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur, fine)
         if self.shares is not None:
-            cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
-            values = _fit_shares(cells, values, self.shares[j], pixels, size)
+            shares = self.shares[j]
+
+            def fitted(rows, c, v):
+                c, v = _reach_shares(c, v, shares, pixels[rows], size)
+                return c, _fit_shares(c, v, shares, pixels[rows], size)
+            cells, values = _by_width(cells, values, fitted)
         return cells, values
 
     def _slope(self, j: int) -> torch.Tensor:
@@ -390,18 +394,78 @@ def _sampled_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size:
     points = points.floor_()
     x, y = points.unbind(-1)
     inside = ok[:, None] & (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    flat = torch.where(inside, y.mul_(w).add_(x), -1.0).to(torch.int32)
-    return _combine(flat, (flat >= 0).to(u.dtype) / offset.shape[0])
+    share = 1.0 / offset.shape[0]
+    # Most rows' samples fall in a few cells' window: binned there, no sort is needed (below). Rows
+    # whose window is wider (a grazing face, a wide disc) are combined by sorting their samples.
+    near, x0, y0, span = _windows(x, y, inside)
+    if bool(near.all()):
+        return _binned(x, y, inside, x0, y0, span, share, w)
+    rows = [torch.nonzero(near)[:, 0], torch.nonzero(~near)[:, 0]]
+    far = rows[1]
+    flat = torch.where(inside[far], y[far] * w + x[far], -1.0).to(torch.int32)
+    parts = [_binned(x[rows[0]], y[rows[0]], inside[rows[0]], x0[rows[0]], y0[rows[0]], span, share, w),
+             _combine(flat, torch.where(flat >= 0, share, 0.0).to(u.dtype))]
+    cells, values = _stack_rows([c for c, _ in parts], [v for _, v in parts])
+    return cells[torch.argsort(torch.cat(rows))], values[torch.argsort(torch.cat(rows))]
+
+
+# A row's samples are binned on a window of cells at most this many per axis (else sorted).
+_WINDOW = 8
+
+
+def _windows(x: torch.Tensor, y: torch.Tensor, inside: torch.Tensor):
+    """Which rows' samples :math:`(N, S)` (cells ``x``, ``y``, as whole floats; ``inside`` the
+    projector) lie within ``_WINDOW`` cells per axis, each row's first cell ``x0``, ``y0``, and the
+    window :math:`(k_x, k_y)` that holds all of those rows."""
+    far = torch.tensor(float("inf"), dtype=x.dtype, device=x.device)
+    x0, y0 = torch.where(inside, x, far).amin(1), torch.where(inside, y, far).amin(1)
+    x0, y0 = torch.where(torch.isfinite(x0), x0, 0.0), torch.where(torch.isfinite(y0), y0, 0.0)
+    kx = torch.where(inside, x - x0[:, None], 0.0).amax(1) + 1 if x.shape[1] else torch.ones_like(x0)
+    ky = torch.where(inside, y - y0[:, None], 0.0).amax(1) + 1 if x.shape[1] else torch.ones_like(y0)
+    near = (kx <= _WINDOW) & (ky <= _WINDOW)
+    span = (int(kx[near].max()) if bool(near.any()) else 1, int(ky[near].max()) if bool(near.any()) else 1)
+    return near, x0, y0, span
+
+
+def _binned(x, y, inside, x0, y0, span: tuple[int, int], share: float, w: int):
+    """:func:`_combine` for samples :math:`(N, S)` that lie within a ``span`` window of cells from
+    each row's ``x0``, ``y0``: each sample's ``share`` added to its cell's bin, the lit bins kept.
+    Bins go row by row of the window, so each row's cells come out ascending, as sorting gives them."""
+    kx, ky = span
+    bins = kx * ky
+    local = torch.where(inside, (y - y0[:, None]) * kx + (x - x0[:, None]), float(bins)).long()
+    light = torch.zeros(x.shape[0], bins + 1, dtype=x.dtype, device=x.device)
+    light.scatter_add_(1, local, torch.full_like(x, share))
+    light = light[:, :bins]
+    offsets = torch.arange(bins, device=x.device)
+    cells = ((y0.long()[:, None] + offsets // kx) * w + x0.long()[:, None] + offsets % kx)
+    return _compact(torch.where(light > 0, cells, -1), light)
+
+
+def _compact(cells: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows :math:`(N, k)` with their used slots (cell >= 0) moved first, in order, and as many slots
+    as the fullest row uses (at least one): the layout every footprint's rows keep."""
+    used = cells >= 0
+    slot = used.cumsum(1) - 1
+    slots = max(int(slot[:, -1].max()) + 1 if slot.numel() else 1, 1)
+    slot = torch.where(used, slot, slots)
+    out = torch.full((cells.shape[0], slots + 1), -1, dtype=torch.int64, device=cells.device).scatter_(1, slot, cells.long())
+    total = torch.zeros(cells.shape[0], slots + 1, dtype=values.dtype, device=values.device).scatter_(
+        1, slot, torch.where(used, values, 0))
+    return out[:, :slots], total[:, :slots]
 
 
 def _combine(cells: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each row's distinct cells (int64, -1 = none) and their values summed: :math:`(N, s)` each, from
-    rows of cells that may repeat :math:`(N, k)` (int32 sorts faster, where the cells fit)."""
-    cells, order = torch.sort(cells, dim=1)
+    """Each row's distinct cells (int64, ascending and first, -1 = none after them) and their values
+    summed: :math:`(N, s)` each, from rows of cells that may repeat :math:`(N, k)` (int32 sorts
+    faster, where the cells fit)."""
+    last = torch.iinfo(cells.dtype).max  # unused slots sort after every cell
+    cells, order = torch.sort(torch.where(cells >= 0, cells, last), dim=1)
     values = values.gather(1, order)
     run = torch.zeros_like(cells)
     run[:, 1:] = (cells[:, 1:] != cells[:, :-1]).cumsum(1)
     slots = int(run.max()) + 1 if run.numel() else 1
+    cells = torch.where(cells == last, -1, cells)
     out = torch.full((cells.shape[0], slots), -1, dtype=torch.int64, device=cells.device).scatter_(1, run, cells.long())
     total = torch.zeros(cells.shape[0], slots, dtype=values.dtype, device=values.device).scatter_add_(
         1, run, torch.where(cells >= 0, values, 0))
@@ -601,6 +665,34 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
             down = torch.where(on, (1 - share) / (1 - part).clamp_min(_SHARE_TOL), 1.0)
             values = values * torch.where(far, up[:, None], down[:, None])
     return values
+
+
+# Widths (slots) of the classes in which rows are fitted (_by_width).
+_WIDTH_CLASSES = (2, 4, 8, 16)
+
+
+def _by_width(cells: torch.Tensor, values: torch.Tensor, fn) -> tuple[torch.Tensor, torch.Tensor]:
+    """``fn(rows, cells, values)`` on the rows :math:`(N, s)` in classes by how many cells they hold,
+    each class only as wide as ``_WIDTH_CLASSES`` needs; the results back in the rows' order.
+
+    A chunk's rows are as wide as its widest (a grazing face, a defocus disc), and the fit's masks
+    are as wide as the rows: on the default scene rows hold 2.1 cells on average in 7-8 slots.
+    Rows keep their cells in their first slots (:func:`_compact`), so a class is a slice."""
+    used = (cells >= 0).sum(1)
+    bounds = [b for b in _WIDTH_CLASSES if b < cells.shape[1]] + [cells.shape[1]]
+    parts, order, low = [], [], -1
+    for bound in bounds:
+        rows = torch.nonzero((used > low) & (used <= bound))[:, 0]
+        low = bound
+        if not rows.numel():
+            continue
+        parts.append(fn(rows, cells[:, :bound][rows], values[:, :bound][rows]))
+        order.append(rows)
+    if not parts:
+        return cells, values
+    cells, values = _stack_rows([c for c, _ in parts], [v for _, v in parts])
+    back = torch.argsort(torch.cat(order))
+    return cells[back], values[back]
 
 
 def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -814,20 +906,30 @@ def _assemble(cols: torch.Tensor, vals: torch.Tensor, sizes: list[tuple[int, int
     and projector."""
     # Variables only for the cells that light at least one row, numbered in cell order through a
     # table over all cells (a few million), not a sort of every nonzero. Each row names a cell at most
-    # once (projectors' cells are offset apart), so sorting each row's slots gives CSR directly.
+    # once (projectors' cells are offset apart), so each row's used slots in ascending order give CSR
+    # directly. The footprints' rows come ascending already (each projector's cells first, in order,
+    # and projectors' blocks side by side): the rows are sorted only where they are not.
     starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
-    cols, order = torch.sort(cols, dim=1)
-    vals = vals.gather(1, order)
     used = cols >= 0
-    check(not bool((used[:, 1:] & (cols[:, 1:] == cols[:, :-1])).any()), "a row names one cell twice")
+    counts = used.sum(1)
+    crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64)
+    crow[1:] = torch.cumsum(counts, 0)
+    flat = cols[used]
+    step = flat[1:] - flat[:-1]
+    first = torch.zeros(flat.numel(), dtype=torch.bool)
+    first[crow[:-1][counts > 0]] = True  # a row's first nonzero follows another row's last
+    if not bool(((step > 0) | first[1:]).all()):
+        cols, order = torch.sort(cols, dim=1)
+        vals = vals.gather(1, order)
+        used = cols >= 0
+        check(not bool((used[:, 1:] & (cols[:, 1:] == cols[:, :-1])).any()), "a row names one cell twice")
+        flat = cols[used]
     lights = torch.zeros(int(starts[-1]), dtype=torch.bool)
-    lights[cols[used]] = True
+    lights[flat] = True
     global_cols = torch.nonzero(lights)[:, 0]
     number = torch.cumsum(lights, 0) - 1
-    crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64)
-    crow[1:] = torch.cumsum(used.sum(1), 0)
     projector = torch.searchsorted(starts, global_cols, right=True) - 1
-    return crow, number[cols[used]], vals[used], global_cols - starts[projector], projector
+    return crow, number[flat], vals[used], global_cols - starts[projector], projector
 
 
 def build_transport(calibrations: dict[str, StateCalibration], targets: list[Target], *,
