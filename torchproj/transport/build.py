@@ -238,7 +238,8 @@ class StateCalibration:
 
             def fitted(rows, c, v):
                 c, v = _reach_shares(c, v, shares, pixels[rows], size)
-                return c, _fit_shares(c, v, shares, pixels[rows], size)
+                # A row of one cell has all its light on one side of every edge: nothing to fit.
+                return c, v if c.shape[1] == 1 else _fit_shares(c, v, shares, pixels[rows], size)
             cells, values = _by_width(cells, values, fitted)
         return cells, values
 
@@ -668,7 +669,7 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
 
 
 # Widths (slots) of the classes in which rows are fitted (_by_width).
-_WIDTH_CLASSES = (2, 4, 8, 16)
+_WIDTH_CLASSES = (1, 2, 4, 8, 16)
 
 
 def _by_width(cells: torch.Tensor, values: torch.Tensor, fn) -> tuple[torch.Tensor, torch.Tensor]:
