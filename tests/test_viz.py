@@ -41,6 +41,14 @@ def test_rig_view_draws_devices_and_surfaces(rig_module, tmp_path):
         blue = (rgb[2] > rgb[0] + 0.2)
         assert red.sum() > 100 and blue.sum() > 500
     assert not np.array_equal(images["paper_two_planes"].numpy(), images["box_cylinders"].numpy())
+    # Beside each PNG: every frustum and surface by name, and the view for a glTF viewer.
+    import pyvista as pv
+
+    scene = load_scene("box_cylinders")
+    blocks = pv.read(tmp_path / "box_cylinders.vtm")
+    assert sorted(blocks.keys()) == sorted(["camera", *(f"projector_{p.name}" for p in scene.projectors),
+                                            *(f"{st.name}_{s}" for st in scene.states for s in st.surfaces)])
+    assert len(_gltf(tmp_path / "box_cylinders.gltf")) >= len(blocks)
 
 
 def test_frustum_passes_through_the_image_corners(rig_module):
@@ -142,6 +150,17 @@ def test_point_cloud_view_fits_the_plane(viz, tmp_path):
     pv = pytest.importorskip("pyvista")
     back = pv.read(out.with_suffix(".vtm"))["cloud"]
     assert np.allclose(back.points, points, atol=1e-3) and np.allclose(back["signed distance (mm)"], residual)
+    # And the view as a glTF viewer shows it: the same points, coloured.
+    clouds = [g for g in _gltf(out.with_suffix(".gltf")) if len(g.vertices) == len(points)]
+    assert len(clouds) == 1 and np.allclose(clouds[0].vertices, points, atol=1e-3)
+
+
+def _gltf(path):
+    """The geometries of a glTF file as trimesh (the ray caster's library, a dependency) reads them."""
+    import trimesh
+
+    assert path.is_file(), path
+    return list(trimesh.load(path, force="scene").geometry.values())
 
 
 def test_point_cloud_view_measures_the_board_not_the_wall_behind_it(viz, tmp_path):
@@ -160,7 +179,7 @@ def test_point_cloud_view_measures_the_board_not_the_wall_behind_it(viz, tmp_pat
 
 def test_show_takes_the_screenshot_after_the_window_renders(viz, tmp_path):
     """``--show`` failed: the PNG was taken before the window existed. The shared ending now asks the
-    window for it."""
+    window for it; the glTF is written first, while the window is open (``show`` closes it)."""
     calls = []
 
     class Window:
@@ -170,10 +189,14 @@ def test_show_takes_the_screenshot_after_the_window_renders(viz, tmp_path):
         def screenshot(self, path):
             calls.append(("screenshot", path))
 
+        def export_gltf(self, path):
+            calls.append(("gltf", path))
+
     finish = viz["point_cloud"].finish
     finish(Window(), tmp_path / "v.png", show=True)
     finish(Window(), tmp_path / "w.png", show=False)
-    assert calls == [("show", str(tmp_path / "v.png")), ("screenshot", str(tmp_path / "w.png"))]
+    assert calls == [("gltf", str(tmp_path / "v.gltf")), ("show", str(tmp_path / "v.png")),
+                     ("gltf", str(tmp_path / "w.gltf")), ("screenshot", str(tmp_path / "w.png"))]
 
 
 @pytest.mark.slow

@@ -57,6 +57,9 @@ def finish(plotter: pv.Plotter, out: Path | None, show: bool, geometry: dict | N
 
     ``geometry``: name -> pyvista dataset; written as ``OUT.vtm`` (a multiblock file ParaView and
     ``pyvista.read`` open, every point value kept), so that the view can be explored, not only looked at.
+    The view itself, in its colours, is written as ``OUT.gltf`` (one file, its buffers inline): any
+    glTF viewer opens it, browser-based ones included (three.js, Babylon.js, an online glTF viewer),
+    where HTML would need trame's server stack, which the project does not install.
     A window's screenshot is taken by ``show`` itself: an on-screen plotter has nothing to screenshot
     before its window has rendered (``--show`` failed with "Nothing to screenshot").
     """
@@ -65,6 +68,7 @@ def finish(plotter: pv.Plotter, out: Path | None, show: bool, geometry: dict | N
         out.parent.mkdir(parents=True, exist_ok=True)
         if geometry:
             pv.MultiBlock(geometry).save(str(out.with_suffix(".vtm")))
+        plotter.export_gltf(str(out.with_suffix(".gltf")))
     if show:
         plotter.show(screenshot=None if out is None else str(out))
     elif out is not None:

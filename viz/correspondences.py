@@ -5,8 +5,9 @@ projector rays of a few sampled pairs and the devices' frusta.
     python viz/correspondences.py SIMULATE_DIR [--colour projector|contrast] [--rays 6] [--points 40000]
                                   [--out FILE.png] [--show]
 
-SIMULATE_DIR is what ``torchproj simulate --out`` wrote (its report names the scene config).
-Off-screen by default; ``--show`` opens a window where a display exists.
+SIMULATE_DIR is what ``torchproj simulate --out`` wrote (its report names the scene config). Beside
+the PNG: ``.vtm`` with each state's and projector's cloud and its contrast, and ``.gltf`` of the
+view (any glTF viewer opens it). Off-screen by default; ``--show`` opens a window where a display exists.
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ any calibration bias. Points off the plane are grey.
     python viz/point_cloud.py DECODE_DIR [--threshold 2] [--units mm] [--out FILE.png] [--show]
 
 Distances are in the calibration's units (millimetres for the shipped chessboard). Writes the PNG and,
-beside it, ``.vtm`` with the cloud and its distances (``pyvista.read`` or ParaView opens it).
-Off-screen by default.
+beside it, ``.vtm`` with the cloud and its distances (``pyvista.read`` or ParaView opens it) and
+``.gltf``, the view in its colours for any glTF viewer. Off-screen by default.
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def main(argv=None) -> int:
                                                  threshold=args.threshold, units=args.units)
     plotter.close()
     print(f"{int(on_plane.sum())} of {len(on_plane)} points on the largest plane, RMS "
-          f"{np.sqrt(np.mean(residual[on_plane] ** 2)):.3g} {args.units}; wrote {out} and {out.with_suffix('.vtm')}")
+          f"{np.sqrt(np.mean(residual[on_plane] ** 2)):.3g} {args.units}; wrote {out}, {out.with_suffix('.vtm')} and {out.with_suffix('.gltf')}")
     return 0
 
 

@@ -5,7 +5,8 @@ with the goal box as a red wireframe, where the trial started in grey and where 
 
 OUT_DIR is what ``torchproj position --out`` wrote. Without ``--trial`` every scan gets a PNG,
 ``OUT_DIR/views/TRIAL.png``, all on one colour scale so that they can be compared, and beside each a
-``.vtm`` with the scan and its distances. Off-screen by default; ``--show`` opens a window where a
+``.vtm`` with the scan and its distances and a ``.gltf`` of the view (any glTF viewer opens it).
+Off-screen by default; ``--show`` opens a window where a
 display exists.
 """
 

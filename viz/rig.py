@@ -2,8 +2,9 @@
 
     python viz/rig.py [CONFIG] [--out rig.png] [--show]
 
-Off-screen PNG by default (pyvista); ``--show`` opens a window where a display exists. Each state's
-surfaces get their own colour; frusta are drawn to ``--depth`` metres.
+Off-screen PNG by default (pyvista), and beside it ``.vtm`` (every frustum and surface, by name)
+and ``.gltf`` (the view, for any glTF viewer); ``--show`` opens a window where a display exists.
+Each state's surfaces get their own colour; frusta are drawn to ``--depth`` metres.
 """
 
 from __future__ import annotations
@@ -26,17 +27,20 @@ def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = Fa
              window_size=(1000, 750)) -> pv.Plotter:
     plotter = pv.Plotter(off_screen=not show, window_size=window_size)
     cam = scene.camera
-    plotter.add_mesh(frustum(cam.K, cam.width, cam.height, cam.world_from_cam, depth), color="black", line_width=2)
+    geometry = {"camera": frustum(cam.K, cam.width, cam.height, cam.world_from_cam, depth)}
+    plotter.add_mesh(geometry["camera"], color="black", line_width=2)
     plotter.add_point_labels([cam.world_from_cam[:3, 3]], ["camera"], font_size=12, point_size=8)
     for p in scene.projectors:
-        plotter.add_mesh(frustum(p.K, p.width, p.height, p.world_from_prj, depth), color="#d62728", line_width=2)
+        geometry[f"projector_{p.name}"] = frustum(p.K, p.width, p.height, p.world_from_prj, depth)
+        plotter.add_mesh(geometry[f"projector_{p.name}"], color="#d62728", line_width=2)
         plotter.add_point_labels([p.centre], [p.name], font_size=12, point_size=8, text_color="#d62728")
     for i, state in enumerate(scene.states):
         colour = STATE_COLOURS[i % len(STATE_COLOURS)]
         for name in state.surfaces:
             surf = scene.surfaces[name]
-            plotter.add_mesh(surface_mesh(surf), color=colour, opacity=0.45 if surf.transmittance else 0.9,
-                             label=f"{state.name}: {name}")
+            geometry[f"{state.name}_{name}"] = surface_mesh(surf)
+            plotter.add_mesh(geometry[f"{state.name}_{name}"], color=colour,
+                             opacity=0.45 if surf.transmittance else 0.9, label=f"{state.name}: {name}")
     # The legend in a corner the frusta leave free (it covered their lines), axes in metres and a title.
     plotter.add_legend(bcolor="white", face="rectangle", loc="upper left",
                        size=(0.18, 0.03 + 0.03 * sum(len(s.surfaces) for s in scene.states)))
@@ -45,7 +49,7 @@ def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = Fa
     plotter.add_text(f"{scene.name}: camera (black), projectors (red), frusta {depth:g} m", position="upper_edge",
                      font_size=10, color="black")
     plotter.camera_position = [(1.6, -0.9, -0.9), (0.0, 0.0, 0.7), (0, -1, 0)]
-    return finish(plotter, out, show)
+    return finish(plotter, out, show, geometry=geometry)
 
 
 def main(argv=None) -> int:
