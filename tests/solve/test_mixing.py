@@ -74,3 +74,22 @@ def test_make_patterns_solves_through_the_responses_mixing():
     assert "mixing" not in plain.info
     with pytest.raises(InputError, match="bounds within"):
         solve_through_mixing(op, result, MIXINGS, (-0.4, 1.0))
+
+
+def test_an_identity_mixing_leaves_the_channels_answer():
+    """A colour camera on a rig without mixing measures the identity: it couples nothing, so the
+    channels' answer stands as it is (the coupled iterations had been half a small scene's solve);
+    the same curves with the least mixing are refined."""
+    cals, tgts = synthetic_calibration(), targets(channels=3)
+    op = build_transport(cals, tgts, scale=1.0)
+
+    def solved(mixing):
+        curves = [ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1), mixing)] * 2
+        return make_patterns(op, "fista", (0.0, 1.0), curves, max_iter=300)[0]
+
+    plain = make_patterns(op, "fista", (0.0, 1.0), [ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1))] * 2,
+                          max_iter=300)[0]
+    identity = solved(torch.eye(3))
+    assert "mixing" not in identity.info and torch.equal(identity.patterns, plain.patterns)
+    slight = torch.eye(3) * 0.98 + 0.02 / 3
+    assert "mixing" in solved(slight).info

@@ -183,8 +183,12 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     # threshold is calibrated on it); an image objective departs from it on purpose.
     warn_if_ill_posed(ops, result.patterns)
     mixings = [r.mixing for r in responses]
-    if image is None and result.patterns.shape[1] == 3 and any(m is not None for m in mixings) and 0 <= bounds[0] \
-            and bounds[1] <= 1:
+    # A mixing that is the identity couples nothing: the channels' answer is already the optimum (a
+    # colour camera calibrated on a rig without mixing measures exactly that, and the 200 coupled
+    # iterations were half of a small colour scene's solve).
+    mixed = any(m is not None and not torch.equal(m, torch.eye(m.shape[0], dtype=m.dtype, device=m.device))
+                for m in mixings)
+    if image is None and result.patterns.shape[1] == 3 and mixed and 0 <= bounds[0] and bounds[1] <= 1:
         # A colour camera sees the primaries mixed: the channels' answer, brought into what the
         # primaries can give, is refined with the channels coupled (torchproj.solve.mixing).
         result = solve_through_mixing(ops, result, mixings, bounds)
