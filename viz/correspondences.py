@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     out = args.out or args.run_dir / "correspondences.png"
     draw_correspondences(scene, correspondence_clouds(scene, args.run_dir, args.points), out, args.colour, args.rays,
                          args.show).close()
-    print(f"wrote {out}")
+    print(f"wrote {out}, {out.with_suffix('.vtm')} and {out.with_suffix('.gltf')}")
     return 0
 
 

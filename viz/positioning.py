@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     for name, scan in loaded.items():
         out = args.out if (args.out and args.trial) else args.run_dir / "views" / f"{name}.png"
         draw_scan(scan, out, top, args.show, title=f"scan {name}").close()
-        print(f"wrote {out}")
+        print(f"wrote {out}, {out.with_suffix('.vtm')} and {out.with_suffix('.gltf')}")
     return 0
 
 

@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     scene = load_scene(args.config)
     draw_rig(scene, args.out, args.depth, args.show).close()
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out}, {args.out.with_suffix('.vtm')} and {args.out.with_suffix('.gltf')}")
     return 0
 
 
