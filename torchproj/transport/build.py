@@ -238,7 +238,7 @@ class StateCalibration:
 
             def fitted(rows, c, v):
                 c, v = _reach_shares(c, v, shares, pixels[rows], size)
-                # A row of one cell has all its light on one side of every edge: nothing to fit.
+                # Rows of one cell have all their light on one side of every edge: nothing to fit.
                 return c, v if c.shape[1] == 1 else _fit_shares(c, v, shares, pixels[rows], size)
             cells, values = _by_width(cells, values, fitted)
         return cells, values
@@ -398,6 +398,9 @@ def _sampled_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size:
     share = 1.0 / offset.shape[0]
     # Most rows' samples fall in a few cells' window: binned there, no sort is needed (below). Rows
     # whose window is wider (a grazing face, a wide disc) are combined by sorting their samples.
+    if x.numel() < _BINNED_MIN:
+        flat = torch.where(inside, y * w + x, -1.0).to(torch.int32)
+        return _combine(flat, torch.where(flat >= 0, share, 0.0).to(u.dtype))
     near, x0, y0, span = _windows(x, y, inside)
     if bool(near.all()):
         return _binned(x, y, inside, x0, y0, span, share, w)
@@ -410,8 +413,10 @@ def _sampled_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size:
     return cells[torch.argsort(torch.cat(rows))], values[torch.argsort(torch.cat(rows))]
 
 
-# A row's samples are binned on a window of cells at most this many per axis (else sorted).
-_WINDOW = 8
+# A row's samples are binned on a window of cells at most this many per axis (else sorted), where a
+# pass holds _BINNED_MIN samples or more: binning takes more steps than a sort, which small passes
+# (a small scene's) pay for in overhead rather than arithmetic.
+_WINDOW, _BINNED_MIN = 8, 1 << 16
 
 
 def _windows(x: torch.Tensor, y: torch.Tensor, inside: torch.Tensor):
@@ -668,8 +673,9 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     return values
 
 
-# Widths (slots) of the classes in which rows are fitted (_by_width).
-_WIDTH_CLASSES = (1, 2, 4, 8, 16)
+# Widths (slots) of the classes in which rows are fitted (_by_width), where the rows hold
+# _CLASSES_MIN slots or more: each class is one more pass of the fit's many small steps.
+_WIDTH_CLASSES, _CLASSES_MIN = (1, 2, 4, 8, 16), 1 << 18
 
 
 def _by_width(cells: torch.Tensor, values: torch.Tensor, fn) -> tuple[torch.Tensor, torch.Tensor]:
@@ -679,6 +685,8 @@ def _by_width(cells: torch.Tensor, values: torch.Tensor, fn) -> tuple[torch.Tens
     A chunk's rows are as wide as its widest (a grazing face, a defocus disc), and the fit's masks
     are as wide as the rows: on the default scene rows hold 2.1 cells on average in 7-8 slots.
     Rows keep their cells in their first slots (:func:`_compact`), so a class is a slice."""
+    if cells.numel() < _CLASSES_MIN:
+        return fn(torch.arange(cells.shape[0], device=cells.device), cells, values)
     used = (cells >= 0).sum(1)
     bounds = [b for b in _WIDTH_CLASSES if b < cells.shape[1]] + [cells.shape[1]]
     parts, order, low = [], [], -1
