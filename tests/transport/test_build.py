@@ -652,8 +652,8 @@ def _counted(u, slope, ok, size, samples):
 @pytest.mark.parametrize("samples", [4, 12])
 def test_sampled_rows_count_every_sample_in_order(samples, binned_from, monkeypatch):
     """Rows binned on a window of cells and rows too wide for it (sorted) both hold each cell's share
-    of the samples, counted one by one, with their cells first and ascending: the layout the fit's
-    width classes and the assembly without a sort rely on."""
+    of the samples, counted one by one, with their cells first and ascending: the layout the
+    assembly without a sort relies on."""
     monkeypatch.setattr(build, "_BINNED_MIN", binned_from)  # binned (0) or sorted, whatever the size
     g = torch.Generator().manual_seed(samples)
     n, size = 300, (40, 30)
@@ -687,21 +687,3 @@ def test_assembly_sorts_rows_that_come_unordered():
     assert unordered[0].tolist() == [0, 3, 5, 8]
     with pytest.raises(InputError, match="one cell twice"):
         build._assemble(torch.tensor([[3, 3]]), torch.tensor([[0.1, 0.2]]), sizes)
-
-
-def test_area_rows_fitted_in_width_classes_equal_one_pass(monkeypatch):
-    """The shares' fit over rows in classes by width gives each row what one pass over all rows at
-    the widest gives it."""
-    full = calibrate_virtual(parse_scene(small_config()), progress=False).states
-    state = next(iter(full.values()))
-    assert state.shares is not None  # the fit runs
-    pixels = torch.nonzero(torch.isfinite(state.prj_xy[0]).all(-1).reshape(-1))[:, 0]
-    monkeypatch.setattr(build, "_CLASSES_MIN", 0)  # in classes, however few the rows
-    cells, values = state._rows(0, pixels, "area")
-    monkeypatch.setattr(build, "_WIDTH_CLASSES", ())
-    wide_cells, wide_values = state._rows(0, pixels, "area")
-    assert cells.shape[1] <= wide_cells.shape[1]
-    assert torch.equal(cells, wide_cells[:, :cells.shape[1]])
-    assert not bool((wide_cells[:, cells.shape[1]:] >= 0).any())
-    torch.testing.assert_close(values, wide_values[:, :cells.shape[1]])
-    assert len({int(u) for u in (cells >= 0).sum(1)}) > 2  # rows of several widths

@@ -234,13 +234,8 @@ class StateCalibration:
         if self.edges is not None:
             cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur, fine)
         if self.shares is not None:
-            shares = self.shares[j]
-
-            def fitted(rows, c, v):
-                c, v = _reach_shares(c, v, shares, pixels[rows], size)
-                # Rows of one cell have all their light on one side of every edge: nothing to fit.
-                return c, v if c.shape[1] == 1 else _fit_shares(c, v, shares, pixels[rows], size)
-            cells, values = _by_width(cells, values, fitted)
+            cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
+            values = _fit_shares(cells, values, self.shares[j], pixels, size)
         return cells, values
 
     def _slope(self, j: int) -> torch.Tensor:
@@ -673,37 +668,6 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
     return values
 
 
-# Widths (slots) of the classes in which rows are fitted (_by_width), where the rows hold
-# _CLASSES_MIN slots or more: each class is one more pass of the fit's many small steps.
-_WIDTH_CLASSES, _CLASSES_MIN = (1, 2, 4, 8, 16), 1 << 18
-
-
-def _by_width(cells: torch.Tensor, values: torch.Tensor, fn) -> tuple[torch.Tensor, torch.Tensor]:
-    """``fn(rows, cells, values)`` on the rows :math:`(N, s)` in classes by how many cells they hold,
-    each class only as wide as ``_WIDTH_CLASSES`` needs; the results back in the rows' order.
-
-    A chunk's rows are as wide as its widest (a grazing face, a defocus disc), and the fit's masks
-    are as wide as the rows: on the default scene rows hold 2.1 cells on average in 7-8 slots.
-    Rows keep their cells in their first slots (:func:`_compact`), so a class is a slice."""
-    if cells.numel() < _CLASSES_MIN:
-        return fn(torch.arange(cells.shape[0], device=cells.device), cells, values)
-    used = (cells >= 0).sum(1)
-    bounds = [b for b in _WIDTH_CLASSES if b < cells.shape[1]] + [cells.shape[1]]
-    parts, order, low = [], [], -1
-    for bound in bounds:
-        rows = torch.nonzero((used > low) & (used <= bound))[:, 0]
-        low = bound
-        if not rows.numel():
-            continue
-        parts.append(fn(rows, cells[:, :bound][rows], values[:, :bound][rows]))
-        order.append(rows)
-    if not parts:
-        return cells, values
-    cells, values = _stack_rows([c for c, _ in parts], [v for _, v in parts])
-    back = torch.argsort(torch.cat(order))
-    return cells[back], values[back]
-
-
 def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Rows padded to ``width`` slots with empty ones (cell -1, value 0)."""
     pad = (0, width - cells.shape[1])
@@ -838,7 +802,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
     n_ch = channels.pop()
     sizes = camera = None
-    checked, found = set(), []
+    checked = set()
     row_cols, row_vals, row_values, row_tgt, row_pix, row_ratio = [], [], [], [], [], []
     for ti, target in enumerate(targets):
         check(target.state in calibrations, f"target {target.name or ti!r} names state {target.state!r}, which was "
@@ -861,17 +825,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
                                         f"{target.state!r}: no pixel of its mask is lit by any projector")
         values, covered = target_on_camera(target, mask & lit)
-        found.append((target, cal, values, torch.nonzero(covered.reshape(-1))[:, 0]))
-    # A state's rows are built once for all its targets' pixels, then each target takes its own: the
-    # build's many small steps per call cost more than its arithmetic on small scenes (four targets
-    # in one state: a quarter of the calls).
-    pixels = {}
-    for target, _, _, rows in found:
-        pixels.setdefault(target.state, []).append(rows)
-    pixels = {state: torch.unique(torch.cat(rows)) for state, rows in pixels.items()}
-    built = {}
-    for ti, (target, cal, values, rows) in enumerate(found):
-        at = torch.searchsorted(pixels[target.state], rows)
+        rows = torch.nonzero(covered.reshape(-1))[:, 0]
         cols, vals, ratio = [], [], []
         offset = 0
         for name, per in (("blur maps", cal.blur), ("edge-pixel sets", cal.edges), ("cell-share sets", cal.shares)):
@@ -883,16 +837,14 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
                 checked.add((target.state, j))
                 check_finite(weight, f"weight[{j}] of state {target.state!r}")
                 if cal.edges is not None:
-                    cal.edges[j].check(tuple(camera), f"edges[{j}] of state {target.state!r}")
+                    cal.edges[j].check(tuple(lit.shape), f"edges[{j}] of state {target.state!r}")
                 if cal.shares is not None:
-                    cal.shares[j].check(tuple(camera), sizes[j], f"shares[{j}] of state {target.state!r}")
+                    cal.shares[j].check(tuple(lit.shape), sizes[j], f"shares[{j}] of state {target.state!r}")
                 if cal.blur is not None:
-                    check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(camera))
+                    check_shape(cal.blur[j], f"blur[{j}] of state {target.state!r}", list(lit.shape))
                     check(not torch.isinf(cal.blur[j]).any(), f"blur[{j}] of state {target.state!r} holds "
                                                               "infinite diameters: give them in cells, NaN where unknown")
-            if (target.state, j) not in built:
-                built[target.state, j] = cal._rows(j, pixels[target.state], footprint)
-            c, v = _trimmed(*(x[at] for x in built[target.state, j]))
+            c, v = cal._rows(j, rows, footprint)
             cols.append(torch.where(c >= 0, c + offset, -1))
             vals.append(v)
             if colour:
@@ -912,13 +864,6 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     cols, vals = _stack_rows(row_cols, row_vals)
     return _Rows(cols, vals.float(), torch.cat(row_values).float(), torch.cat(row_tgt), torch.cat(row_pix),
                  tuple(camera), sizes, torch.cat(row_ratio) if colour else None)
-
-
-def _trimmed(cells: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rows :math:`(N, s)` without the trailing slots that none of them uses."""
-    slots = torch.nonzero((cells >= 0).any(0))[:, 0]
-    width = int(slots[-1]) + 1 if slots.numel() else 1
-    return cells[:, :width], values[:, :width]
 
 
 def _scale(vals: torch.Tensor, scale: float | None) -> float:
