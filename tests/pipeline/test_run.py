@@ -152,7 +152,16 @@ def test_gain_and_offset_from_the_command_line(config, tmp_path):
         assert 0.5 <= t["gain"] <= 1.0 and -0.1 <= t["offset"] <= 0.2
         # Scored against the image it chose to show, the adjusted target is reached more closely.
         assert t["psnr_db"] > t["psnr_db_original"]
-    assert "gain" in (out / "report.md").read_text()
+    text = (out / "report.md").read_text()
+    # Each table narrow enough to read (one had been sixteen columns wide with the gain and offset),
+    # every target in each, and each score where it was.
+    tables = [line for line in text.splitlines() if line.startswith("|")]
+    assert max(line.count("|") - 1 for line in tables) <= 7
+    for t in report["targets"]:
+        rows = [line for line in tables if line.startswith(f"| {t['name']} |")]
+        assert len(rows) == 3
+        assert f"| {t['psnr_db']:.2f} | {t['ssim']:.3f} |" in rows[0]
+        assert f"| {t['gain']:.3f} | {t['offset']:.3f} | {t['psnr_db_original']:.2f} |" in rows[2]
 
 
 def test_negative_bounds_in_the_papers_notation(config, tmp_path):

@@ -483,6 +483,34 @@ def _verdict_lines(targets: list[dict], ceiling: bool) -> list[str]:
             "images rarely both reach 30 dB.", ""]
 
 
+def _markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+def _score_tables(targets: list[dict], paper: bool, adjusted: bool, ceiling: bool) -> list[str]:
+    """report.md's scores: the primary ones (and the ceiling's beside them) in a table a reader takes
+    in at a glance, the others in a second one; the brightness fit's, where it ran, in a third (one
+    table had been ten to sixteen columns wide)."""
+    main = _markdown_table(["target", "state", "PSNR (dB)", "SSIM"] + (["ceiling PSNR (dB)", "ceiling SSIM"] if ceiling else []),
+                           [[r["name"], r["state"], f"{r['psnr_db']:.2f}", f"{r['ssim']:.3f}"]
+                            + ([f"{r['ceiling']['psnr_db']:.2f}", f"{r['ceiling']['ssim']:.3f}"] if ceiling else [])
+                            for r in targets])
+    more = _markdown_table(["target", "crosstalk", "ghost", "pixels", "affine PSNR (dB)"]
+                           + (["paper PSNR (dB)", "paper SSIM"] if paper else []),
+                           [[r["name"], f"{r['crosstalk']:.3f}", f"{r.get('ghost', float('nan')):.3f}", str(r["pixels"]),
+                             f"{r.get('affine_psnr_db', float('nan')):.2f}"]
+                            + ([f"{r['paper']['psnr_db']:.2f}", f"{r['paper']['ssim']:.3f}"] if paper else [])
+                            for r in targets])
+    lines = [*main, "", "More scores per target:", "", *more]
+    if adjusted:
+        lines += ["", "Brightness fitted to what the projectors can give (gain and offset of each target; the scores "
+                      "above are against the fitted target, these against the target as given):", "",
+                  *_markdown_table(["target", "gain", "offset", "PSNR vs target (dB)", "SSIM vs target"],
+                                   [[r["name"], f"{r['gain']:.3f}", f"{r['offset']:.3f}", f"{r['psnr_db_original']:.2f}",
+                                     f"{r['ssim_original']:.3f}"] for r in targets])]
+    return lines
+
+
 def run_markdown(report: dict) -> str:
     """``report.md`` of a run: what ``report.json`` holds, as tables."""
     m, t = report["model"], report["timings_s"]
@@ -508,22 +536,7 @@ def run_markdown(report: dict) -> str:
              *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
              *_image_objective_lines(report.get("image_objective")),
              *_show_lines(report),
-             "| target | state | PSNR (dB) | SSIM | crosstalk | ghost | pixels | affine PSNR (dB) |"
-             + (" paper PSNR (dB) | paper SSIM |" if paper else "")
-             + (" gain | offset | PSNR vs t | SSIM vs t |" if adjusted else "")
-             + (" ceiling PSNR (dB) | ceiling SSIM |" if ceiling else ""),
-             "|---|---|---|---|---|---|---|---|" + ("---|---|" if paper else "") + ("---|---|---|---|" if adjusted else "")
-             + ("---|---|" if ceiling else "")]
-    for r in report["targets"]:
-        line = (f"| {r['name']} | {r['state']} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['crosstalk']:.3f} | "
-                f"{r.get('ghost', float('nan')):.3f} | {r['pixels']} | {r.get('affine_psnr_db', float('nan')):.2f} |")
-        if paper:
-            line += f" {r['paper']['psnr_db']:.2f} | {r['paper']['ssim']:.3f} |"
-        if adjusted:
-            line += f" {r['gain']:.3f} | {r['offset']:.3f} | {r['psnr_db_original']:.2f} | {r['ssim_original']:.3f} |"
-        if ceiling:
-            line += f" {r['ceiling']['psnr_db']:.2f} | {r['ceiling']['ssim']:.3f} |"
-        lines.append(line)
+             *_score_tables(report["targets"], paper, adjusted, ceiling)]
     lines += ["", "Scores: PSNR and SSIM against the target image are ours and the primary ones; affine PSNR takes "
                   "each capture's best gain and offset first (structure without brightness)"
               + ("; the paper's PSNR and SSIM compare the capture with a capture of the target image projected alone "
