@@ -391,21 +391,24 @@ def _sampled_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size:
     x, y = points.unbind(-1)
     inside = ok[:, None] & (x >= 0) & (x < w) & (y >= 0) & (y < h)
     share = 1.0 / offset.shape[0]
+
+    def by_sorting(xs, ys, lit):
+        flat = torch.where(lit, ys * w + xs, -1.0).to(torch.int32)
+        return _combine(flat, torch.where(flat >= 0, share, 0.0).to(u.dtype))
+
     # Most rows' samples fall in a few cells' window: binned there, no sort is needed (below). Rows
     # whose window is wider (a grazing face, a wide disc) are combined by sorting their samples.
     if x.numel() < _BINNED_MIN:
-        flat = torch.where(inside, y * w + x, -1.0).to(torch.int32)
-        return _combine(flat, torch.where(flat >= 0, share, 0.0).to(u.dtype))
+        return by_sorting(x, y, inside)
     near, x0, y0, span = _windows(x, y, inside)
     if bool(near.all()):
         return _binned(x, y, inside, x0, y0, span, share, w)
-    rows = [torch.nonzero(near)[:, 0], torch.nonzero(~near)[:, 0]]
-    far = rows[1]
-    flat = torch.where(inside[far], y[far] * w + x[far], -1.0).to(torch.int32)
-    parts = [_binned(x[rows[0]], y[rows[0]], inside[rows[0]], x0[rows[0]], y0[rows[0]], span, share, w),
-             _combine(flat, torch.where(flat >= 0, share, 0.0).to(u.dtype))]
+    close, wide = torch.nonzero(near)[:, 0], torch.nonzero(~near)[:, 0]
+    parts = [_binned(x[close], y[close], inside[close], x0[close], y0[close], span, share, w),
+             by_sorting(x[wide], y[wide], inside[wide])]
     cells, values = _stack_rows([c for c, _ in parts], [v for _, v in parts])
-    return cells[torch.argsort(torch.cat(rows))], values[torch.argsort(torch.cat(rows))]
+    back = torch.argsort(torch.cat([close, wide]))  # back to the rows' own order
+    return cells[back], values[back]
 
 
 # A row's samples are binned on a window of cells at most this many per axis (else sorted), where a
@@ -445,7 +448,7 @@ def _binned(x, y, inside, x0, y0, span: tuple[int, int], share: float, w: int):
 
 def _compact(cells: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rows :math:`(N, k)` with their used slots (cell >= 0) moved first, in order, and as many slots
-    as the fullest row uses (at least one): the layout every footprint's rows keep."""
+    as the fullest row uses (at least one): the layout :func:`_combine` gives."""
     used = cells >= 0
     slot = used.cumsum(1) - 1
     slots = max(int(slot[:, -1].max()) + 1 if slot.numel() else 1, 1)
