@@ -643,7 +643,8 @@ def _counted(u, slope, ok, size, samples):
         for o in offset:
             x, y = (torch.nan_to_num(slope[n]) @ o + u[n] + 0.5).floor().tolist()
             if ok[n] and 0 <= x < w and 0 <= y < h:
-                found[int(y) * w + int(x)] = found.get(int(y) * w + int(x), 0.0) + 1 / offset.shape[0]
+                cell = int(y) * w + int(x)
+                found[cell] = found.get(cell, 0.0) + 1 / offset.shape[0]
         rows.append(found)
     return rows
 

@@ -424,10 +424,10 @@ def _windows(x: torch.Tensor, y: torch.Tensor, inside: torch.Tensor):
     far = torch.tensor(float("inf"), dtype=x.dtype, device=x.device)
     x0, y0 = torch.where(inside, x, far).amin(1), torch.where(inside, y, far).amin(1)
     x0, y0 = torch.where(torch.isfinite(x0), x0, 0.0), torch.where(torch.isfinite(y0), y0, 0.0)
-    kx = torch.where(inside, x - x0[:, None], 0.0).amax(1) + 1 if x.shape[1] else torch.ones_like(x0)
-    ky = torch.where(inside, y - y0[:, None], 0.0).amax(1) + 1 if x.shape[1] else torch.ones_like(y0)
+    kx = torch.where(inside, x - x0[:, None], 0.0).amax(1) + 1
+    ky = torch.where(inside, y - y0[:, None], 0.0).amax(1) + 1
     near = (kx <= _WINDOW) & (ky <= _WINDOW)
-    span = (int(kx[near].max()) if bool(near.any()) else 1, int(ky[near].max()) if bool(near.any()) else 1)
+    span = (int(kx[near].max()), int(ky[near].max())) if bool(near.any()) else (1, 1)
     return near, x0, y0, span
 
 
