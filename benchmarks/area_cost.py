@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import machine, write_results
+from common import machine, nonzero_rows, row_sums, with_matrix, write_results
 from matplotlib.figure import Figure
 
 from torchproj.pipeline import calibrate_virtual, evaluate_patterns, scene_targets
@@ -39,16 +39,13 @@ TAUS = (0.02, 0.05)
 
 def pruned(op: TransportOperator, tau: float) -> TransportOperator:
     """``op`` without each row's cells under ``tau`` of the row's light, the rest scaled to keep the row's total."""
-    rows = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff())
-    total = torch.zeros(op.shape[0], dtype=op.val.dtype).index_add_(0, rows, op.val)
+    rows, total = nonzero_rows(op), row_sums(op)
     keep = op.val >= tau * total[rows]
     kept = torch.zeros_like(total).index_add_(0, rows, torch.where(keep, op.val, 0.0))
     val = (op.val * (total / kept.clamp_min(1e-30))[rows])[keep]
     crow = torch.zeros(op.shape[0] + 1, dtype=op.crow.dtype)
     crow[1:] = torch.cumsum(torch.bincount(rows[keep], minlength=op.shape[0]), 0)
-    matrix = torch.sparse_csr_tensor(crow, op.col[keep], val, op.shape)
-    return TransportOperator(matrix, op.rhs, op.column_projector, op.column_cell, op.projector_sizes, op.constant,
-                             op.row_target, op.scale, op.row_pixel, op.camera_size, op.target_count)
+    return with_matrix(op, crow, op.col[keep], val)
 
 
 def timed(repeats: int, fn, *args, **kwargs):

@@ -10,8 +10,10 @@ import torch
 from torch.utils.benchmark import Timer
 
 from torchproj.core import write_json
+from torchproj.core.sparse import csr_tensor
+from torchproj.transport import TransportOperator
 
-__all__ = ["machine", "median_time", "write_results"]
+__all__ = ["machine", "median_time", "nonzero_rows", "row_sums", "with_matrix", "write_results"]
 
 
 def median_time(fn, *args, repeats: int = 5) -> float:
@@ -45,3 +47,20 @@ def without_checker(states: dict) -> dict:
     Gray code alone gives (state name -> :class:`~torchproj.transport.StateCalibration`)."""
     return {name: dataclasses.replace(state, shares=state.shares and [
         part and dataclasses.replace(part, checker=None) for part in state.shares]) for name, state in states.items()}
+
+
+def nonzero_rows(op: TransportOperator) -> torch.Tensor:
+    """The row of each of ``op``'s nonzeros, in CSR order."""
+    return torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff())
+
+
+def row_sums(op: TransportOperator) -> torch.Tensor:
+    """Each row's total light (the sum of its entries)."""
+    return torch.zeros(op.shape[0], dtype=op.val.dtype).index_add_(0, nonzero_rows(op), op.val)
+
+
+def with_matrix(op: TransportOperator, crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor) -> TransportOperator:
+    """``op`` with another matrix on the same rows and columns (CSR arrays), everything else kept."""
+    return TransportOperator(csr_tensor(crow, col, val, op.shape), op.rhs, op.column_projector, op.column_cell,
+                             op.projector_sizes, constant=op.constant, row_target=op.row_target, scale=op.scale,
+                             row_pixel=op.row_pixel, camera_size=op.camera_size, target_count=op.target_count)

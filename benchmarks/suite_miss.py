@@ -32,9 +32,8 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from common import machine, write_results
+from common import machine, nonzero_rows, row_sums, with_matrix, write_results
 
-from torchproj.core.sparse import csr_tensor
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
                                 scene_targets, solve_on_light_transport)
 from torchproj.scene import load_scene
@@ -45,17 +44,9 @@ BOUNDS = (0.0, 1.0)
 BAND = 2  # camera pixels from a target region's outline that count as its outline band
 
 
-def row_sums(op: TransportOperator) -> torch.Tensor:
-    rows = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff())
-    return torch.zeros(op.shape[0], dtype=op.val.dtype).index_add_(0, rows, op.val)
-
-
 def rescaled(op: TransportOperator, factor: torch.Tensor) -> TransportOperator:
     """``op`` with each row multiplied by ``factor``."""
-    rows = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff())
-    return TransportOperator(csr_tensor(op.crow, op.col, op.val * factor[rows], op.shape), op.rhs, op.column_projector,
-                             op.column_cell, op.projector_sizes, row_target=op.row_target, scale=op.scale,
-                             row_pixel=op.row_pixel, camera_size=op.camera_size, target_count=op.target_count)
+    return with_matrix(op, op.crow, op.col, op.val * factor[nonzero_rows(op)])
 
 
 def exact_maps(cal) -> dict:
