@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe", "side_bar"]
+__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe", "side_bar", "written"]
 
 
 def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, depth: float) -> pv.PolyData:
@@ -74,3 +74,9 @@ def finish(plotter: pv.Plotter, out: Path | None, show: bool, geometry: dict | N
     elif out is not None:
         plotter.screenshot(str(out))
     return plotter
+
+
+def written(out: Path) -> str:
+    """The files :func:`finish` writes for ``out``, as a message names them."""
+    out = Path(out)
+    return f"{out}, {out.with_suffix('.vtm')} and {out.with_suffix('.gltf')}"

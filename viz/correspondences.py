@@ -22,7 +22,7 @@ import pyvista as pv
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, frustum, side_bar  # noqa: E402
+from _common import finish, frustum, side_bar, written  # noqa: E402
 
 from torchproj.calib import triangulate  # noqa: E402
 from torchproj.cli_options import positive_int  # noqa: E402
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     out = args.out or args.run_dir / "correspondences.png"
     draw_correspondences(scene, correspondence_clouds(scene, args.run_dir, args.points), out, args.colour, args.rays,
                          args.show).close()
-    print(f"wrote {out}, {out.with_suffix('.vtm')} and {out.with_suffix('.gltf')}")
+    print(f"wrote {written(out)}")
     return 0
 
 

@@ -21,7 +21,7 @@ import pyvista as pv
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, side_bar  # noqa: E402
+from _common import finish, side_bar, written  # noqa: E402
 
 from torchproj.calib import largest_plane  # noqa: E402
 from torchproj.cli_options import positive_float  # noqa: E402
@@ -86,7 +86,7 @@ def main(argv=None) -> int:
                                                  threshold=args.threshold, units=args.units)
     plotter.close()
     print(f"{int(on_plane.sum())} of {len(on_plane)} points on the largest plane, RMS "
-          f"{np.sqrt(np.mean(residual[on_plane] ** 2)):.3g} {args.units}; wrote {out}, {out.with_suffix('.vtm')} and {out.with_suffix('.gltf')}")
+          f"{np.sqrt(np.mean(residual[on_plane] ** 2)):.3g} {args.units}; wrote {written(out)}")
     return 0
 
 

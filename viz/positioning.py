@@ -20,7 +20,7 @@ import numpy as np
 import pyvista as pv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import box_wireframe, finish, side_bar  # noqa: E402
+from _common import box_wireframe, finish, side_bar, written  # noqa: E402
 
 from torchproj.cli_options import positive_float  # noqa: E402
 from torchproj.experiments import box_surface_distance, pose_error  # noqa: E402
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     for name, scan in loaded.items():
         out = args.out if (args.out and args.trial) else args.run_dir / "views" / f"{name}.png"
         draw_scan(scan, out, top, args.show, title=f"scan {name}").close()
-        print(f"wrote {out}, {out.with_suffix('.vtm')} and {out.with_suffix('.gltf')}")
+        print(f"wrote {written(out)}")
     return 0
 
 

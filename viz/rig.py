@@ -16,7 +16,7 @@ from pathlib import Path
 import pyvista as pv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, frustum, surface_mesh  # noqa: E402
+from _common import finish, frustum, surface_mesh, written  # noqa: E402
 
 from torchproj.scene import Scene, load_scene  # noqa: E402
 
@@ -31,16 +31,15 @@ def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = Fa
     plotter.add_mesh(geometry["camera"], color="black", line_width=2)
     plotter.add_point_labels([cam.world_from_cam[:3, 3]], ["camera"], font_size=12, point_size=8)
     for p in scene.projectors:
-        geometry[f"projector_{p.name}"] = frustum(p.K, p.width, p.height, p.world_from_prj, depth)
-        plotter.add_mesh(geometry[f"projector_{p.name}"], color="#d62728", line_width=2)
+        lines = geometry[f"projector_{p.name}"] = frustum(p.K, p.width, p.height, p.world_from_prj, depth)
+        plotter.add_mesh(lines, color="#d62728", line_width=2)
         plotter.add_point_labels([p.centre], [p.name], font_size=12, point_size=8, text_color="#d62728")
     for i, state in enumerate(scene.states):
         colour = STATE_COLOURS[i % len(STATE_COLOURS)]
         for name in state.surfaces:
             surf = scene.surfaces[name]
-            geometry[f"{state.name}_{name}"] = surface_mesh(surf)
-            plotter.add_mesh(geometry[f"{state.name}_{name}"], color=colour,
-                             opacity=0.45 if surf.transmittance else 0.9, label=f"{state.name}: {name}")
+            mesh = geometry[f"{state.name}_{name}"] = surface_mesh(surf)
+            plotter.add_mesh(mesh, color=colour, opacity=0.45 if surf.transmittance else 0.9, label=f"{state.name}: {name}")
     # The legend in a corner the frusta leave free (it covered their lines), axes in metres and a title.
     plotter.add_legend(bcolor="white", face="rectangle", loc="upper left",
                        size=(0.18, 0.03 + 0.03 * sum(len(s.surfaces) for s in scene.states)))
@@ -61,7 +60,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     scene = load_scene(args.config)
     draw_rig(scene, args.out, args.depth, args.show).close()
-    print(f"wrote {args.out}, {args.out.with_suffix('.vtm')} and {args.out.with_suffix('.gltf')}")
+    print(f"wrote {written(args.out)}")
     return 0
 
 
