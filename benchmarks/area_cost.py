@@ -26,6 +26,7 @@ import torch
 from common import machine, nonzero_rows, row_sums, with_matrix, write_results
 from matplotlib.figure import Figure
 
+from torchproj.cli_options import positive_int
 from torchproj.pipeline import calibrate_virtual, evaluate_patterns, scene_targets
 from torchproj.pipeline.run import build_operators
 from torchproj.scene import load_scene
@@ -124,8 +125,8 @@ def chart(path: Path, rows: list[dict], title: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--count", type=int, default=20)
-    ap.add_argument("--repeats", type=int, default=3, help="builds and solves per model (median)")
+    ap.add_argument("--count", type=positive_int, default=20)
+    ap.add_argument("--repeats", type=positive_int, default=3, help="builds and solves per model (median)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/area_cost"))
     ap.add_argument("--chart-only", action="store_true", help="redraw area_cost.png from --out's results.json")
     args = ap.parse_args()
