@@ -13,8 +13,8 @@ far one across its camera man. A script of a library user, in two steps:
    within 1 dB of its least-squares PSNR) score the B x K images, and ``ClampedAdam`` keeps the box.
 
 Then every frame's patterns are shown on the virtual rig and scored. Writes ``report.json`` (per
-frame and target: PSNR and SSIM before and after step 2, and the seconds of each step) into
-``--out``.
+frame and target: PSNR and SSIM before and after step 2, and the seconds of each step) and
+``frames.png`` (each frame's targets beside the rig's captures of the refined patterns) into ``--out``.
 """
 
 from __future__ import annotations
@@ -45,6 +45,29 @@ def frame_images(frames: int, channels: int) -> list[list[torch.Tensor]]:
             crops.append(image[:, (h - size) // 2:(h - size) // 2 + size, x:x + size])
         out.append(crops)
     return out
+
+
+def frames_figure(shown: list[list], path: Path) -> None:
+    """Per frame (columns), each target's wanted image above the rig's capture of the refined patterns."""
+    import matplotlib.pyplot as plt
+
+    names = [score.name for score in shown[0]]
+    fig, axes = plt.subplots(2 * len(names), len(shown), figsize=(2.4 * len(shown), 2.5 * 2 * len(names)),
+                             squeeze=False, layout="constrained")
+    for b, scores in enumerate(shown):
+        for k, score in enumerate(scores):
+            for row, (image, label) in enumerate(((score.values, "wanted"), (score.estimate, "captured"))):
+                ax = axes[2 * k + row, b]
+                ax.imshow(image.permute(1, 2, 0).squeeze(-1).clamp(0, 1).numpy(), cmap="gray", vmin=0, vmax=1)
+                ax.set_xticks([]), ax.set_yticks([])
+                title = f"frame {b}: {score.name}, {label}"
+                if row:
+                    title += f"\n{score.psnr_db:.1f} dB, SSIM {score.ssim:.3f}"
+                ax.set_title(title, fontsize=9)
+    fig.suptitle("Fig. 1: a video's frames at two depths, wanted and captured\n(refined patterns on the virtual rig)",
+                 fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
@@ -86,12 +109,13 @@ def main(argv=None) -> int:
         optimizer.step()
     refine_s = time.perf_counter() - t0
 
-    rows = []
+    rows, shown_scores = [], []
     for b, targets in enumerate(frames):
         scores = {}
         for name, p in (("least_squares", start[b]), ("refined", patterns[b].detach())):
             shown = projectable_patterns(op, p, model.bounds, calibration.responses)[1]
             scores[name] = torchproj.evaluate_patterns(calibration, shown, targets, scale=op.scale, paper=False).targets
+        shown_scores.append(scores["refined"])
         for k, target in enumerate(targets):
             before, after = scores["least_squares"][k], scores["refined"][k]
             rows.append({"frame": b, "target": target.name, "psnr_db": after.psnr_db, "ssim": after.ssim,
@@ -103,8 +127,9 @@ def main(argv=None) -> int:
               "evaluation": torchproj.pipeline.EVALUATION}
     with atomic_output(args.out) as stage:
         write_json(stage / "report.json", report)
+        frames_figure(shown_scores, stage / "frames.png")
     print(f"{args.frames} frames: least squares {least_squares_s:.1f} s, SSIM refinement {refine_s:.1f} s "
-          f"({args.steps} steps); wrote {args.out}/report.json")
+          f"({args.steps} steps); wrote {args.out}/report.json and frames.png")
     return 0
 
 

@@ -42,3 +42,4 @@ def test_video_frames_example(tmp_path):
     for r in rows:
         assert r["ssim"] > r["least_squares"]["ssim"], r
         assert r["psnr_db"] > r["least_squares"]["psnr_db"] - 2.0, r
+    assert (out / "frames.png").read_bytes()[:4] == b"\x89PNG"
