@@ -46,6 +46,7 @@ __all__ = [
 ]
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
+#: the shipped scenes (``configs/NAME.yaml``), each loaded by name: ``load_scene("box_cylinders")``.
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
                   "two_screens", "box_positions", "paper_defocus", "paper_bumped", "sphere_three_projectors",
                   "corner_screens")

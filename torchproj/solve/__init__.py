@@ -10,6 +10,7 @@ from .refine import REFINE_SOLVER_ITERATIONS, RefineResult, captured_loss, refin
 from .solvers import (LF_NORMALISE, OUTSIDE, ClampedAdam, SolveResult, check_bounds, solve_adam, solve_fista, solve_lf, solve_pgd, solve_target_sets,
                       to_projectable)
 
+#: solver name -> its function: ``solve_patterns(op, name, ...)`` calls ``SOLVERS[name](op, bounds, ...)``.
 SOLVERS = {"lf": solve_lf, "eo": solve_eo, "pgd": solve_pgd, "fista": solve_fista, "adam": solve_adam}
 
 

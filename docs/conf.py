@@ -1,0 +1,39 @@
+"""Sphinx configuration of torchproj's documentation site.
+
+Build it with one command from the repository root (after ``pip install -e ".[docs]"``):
+
+    python -m sphinx -W --keep-going docs docs/_build/html
+
+The pages are the Markdown under ``docs/`` (read through ``_ext/markdown_source.py``), plus what
+``_ext/generated_pages.py`` writes before each build: the README as the first page, the API reference
+from the docstrings, the gallery (its scripts run at a small size) and the benchmarks' results.
+"""
+
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE / "_ext"))
+
+import torchproj  # noqa: E402
+
+project = "torchproj"
+release = version = torchproj.__version__
+extensions = ["sphinx.ext.autodoc", "sphinx.ext.napoleon", "markdown_source", "generated_pages"]
+root_doc = "index"
+exclude_patterns = ["_build", "_ext", "generated/gallery/*/**"]
+repository_root = ".."
+html_theme = "alabaster"
+html_title = f"torchproj {release}"
+html_theme_options = {"page_width": "1200px", "sidebar_width": "260px"}
+autodoc_member_order = "bysource"
+autodoc_typehints = "description"
+napoleon_google_docstring = True
+napoleon_numpy_docstring = False
+
+# The gallery: each script as a user runs it, at a size that keeps the build short ({out}: its folder).
+gallery_scripts = [
+    ("examples/train_patterns.py", ["--scale", "0.25", "--steps", "12", "--out", "{out}"]),
+    ("examples/video_frames.py", ["--frames", "3", "--steps", "10", "--out", "{out}"]),
+    ("viz/rig.py", ["configs/box_cylinders.yaml", "--out", "{out}/rig.png"]),
+]
