@@ -126,6 +126,19 @@ def test_ceiling_is_the_optimum_of_the_exact_light(quarter_rig):
     assert float(exact.objective(best.patterns)) <= float(exact.objective(on_exact)) * (1 + 1e-3)
 
 
+def test_with_a_gain_and_offset_the_ceiling_is_asked_for_the_fitted_images(quarter_rig):
+    """A run with a gain and offset is scored against the images it fitted (g t + o); its ceiling must
+    be too, or a dimmed target's ceiling (scored against the image as given) falls below the run."""
+    scene, cal = quarter_rig
+    result = run_virtual(scene, calibration=cal, ceiling=True, progress=False, footprint="nearest",
+                         gain_offset=((0.5, 0.7), (0.1, 0.2)))
+    rows = result.report["targets"]
+    assert all(r["gain"] <= 0.7 and r["psnr_db_original"] < r["psnr_db"] for r in rows)  # the images were refitted
+    # The exact light for the same images beats the nearest-cell model, as without a gain (above).
+    assert all(r["ceiling"]["psnr_db"] > r["psnr_db"] for r in rows), rows
+    assert "for the images this run fitted" in run_markdown(result.report)
+
+
 def test_oracles_and_footprint_from_the_command_line(tmp_path, capsys):
     config = tmp_path / "small.yaml"
     config.write_text(yaml.safe_dump(dict(small_config(camera=(200, 150), projector=(128, 96)), name="small")))

@@ -21,7 +21,7 @@ from ..solve import (SolveResult, check_solve_options, image_objective, make_pat
 from ..solve.compensate import iteration_limit, unexplained
 from ..solve.refine import refine_patterns
 from ..transport import (COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, build_channel_transports, build_transport,
-                         has_colour_weights, select_maps)
+                         Target, has_colour_weights, select_maps)
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .footprint import AUTO, check_footprint, choose_footprint
 from .register import Reregister
@@ -206,7 +206,10 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     timings["evaluate"] = time.perf_counter() - t0
     if ceiling:
         t0 = time.perf_counter()
-        for row, score in zip(rows, _ceiling(world, states, targets, bounds, footprint, progress, device, outside)):
+        # With a gain and offset, the run is scored against the images it fitted (g t + o): the ceiling
+        # is asked for the same images, so that the two columns compare like with like.
+        asked = targets if gain_offset is None else _fitted_targets(targets, solved.result.info)
+        for row, score in zip(rows, _ceiling(world, states, asked, bounds, footprint, progress, device, outside)):
             row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
         timings["ceiling"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
@@ -333,6 +336,12 @@ def _target_rows(scene, scores: list[TargetScore], gain_offset: dict | None):
             scores[k] = dataclasses.replace(score, values=adjusted, psnr_db=row["psnr_db"], ssim=row["ssim"])
         rows.append(row)
     return scores, rows
+
+
+def _fitted_targets(targets: list[Target], info: dict) -> list[Target]:
+    """Each target as its fitted gain and offset ask for it: ``g t + o`` in [0, 1]."""
+    return [dataclasses.replace(t, image=(g * t.image + o).clamp(0, 1))
+            for t, g, o in zip(targets, info["gain"], info["offset"])]
 
 
 def _solve_gain_offset(op, states, targets, bounds, gain_offset, responses, max_iter, progress, device, footprint,
@@ -543,7 +552,8 @@ def run_markdown(report: dict) -> str:
                  "by one projector, the paper's baseline" if paper else "") + "."]
     if ceiling:
         lines += ["", "Ceiling: the same targets, rows and bounds solved on the simulator's own light transport "
-                      "(FISTA, least squares) and scored the same way: the best any calibration could give."]
+                      "(FISTA, least squares) and scored the same way: the best any calibration could give"
+                  + (" (with a gain and offset, for the images this run fitted, g t + o)" if adjusted else "") + "."]
     lines += ["", f"How each score is computed: {report['evaluation']}."]
     if "homographies" in report:
         lines += ["", "Homographies (residual from decoded to fitted coordinates, projector pixels; for Gray-code "
