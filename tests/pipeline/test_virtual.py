@@ -103,3 +103,17 @@ def test_a_state_saturated_by_room_light_is_refused_before_calibrating():
     data["ambient"] = 1e6
     with pytest.raises(InputError, match=r"state '\w+': the black capture saturates the camera \(room light alone"):
         check_light(parse_scene(data))
+
+
+def test_a_procedural_scenes_simulate_report_names_what_loads_it_again(tmp_path):
+    """viz/correspondences.py loads the scene from the report's ``config``: a procedural scene has no
+    file, and its report said "None", which no loader takes."""
+    import json
+
+    from torchproj.pipeline.virtual import simulate_scene
+    from torchproj.scene import load_scene
+
+    scene = load_scene("suite-1-2")
+    simulate_scene(scene, tmp_path / "sim")
+    again = load_scene(json.loads((tmp_path / "sim" / "report.json").read_text())["config"])
+    assert again.name == scene.name and again.describe() == scene.describe()

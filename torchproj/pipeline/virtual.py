@@ -402,7 +402,9 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
         del capture  # see calibrate_rig
     calibration_summary(folder / "calibration.png", rows)
     timings["total"] = time.perf_counter() - t_start
-    report = {"scene": scene.name, "config": str(scene.source), "torchproj": __version__, "device": str(rig.device),
+    # A procedural scene has no file: its name (suite-SEED-INDEX) is what loads it again.
+    config = str(scene.source) if scene.source is not None else scene.name
+    report = {"scene": scene.name, "config": config, "torchproj": __version__, "device": str(rig.device),
               "noise": noise, "timings_s": {k: round(v, 3) for k, v in timings.items()}, "calibrations": results}
     text = simulate_markdown(report)
     write_json(folder / "report.json", report)
