@@ -31,9 +31,12 @@ autodoc_typehints = "description"
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 
-# The gallery: each script as a user runs it, at a size that keeps the build short ({out}: its folder).
+# The gallery: each script as a user runs it, at a size that keeps the build short. ``before``: a
+# command whose output the script reads; {out} is the script's folder, {input} the command's.
 gallery_scripts = [
-    ("examples/train_patterns.py", ["--scale", "0.25", "--steps", "12", "--out", "{out}"]),
-    ("examples/video_frames.py", ["--frames", "3", "--steps", "10", "--out", "{out}"]),
-    ("viz/rig.py", ["configs/box_cylinders.yaml", "--out", "{out}/rig.png"]),
+    {"script": "examples/train_patterns.py", "args": ["--scale", "0.25", "--steps", "12", "--out", "{out}"]},
+    {"script": "examples/video_frames.py", "args": ["--frames", "3", "--steps", "10", "--out", "{out}"]},
+    {"script": "viz/rig.py", "args": ["configs/box_cylinders.yaml", "--out", "{out}/rig.png"]},
+    {"script": "viz/correspondences.py", "before": ["-m", "torchproj.cli", "simulate", "--out", "{input}"],
+     "args": ["{input}", "--out", "{out}/correspondences.png"]},
 ]

@@ -80,34 +80,41 @@ def _assigned_in(package, name: str) -> str:
     raise ExtensionError(f"api: no module of torchproj assigns {name}")
 
 
-def gallery_pages(root: Path, out: Path, scripts: list[tuple[str, list[str]]]) -> None:
+def gallery_pages(root: Path, out: Path, scripts: list[dict]) -> None:
     pages = []
-    for script, args in scripts:
+    for entry in scripts:
+        script = entry["script"]
         source = root / script
         name = source.stem
         folder = out / "gallery" / name
-        argv = [arg.format(out=folder.relative_to(root).as_posix()) for arg in args]
+        places = {"out": folder.relative_to(root).as_posix(), "input": f"{folder.relative_to(root).as_posix()}-input"}
+        argv = [arg.format(**places) for arg in entry.get("args", [])]
+        before = [arg.format(**places) for arg in entry.get("before", [])]
         stamp = out / "gallery" / f"{name}.stamp.json"  # outside the folder, which the script owns
-        key = hashlib.sha256(source.read_bytes() + json.dumps(argv).encode()).hexdigest()
+        key = hashlib.sha256(source.read_bytes() + json.dumps([before, argv]).encode()).hexdigest()
         ran = json.loads(stamp.read_text()) if stamp.exists() else {}
         if ran.get("key") != key:
-            LOGGER.info("gallery: running %s %s", script, " ".join(argv))
             stamp.parent.mkdir(parents=True, exist_ok=True)
             start = time.perf_counter()
-            done = subprocess.run([sys.executable, script, *argv], cwd=root, capture_output=True, text=True,
-                                  env={**os.environ, "MPLBACKEND": "Agg"})
-            if done.returncode != 0:
-                raise ExtensionError(f"gallery: {script} {' '.join(argv)} failed:\n{done.stderr[-3000:]}")
+            for command in ([before] if before else []) + [[script, *argv]]:
+                LOGGER.info("gallery: running python %s", " ".join(command))
+                done = subprocess.run([sys.executable, *command], cwd=root, capture_output=True, text=True,
+                                      env={**os.environ, "MPLBACKEND": "Agg"})
+                if done.returncode != 0:
+                    raise ExtensionError(f"gallery: python {' '.join(command)} failed:\n{done.stderr[-3000:]}")
             ran = {"key": key, "seconds": round(time.perf_counter() - start, 1)}
             stamp.write_text(json.dumps(ran))
         figures = sorted(folder.rglob("*.png"))
         if not figures:
             raise ExtensionError(f"gallery: {script} wrote no figure under {folder}")
         doc = inspect.cleandoc(_docstring(source))
-        title, _, body = doc.partition("\n")
+        title, _, body = doc.partition("\n\n")  # the first paragraph is the page's title
+        title = " ".join(title.split())
         # A docstring's indented paragraphs are its usage lines: literal blocks, not quotes.
-        body = re.sub(r"(\A\n*|\n\n)((?: {4}.*(?:\n|\Z))+)", r"\1::\n\n\2", body)
+        body = re.sub(r"(\A\n*|\n\n)((?: {4}.*(?:\n|\Z))+)", r"\1::\n\n\2", "\n\n" + body)
         command = " ".join(["python", script, *argv])
+        if before:
+            command = " ".join(["python", *before]).replace("python -m torchproj.cli", "torchproj") + " && " + command
         lines = [heading(title.rstrip(".")), "", body.strip(), "", heading("Run here", "-"), "",
                  f"``{command}`` took {ran['seconds']} s when the docs were built.", ""]
         for figure in figures:
