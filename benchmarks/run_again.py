@@ -3,8 +3,8 @@
     python benchmarks/run_again.py --out benchmarks/results/run_again
 
 On the default scene (the paper's rig), with an empty cache folder of its own: ``run --no-cache``
-(the cold run), ``run`` (simulates and keeps the calibration), then ``run --solver pgd`` and
-``run --objective ssim`` (read it). Wall time, peak resident memory and the stage timings of
+(the cold run), ``run`` (simulates and keeps the calibration and its transport), then ``run --solver
+pgd`` and ``run --objective ssim`` (read both). Wall time, peak resident memory and the stage timings of
 ``report.json``; writes ``results.json`` and ``results.md``.
 """
 
@@ -22,7 +22,7 @@ from common import machine, write_results
 
 from torchproj.pipeline.cache import CACHE_DIR_ENV
 
-RUNS = (("cold, --no-cache", ["--no-cache"]), ("first, keeps the calibration", []),
+RUNS = (("cold, --no-cache", ["--no-cache"]), ("first, keeps the calibration and transport", []),
         ("again, --solver pgd", ["--solver", "pgd"]), ("again, --objective ssim", ["--objective", "ssim"]))
 
 
@@ -38,16 +38,19 @@ def main(argv=None) -> int:
             wall = _timed([sys.executable, "-c", _CLI, str(peak), "run", *extra, "--out", str(out)])
             report = json.loads((out / "report.json").read_text())
             rows.append({"run": label, "wall_s": round(wall, 2), "peak_rss_gb": round(int(peak.read_text()) / 1024**2, 2),
-                         "calibration_cache": report["calibration_cache"], "timings_s": report["timings_s"],
+                         "calibration_cache": report["calibration_cache"],
+                         "transport_cache": report.get("transport_cache", "off"), "timings_s": report["timings_s"],
                          "psnr_db": [round(t["psnr_db"], 3) for t in report["targets"]]})
             print(rows[-1], flush=True)
     result = {"machine": machine(), "rows": rows}
     lines = [f"# The same scene again ({result['machine']})", "", "Command: `python benchmarks/run_again.py`; the default "
              "scene, each run a fresh process.", "",
-             "| run | wall (s) | peak (GB) | calibration | stages (report.json, s) | PSNR (dB) |", "|---|---|---|---|---|---|"]
+             "| run | wall (s) | peak (GB) | calibration | transport | stages (report.json, s) | PSNR (dB) |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
         stages = ", ".join(f"{k} {v:.1f}" for k, v in r["timings_s"].items())
-        lines.append(f"| {r['run']} | {r['wall_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['calibration_cache']} | {stages} | "
+        lines.append(f"| {r['run']} | {r['wall_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['calibration_cache']} | "
+                     f"{r['transport_cache']} | {stages} | "
                      + " / ".join(f"{v:.2f}" for v in r["psnr_db"]) + " |")
     write_results(args.out, result, "\n".join(lines) + "\n")
     return 0

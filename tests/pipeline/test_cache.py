@@ -1,5 +1,6 @@
 """The calibration cache: read back whole, keyed by everything a calibration depends on, never trusted when broken."""
 
+import dataclasses
 import json
 
 import pytest
@@ -8,7 +9,10 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.pipeline import run_virtual
-from torchproj.pipeline.cache import CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, calibration_key
+from torchproj.pipeline import scene_targets
+from torchproj.pipeline.cache import (CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, cached_transport, calibration_key,
+                                      transport_key)
+from torchproj.transport import build_transport
 from torchproj.scene import parse_scene
 
 from ..helpers import small_config
@@ -30,10 +34,40 @@ def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
     second = run_virtual(scene, cache=True, progress=False).report
     plain = run_virtual(scene, progress=False).report
     assert (first["calibration_cache"], second["calibration_cache"], plain["calibration_cache"]) == ("stored", "read", "off")
+    assert (first["transport_cache"], second["transport_cache"], plain["transport_cache"]) == ("stored", "read", "off")
     # The rig's noise continues where calibration left it: the same captures, to the last bit.
     for a, b, c in zip(first["targets"], second["targets"], plain["targets"]):
         assert a["psnr_db"] == b["psnr_db"] == c["psnr_db"] and a["ssim"] == b["ssim"]
-    assert len(list(cache.glob("*.pt"))) == 1
+    assert len(list(cache.glob("*.pt"))) == 2  # the calibration and its transport
+
+
+def test_the_transport_read_back_is_the_one_built_and_its_key_follows_targets_and_options(cache):
+    scene = _scene()
+    cal, _ = cached_calibration(scene)
+    targets = scene_targets(scene, None, cal.rig)
+    base = calibration_key(scene, oracle=False, bits=None, plane_tolerance=1.0)
+    options = dict(footprint="area", merge=False, colour_weights="grey", device="cpu")
+    key = transport_key(base, targets, **options)
+    built, how = cached_transport(key, lambda: [build_transport(cal.states, targets, merge=False)])
+    assert how == "stored"
+    (read,), how = cached_transport(key, lambda: pytest.fail("built again instead of read"))
+    assert how == "read"
+    for name, tensor in built[0].named_buffers():
+        assert torch.equal(tensor, dict(read.named_buffers())[name]), name
+    assert read.get_extra_state() == built[0].get_extra_state()
+    x = torch.rand(read.shape[1], read.channels, dtype=read.rhs.dtype)
+    assert torch.equal(read.A(x), built[0].A(x)) and torch.equal(read.A_adjoint(read.rhs), built[0].A_adjoint(read.rhs))
+    # Another image, another footprint, another calibration: another key.
+    brighter = [dataclasses.replace(targets[0], image=targets[0].image * 0.5), *targets[1:]]
+    assert transport_key(base, brighter, **options) != key
+    assert transport_key(base, targets, **dict(options, footprint="nearest")) != key
+    assert transport_key(base + "x", targets, **options) != key
+    # A broken entry is rebuilt, not trusted.
+    (entry,) = cache.glob("transport-*.pt")
+    entry.write_bytes(entry.read_bytes()[:500])
+    with pytest.warns(UserWarning, match="transport cache entry .* is unreadable"):
+        _, how = cached_transport(key, lambda: [build_transport(cal.states, targets, merge=False)])
+    assert how == "recomputed"
 
 
 def test_the_key_follows_the_scene_and_options_not_its_name_targets_or_show():
@@ -66,7 +100,8 @@ def test_no_cache_from_the_command_line(cache, tmp_path):
     config = tmp_path / "small.yaml"
     config.write_text(yaml.safe_dump(dict(small_config(camera=(200, 150), projector=(128, 96)), name="small")))
     assert main(["run", str(config), "--no-cache", "--out", str(tmp_path / "a")]) == 0
-    assert json.loads((tmp_path / "a" / "report.json").read_text())["calibration_cache"] == "off"
+    report = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert (report["calibration_cache"], report["transport_cache"]) == ("off", "off")
     assert not cache.exists()
     assert main(["run", str(config), "--out", str(tmp_path / "b")]) == 0
     assert json.loads((tmp_path / "b" / "report.json").read_text())["calibration_cache"] == "stored"

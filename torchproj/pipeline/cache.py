@@ -12,6 +12,10 @@ all of it. :func:`cached_calibration` keys a calibration by everything it depend
   simulates or how calibration decodes makes a new key (a version number would not, between
   releases).
 
+The transport operator built from a cached calibration is kept beside it (:func:`cached_transport`),
+keyed by the calibration's key, the targets (their images, masks, corners and states) and the
+build's options: a second run with another solver or objective reads it instead of building it.
+
 Entries live in the platform's user cache folder (``platformdirs``; ``TORCHPROJ_CACHE_DIR``
 overrides it), are written whole (a temporary file renamed into place), and the least recently used
 are removed past ``TORCHPROJ_CACHE_MAX_GB`` (default 2). An entry that does not load, or whose key
@@ -33,11 +37,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..core.sparse import csr_tensor
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
+from ..transport import Target, TransportOperator
 from .virtual import VirtualCalibration, calibrate_virtual
 
-__all__ = ["CACHE_DIR_ENV", "CACHE_MAX_ENV", "cache_dir", "cached_calibration", "calibration_key"]
+__all__ = ["CACHE_DIR_ENV", "CACHE_MAX_ENV", "cache_dir", "cached_calibration", "cached_transport", "calibration_key",
+           "transport_key"]
 
 CACHE_DIR_ENV = "TORCHPROJ_CACHE_DIR"
 CACHE_MAX_ENV = "TORCHPROJ_CACHE_MAX_GB"
@@ -92,6 +99,54 @@ def calibration_key(scene: Scene, **options) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def transport_key(calibration: str, targets: list[Target], **options) -> str:
+    """The cache key of the operator(s) built from the calibration keyed ``calibration`` for ``targets``
+    with the build's ``options`` (footprint, merging, maps, colour weights, device)."""
+    h = hashlib.sha256(json.dumps({"calibration": calibration, "options": _canonical(options)}, sort_keys=True,
+                                  default=str).encode())
+    for t in targets:
+        h.update(json.dumps([t.state, t.name]).encode())
+        for part in (t.image, t.mask, t.corners):
+            h.update(b"none" if part is None else
+                     json.dumps([str(part.dtype), list(part.shape)]).encode() + part.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOperator], str]:
+    """``build()`` (a list of :class:`~torchproj.transport.TransportOperator`) through the cache under ``key``.
+
+    Returns:
+        ``(operators, how)``, ``how`` as for :func:`cached_calibration`.
+    """
+    folder = cache_dir()
+    path = folder / f"transport-{key}.pt"
+    how = "stored"
+    if path.is_file():
+        ops = _read(path, key, "transport", lambda payload: [_operator(parts, device) for parts in payload["operators"]])
+        if ops is not None:
+            os.utime(path)
+            return ops, "read"
+        how = "recomputed"
+    ops = build()
+    _write(folder, path, {"key": key, "operators": [_operator_parts(op) for op in ops]}, "transport")
+    return ops, how
+
+
+def _operator_parts(op: TransportOperator) -> dict:
+    """What rebuilds ``op``: its matrix and bookkeeping (its transpose is rebuilt from them)."""
+    return {"crow": op.crow, "col": op.col, "val": op.val, "shape": op.shape, "rhs": op.rhs,
+            "column_projector": op.column_projector, "column_cell": op.column_cell,
+            "projector_sizes": op.projector_sizes, "constant": op.constant, "row_target": op.row_target,
+            "scale": op.scale, "row_pixel": op.row_pixel, "camera_size": op.camera_size,
+            "target_count": op.target_count}
+
+
+def _operator(parts: dict, device) -> TransportOperator:
+    parts = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in parts.items()}
+    matrix = csr_tensor(parts.pop("crow"), parts.pop("col"), parts.pop("val"), parts.pop("shape"))
+    return TransportOperator(matrix, **parts)
+
+
 def cached_calibration(scene: Scene, *, device="cpu", progress=None, oracle: bool = False, bits: int | None = None,
                        plane_tolerance: float = 1.0) -> tuple[VirtualCalibration, str]:
     """:func:`~torchproj.pipeline.calibrate_virtual` through the cache.
@@ -118,25 +173,36 @@ def cached_calibration(scene: Scene, *, device="cpu", progress=None, oracle: boo
 
 
 def _load(path: Path, key: str, scene: Scene, device) -> VirtualCalibration | None:
+    def make(payload):
+        rig = VirtualRig(scene, device=device)
+        rig.generator.set_state(payload["generator"])
+        return VirtualCalibration(rig=rig, **payload["calibration"])
+
+    return _read(path, key, "calibration", make)
+
+
+def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> None:
+    fields = {f.name: getattr(cal, f.name) for f in dataclasses.fields(cal) if f.name != "rig"}
+    _write(folder, path, {"key": key, "calibration": fields, "generator": cal.rig.generator.get_state()}, "calibration")
+
+
+def _read(path: Path, key: str, what: str, make):
+    """``make(payload)`` of the entry at ``path``, or None (the entry removed) where anything is wrong with it."""
     try:
         # The cache is this user's own folder, written by torchproj; the entry is checked against its key.
         payload = torch.load(path, map_location="cpu", weights_only=False)
         if not isinstance(payload, dict) or payload.get("key") != key:
             raise ValueError("its key does not match its name")
-        fields = payload["calibration"]
-        rig = VirtualRig(scene, device=device)
-        rig.generator.set_state(payload["generator"])
-        return VirtualCalibration(rig=rig, **fields)
+        return make(payload)
     except Exception as exc:  # whatever is wrong with it, it is not trusted
-        warnings.warn(f"calibration cache entry {path} is unreadable ({type(exc).__name__}: {exc}); recomputing it",
-                      stacklevel=3)
+        warnings.warn(f"{what} cache entry {path} is unreadable ({type(exc).__name__}: {exc}); recomputing it",
+                      stacklevel=4)
         path.unlink(missing_ok=True)
         return None
 
 
-def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> None:
-    fields = {f.name: getattr(cal, f.name) for f in dataclasses.fields(cal) if f.name != "rig"}
-    payload = {"key": key, "calibration": fields, "generator": cal.rig.generator.get_state()}
+def _write(folder: Path, path: Path, payload: dict, what: str) -> None:
+    """``payload`` written whole to ``path`` (a temporary file renamed into place), then the cap kept."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt", dir=folder)
@@ -150,8 +216,8 @@ def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> None:
     # A full or read-only cache folder costs the next run its time, not this run (torch.save reports a
     # write the disk refused as a RuntimeError).
     except (OSError, RuntimeError) as exc:
-        warnings.warn(f"could not keep the calibration in {folder} ({exc}); the next run will simulate it again",
-                      stacklevel=3)
+        warnings.warn(f"could not keep the {what} in {folder} ({exc}); the next run will compute it again",
+                      stacklevel=4)
 
 
 def _evict(folder: Path, keep: Path) -> None:

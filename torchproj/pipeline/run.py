@@ -28,7 +28,7 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
-from .cache import cached_calibration
+from .cache import cached_calibration, cached_transport, calibration_key, transport_key
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
@@ -150,7 +150,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         refine_relax: the share of each capture's defect the loop takes (1: all).
         cache: read the simulated calibration from the cache where the same scene was calibrated
             before, else keep it there (:mod:`.cache`; ``torchproj run`` does unless ``--no-cache``);
-            report.json ``calibration_cache`` says ``read``, ``stored``, ``recomputed`` or ``off``.
+            report.json ``calibration_cache`` says ``read``, ``stored``, ``recomputed`` or ``off``; the
+            transport built from a cached calibration is kept beside it, and ``transport_cache``
+            says the same of it.
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains, (refine, refine_frames, refine_relax))
@@ -182,11 +184,15 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     exact = oracle == "transport"
     if image is not None or gain_offset is not None or exact:
         colour_weights = "grey"  # these couple the channels (the transport oracle has its own per-channel light)
+    # The transport of a cached calibration is kept beside it: the same scene and targets again (another
+    # solver, objective or bounds) read it instead of building it.
+    keyed = None if cached is None else calibration_key(scene, oracle=oracle is not None, bits=bits,
+                                                        plane_tolerance=plane_tolerance) + f"/maps={maps}"
     solved = _build_and_solve(world if exact else cal, states, targets, bounds, solver=solver, image=image, exact=exact,
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
                               device=device, timings=timings, outside=outside, chains=chains,
                               solver_options=solver_options, colour_weights=colour_weights, start=choice,
-                              rows_on_camera=refine > 0)
+                              rows_on_camera=refine > 0, cache_key=keyed)
     refined = None
     if refine:
         t0 = time.perf_counter()
@@ -219,6 +225,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         report["footprint_choice"] = choice.as_dict()
     report["colour_weights"] = "channel" if len(solved.ops) > 1 and not exact else "grey"
     report["calibration_cache"] = cached or "off"
+    report["transport_cache"] = solved.transport_cache or "off"
     report["outside"] = outside
     if solver == "eo":
         report["chains"] = chains
@@ -274,6 +281,7 @@ class _Solved:
     ops: list  # the operator(s) the patterns were solved on: one, or one per colour channel
     patterns: list[torch.Tensor]  # per projector, 8-bit
     model: dict  # the size report of the operator solved (before gain/offset's extra variables)
+    transport_cache: str | None = None  # how the cache served the transport (None: not asked)
 
 
 def build_operators(states, targets, *, footprint: str, merge: bool, colour_weights: str, device) -> list:
@@ -287,18 +295,24 @@ def build_operators(states, targets, *, footprint: str, merge: bool, colour_weig
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
                      progress, device, timings, outside, chains, solver_options=None,
-                     colour_weights: str = "grey", start=None, rows_on_camera: bool = False) -> _Solved:
+                     colour_weights: str = "grey", start=None, rows_on_camera: bool = False,
+                     cache_key: str | None = None) -> _Solved:
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve.
     ``start``: a :class:`~torchproj.pipeline.FootprintChoice` whose patterns start a FISTA solve on one
-    operator (``footprint="auto"``). ``rows_on_camera``: keep rows camera pixels (a camera loop compares them)."""
+    operator (``footprint="auto"``). ``rows_on_camera``: keep rows camera pixels (a camera loop compares them).
+    ``cache_key``: the calibration's cache key, to read or keep the transport in the cache (None: build it)."""
     t0 = time.perf_counter()
     # Rows stay camera pixels where the objective is an image (and for gain/offset, so that any
     # per-target g t + o is an exact right-hand side of the same A), and with the bilinear or area footprint,
     # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
     # merged otherwise (exact, smaller).
-    ops = build_operators(states, targets, merge=gain_offset is None and image is None and not exact
-                          and footprint == "nearest" and not rows_on_camera, footprint=footprint, colour_weights=colour_weights,
-                          device=device)
+    options = dict(merge=gain_offset is None and image is None and not exact and footprint == "nearest"
+                   and not rows_on_camera, footprint=footprint, colour_weights=colour_weights, device=device)
+    if cache_key is None:
+        ops, how = build_operators(states, targets, **options), None
+    else:
+        ops, how = cached_transport(transport_key(cache_key, targets, **options),
+                                    lambda: build_operators(states, targets, **options), device)
     op = ops[0]
     if exact:
         ops = light_transport(cal.rig, targets, op)
@@ -319,7 +333,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
                                             chains=chains, solver_options=options)
     timings["solve"] = time.perf_counter() - t0
-    return _Solved(result, ops, patterns, model)
+    return _Solved(result, ops, patterns, model, how)
 
 
 def _target_rows(scene, scores: list[TargetScore], gain_offset: dict | None):
