@@ -35,6 +35,8 @@ def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
     plain = run_virtual(scene, progress=False).report
     assert (first["calibration_cache"], second["calibration_cache"], plain["calibration_cache"]) == ("stored", "read", "off")
     assert (first["transport_cache"], second["transport_cache"], plain["transport_cache"]) == ("stored", "read", "off")
+    # Another objective on a grey scene builds the same operator, and reads it.
+    assert run_virtual(scene, cache=True, progress=False, objective="ssim").report["transport_cache"] == "read"
     # The rig's noise continues where calibration left it: the same captures, to the last bit.
     for a, b, c in zip(first["targets"], second["targets"], plain["targets"]):
         assert a["psnr_db"] == b["psnr_db"] == c["psnr_db"] and a["ssim"] == b["ssim"]

@@ -306,6 +306,9 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     # per-target g t + o is an exact right-hand side of the same A), and with the bilinear or area footprint,
     # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
     # merged otherwise (exact, smaller).
+    # Channel weights apply to colour targets calibrated per channel only: elsewhere "channel" builds what
+    # "grey" does, and asks the cache for the same operator.
+    colour_weights = "channel" if colour_weights == "channel" and has_colour_weights(states, targets) else "grey"
     options = dict(merge=gain_offset is None and image is None and not exact and footprint == "nearest"
                    and not rows_on_camera, footprint=footprint, colour_weights=colour_weights, device=device)
     if cache_key is None:
