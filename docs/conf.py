@@ -26,6 +26,7 @@ repository_root = ".."
 html_theme = "alabaster"
 html_title = f"torchproj {release}"
 html_theme_options = {"page_width": "1200px", "sidebar_width": "260px"}
+numfig = True  # every figure numbered, its caption beside the number
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
 napoleon_google_docstring = True

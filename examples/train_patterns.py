@@ -102,7 +102,7 @@ def main(argv=None) -> int:
         for projector, pattern in zip(scene.projectors, patterns):
             write_image(stage / "patterns" / f"{projector.name}.png", pattern.float() / 255)
         run_overview(stage / "overview.png", patterns, [p.name for p in scene.projectors], after.targets,
-                     title=f"train_patterns: scene {scene.name} at scale {args.scale}, {args.steps} Adam steps "
+                     title=f"Fig. 1: train_patterns: scene {scene.name} at scale {args.scale}, {args.steps} Adam steps "
                            f"on {args.loss}'s SSIM")
         report = {"scene": scene.name, "scale": args.scale, "loss": args.loss, "steps": args.steps, "lr": args.lr,
                   "l2_weight": args.l2_weight, "loss_history": history, "seconds": round(time.perf_counter() - t0, 1),

@@ -47,7 +47,7 @@ def _build_site(tmp_path, pages: dict[str, str], builder: str = "xml") -> tuple[
     from sphinx.cmd.build import build_main
 
     src, out = tmp_path / "src", tmp_path / "out"
-    src.mkdir()
+    src.mkdir(exist_ok=True)
     (src / "conf.py").write_text(f"import sys\nsys.path.insert(0, {str(ROOT / 'docs' / '_ext')!r})\n"
                                  f"extensions = ['markdown_source']\nsmartquotes = False\nrepository_root = {str(tmp_path)!r}\n")
     toctree = "\n".join(f"   {name}" for name in pages)
@@ -84,6 +84,8 @@ x = 1
 ### Deeper
 
 Text.
+
+![a chart of x](chart.png)
 """
 
 
@@ -91,6 +93,8 @@ def test_markdown_pages_become_sections_tables_lists_links_and_code(tmp_path):
     import xml.etree.ElementTree as ET
 
     (tmp_path / "scene.yaml").write_text("name: x\n")
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "chart.png").write_bytes(_png())
     code, warnings, out = _build_site(tmp_path, {"page": PAGE, "other": "# Other\n\nHello.\n"})
     assert code == 0, warnings
     doc = ET.parse(out / "page.xml").getroot()
@@ -110,6 +114,18 @@ def test_markdown_pages_become_sections_tables_lists_links_and_code(tmp_path):
     rows = sub.findall("table/tgroup/*/row")
     assert [["".join(e.itertext()).strip() for e in row.findall("entry")] for row in rows] == [
         ["name", "value"], ["a", "1"], ["b", "2"]]
+    figure = sub.find("section/figure")  # an image alone in its paragraph: a numbered figure, its alt the caption
+    assert figure.find("image").get("uri") == "chart.png" and figure.find("caption").text == "a chart of x"
+
+
+def _png() -> bytes:
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.new("RGB", (4, 4)).save(buffer, format="PNG")
+    return buffer.getvalue()
 
 
 def test_the_guide_pages_keep_every_word_markdown_it_renders(tmp_path):

@@ -142,7 +142,8 @@ def cmd_calibrate(args) -> int:
                                dim_threshold=args.dim_threshold, max_hole=args.fill_holes, bits=args.bits, plane_tolerance=args.plane_tolerance)
     with atomic_output(args.out) as stage:
         write_bundle(stage, bundle, args.calibration)
-        calibration_summary(stage / "calibration.png", bundle.figure_rows())
+        calibration_summary(stage / "calibration.png", bundle.figure_rows(),
+                            title="Fig. 1: calibration of the bench's captures, per state and projector")
     print(f"calibrated {args.capture_root} in {time.perf_counter() - t0:.1f} s: {bundle.summary()}")
     print(f"wrote {args.out}/bundle.json, STATE/PROJECTOR.npz, STATE/black.npz, calibration.png")
     return 0

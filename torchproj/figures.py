@@ -47,7 +47,7 @@ def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torc
     fig.savefig(path, dpi=90)
 
 
-def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
+def calibration_summary(path: str | os.PathLike, rows: list[dict], title: str = "") -> None:
     """One row per (state, projector): decoded x, decoded y, error against the truth, response fit.
 
     Each row dict holds ``label``, ``prj_xy`` (H, W, 2), ``error`` (H, W) pixels or None (then
@@ -88,6 +88,8 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict]) -> None:
             ax.set_title("response (normalised by white - black)", fontsize=TITLE_PT)
         else:
             ax.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=TITLE_PT + 1)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
 
@@ -165,7 +167,7 @@ def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict
         ax.set_ylabel(unit)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
-    fig.suptitle("Depth selectivity: each image should appear where it belongs (vertical lines) and fade elsewhere",
+    fig.suptitle("Fig. 1: depth selectivity: each image should appear where it belongs (vertical lines) and fade elsewhere",
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -216,6 +218,6 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
     axes[3].set_title("placement trials (legend: scan RMSE)", fontsize=10)
     axes[3].grid(alpha=0.3)
     axes[3].legend(fontsize=7)
-    fig.suptitle("Guidance by the projected image: how sharply the feedback peaks at the goal pose", fontsize=10)
+    fig.suptitle("Fig. 1: guidance by the projected image: how sharply the feedback peaks at the goal pose", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -4,7 +4,8 @@ The pages under ``docs/`` (and the ``results.md`` each benchmark writes) are Com
 tables, read on GitHub as they are. Sphinx reads reStructuredText; the usual bridge, myst-parser, is
 not on the package index this project installs from offline, so this one maps markdown-it-py's tree
 (the parser myst-parser itself is built on) onto docutils nodes for what the pages use: headings,
-paragraphs, lists, code, tables, emphasis, links and images. Anything else stops the build with the
+paragraphs, lists, code, tables, emphasis, links and images (an image alone in its paragraph is a
+figure, its alt text the caption). Anything else stops the build with the
 page and line named, rather than vanishing from the site. The sources stay plain CommonMark, so
 myst-parser can replace this file unchanged where it is available.
 
@@ -85,7 +86,11 @@ class _Builder:
     def block(self, node: SyntaxTreeNode) -> nodes.Node:
         kind = node.type
         if kind == "paragraph":
-            return nodes.paragraph("", "", *self.inlines(node.children[0]))
+            content = self.inlines(node.children[0])
+            if len(content) == 1 and isinstance(content[0], nodes.image):
+                # An image on its own is a figure: numbered on the site (numfig), its alt text the caption.
+                return nodes.figure("", content[0], nodes.caption("", content[0]["alt"]))
+            return nodes.paragraph("", "", *content)
         if kind in ("bullet_list", "ordered_list"):
             out = nodes.bullet_list(bullet="-") if kind == "bullet_list" else nodes.enumerated_list(enumtype="arabic")
             for item in node.children:

@@ -298,7 +298,7 @@ class DecodedFolder:
         np.savez_compressed(folder / "correspondence.npz", **arrays)
         write_json(folder / "report.json", self.report)
         decode_summary(folder / "decoded.png", dec.prj_xy, dec.contrast, self.points,
-                       title=f"{self.report['capture_dir']}: {dec.valid_fraction:.1%} of the camera decoded")
+                       title=f"Fig. 1: {self.report['capture_dir']}: {dec.valid_fraction:.1%} of the camera decoded")
 
 
 MIN_DECODED = 0.001  # below this fraction of the camera decoded, a capture folder is an error

@@ -471,6 +471,8 @@ def placement_error(placed, reference, distance: float, mask=None) -> dict:
 def position_markdown(report: dict) -> str:
     """``report.md`` of a positioning test."""
     lines = [f"# torchproj position: {report['scene']}", "",
+             "Fig. 1 (`feedback.png`): the feedback around the goal pose along each axis, and each placement's "
+             "best feedback against the camera looks it took.", "",
              f"{report['trials_per_position']} placements per position from starts within "
              f"{report['start_spread']['position_mm']:g} mm and {report['start_spread']['rotation_deg']:g} degrees "
              f"of the goal, at most {report['max_evaluations']} camera looks each.", "",

@@ -67,7 +67,7 @@ class RunResult:
         for state, shot in self.captures.items():
             write_image(folder / "captures" / f"{state}.png", shot, bits=self.scene.camera.bit_depth)
         run_overview(folder / "overview.png", self.patterns, names, self.targets,
-                     title=f"torchproj run: scene {self.report['scene']}, solver {self.report['solver']}, footprint "
+                     title=f"Fig. 1: torchproj run: scene {self.report['scene']}, solver {self.report['solver']}, footprint "
                            f"{self.report.get('footprint', 'nearest')}")
         text = run_markdown(self.report)
         write_json(folder / "report.json", self.report)
@@ -551,6 +551,8 @@ def run_markdown(report: dict) -> str:
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}"
              + (f" (values below 0 shown by {report.get('outside', 'clip')})" if below else ""), "",
              *_verdict_lines(report["targets"], ceiling),
+             "Fig. 1 (`overview.png`): each projector's pattern, and per target the image asked for, the "
+             "capture and the error between them, on one scale.", "",
              f"Calibration: {report['calibration']}; maps: {report['maps']}; footprint: {footprint}"
              + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
                  f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"

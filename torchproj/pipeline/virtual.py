@@ -400,7 +400,8 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
         results.append(result)
         rows.append(row)
         del capture  # see calibrate_rig
-    calibration_summary(folder / "calibration.png", rows)
+    calibration_summary(folder / "calibration.png", rows,
+                        title=f"Fig. 1: calibration of {scene.name} on the virtual rig, per state and projector")
     timings["total"] = time.perf_counter() - t_start
     # A procedural scene has no file: its name (suite-SEED-INDEX) is what loads it again.
     config = str(scene.source) if scene.source is not None else scene.name
@@ -422,6 +423,8 @@ def _decode_shares(decode: dict | None, decoded: float) -> str:
 def simulate_markdown(report: dict) -> str:
     """``report.md`` of ``torchproj simulate``."""
     lines = [f"# Virtual-rig calibration: {report['scene']}", "",
+             "Fig. 1 (`calibration.png`): per state and projector, the decoded x and y, their error against "
+             "the truth and the fitted response.", "",
              "Decoded coordinates against the simulator's truth, over the camera pixels each projector truly "
              "lights. `exact`: decoded cell equals the true cell; RMS: distance to the continuous true "
              "coordinate (projector pixels); `block`: cells per decoded value (a shortened sequence decodes "
