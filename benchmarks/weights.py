@@ -7,7 +7,7 @@ algebra-based pattern generation method", its equations for ``i_{k,n}`` and ``A_
 cosine between the surface normal and the incoming light. That is the factor by which a projector
 value must be raised to give the same irradiance as at unit distance and normal incidence, the
 inverse of what light does: irradiance falls as ``cos / d^2`` (Lambert and the inverse-square law;
-the virtual rig's physics in DESIGN.md). Used as the forward weight, it makes far and grazing points
+the virtual rig's physics in docs/scenes.md). Used as the forward weight, it makes far and grazing points
 brighter, not dimmer. Three weightings are compared on one calibration of ``paper_two_planes``:
 
 - ``radiometric`` (torchproj's default): each projector's white minus black capture per camera pixel,

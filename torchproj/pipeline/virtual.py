@@ -1,7 +1,7 @@
 """The virtual rig as a calibrated rig: its calibration captures, decoded, and their check against the truth.
 
 :func:`calibrate_virtual` is what ``torchproj run`` and every benchmark calibrate with: the solver
-then knows only what the captures recovered (the physics contract of ``DESIGN.md``), or, in oracle
+then knows only what the captures recovered (the virtual rig's physics, docs/scenes.md), or, in oracle
 mode, the simulator's exact geometry.
 """
 

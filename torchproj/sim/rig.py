@@ -1,6 +1,6 @@
 """The virtual projector-camera rig: the physics every torchproj number is measured against.
 
-Physics (DESIGN.md, "Physics contract"): a camera sample ray hits surface point X (through any
+Physics (docs/scenes.md, "The virtual rig"): a camera sample ray hits surface point X (through any
 semi-transparent screens in front, each passing ``transmittance`` of the light on). Projector j lights
 X with irradiance ``E_j = L_j(u_j) * max(0, n.l_j) / d_j^2`` where u_j is X projected into projector j,
 ``L_j`` the light of the LCD cell containing u_j, d_j the distance to the projector centre, and zero

@@ -1,7 +1,7 @@
 """Geometric weighting (the paper's model): fall-off and angle from triangulated points and normals.
 
 The paper weights projector j's light at a target pixel by its geometry alone. Its equation writes
-``d^2 / (L.N)``; the physics (DESIGN.md) is the inverse, ``max(0, N.L) / d^2``, which is what a
+``d^2 / (L.N)``; the physics (docs/scenes.md) is the inverse, ``max(0, N.L) / d^2``, which is what a
 camera measures, so that is used here. Albedo, vignetting and projector brightness are not in this
 model (the radiometric weighting measures them); the overall scale is absorbed by the target scale.
 
