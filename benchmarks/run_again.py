@@ -1,11 +1,12 @@
-"""The same scene again: `torchproj run` with and without the calibration cache, each in a fresh process.
+"""The same scene again: `torchproj run` and `torchproj position` with and without the cache, each in a fresh process.
 
     python benchmarks/run_again.py --out benchmarks/results/run_again
 
 On the default scene (the paper's rig), with an empty cache folder of its own: ``run --no-cache``
 (the cold run), ``run`` (simulates and keeps the calibration and its transport), then ``run --solver
-pgd`` and ``run --objective ssim`` (read both). Wall time, peak resident memory and the stage timings of
-``report.json``; writes ``results.json`` and ``results.md``.
+pgd`` and ``run --objective ssim`` (read both); then ``position --no-cache``, ``position`` (keeps its own
+scene's) and ``position`` again (reads them). Wall time, peak resident memory and the stage timings
+of ``report.json``; writes ``results.json`` and ``results.md``.
 """
 
 from __future__ import annotations
@@ -22,8 +23,10 @@ from common import machine, write_results
 
 from torchproj.pipeline.cache import CACHE_DIR_ENV
 
-RUNS = (("cold, --no-cache", ["--no-cache"]), ("first, keeps the calibration and transport", []),
-        ("again, --solver pgd", ["--solver", "pgd"]), ("again, --objective ssim", ["--objective", "ssim"]))
+RUNS = (("run, cold, --no-cache", ["run", "--no-cache"]), ("run, first, keeps the calibration and transport", ["run"]),
+        ("run again, --solver pgd", ["run", "--solver", "pgd"]), ("run again, --objective ssim", ["run", "--objective", "ssim"]),
+        ("position, cold, --no-cache", ["position", "--no-cache"]), ("position, first, keeps them", ["position"]),
+        ("position again", ["position"]))
 
 
 def main(argv=None) -> int:
@@ -35,16 +38,18 @@ def main(argv=None) -> int:
         os.environ[CACHE_DIR_ENV] = str(Path(tmp) / "cache")  # the children inherit it
         for k, (label, extra) in enumerate(RUNS):
             out, peak = Path(tmp) / f"run{k}", Path(tmp) / f"run{k}.peak"
-            wall = _timed([sys.executable, "-c", _CLI, str(peak), "run", *extra, "--out", str(out)])
+            wall = _timed([sys.executable, "-c", _CLI, str(peak), *extra, "--out", str(out)])
             report = json.loads((out / "report.json").read_text())
             rows.append({"run": label, "wall_s": round(wall, 2), "peak_rss_gb": round(int(peak.read_text()) / 1024**2, 2),
                          "calibration_cache": report["calibration_cache"],
                          "transport_cache": report.get("transport_cache", "off"), "timings_s": report["timings_s"],
-                         "psnr_db": [round(t["psnr_db"], 3) for t in report["targets"]]})
+                         "psnr_db": [round(t["psnr_db"], 3) for t in report["targets"]] if "targets" in report else
+                         [round(p["psnr_db_at_goal"], 3) for p in report["positions"]]})
             print(rows[-1], flush=True)
     result = {"machine": machine(), "rows": rows}
-    lines = [f"# The same scene again ({result['machine']})", "", "Command: `python benchmarks/run_again.py`; the default "
-             "scene, each run a fresh process.", "",
+    lines = [f"# The same scene again ({result['machine']})", "", "Command: `python benchmarks/run_again.py`; each "
+             "command's default scene (`run`: paper_two_planes, `position`: box_positions), each run a fresh process, "
+             "one cache folder for all. PSNR: per target (`run`) or of the feedback at the goal (`position`).", "",
              "| run | wall (s) | peak (GB) | calibration | transport | stages (report.json, s) | PSNR (dB) |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:

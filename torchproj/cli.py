@@ -17,7 +17,7 @@ import warnings
 from pathlib import Path
 
 from . import __version__
-from .cli_options import (BITS_HELP, command, config_option, decoding_options, device_options, existing_file,
+from .cli_options import (BITS_HELP, cache_option, command, config_option, decoding_options, device_options, existing_file,
                           join_negative_pairs, limits, map_options, named_projector_size, projector_size, solve_options,
                           solver_options)
 from .core.errors import TorchprojError
@@ -94,7 +94,7 @@ def cmd_position(args) -> int:
     scene = _scene(args)
     result = evaluate_positioning(scene, trials=args.trials, spread_mm=args.spread_mm, spread_deg=args.spread_deg,
                                   seed=args.seed, max_evaluations=args.max_evaluations, device=args.device,
-                                  max_iter=args.max_iter, **_solver_args(args))
+                                  max_iter=args.max_iter, cache=not args.no_cache, **_solver_args(args))
     _publish(args.out, lambda stage: result.write(stage, scene), "report.json, report.md, feedback.png, patterns/, "
              f"scans/ (view a scan: python viz/positioning.py {args.out})")
     return 0
@@ -266,9 +266,7 @@ def _virtual_rig_commands(sub) -> None:
                    "loop step, against camera noise (default 1)")
     p.add_argument("--refine-relax", type=float, default=1.0, metavar="R", help="the share of each capture's "
                    "defect the loop takes, in (0, 1]: below 1 it averages camera noise over captures (default 1)")
-    p.add_argument("--no-cache", action="store_true", help="simulate the calibration even where the same scene was "
-                   "calibrated before (kept in the user cache folder, or $TORCHPROJ_CACHE_DIR; at most "
-                   "$TORCHPROJ_CACHE_MAX_GB, default 2, the least recently used removed first)")
+    cache_option(p)
     p.add_argument("--gain", type=limits, metavar="LO,HI", help="also optimise a gain per target (fista; e.g. 0.5,1.5)")
     p.add_argument("--offset", type=limits, metavar="LO,HI", help="... and an offset (fista; e.g. -0.2,0.2)")
     map_options(p, bits=BITS_HELP + "; each capture is then read through one homography (planar scenes only)")
@@ -282,6 +280,7 @@ def _virtual_rig_commands(sub) -> None:
     p.add_argument("--spread-deg", type=float, default=5.0, help="... turned by up to this (default 5)")
     p.add_argument("--seed", type=int, default=0, help="seeds the start poses and the camera noise (default 0)")
     p.add_argument("--max-evaluations", type=int, default=200, help="camera looks per placement (default 200)")
+    cache_option(p)
     solver_options(p)
     device_options(p)
 

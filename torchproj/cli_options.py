@@ -121,6 +121,12 @@ def device(text: str) -> str:
     return text
 
 
+def cache_option(p) -> None:
+    p.add_argument("--no-cache", action="store_true", help="simulate the calibration (and build the transport) even "
+                   "where the same scene ran before (kept in the user cache folder, or $TORCHPROJ_CACHE_DIR; at most "
+                   "$TORCHPROJ_CACHE_MAX_GB, default 2, the least recently used removed first)")
+
+
 def device_options(p, max_iter: bool = True) -> None:
     p.add_argument("--device", type=device, default="cpu", help="torch device, cpu or cuda (default: cpu)")
     if max_iter:

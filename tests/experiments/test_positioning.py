@@ -175,6 +175,25 @@ def test_placement_gets_closer_than_it_started(box_scene):
         assert t["pose_error"]["distance_mm"] < t["start_pose_error"]["distance_mm"]
 
 
+def test_a_second_position_reads_its_calibration_and_transport_and_places_alike(tmp_path, monkeypatch):
+    """`torchproj position` keeps its calibration and transport as `run` does: a second test of the same
+    scene reads both, and (its noise state kept with the calibration) makes the same placements."""
+    from torchproj.pipeline.cache import CACHE_DIR_ENV
+
+    monkeypatch.setenv(CACHE_DIR_ENV, str(tmp_path / "cache"))
+    path = tmp_path / "small_box.yaml"
+    path.write_text(yaml.safe_dump(dict(small_config("box_positions", **SMALL), name="small_box")))
+    reports = []
+    for k, extra in enumerate(([], [], ["--no-cache"])):
+        out = tmp_path / f"out{k}"
+        assert main(["position", str(path), "--trials", "1", "--max-evaluations", "10", "--out", str(out), *extra]) == 0
+        reports.append(json.loads((out / "report.json").read_text()))
+    assert [(r["calibration_cache"], r["transport_cache"]) for r in reports] == [
+        ("stored", "stored"), ("read", "read"), ("off", "off")]
+    placed = [[{k: v for k, v in t.items() if k != "seconds"} for t in r["trials"]] for r in reports]
+    assert placed[0] == placed[1] == placed[2]
+
+
 def test_position_needs_each_target_on_one_box(tmp_path, capsys):
     with pytest.raises(ConfigError, match="targets.near.surfaces"):
         evaluate_positioning(small_scene(**SMALL))

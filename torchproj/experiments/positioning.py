@@ -296,7 +296,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
                          seed: int = 0, max_evaluations: int = 200, profile_mm: float = 40.0, profile_steps: int = 8, feedback_stride: int = 2,
                          device="cpu", progress=None, calibration: VirtualCalibration | None = None,
                          max_iter: int | None = None, solver: str = "fista", bounds_8bit=(0, 255),
-                         outside: str = "clip", chains: str = "epipolar") -> PositioningResult:
+                         outside: str = "clip", chains: str = "epipolar", cache: bool = False) -> PositioningResult:
     """Solve patterns for the scene's targets, place each box from random starts by feedback, scan it.
 
     Args:
@@ -310,6 +310,9 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
             (spaced geometrically from 0.25 mm).
         feedback_stride: score the camera image on every n-th pixel in each direction.
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
+        cache: where no ``calibration`` is given, read the calibration and its transport from the
+            cache where the same scene ran before, else keep them there, as ``torchproj run`` does
+            (:mod:`torchproj.pipeline.cache`; ``torchproj position`` does unless ``--no-cache``).
         max_iter: iteration limit of the pattern solver (None: as :func:`~torchproj.pipeline.run_virtual`).
         solver, bounds_8bit, outside, chains: the pattern solver, its bounds, how values outside them are
             shown and eo's chains, as :func:`~torchproj.pipeline.run_virtual`
@@ -330,9 +333,11 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
                                        f"{nearest_mm / 4:.0f}")
     check(spread_deg <= 45, f"spread_deg {spread_deg:g}: a trial would start turned up to that far; give at most 45")
     t_start = time.perf_counter()
-    cal = calibration or calibrate_virtual(scene, device, progress)
-    run = run_virtual(scene, calibration=cal, device=device, progress=progress, max_iter=max_iter, solver=solver,
-                      bounds_8bit=bounds_8bit, outside=outside, chains=chains)
+    if calibration is None and not cache:
+        calibration = calibrate_virtual(scene, device, progress)
+    run = run_virtual(scene, calibration=calibration, device=device, progress=progress, max_iter=max_iter,
+                      solver=solver, bounds_8bit=bounds_8bit, outside=outside, chains=chains, cache=cache)
+    cal = run.calibration
     scale = run.report["scale"]
     shown = {j: (p.float() / 255)[None].to(device) for j, p in enumerate(run.patterns)}
     rng = np.random.default_rng(seed)
@@ -383,7 +388,8 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         "rmse_percent_mean": {r["name"]: r["rmse_percent_mean"] for r in rows},
         "trials": trial_rows,
         "feedback_profiles": profiles,
-        "timings_s": {"calibrate": round(cal.seconds if calibration is None else 0.0, 3),
+        "calibration_cache": run.report["calibration_cache"], "transport_cache": run.report["transport_cache"],
+        "timings_s": {"calibrate": round(cal.seconds, 3), "run": round(run.report["timings_s"]["total"], 3),
                       "total": round(time.perf_counter() - t_start, 3)},
     }
     return PositioningResult(report=report, trials=placed_trials, patterns=run.patterns, profiles=profiles)

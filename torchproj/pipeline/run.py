@@ -48,6 +48,7 @@ class RunResult:
     targets: list[TargetScore] = field(default_factory=list)  # per target, its score, capture and image on the camera
     solution: SolveResult | None = None  # the solver's own result (values in its bounds, history)
     scene: Scene | None = None
+    calibration: VirtualCalibration | None = None  # what the run solved on (given, read from the cache or simulated)
 
     def write(self, folder) -> str:
         """``report.json``, ``report.md``, ``overview.png``, ``patterns/`` and ``captures/`` into ``folder``.
@@ -241,7 +242,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         report["homographies"] = fits
     solution = solved.result if refined is None else dataclasses.replace(solved.result, patterns=refined.patterns)
     return RunResult(report=report, patterns=solved.patterns, captures=evaluation.captures, targets=scores,
-                     solution=solution, scene=scene)
+                     solution=solution, scene=scene, calibration=cal)
 
 
 def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside, chains,
