@@ -62,7 +62,7 @@ def _build_site(tmp_path, pages: dict[str, str], builder: str = "xml") -> tuple[
 PAGE = """# Top
 
 A paragraph with **bold**, *emphasis* and `code`, a link to [the other page](other.md), one to
-[a scene](../scene.yaml) and one to [a folder](results/).
+[a scene](../scene.yaml), one to [a folder](results/) and one [down the page](#sub).
 
 ## Sub
 
@@ -105,7 +105,7 @@ def test_markdown_pages_become_sections_tables_lists_links_and_code(tmp_path):
     paragraph = top.find("paragraph")
     assert paragraph.find("strong").text == "bold" and paragraph.find("emphasis").text == "emphasis"
     assert paragraph.find("literal").text == "code"
-    assert paragraph.find("reference").get("refuri") == "other.html"
+    assert [r.get("refuri") for r in paragraph.findall("reference")] == ["other.html", "#sub"]
     assert paragraph.find("download_reference").get("reftarget") == "../scene.yaml"
     assert "results" in "".join(paragraph.itertext())  # a folder that is no page: its path, not a dead link
     assert [len(sub.findall(f"{kind}/list_item")) for kind in ("enumerated_list", "bullet_list")] == [2, 2]

@@ -148,7 +148,7 @@ class _Builder:
     def link(self, node: SyntaxTreeNode) -> nodes.Node:
         href = str(node.attrs["href"])
         text = self.inlines(node)
-        if href.startswith(("http://", "https://", "mailto:")):
+        if href.startswith(("http://", "https://", "mailto:", "#")):  # another site, or a place on this page
             return nodes.reference("", "", *text, refuri=href)
         path, _, anchor = href.partition("#")
         target = (self.source.parent / path).resolve()
