@@ -9,6 +9,7 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.pipeline import run_virtual
+from torchproj.pipeline.run import run_markdown
 from torchproj.pipeline import scene_targets
 from torchproj.pipeline.cache import (CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, cached_transport, calibration_key,
                                       transport_key)
@@ -35,6 +36,10 @@ def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
     plain = run_virtual(scene, progress=False).report
     assert (first["calibration_cache"], second["calibration_cache"], plain["calibration_cache"]) == ("stored", "read", "off")
     assert (first["transport_cache"], second["transport_cache"], plain["transport_cache"]) == ("stored", "read", "off")
+    # report.md says where the calibration and the model came from.
+    text, plain_text = run_markdown(second), run_markdown(plain)
+    assert "virtual rig (read from the cache)" in text and "nonzeros (read from the cache)" in text
+    assert "cache" not in plain_text.split("How each score")[0]
     # Another objective on a grey scene builds the same operator, and reads it.
     assert run_virtual(scene, cache=True, progress=False, objective="ssim").report["transport_cache"] == "read"
     # The rig's noise continues where calibration left it: the same captures, to the last bit.

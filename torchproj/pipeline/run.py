@@ -538,6 +538,16 @@ def _score_tables(targets: list[dict], paper: bool, adjusted: bool, ceiling: boo
     return lines
 
 
+_CACHED = {"read": "read from the cache", "stored": "kept in the cache",
+           "recomputed": "computed again: its cache entry was unreadable"}
+
+
+def _cached(report: dict, what: str) -> str:
+    """`` (read from the cache)`` and the like after the calibration or the model, where the cache served it."""
+    how = report.get(f"{what}_cache", "off")
+    return f" ({_CACHED[how]})" if how in _CACHED else ""
+
+
 def run_markdown(report: dict) -> str:
     """``report.md`` of a run: what ``report.json`` holds, as tables."""
     m, t = report["model"], report["timings_s"]
@@ -554,13 +564,14 @@ def run_markdown(report: dict) -> str:
              *_verdict_lines(report["targets"], ceiling),
              "Fig. 1 (`overview.png`): each projector's pattern, and per target the image asked for, the "
              "capture and the error between them, on one scale.", "",
-             f"Calibration: {report['calibration']}; maps: {report['maps']}; footprint: {footprint}"
+             f"Calibration: {report['calibration']}{_cached(report, 'calibration')}; maps: {report['maps']}; "
+             f"footprint: {footprint}"
              + ("" if report.get("graycode") is None else "; Gray code per projector: " + ", ".join(
                  f"{name} {g['bits'][0]}x{g['bits'][1]} bits ({g['captures_per_state']} captures per state)"
                  for name, g in report["graycode"].items())) + ".", "",
              f"Model: {m['variables']} variables, {m['rows']} rows, {m['nnz']} nonzeros"
              + (" per colour channel, each channel with its own weights and solved apart"
-                if report.get("colour_weights") == "channel" else "") + "; objective "
+                if report.get("colour_weights") == "channel" else "") + _cached(report, "transport") + "; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
              *_image_objective_lines(report.get("image_objective")),
