@@ -74,7 +74,7 @@ def api_page(out: Path) -> None:
 def _assigned_in(package, name: str) -> str:
     """The module under ``package`` whose source assigns ``name`` at its top level."""
     root = Path(package.__file__).parent.parent
-    for source in sorted(Path(package.__file__).parent.parent.rglob("*.py")):
+    for source in sorted(root.rglob("*.py")):
         if re.search(rf"^{name}\s*[:=]", source.read_text(), re.M):
             return ".".join(source.relative_to(root.parent).with_suffix("").parts).removesuffix(".__init__")
     raise ExtensionError(f"api: no module of torchproj assigns {name}")
@@ -92,18 +92,7 @@ def gallery_pages(root: Path, out: Path, scripts: list[dict]) -> None:
         before = [arg.format(**places) for arg in entry.get("before", [])]
         stamp = out / "gallery" / f"{name}.stamp.json"  # outside the folder, which the script owns
         key = hashlib.sha256(source.read_bytes() + json.dumps([before, argv]).encode()).hexdigest()
-        ran = json.loads(stamp.read_text()) if stamp.exists() else {}
-        if ran.get("key") != key:
-            stamp.parent.mkdir(parents=True, exist_ok=True)
-            start = time.perf_counter()
-            for command in ([before] if before else []) + [[script, *argv]]:
-                LOGGER.info("gallery: running python %s", " ".join(command))
-                done = subprocess.run([sys.executable, *command], cwd=root, capture_output=True, text=True,
-                                      env={**os.environ, "MPLBACKEND": "Agg"})
-                if done.returncode != 0:
-                    raise ExtensionError(f"gallery: python {' '.join(command)} failed:\n{done.stderr[-3000:]}")
-            ran = {"key": key, "seconds": round(time.perf_counter() - start, 1)}
-            stamp.write_text(json.dumps(ran))
+        ran = _run_once(root, stamp, key, ([before] if before else []) + [[script, *argv]])
         figures = sorted(folder.rglob("*.png"))
         if not figures:
             raise ExtensionError(f"gallery: {script} wrote no figure under {folder}")
@@ -133,6 +122,25 @@ def gallery_pages(root: Path, out: Path, scripts: list[dict]) -> None:
              "stays short; each page gives the command, what it drew and the code.", "",
              ".. toctree::", "   :maxdepth: 1", "", *[f"   {page}" for page in pages], ""]
     write_if_changed(out / "gallery" / "index.rst", "\n".join(index))
+
+
+def _run_once(root: Path, stamp: Path, key: str, commands: list[list[str]]) -> dict:
+    """Run ``commands`` (``python`` arguments, in order, from ``root``) unless ``stamp`` records ``key``;
+    the stamp: ``{"key", "seconds"}``."""
+    ran = json.loads(stamp.read_text()) if stamp.exists() else {}
+    if ran.get("key") == key:
+        return ran
+    stamp.parent.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    for command in commands:
+        LOGGER.info("gallery: running python %s", " ".join(command))
+        done = subprocess.run([sys.executable, *command], cwd=root, capture_output=True, text=True,
+                              env={**os.environ, "MPLBACKEND": "Agg"})
+        if done.returncode != 0:
+            raise ExtensionError(f"gallery: python {' '.join(command)} failed:\n{done.stderr[-3000:]}")
+    ran = {"key": key, "seconds": round(time.perf_counter() - start, 1)}
+    stamp.write_text(json.dumps(ran))
+    return ran
 
 
 def _docstring(source: Path) -> str:

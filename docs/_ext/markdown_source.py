@@ -104,7 +104,7 @@ class _Builder:
             return nodes.block_quote("", *[self.block(child) for child in node.children])
         if kind == "table":
             return self.table(node)
-        raise MarkdownError(f"line {self.line(node)}: markdown {kind!r} has no counterpart here (docs/_ext/markdown_source.py)")
+        raise self.unsupported(kind, node)
 
     def table(self, node: SyntaxTreeNode) -> nodes.table:
         head, *body = node.children
@@ -141,8 +141,7 @@ class _Builder:
             elif kind == "image":
                 out.append(self.image(node))
             else:
-                raise MarkdownError(f"line {self.line(inline)}: markdown {kind!r} has no counterpart here "
-                                    "(docs/_ext/markdown_source.py)")
+                raise self.unsupported(kind, inline)
         return out
 
     def link(self, node: SyntaxTreeNode) -> nodes.Node:
@@ -154,12 +153,11 @@ class _Builder:
         target = (self.source.parent / path).resolve()
         page = self.page_of(target)
         if page is not None:
-            here = Path(self.env.docname).parent
-            uri = Path(*[".."] * len(here.parts), page).as_posix() + ".html" + (f"#{anchor}" if anchor else "")
+            uri = self.relative(self.srcdir / f"{page}.html") + (f"#{anchor}" if anchor else "")
             return nodes.reference("", "", *text, refuri=uri, internal=True)
         if target.is_file():
             return addnodes.download_reference("", "", nodes.literal("", "", *text), refdoc=self.env.docname,
-                                               reftarget=os.path.relpath(target, self.here), refexplicit=True)
+                                               reftarget=self.relative(target), refexplicit=True)
         return nodes.inline("", "", *text, nodes.Text(" ("),
                             nodes.literal(href, target.relative_to(self.root).as_posix()
                                           if target.is_relative_to(self.root) else href), nodes.Text(")"))
@@ -167,8 +165,12 @@ class _Builder:
     def image(self, node: SyntaxTreeNode) -> nodes.image:
         src = str(node.attrs["src"])
         if not src.startswith(("http://", "https://")):
-            src = Path(os.path.relpath(self.source.parent / src, self.here)).as_posix()
+            src = self.relative(self.source.parent / src)
         return nodes.image(uri=src, alt=node.content or "")
+
+    def relative(self, path: Path) -> str:
+        """``path`` from the page's own folder (pages and their HTML sit alike in the tree)."""
+        return Path(os.path.relpath(path, self.here)).as_posix()
 
     def page_of(self, target: Path) -> str | None:
         """The docname a link's target is shown as, or None where it is no page of the site."""
@@ -184,8 +186,9 @@ class _Builder:
         return None
 
     @staticmethod
-    def line(node: SyntaxTreeNode) -> int:
-        return (node.map[0] + 1) if node.map else 0
+    def unsupported(kind: str, node: SyntaxTreeNode) -> MarkdownError:
+        line = (node.map[0] + 1) if node.map else 0
+        return MarkdownError(f"line {line}: markdown {kind!r} has no counterpart here (docs/_ext/markdown_source.py)")
 
 
 def setup(app):

@@ -162,14 +162,13 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     images = scene_images(scene) if images is None else images  # a missing image file is refused before the work
     t_total = time.perf_counter()
     cached = None
+    calibrated_with = dict(oracle=oracle is not None, bits=bits, plane_tolerance=plane_tolerance)
     if calibration is not None:
         cal = calibration
     elif cache:
-        cal, cached = cached_calibration(scene, device=device, progress=progress, oracle=oracle is not None, bits=bits,
-                                         plane_tolerance=plane_tolerance)
+        cal, cached = cached_calibration(scene, device=device, progress=progress, **calibrated_with)
     else:
-        cal = calibrate_virtual(scene, device, progress, oracle=oracle is not None, bits=bits,
-                                plane_tolerance=plane_tolerance)
+        cal = calibrate_virtual(scene, device, progress, **calibrated_with)
     timings = {"calibrate": cal.seconds if calibration is None else 0.0}
     world = shown_world(cal, scene)
     t0 = time.perf_counter()
@@ -187,8 +186,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         colour_weights = "grey"  # these couple the channels (the transport oracle has its own per-channel light)
     # The transport of a cached calibration is kept beside it: the same scene and targets again (another
     # solver, objective or bounds) read it instead of building it.
-    keyed = None if cached is None else calibration_key(scene, oracle=oracle is not None, bits=bits,
-                                                        plane_tolerance=plane_tolerance) + f"/maps={maps}"
+    keyed = None if cached is None else calibration_key(scene, **calibrated_with) + f"/maps={maps}"
     solved = _build_and_solve(world if exact else cal, states, targets, bounds, solver=solver, image=image, exact=exact,
                               gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
                               device=device, timings=timings, outside=outside, chains=chains,
@@ -289,9 +287,15 @@ def build_operators(states, targets, *, footprint: str, merge: bool, colour_weig
     """The operator(s) a solve runs on: one per colour channel where ``colour_weights`` is ``"channel"``
     and calibration measured each channel's weight
     (:func:`~torchproj.transport.has_colour_weights`), else one with the grey weight."""
-    if colour_weights == "channel" and has_colour_weights(states, targets):
+    if _colour_weights(states, targets, colour_weights) == "channel":
         return build_channel_transports(states, targets, footprint=footprint, device=device)
     return [build_transport(states, targets, merge=merge, footprint=footprint, device=device)]
+
+
+def _colour_weights(states, targets, asked: str) -> str:
+    """The weights a build uses: ``"channel"`` only for colour targets calibrated per channel; elsewhere
+    "channel" builds what "grey" does."""
+    return "channel" if asked == "channel" and has_colour_weights(states, targets) else "grey"
 
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
@@ -307,9 +311,8 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     # per-target g t + o is an exact right-hand side of the same A), and with the bilinear or area footprint,
     # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
     # merged otherwise (exact, smaller).
-    # Channel weights apply to colour targets calibrated per channel only: elsewhere "channel" builds what
-    # "grey" does, and asks the cache for the same operator.
-    colour_weights = "channel" if colour_weights == "channel" and has_colour_weights(states, targets) else "grey"
+    # As the build uses them, so that "channel" and "grey" ask the cache for the same operator where they build it.
+    colour_weights = _colour_weights(states, targets, colour_weights)
     options = dict(merge=gain_offset is None and image is None and not exact and footprint == "nearest"
                    and not rows_on_camera, footprint=footprint, colour_weights=colour_weights, device=device)
     if cache_key is None:
