@@ -103,6 +103,17 @@ def test_a_broken_entry_is_recomputed_and_the_cache_keeps_to_its_size(cache, mon
     assert len(list(cache.glob("*.pt"))) == 1
 
 
+def test_a_cache_folder_that_refuses_the_entries_is_reported_not_kept(tmp_path, monkeypatch):
+    """A cache path that is a file (or a full disk): the run goes on, warns, and says nothing was kept."""
+    blocked = tmp_path / "a_file"
+    blocked.write_text("not a folder")
+    monkeypatch.setenv(CACHE_DIR_ENV, str(blocked))
+    with pytest.warns(UserWarning, match="could not keep the calibration"):
+        report = run_virtual(_scene(), cache=True, progress=False).report
+    assert (report["calibration_cache"], report["transport_cache"]) == ("not kept", "not kept")
+    assert "(computed: the cache folder refused to keep it)" in run_markdown(report)
+
+
 def test_no_cache_from_the_command_line(cache, tmp_path):
     config = tmp_path / "small.yaml"
     config.write_text(yaml.safe_dump(dict(small_config(camera=(200, 150), projector=(128, 96)), name="small")))

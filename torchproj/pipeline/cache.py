@@ -50,6 +50,7 @@ CACHE_DIR_ENV = "TORCHPROJ_CACHE_DIR"
 CACHE_MAX_ENV = "TORCHPROJ_CACHE_MAX_GB"
 _DEFAULT_MAX_GB = 2.0
 _CODE_DIGEST: str | None = None
+NOT_KEPT = "not kept"  # how an entry computed but refused by the cache folder is reported
 
 
 def cache_dir() -> Path:
@@ -128,8 +129,8 @@ def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOpera
             return ops, "read"
         how = "recomputed"
     ops = build()
-    _write(folder, path, {"key": key, "operators": [_operator_parts(op) for op in ops]}, "transport")
-    return ops, how
+    kept = _write(folder, path, {"key": key, "operators": [_operator_parts(op) for op in ops]}, "transport")
+    return ops, how if kept else NOT_KEPT
 
 
 def _operator_parts(op: TransportOperator) -> dict:
@@ -153,7 +154,8 @@ def cached_calibration(scene: Scene, *, device="cpu", progress=None, oracle: boo
 
     Returns:
         ``(calibration, how)``: ``how`` is ``"read"`` (from the cache), ``"stored"`` (simulated
-        and kept) or ``"recomputed"`` (an entry that would not load was replaced).
+        and kept), ``"recomputed"`` (an entry that would not load was replaced) or ``"not kept"``
+        (simulated; the cache folder refused to keep it, with a warning).
     """
     key = calibration_key(scene, oracle=oracle, bits=bits, plane_tolerance=plane_tolerance)
     folder = cache_dir()
@@ -168,8 +170,7 @@ def cached_calibration(scene: Scene, *, device="cpu", progress=None, oracle: boo
             return cal, "read"
         how = "recomputed"
     cal = calibrate_virtual(scene, device, progress, oracle=oracle, bits=bits, plane_tolerance=plane_tolerance)
-    _store(folder, path, key, cal)
-    return cal, how
+    return cal, how if _store(folder, path, key, cal) else NOT_KEPT
 
 
 def _load(path: Path, key: str, scene: Scene, device) -> VirtualCalibration | None:
@@ -181,9 +182,9 @@ def _load(path: Path, key: str, scene: Scene, device) -> VirtualCalibration | No
     return _read(path, key, "calibration", make)
 
 
-def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> None:
+def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> bool:
     fields = {f.name: getattr(cal, f.name) for f in dataclasses.fields(cal) if f.name != "rig"}
-    _write(folder, path, {"key": key, "calibration": fields, "generator": cal.rig.generator.get_state()}, "calibration")
+    return _write(folder, path, {"key": key, "calibration": fields, "generator": cal.rig.generator.get_state()}, "calibration")
 
 
 def _read(path: Path, key: str, what: str, make):
@@ -201,8 +202,9 @@ def _read(path: Path, key: str, what: str, make):
         return None
 
 
-def _write(folder: Path, path: Path, payload: dict, what: str) -> None:
-    """``payload`` written whole to ``path`` (a temporary file renamed into place), then the cap kept."""
+def _write(folder: Path, path: Path, payload: dict, what: str) -> bool:
+    """``payload`` written whole to ``path`` (a temporary file renamed into place), then the cap kept;
+    whether it was written."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt", dir=folder)
@@ -213,11 +215,13 @@ def _write(folder: Path, path: Path, payload: dict, what: str) -> None:
         finally:
             Path(tmp).unlink(missing_ok=True)
         _evict(folder, keep=path)
+        return True
     # A full or read-only cache folder costs the next run its time, not this run (torch.save reports a
     # write the disk refused as a RuntimeError).
     except (OSError, RuntimeError) as exc:
         warnings.warn(f"could not keep the {what} in {folder} ({exc}); the next run will compute it again",
                       stacklevel=4)
+        return False
 
 
 def _evict(folder: Path, keep: Path) -> None:

@@ -28,7 +28,7 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
-from .cache import cached_calibration, cached_transport, calibration_key, transport_key
+from .cache import NOT_KEPT, cached_calibration, cached_transport, calibration_key, transport_key
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
@@ -151,7 +151,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         refine_relax: the share of each capture's defect the loop takes (1: all).
         cache: read the simulated calibration from the cache where the same scene was calibrated
             before, else keep it there (:mod:`.cache`; ``torchproj run`` does unless ``--no-cache``);
-            report.json ``calibration_cache`` says ``read``, ``stored``, ``recomputed`` or ``off``; the
+            report.json ``calibration_cache`` says ``read``, ``stored``, ``recomputed``, ``not kept`` or ``off``; the
             transport built from a cached calibration is kept beside it, and ``transport_cache``
             says the same of it.
     """
@@ -542,7 +542,8 @@ def _score_tables(targets: list[dict], paper: bool, adjusted: bool, ceiling: boo
 
 
 _CACHED = {"read": "read from the cache", "stored": "kept in the cache",
-           "recomputed": "computed again: its cache entry was unreadable"}
+           "recomputed": "computed again: its cache entry was unreadable",
+           NOT_KEPT: "computed: the cache folder refused to keep it"}
 
 
 def _cached(report: dict, what: str) -> str:
