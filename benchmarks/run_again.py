@@ -3,8 +3,8 @@
     python benchmarks/run_again.py --out benchmarks/results/run_again
 
 On the default scene (the paper's rig), with an empty cache folder of its own: ``run --no-cache``
-(the cold run), ``run`` (simulates and keeps the calibration and its transport), then ``run --solver
-pgd`` and ``run --objective ssim`` (read both); then ``position --no-cache``, ``position`` (keeps its own
+(the cold run), ``run`` (simulates and keeps the calibration, its transport and the rays it cast), then
+``run --solver pgd`` and ``run --objective ssim`` (read them); then ``position --no-cache``, ``position`` (keeps its own
 scene's) and ``position`` again (reads them). Wall time, peak resident memory and the stage timings
 of ``report.json``; writes ``results.json`` and ``results.md``.
 """
@@ -42,7 +42,8 @@ def main(argv=None) -> int:
             report = json.loads((out / "report.json").read_text())
             rows.append({"run": label, "wall_s": round(wall, 2), "peak_rss_gb": round(int(peak.read_text()) / 1024**2, 2),
                          "calibration_cache": report["calibration_cache"],
-                         "transport_cache": report.get("transport_cache", "off"), "timings_s": report["timings_s"],
+                         "transport_cache": report.get("transport_cache", "off"),
+                         "cast_cache": report.get("cast_cache", "off"), "timings_s": report["timings_s"],
                          "psnr_db": [round(t["psnr_db"], 3) for t in report["targets"]] if "targets" in report else
                          [round(p["psnr_db_at_goal"], 3) for p in report["positions"]]})
             print(rows[-1], flush=True)
@@ -50,12 +51,12 @@ def main(argv=None) -> int:
     lines = [f"# The same scene again ({result['machine']})", "", "Command: `python benchmarks/run_again.py`; each "
              "command's default scene (`run`: paper_two_planes, `position`: box_positions), each run a fresh process, "
              "one cache folder for all. PSNR: per target (`run`) or of the feedback at the goal (`position`).", "",
-             "| run | wall (s) | peak (GB) | calibration | transport | stages (report.json, s) | PSNR (dB) |",
-             "|---|---|---|---|---|---|---|"]
+             "| run | wall (s) | peak (GB) | calibration | transport | cast rays | stages (report.json, s) | PSNR (dB) |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         stages = ", ".join(f"{k} {v:.1f}" for k, v in r["timings_s"].items())
         lines.append(f"| {r['run']} | {r['wall_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['calibration_cache']} | "
-                     f"{r['transport_cache']} | {stages} | "
+                     f"{r['transport_cache']} | {r['cast_cache']} | {stages} | "
                      + " / ".join(f"{v:.2f}" for v in r["psnr_db"]) + " |")
     write_results(args.out, result, "\n".join(lines) + "\n")
     return 0

@@ -12,7 +12,9 @@ from torchproj.pipeline import run_virtual
 from torchproj.pipeline.run import run_markdown
 from torchproj.pipeline import scene_targets
 from torchproj.pipeline.cache import (CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, cached_transport, calibration_key,
-                                      transport_key)
+                                      geometry_key, keep_geometry, read_geometry, transport_key)
+from torchproj.scene.show import shown_scene
+from torchproj.sim import VirtualRig
 from torchproj.transport import build_transport
 from torchproj.scene import parse_scene
 
@@ -36,16 +38,62 @@ def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
     plain = run_virtual(scene, progress=False).report
     assert (first["calibration_cache"], second["calibration_cache"], plain["calibration_cache"]) == ("stored", "read", "off")
     assert (first["transport_cache"], second["transport_cache"], plain["transport_cache"]) == ("stored", "read", "off")
-    # report.md says where the calibration and the model came from.
+    assert (first["cast_cache"], second["cast_cache"], plain["cast_cache"]) == ("stored", "read", "off")
+    # report.md says where the calibration, the model and the rays the captures render from came from.
     text, plain_text = run_markdown(second), run_markdown(plain)
     assert "virtual rig (read from the cache)" in text and "nonzeros (read from the cache)" in text
+    assert "cast through the scene (read from the cache)" in text
     assert "cache" not in plain_text.split("How each score")[0]
     # Another objective on a grey scene builds the same operator, and reads it.
     assert run_virtual(scene, cache=True, progress=False, objective="ssim").report["transport_cache"] == "read"
     # The rig's noise continues where calibration left it: the same captures, to the last bit.
     for a, b, c in zip(first["targets"], second["targets"], plain["targets"]):
         assert a["psnr_db"] == b["psnr_db"] == c["psnr_db"] and a["ssim"] == b["ssim"]
-    assert len(list(cache.glob("*.pt"))) == 2  # the calibration and its transport
+    assert len(list(cache.glob("*.pt"))) == 3  # the calibration, its transport and the cast rays
+
+
+def test_the_cast_rays_read_back_render_what_casting_renders(cache):
+    scene = _scene()
+    rig = VirtualRig(scene)
+    assert read_geometry(rig) is None  # nothing kept yet: the rig casts
+    rig.geometry("near")
+    assert keep_geometry(rig) == "stored"
+    again = VirtualRig(dataclasses.replace(scene, name="renamed"))  # the name is not the world
+    assert read_geometry(again) == "read" and list(again.cast_geometry()) == ["near"]
+    patterns = {j: torch.rand(2, 1, p.height, p.width) for j, p in enumerate(scene.projectors)}
+    assert torch.equal(again.radiance("near", patterns), VirtualRig(scene).radiance("near", patterns))
+    assert torch.equal(again.surface_mask("near"), rig.surface_mask("near"))
+    # Another world has another key; a rig of another camera refuses the rays, and the entry is dropped.
+    other = _scene(exposure=1.7)
+    assert geometry_key(other) != geometry_key(scene)
+    wider = parse_scene(small_config(camera=(240, 150), projector=(128, 96)), name="small")
+    (entry,) = cache.glob("geometry-*.pt")
+    payload = torch.load(entry, weights_only=False)
+    torch.save(dict(payload, key=geometry_key(wider)), cache / f"geometry-{geometry_key(wider)}.pt")
+    entry.unlink()
+    with pytest.warns(UserWarning, match="cast geometry cache entry .* is unreadable .*does not fit projector"):
+        assert read_geometry(VirtualRig(wider)) is None
+    assert not list(cache.glob("geometry-*.pt"))
+    # A truncated entry is not trusted either.
+    keep_geometry(rig)
+    (entry,) = cache.glob("geometry-*.pt")
+    entry.write_bytes(entry.read_bytes()[:800])
+    fresh = VirtualRig(scene)
+    with pytest.warns(UserWarning, match="is unreadable"):
+        assert read_geometry(fresh) is None
+    assert not fresh.cast_geometry()
+
+
+def test_a_changed_world_keeps_and_reads_its_own_rays(cache):
+    """With ``show:``, the captures are the changed world's: its rays are kept and read, not the calibrated ones."""
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    scene = parse_scene(dict(data, show={"projectors": {"upper": {"translation_mm": [2, 0, 0]}}}), name="bumped")
+    first = run_virtual(scene, cache=True, progress=False).report
+    second = run_virtual(scene, cache=True, progress=False).report
+    assert (first["cast_cache"], second["cast_cache"]) == ("stored", "read")
+    assert [t["psnr_db"] for t in first["targets"]] == [t["psnr_db"] for t in second["targets"]]
+    keys = {p.name.split("-", 1)[1][:-3] for p in cache.glob("geometry-*.pt")}
+    assert keys == {geometry_key(shown_scene(scene))}
 
 
 def test_the_transport_read_back_is_the_one_built_and_its_key_follows_targets_and_options(cache):
@@ -110,7 +158,7 @@ def test_a_cache_folder_that_refuses_the_entries_is_reported_not_kept(tmp_path, 
     monkeypatch.setenv(CACHE_DIR_ENV, str(blocked))
     with pytest.warns(UserWarning, match="could not keep the calibration"):
         report = run_virtual(_scene(), cache=True, progress=False).report
-    assert (report["calibration_cache"], report["transport_cache"]) == ("not kept", "not kept")
+    assert (report["calibration_cache"], report["transport_cache"], report["cast_cache"]) == ("not kept",) * 3
     assert "(computed: the cache folder refused to keep it)" in run_markdown(report)
 
 

@@ -391,6 +391,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         "trials": trial_rows,
         "feedback_profiles": profiles,
         "calibration_cache": run.report["calibration_cache"], "transport_cache": run.report["transport_cache"],
+        "cast_cache": run.report["cast_cache"],
         # The run's own total holds the calibration where it read or simulated it itself: counted once here.
         "timings_s": {"calibrate": 0.0 if given else round(cal.seconds, 3),
                       "patterns": round(run.report["timings_s"]["total"] - run.report["timings_s"]["calibrate"], 3),

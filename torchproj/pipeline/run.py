@@ -28,7 +28,8 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
-from .cache import NOT_KEPT, cached_calibration, cached_transport, calibration_key, transport_key
+from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, read_geometry,
+                    transport_key)
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
@@ -170,7 +171,15 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     else:
         cal = calibrate_virtual(scene, device, progress, **calibrated_with)
     timings = {"calibrate": cal.seconds if calibration is None else 0.0}
-    world = shown_world(cal, scene)
+    cast = {}  # how the cache served the rays cast through the world the patterns are shown in
+
+    def read_cast(rig):
+        if not rig.cast_geometry():  # a calibration simulated in this run has cast them already
+            cast["how"] = read_geometry(rig)
+
+    world = shown_world(cal, scene, prepare=None if cached is None else read_cast)
+    if cached is not None and world is cal:
+        read_cast(cal.rig)
     t0 = time.perf_counter()
     states, maps, fits = select_maps(cal.states, maps, plane_tolerance, cal.homographies)
     if fits is not None and cal.homographies is None:
@@ -217,6 +226,10 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         for row, score in zip(rows, _ceiling(world, states, asked, bounds, footprint, progress, device, outside)):
             row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
         timings["ceiling"] = time.perf_counter() - t0
+    if cached is not None and cast.get("how") is None:
+        t0 = time.perf_counter()
+        cast["how"] = keep_geometry(world.rig)
+        timings["keep_cast"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
     report["footprint"] = footprint
@@ -225,6 +238,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     report["colour_weights"] = "channel" if len(solved.ops) > 1 and not exact else "grey"
     report["calibration_cache"] = cached or "off"
     report["transport_cache"] = solved.transport_cache or "off"
+    report["cast_cache"] = cast.get("how", "off")
     report["outside"] = outside
     if solver == "eo":
         report["chains"] = chains
@@ -590,6 +604,9 @@ def run_markdown(report: dict) -> str:
                       "(FISTA, least squares) and scored the same way: the best any calibration could give"
                   + (" (with a gain and offset, for the images this run fitted, g t + o)" if adjusted else "") + "."]
     lines += ["", f"How each score is computed: {report['evaluation']}."]
+    if report.get("cast_cache", "off") != "off":
+        lines += ["", "The captures were rendered from the rays the simulator cast through the scene"
+                      + _cached(report, "cast") + "."]
     if "homographies" in report:
         lines += ["", "Homographies (residual from decoded to fitted coordinates, projector pixels; for Gray-code "
                       "blocks, the distance outside the block over the pixels at block edges):", "",

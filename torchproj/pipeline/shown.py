@@ -22,18 +22,22 @@ from .virtual import VirtualCalibration, true_responses
 __all__ = ["CapturedRows", "rig_measure", "shown_world"]
 
 
-def shown_world(cal: VirtualCalibration, scene=None) -> VirtualCalibration:
+def shown_world(cal: VirtualCalibration, scene=None, prepare=None) -> VirtualCalibration:
     """``cal`` with the rig, black captures and responses of the world as shown (module docs).
 
     ``scene``: the scene whose ``show`` applies (default: the calibrated one). A scene without
     ``show`` is shown in the world it was calibrated in: ``cal`` itself. Otherwise
     each state's black frame is captured anew (every projector black, with noise, as a bench takes
     one before showing), so that room light that changed since calibration is not scored as error.
+    ``prepare``: called with the new world's rig before it captures anything (a run gives it the
+    rays an earlier run cast there, :func:`~torchproj.pipeline.cache.read_geometry`).
     """
     scene = cal.rig.scene if scene is None else scene
     if scene.show is None:
         return cal
     rig = VirtualRig(shown_scene(scene), device=cal.rig.device)
+    if prepare is not None:
+        prepare(rig)
     black = {state: rig.capture(state, {})[0].cpu() for state in cal.black}
     return dataclasses.replace(cal, rig=rig, black=black, responses=true_responses(rig.scene))
 

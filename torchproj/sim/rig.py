@@ -235,6 +235,32 @@ class VirtualRig:
             self._geometry[state] = self._cast(state)
         return self._geometry[state]
 
+    def cast_geometry(self) -> dict[str, StateGeometry]:
+        """The states cast so far, by name (what a cache can keep for a rig of the same scene)."""
+        return dict(self._geometry)
+
+    def adopt_geometry(self, geometry: dict[str, StateGeometry]) -> None:
+        """Take states cast earlier by a rig of the same scene (a cache's), instead of casting them.
+
+        Casting is a pure function of the scene, so a rig of the same scene would cast exactly these;
+        the caller vouches for the scene (:func:`torchproj.pipeline.cache.geometry_key`), this checks
+        that each state fits this rig's camera and projectors, and refuses the lot otherwise.
+        """
+        cam, projectors = self.scene.camera, self.scene.projectors
+        names = {st.name for st in self.scene.states}
+        for name, geo in geometry.items():
+            check(name in names and geo.state == name, f"cast geometry of state {name!r} is not this scene's")
+            check(len(geo.transport) == len(projectors), f"cast geometry of state {name!r} has "
+                                                         f"{len(geo.transport)} projectors, the scene {len(projectors)}")
+            for mats, p in zip(geo.transport, projectors):
+                check(all(tuple(m.shape) == (cam.width * cam.height, p.width * p.height) for m in mats),
+                      f"cast geometry of state {name!r} does not fit projector {p.name!r} and the camera")
+            check(tuple(geo.ambient.shape[1:]) == (cam.height, cam.width),
+                  f"cast geometry of state {name!r} does not fit the camera")
+            check(geo.ambient.device.type == torch.device(self.device).type,
+                  f"cast geometry of state {name!r} is on {geo.ambient.device}, the rig on {self.device}")
+        self._geometry.update(geometry)
+
     def _cast(self, state_name: str) -> StateGeometry:
         scene, cam = self.scene, self.scene.camera
         state = scene.state(state_name)
