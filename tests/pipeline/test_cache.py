@@ -12,7 +12,8 @@ from torchproj.pipeline import run_virtual
 from torchproj.pipeline.run import run_markdown
 from torchproj.pipeline import scene_targets
 from torchproj.pipeline.cache import (CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, cached_transport, calibration_key,
-                                      geometry_key, keep_geometry, read_geometry, transport_key)
+                                      geometry_key, keep_geometry, read_geometry, read_normal_matrices, transport_key)
+from torchproj.core.errors import InputError
 from torchproj.scene.show import shown_scene
 from torchproj.sim import VirtualRig
 from torchproj.transport import build_transport
@@ -49,7 +50,33 @@ def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
     # The rig's noise continues where calibration left it: the same captures, to the last bit.
     for a, b, c in zip(first["targets"], second["targets"], plain["targets"]):
         assert a["psnr_db"] == b["psnr_db"] == c["psnr_db"] and a["ssim"] == b["ssim"]
-    assert len(list(cache.glob("*.pt"))) == 3  # the calibration, its transport and the cast rays
+    assert len(list(cache.glob("*.pt"))) == 4  # the calibration, its transport and Q, the cast rays
+
+
+def test_the_normal_matrix_a_solve_built_is_read_back_with_its_transport(cache):
+    scene = _scene()
+    first = run_virtual(scene, cache=True, progress=False)
+    (entry,) = cache.glob("normal-*.pt")
+    key = entry.name[len("normal-"):-3]
+    (built,) = cached_transport(key, lambda: pytest.fail("built again instead of read"))[0]
+    assert built.normal_matrix() is None
+    assert read_normal_matrices(key, [built])
+    Q = built.normal_matrix()
+    x = torch.rand(built.shape[1], 1, dtype=built.val.dtype)
+    torch.testing.assert_close(Q @ x, built.A_adjoint(built.A(x)), rtol=1e-4, atol=1e-6)
+    # The next run solves on it and lands where the first did.
+    again = run_virtual(scene, cache=True, progress=False, solver="pgd")
+    assert again.report["transport_cache"] == "read"
+    plain = run_virtual(scene, progress=False, solver="pgd")
+    assert again.solution.objective == plain.solution.objective
+    assert first.report["transport_cache"] == "stored"
+    # A Q of another shape is refused; an unreadable entry is dropped and Q built again by the solver.
+    with pytest.raises(InputError, match="Q must be a CSR matrix"):
+        built.adopt_normal_matrix(torch.eye(3, dtype=Q.dtype).to_sparse_csr())
+    entry.write_bytes(entry.read_bytes()[:700])
+    with pytest.warns(UserWarning, match="normal matrix cache entry .* is unreadable"):
+        assert not read_normal_matrices(key, [built])
+    assert not entry.exists()
 
 
 def test_the_cast_rays_read_back_render_what_casting_renders(cache):

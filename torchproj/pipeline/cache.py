@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..core.checks import check
 from ..core.sparse import csr_tensor
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
@@ -47,7 +48,8 @@ from ..transport import Target, TransportOperator
 from .virtual import VirtualCalibration, calibrate_virtual
 
 __all__ = ["CACHE_DIR_ENV", "CACHE_MAX_ENV", "cache_dir", "cached_calibration", "cached_transport", "calibration_key",
-           "geometry_key", "keep_geometry", "read_geometry", "transport_key"]
+           "geometry_key", "keep_geometry", "keep_normal_matrices", "read_geometry", "read_normal_matrices",
+           "transport_key"]
 
 CACHE_DIR_ENV = "TORCHPROJ_CACHE_DIR"
 CACHE_MAX_ENV = "TORCHPROJ_CACHE_MAX_GB"
@@ -144,6 +146,36 @@ def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOpera
     ops = build()
     kept = _write(folder, path, {"key": key, "operators": [_operator_parts(op) for op in ops]}, "transport")
     return ops, how if kept else NOT_KEPT
+
+
+def read_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
+    """Give the operators read under transport key ``key`` the ``Q = A^T A`` an earlier solve built for
+    them (:func:`keep_normal_matrices`); whether it did (an unreadable entry is removed, with a warning)."""
+    path = cache_dir() / f"normal-{key}.pt"
+    if not path.is_file():
+        return False
+
+    def adopt(payload):
+        check(len(payload["Q"]) == len(ops), f"{len(payload['Q'])} matrices for {len(ops)} operators")
+        for op, Q in zip(ops, payload["Q"]):
+            if Q is not None:
+                op.adopt_normal_matrix(Q)
+        return True
+
+    if _read(path, key, "normal matrix", adopt, device=ops[0].val.device) is None:
+        return False
+    os.utime(path)
+    return True
+
+
+def keep_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
+    """Keep the ``Q = A^T A`` a solve built for the operators kept under transport key ``key`` (those it
+    built in the matrix form; a colour run forgets each channel's after its solve and keeps none)."""
+    matrices = [op.normal_matrix() for op in ops]
+    if all(Q is None for Q in matrices):
+        return False
+    folder = cache_dir()
+    return _write(folder, folder / f"normal-{key}.pt", {"key": key, "Q": matrices}, "normal matrix")
 
 
 def read_geometry(rig: VirtualRig) -> str | None:

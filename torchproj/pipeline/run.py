@@ -28,8 +28,8 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
-from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, read_geometry,
-                    transport_key)
+from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry,
+                    keep_normal_matrices, read_geometry, read_normal_matrices, transport_key)
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
@@ -229,7 +229,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     if cached is not None and cast.get("how") is None:
         t0 = time.perf_counter()
         cast["how"] = keep_geometry(world.rig)
-        timings["keep_cast"] = time.perf_counter() - t0
+        timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
     report["footprint"] = footprint
@@ -329,12 +329,15 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     colour_weights = _colour_weights(states, targets, colour_weights)
     options = dict(merge=gain_offset is None and image is None and not exact and footprint == "nearest"
                    and not rows_on_camera, footprint=footprint, colour_weights=colour_weights, device=device)
+    normal_read = False
     if cache_key is None:
         ops, how = build_operators(states, targets, **options), None
     else:
-        ops, how = cached_transport(transport_key(cache_key, targets, **options),
-                                    lambda: build_operators(states, targets, **options), device)
-    op = ops[0]
+        cache_key = transport_key(cache_key, targets, **options)
+        ops, how = cached_transport(cache_key, lambda: build_operators(states, targets, **options), device)
+        # Q = A^T A, which the solvers build from the matrix, is kept beside it by the first solve.
+        normal_read = how == "read" and read_normal_matrices(cache_key, ops)
+    kept, op = list(ops), ops[0]
     if exact:
         ops = light_transport(cal.rig, targets, op)
     model = ops[0].size_report()
@@ -354,6 +357,10 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
                                             chains=chains, solver_options=options)
     timings["solve"] = time.perf_counter() - t0
+    if cache_key is not None and not normal_read and how != NOT_KEPT:
+        t0 = time.perf_counter()
+        keep_normal_matrices(cache_key, kept)
+        timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
     return _Solved(result, ops, patterns, model, how)
 
 

@@ -342,6 +342,19 @@ class TransportOperator(nn.Module):
             new.__dict__[key] = None if key in ("_normal", "_products") else copy.deepcopy(value, memo)
         return new
 
+    def normal_matrix(self) -> torch.Tensor | None:
+        """``Q = A^T A`` where :meth:`normal_equations` has built it in the matrix form, else None: what a
+        cache can keep beside the operator (building it is a sparse product as long as 40 iterations)."""
+        return None if getattr(self, "_normal", None) is None else self._normal.Q
+
+    def adopt_normal_matrix(self, Q: torch.Tensor) -> None:
+        """Take ``Q = A^T A`` built earlier for this same matrix (from :meth:`normal_matrix`, kept by a
+        cache keyed by the matrix) instead of building it; its shape and layout are checked."""
+        n = self.shape[1]
+        check(Q.layout == torch.sparse_csr and tuple(Q.shape) == (n, n) and Q.dtype == self.val.dtype,
+              f"Q must be a CSR matrix of {n} x {n} {self.val.dtype}, got {Q.layout} {tuple(Q.shape)} {Q.dtype}")
+        self._normal = NormalEquations.from_operator(self, Q)
+
     def forget_normal_equations(self) -> None:
         """Drop the cached ``Q`` (:meth:`normal_equations` builds it again when asked): a solve over one
         operator per colour channel then holds one ``Q`` at a time (0.2 GB each on the full-size RGB rig
@@ -555,16 +568,18 @@ class NormalEquations:
         self._bounds = {}
 
     @classmethod
-    def from_operator(cls, op: TransportOperator) -> "NormalEquations":
-        from scipy.sparse import csr_matrix
+    def from_operator(cls, op: TransportOperator, Q: torch.Tensor | None = None) -> "NormalEquations":
+        """The normal equations of ``op``; ``Q``: its ``A^T A`` built earlier (a cache's), else built here."""
+        if Q is None:
+            from scipy.sparse import csr_matrix
 
-        a = csr_matrix((op.val.detach().cpu().double().numpy(), op.col.cpu().numpy(), op.crow.cpu().numpy()),
-                       shape=op.shape)
-        q_mat = (a.T @ a).tocsr()
-        q_mat.sort_indices()
-        Q = csr_tensor(torch.from_numpy(q_mat.indptr), torch.from_numpy(q_mat.indices),
-                       torch.from_numpy(q_mat.data).to(op.val.dtype), q_mat.shape).to(op.val.device)
-        return cls(Q, op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
+            a = csr_matrix((op.val.detach().cpu().double().numpy(), op.col.cpu().numpy(), op.crow.cpu().numpy()),
+                           shape=op.shape)
+            q_mat = (a.T @ a).tocsr()
+            q_mat.sort_indices()
+            Q = csr_tensor(torch.from_numpy(q_mat.indptr), torch.from_numpy(q_mat.indices),
+                           torch.from_numpy(q_mat.data).to(op.val.dtype), q_mat.shape)
+        return cls(Q.to(op.val.device), op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
 
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
         """The same ``Q`` (and its cached scaling and Lipschitz bound) with new ``q`` and ``c``."""
