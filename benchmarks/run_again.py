@@ -47,7 +47,13 @@ def main(argv=None) -> int:
                          "psnr_db": [round(t["psnr_db"], 3) for t in report["targets"]] if "targets" in report else
                          [round(p["psnr_db_at_goal"], 3) for p in report["positions"]]})
             print(rows[-1], flush=True)
-    result = {"machine": machine(), "rows": rows}
+    # What any command pays before its work: Python importing torch, then torchproj's command line
+    # (median of three fresh processes each).
+    imports = {name: round(sorted(_timed([sys.executable, "-c", f"import {module}"]) for _ in range(3))[1], 2)
+               for name, module in (("python", "sys"), ("torch", "torch"),
+                                    ("torchproj", "torchproj.cli, torchproj.pipeline, torchproj.figures"))}
+    print(imports, flush=True)
+    result = {"machine": machine(), "rows": rows, "imports_s": imports}
     lines = [f"# The same scene again ({result['machine']})", "", "Command: `python benchmarks/run_again.py`; each "
              "command's default scene (`run`: paper_two_planes, `position`: box_positions), each run a fresh process, "
              "one cache folder for all. PSNR: per target (`run`) or of the feedback at the goal (`position`).", "",
@@ -58,6 +64,10 @@ def main(argv=None) -> int:
         lines.append(f"| {r['run']} | {r['wall_s']:.1f} | {r['peak_rss_gb']:.2f} | {r['calibration_cache']} | "
                      f"{r['transport_cache']} | {r['cast_cache']} | {stages} | "
                      + " / ".join(f"{v:.2f}" for v in r["psnr_db"]) + " |")
+    lines += ["", f"A fresh process: Python alone {imports['python']:.2f} s, importing torch {imports['torch']:.2f} s, "
+                  "importing what `torchproj run` imports (torch, torchproj.pipeline, torchproj.figures) "
+                  f"{imports['torchproj']:.2f} s (median of three). "
+              "Wall minus the run's own total minus the import is writing the report, images and figures."]
     write_results(args.out, result, "\n".join(lines) + "\n")
     return 0
 

@@ -14,7 +14,8 @@ all of it. :func:`cached_calibration` keys a calibration by everything it depend
 
 The transport operator built from a cached calibration is kept beside it (:func:`cached_transport`),
 keyed by the calibration's key, the targets (their images, masks, corners and states) and the
-build's options: a second run with another solver or objective reads it instead of building it.
+build's options: a second run with another solver or objective reads it instead of building it,
+and the ``Q = A^T A`` the first solve built from it (:func:`keep_normal_matrices`).
 So are the rays the simulator cast through the scene's world (:func:`keep_geometry`, keyed by the
 scene and the code alone): a second run's evaluation captures render from them instead of casting
 every camera ray again (two casts of 17 M rays, about 5 s, on the default scene).
