@@ -22,7 +22,7 @@ from .homography import HomographyFit, check_plane, fit_homography, homography_m
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
 from .pipeline import (DIM_THRESHOLD, FEW_DECODED, DecodedFolder, ProjectorCalibration, calibrate_projector, decode_folder,
-                       warn_if_few_decoded)
+                       scan_map, warn_if_few_decoded)
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp, primary_patterns, ramp_pattern
 from .triangulate import (ProCamCalibration, fit_plane, largest_plane, read_opencv_calibration, triangulate,
                           triangulate_map, write_ply)
@@ -47,6 +47,7 @@ __all__ = [
     "ResponseCurve",
     "calibrate_folders",
     "calibrate_projector",
+    "scan_map",
     "cell_means",
     "cell_shares",
     "checker_patterns",

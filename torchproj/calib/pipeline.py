@@ -20,7 +20,7 @@ from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
 
 __all__ = ["DIM_THRESHOLD", "FEW_DECODED", "DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder",
-           "warn_if_few_decoded"]
+           "scan_map", "warn_if_few_decoded"]
 
 # Below this share of its lit pixels decoded, a projector's calibration is warned about (measured on
 # the shipped scenes: docs/commands.md, "Bad inputs and odd captures").
@@ -125,6 +125,77 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         crease_ratio: how much better a refining window beside a pixel must fit than the centred one
             (:func:`refine_subpixel`); ``math.inf``: the centred window only.
     """
+    m = _forward_map(capture, projector_size, white_threshold=white_threshold, black_threshold=black_threshold,
+                     dim_threshold=dim_threshold, subpixel=subpixel, max_hole=max_hole, bits=bits,
+                     plane_tolerance=plane_tolerance, crease_ratio=crease_ratio)
+    dec, fit, shares, prj_xy, dim_xy, timings = m.decoding, m.homography, m.shares, m.prj_xy, m.dim_xy, m.timings_s
+    t0 = time.perf_counter()
+    cam_xy, count = inverse_map(prj_xy, projector_size)
+    if max_hole:
+        cam_xy = fill_holes(cam_xy, max_hole)
+    timings["maps"] += time.perf_counter() - t0
+    edges = blur = None
+    if fit is None:
+        t0 = time.perf_counter()
+        edges = find_edge_pixels(capture.patterns, capture.white, capture.black,
+                                 torch.where(torch.isfinite(prj_xy), prj_xy, dim_xy), projector_size)
+        timings["edges"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        # A lens focused elsewhere spreads each cell over a disc; the finest stripes show how wide.
+        # Blur follows depth, smooth on a surface: about 1,500 samples per map are read, every 8th
+        # pixel each way at most (0.4-0.6 s of a full-size calibration).
+        height, width = prj_xy.shape[:2]
+        blur = measure_blur(capture.patterns, capture.white, capture.black, prj_xy, projector_size,
+                            step=max(8, round((height * width / 1500) ** 0.5)))
+        timings["blur"] = time.perf_counter() - t0
+    response = ramp = None
+    if capture.ramp is not None:
+        t0 = time.perf_counter()
+        # Ramp bars are told apart by projector column: the decoded cell, or the fitted coordinate
+        # where blocks are wider than a bar.
+        columns = dec.prj_xy[..., 0] if fit is None else prj_xy[..., 0]
+        levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, columns,
+                                        projector_size[0], ramp_steps)
+        mixing = None
+        if capture.primaries is not None and capture.white.shape[0] == 3:
+            mixing = fit_colour_mixing(capture.primaries, capture.white, capture.black, dec.valid)
+            # Channel c saw sum_p mixing[c, p] r_p(x) of the grey ramp: the primaries' own curves
+            # are the measured levels through the mixing's inverse.
+            measured = measured @ torch.linalg.inv(mixing.double()).T.to(measured)
+        response = fit_response(levels, measured)
+        response.mixing = mixing
+        ramp = (levels, measured)
+        timings["response"] = time.perf_counter() - t0
+    colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
+    if shares is not None:
+        # Every transport row is weighted by white minus black; the pairs whose stripes hold a pixel's
+        # footprint are further frames of both (stripe_contrast): their mean has a half to a quarter
+        # of the noise, from captures already taken.
+        t0 = time.perf_counter()
+        span = stripe_contrast(capture.patterns, capture.white, capture.black, shares.cell, projector_size)
+        dec = replace(dec, contrast=span.mean(0))
+        colour = span if colour is not None else None
+        timings["stripes"] = time.perf_counter() - t0
+    return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
+                                ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
+                                edges=edges, shares=shares, dim_xy=dim_xy, blur=blur)
+
+
+@dataclass
+class _ForwardMap:
+    """The first half of :func:`calibrate_projector`: the decoding and the refined, filled forward map."""
+
+    decoding: GrayDecoding
+    homography: HomographyFit | None
+    shares: CellShares | None
+    prj_xy: torch.Tensor
+    dim_xy: torch.Tensor | None
+    timings_s: dict
+
+
+def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float,
+                 black_threshold: float, dim_threshold: float, subpixel: bool, max_hole: int,
+                 bits: int | tuple[int, int] | None, plane_tolerance: float, crease_ratio: float) -> _ForwardMap:
     check(max_hole >= 0, f"max_hole must be >= 0, got {max_hole}")
     timings = {}
     check(dim_threshold >= 0, f"dim_threshold must be >= 0 (8-bit units), got {dim_threshold}")
@@ -172,55 +243,21 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         if max_hole:
             prj_xy, mapped = fill_holes(prj_xy, max_hole), fill_holes(mapped, max_hole)
         dim_xy = torch.where(torch.isfinite(prj_xy).all(-1, keepdim=True), float("nan"), mapped)
-    cam_xy, count = inverse_map(prj_xy, projector_size)
-    if max_hole:
-        cam_xy = fill_holes(cam_xy, max_hole)
     timings["maps"] = time.perf_counter() - t0
-    edges = blur = None
-    if fit is None:
-        t0 = time.perf_counter()
-        edges = find_edge_pixels(capture.patterns, capture.white, capture.black,
-                                 torch.where(torch.isfinite(prj_xy), prj_xy, dim_xy), projector_size)
-        timings["edges"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        # A lens focused elsewhere spreads each cell over a disc; the finest stripes show how wide.
-        # Blur follows depth, smooth on a surface: about 1,500 samples per map are read, every 8th
-        # pixel each way at most (0.4-0.6 s of a full-size calibration).
-        height, width = prj_xy.shape[:2]
-        blur = measure_blur(capture.patterns, capture.white, capture.black, prj_xy, projector_size,
-                            step=max(8, round((height * width / 1500) ** 0.5)))
-        timings["blur"] = time.perf_counter() - t0
-    response = ramp = None
-    if capture.ramp is not None:
-        t0 = time.perf_counter()
-        # Ramp bars are told apart by projector column: the decoded cell, or the fitted coordinate
-        # where blocks are wider than a bar.
-        columns = dec.prj_xy[..., 0] if fit is None else prj_xy[..., 0]
-        levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, columns,
-                                        projector_size[0], ramp_steps)
-        mixing = None
-        if capture.primaries is not None and capture.white.shape[0] == 3:
-            mixing = fit_colour_mixing(capture.primaries, capture.white, capture.black, dec.valid)
-            # Channel c saw sum_p mixing[c, p] r_p(x) of the grey ramp: the primaries' own curves
-            # are the measured levels through the mixing's inverse.
-            measured = measured @ torch.linalg.inv(mixing.double()).T.to(measured)
-        response = fit_response(levels, measured)
-        response.mixing = mixing
-        ramp = (levels, measured)
-        timings["response"] = time.perf_counter() - t0
-    colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
-    if shares is not None:
-        # Every transport row is weighted by white minus black; the pairs whose stripes hold a pixel's
-        # footprint are further frames of both (stripe_contrast): their mean has a half to a quarter
-        # of the noise, from captures already taken.
-        t0 = time.perf_counter()
-        span = stripe_contrast(capture.patterns, capture.white, capture.black, shares.cell, projector_size)
-        dec = replace(dec, contrast=span.mean(0))
-        colour = span if colour is not None else None
-        timings["stripes"] = time.perf_counter() - t0
-    return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
-                                ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
-                                edges=edges, shares=shares, dim_xy=dim_xy, blur=blur)
+    return _ForwardMap(dec, fit, shares, prj_xy, dim_xy, timings)
+
+
+def scan_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
+             black_threshold: float = BLACK_THRESHOLD, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
+             max_hole: int = 16, crease_ratio: float = CREASE_RATIO) -> torch.Tensor:
+    """:math:`(H, W, 2)` projector coordinates per camera pixel from a full Gray-code capture, NaN where
+    unknown: :func:`calibrate_projector`'s ``prj_xy`` (the same decoding, refinement and filling, the
+    same arguments), without what only a transport needs (inverse map, edge pixels, defocus, response,
+    stripe contrast), which costs a scan about a third of its decoding time. What a 3D scan
+    triangulates (:func:`~torchproj.calib.triangulate`)."""
+    return _forward_map(capture, projector_size, white_threshold=white_threshold, black_threshold=black_threshold,
+                        dim_threshold=dim_threshold, subpixel=subpixel, max_hole=max_hole, bits=None,
+                        plane_tolerance=1.0, crease_ratio=crease_ratio).prj_xy
 
 
 def _partial_shares(capture: GraycodeCapture, seen: GrayDecoding, shares: CellShares, mapped: torch.Tensor,

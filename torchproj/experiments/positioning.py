@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..calib import calibrate_projector
+from ..calib import scan_map
 from ..pipeline import simulate_calibration
 from ..calib.triangulate import ProCamCalibration, triangulate
 from ..core.checks import check
@@ -186,11 +186,11 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
     grid = pixel_grid(cam.height, cam.width).double()
     points, owner = [], []
     for j, proj in enumerate(scene.projectors):
-        cal = calibrate_projector(simulate_calibration(rig, "scan", j), (proj.width, proj.height))
-        valid = torch.isfinite(cal.prj_xy).all(-1)
+        prj_xy = scan_map(simulate_calibration(rig, "scan", j), (proj.width, proj.height))
+        valid = torch.isfinite(prj_xy).all(-1)
         if not bool(valid.any()):
             continue
-        in_cam = triangulate(grid[valid], cal.prj_xy[valid].double(), rig_procam(scene, j)).numpy()
+        in_cam = triangulate(grid[valid], prj_xy[valid].double(), rig_procam(scene, j)).numpy()
         points.append(in_cam @ cam.world_from_cam[:3, :3].T + cam.world_from_cam[:3, 3])
         owner.append(np.full(len(in_cam), j))
     if not points:
