@@ -395,7 +395,9 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         # The run's own total holds the calibration where it read or simulated it itself: counted once here.
         "timings_s": {"calibrate": 0.0 if given else round(cal.seconds, 3),
                       "patterns": round(run.report["timings_s"]["total"] - run.report["timings_s"]["calibrate"], 3),
-                      "place_and_scan": round(time.perf_counter() - t_placing, 3),
+                      # looking (every trial's placement, the feedback profiles) and the trials' Gray-code scans
+                      "place": round(time.perf_counter() - t_placing - sum(r["scan_seconds"] for r in trial_rows), 3),
+                      "scan": round(sum(r["scan_seconds"] for r in trial_rows), 3),
                       "total": round(time.perf_counter() - t_start, 3)},
     }
     return PositioningResult(report=report, trials=placed_trials, patterns=run.patterns, profiles=profiles)
@@ -411,7 +413,9 @@ def _place_trials(scene, feedback, name, surface, distance_mm, trials, spread_mm
         start = random_pose_near(goal, spread_mm / 1000, spread_deg, rng)
         placed, history = place_by_feedback(feedback, start, step_m=max(spread_mm, 1.0) / 1000,
                                             step_deg=max(spread_deg, 1.0), max_evaluations=max_evaluations)
+        t_scan = time.perf_counter()
         scan = scan_surface(scene, surface, placed, seed=scan_seed + t, device=device)
+        t_scan = time.perf_counter() - t_scan
         rmse = _rmse(scan["points"], goal, surface.size)
         trial = PlacementTrial(position=name, trial=t, start=start, placed=placed, history=history, scan=scan,
                                rmse_mm=rmse, rmse_percent=100 * rmse / distance_mm, seconds=time.perf_counter() - t0)
@@ -422,7 +426,7 @@ def _place_trials(scene, feedback, name, surface, distance_mm, trials, spread_mm
             "scan_to_placed_box_rmse_mm": round(_rmse(scan["points"], placed, surface.size), 3),
             "scan_points": int(len(scan["points"])), "evaluations": len(history),
             "feedback_start_db": round(history[0], 3), "feedback_final_db": round(max(history), 3),
-            "seconds": round(trial.seconds, 2)})
+            "seconds": round(trial.seconds, 2), "scan_seconds": round(t_scan, 2)})
         bar.update()
     return placed_trials, rows
 
