@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy import ndimage
 
 from ..core.checks import check, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
@@ -62,6 +61,8 @@ def fill_holes(values: torch.Tensor, max_area: int = 16) -> torch.Tensor:
     """
     check_shape(values, "values", ["H", "W", "D"])
     check(max_area >= 0, f"max_area must be >= 0, got {max_area}")
+    from scipy import ndimage  # imported here: a run from the cache fills no holes and need not import it
+
     missing = ~torch.isfinite(values).all(-1)
     labels, n = ndimage.label(missing.cpu().numpy(), structure=np.ones((3, 3)))
     if n == 0:

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.optimize import curve_fit
 
 from ..core.checks import check, check_shape
 
@@ -184,6 +183,8 @@ def fit_response(levels: torch.Tensor, response: torch.Tensor) -> ResponseCurve:
     Returns:
         the fitted :class:`ResponseCurve`.
     """
+    from scipy.optimize import curve_fit  # imported here: a run from the cache fits no response and need not import it
+
     if response.dim() == 1:
         response = response[:, None]
     check_shape(response, "response", [levels.shape[0], "C"])
