@@ -359,8 +359,8 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     timings["solve"] = time.perf_counter() - t0
     if cache_key is not None and not normal_read and how != NOT_KEPT:
         t0 = time.perf_counter()
-        keep_normal_matrices(cache_key, kept)
-        timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
+        if keep_normal_matrices(cache_key, kept):  # nothing to keep where the solve iterated on products
+            timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
     return _Solved(result, ops, patterns, model, how)
 
 
