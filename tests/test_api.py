@@ -32,7 +32,7 @@ SURFACE = {
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_colour_mixing", "fit_homography", "fit_plane", "fit_response",
         "graycode_bits", "graycode_patterns", "homography_map",
         "inverse_map", "largest_plane", "load_bundle", "measure_blur", "measure_ramp", "primary_patterns", "ramp_pattern", "read_graycode_folder",
-        "read_opencv_calibration", "refine_subpixel", "sequence_bits", "stripe_contrast", "triangulate", "triangulate_map",
+        "read_opencv_calibration", "refine_subpixel", "scan_map", "sequence_bits", "stripe_contrast", "triangulate", "triangulate_map",
         "warn_if_few_decoded", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [
         "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target",
