@@ -373,6 +373,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         row["rmse_percent_mean"] = round(float(np.mean([e.rmse_percent for e in errors])), 4)
         rows.append(row)
     bar.close()
+    scanning = sum(r["scan_seconds"] for r in trial_rows)
     report = {
         "scene": scene.name, "seed": seed, "trials_per_position": trials,
         "start_spread": {"position_mm": spread_mm, "rotation_deg": spread_deg},
@@ -396,8 +397,8 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         "timings_s": {"calibrate": 0.0 if given else round(cal.seconds, 3),
                       "patterns": round(run.report["timings_s"]["total"] - run.report["timings_s"]["calibrate"], 3),
                       # looking (every trial's placement, the feedback profiles) and the trials' Gray-code scans
-                      "place": round(time.perf_counter() - t_placing - sum(r["scan_seconds"] for r in trial_rows), 3),
-                      "scan": round(sum(r["scan_seconds"] for r in trial_rows), 3),
+                      "place": round(time.perf_counter() - t_placing - scanning, 3),
+                      "scan": round(scanning, 3),
                       "total": round(time.perf_counter() - t_start, 3)},
     }
     return PositioningResult(report=report, trials=placed_trials, patterns=run.patterns, profiles=profiles)

@@ -110,7 +110,7 @@ def geometry_key(scene: Scene) -> str:
 
 
 def _scene_key(scene: Scene, what: dict) -> str:
-    """A digest of the scene as calibrated (module docstring), ``what`` is computed from it and the code."""
+    """A digest of the scene as calibrated (module docstring), of ``what`` is made from it, and of the code."""
     calibrated = dataclasses.replace(scene, name="", targets=[], show=None, source=None)
     text = json.dumps({"scene": _canonical(calibrated), **what, "code": _code_digest()}, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
@@ -141,7 +141,6 @@ def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOpera
     if path.is_file():
         ops = _read(path, key, "transport", lambda payload: [_operator(parts, device) for parts in payload["operators"]])
         if ops is not None:
-            os.utime(path)
             return ops, "read"
         how = "recomputed"
     ops = build()
@@ -163,10 +162,7 @@ def read_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
                 op.adopt_normal_matrix(Q)
         return True
 
-    if _read(path, key, "normal matrix", adopt, device=ops[0].val.device) is None:
-        return False
-    os.utime(path)
-    return True
+    return _read(path, key, "normal matrix", adopt, device=ops[0].val.device) is not None
 
 
 def keep_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
@@ -190,14 +186,12 @@ def read_geometry(rig: VirtualRig) -> str | None:
     path = cache_dir() / f"geometry-{key}.pt"
     if not path.is_file():
         return None
+
     def adopt(payload):
         rig.adopt_geometry(payload["states"])
-        return payload["states"]
+        return True
 
-    if _read(path, key, "cast geometry", adopt, device=rig.device) is None:
-        return None
-    os.utime(path)
-    return "read"
+    return None if _read(path, key, "cast geometry", adopt, device=rig.device) is None else "read"
 
 
 def keep_geometry(rig: VirtualRig) -> str:
@@ -244,7 +238,6 @@ def cached_calibration(scene: Scene, *, device="cpu", progress=None, oracle: boo
         t0 = time.perf_counter()
         cal = _load(path, key, scene, device)
         if cal is not None:
-            os.utime(path)  # recently used: evicted last
             cal.seconds = time.perf_counter() - t0  # what this run spent on calibration: reading it
             return cal, "read"
         how = "recomputed"
@@ -267,14 +260,16 @@ def _store(folder: Path, path: Path, key: str, cal: VirtualCalibration) -> bool:
 
 
 def _read(path: Path, key: str, what: str, make, device="cpu"):
-    """``make(payload)`` of the entry at ``path`` (its tensors on ``device``), or None (the entry removed)
-    where anything is wrong with it."""
+    """``make(payload)`` of the entry at ``path`` (its tensors on ``device``; the entry marked recently
+    used), or None (the entry removed) where anything is wrong with it."""
     try:
         # The cache is this user's own folder, written by torchproj; the entry is checked against its key.
         payload = torch.load(path, map_location=device, weights_only=False)
         if not isinstance(payload, dict) or payload.get("key") != key:
             raise ValueError("its key does not match its name")
-        return make(payload)
+        made = make(payload)
+        os.utime(path)  # recently used: evicted last
+        return made
     except Exception as exc:  # whatever is wrong with it, it is not trusted
         warnings.warn(f"{what} cache entry {path} is unreadable ({type(exc).__name__}: {exc}); recomputing it",
                       stacklevel=4)

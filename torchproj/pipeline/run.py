@@ -335,8 +335,9 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     else:
         cache_key = transport_key(cache_key, targets, **options)
         ops, how = cached_transport(cache_key, lambda: build_operators(states, targets, **options), device)
-        # Q = A^T A, which the solvers build from the matrix, is kept beside it by the first solve.
-        normal_read = how == "read" and read_normal_matrices(cache_key, ops)
+        # Q = A^T A, which the solvers build from the matrix, is kept beside it by the first solve (a solve
+        # on the exact light uses another matrix).
+        normal_read = how == "read" and not exact and read_normal_matrices(cache_key, ops)
     kept, op = list(ops), ops[0]
     if exact:
         ops = light_transport(cal.rig, targets, op)
