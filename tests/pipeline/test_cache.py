@@ -12,11 +12,12 @@ from torchproj.pipeline import run_virtual
 from torchproj.pipeline.run import run_markdown
 from torchproj.pipeline import scene_targets
 from torchproj.pipeline.cache import (CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, cached_transport, calibration_key,
-                                      geometry_key, keep_geometry, read_geometry, read_normal_matrices, transport_key)
+                                      geometry_key, keep_geometry, keep_normal_matrices, read_geometry, read_normal_matrices,
+                                      transport_key)
 from torchproj.core.errors import InputError
 from torchproj.scene.show import shown_scene
 from torchproj.sim import VirtualRig
-from torchproj.transport import build_transport
+from torchproj.transport import TransportOperator, build_transport
 from torchproj.scene import parse_scene
 
 from ..helpers import small_config
@@ -60,10 +61,17 @@ def test_the_normal_matrix_a_solve_built_is_read_back_with_its_transport(cache):
     key = entry.name[len("normal-"):-3]
     (built,) = cached_transport(key, lambda: pytest.fail("built again instead of read"))[0]
     assert built.normal_matrix() is None
-    assert read_normal_matrices(key, [built])
+    # The coarse levels the first solve started from come back with Q.
+    (levels,) = read_normal_matrices(key, [built])
+    assert levels == len(first.solution.info["coarse_iterations"]) > 0
     Q = built.normal_matrix()
     x = torch.rand(built.shape[1], 1, dtype=built.val.dtype)
     torch.testing.assert_close(Q @ x, built.A_adjoint(built.A(x)), rtol=1e-4, atol=1e-6)
+    (fresh,) = cached_transport(key, lambda: pytest.fail("built again instead of read"))[0]
+    read_back = built.coarse_matrices()
+    for (ne, _), kept in zip(fresh.coarse_levels(levels), read_back, strict=True):  # P^T Q P built here
+        torch.testing.assert_close(kept.to_dense(), ne.Q.to_dense())
+    assert built.coarse_levels(levels)[0][0].Q is read_back[0]  # used, not built again
     # The next run solves on it and lands where the first did.
     again = run_virtual(scene, cache=True, progress=False, solver="pgd")
     assert again.report["transport_cache"] == "read"
@@ -73,10 +81,44 @@ def test_the_normal_matrix_a_solve_built_is_read_back_with_its_transport(cache):
     # A Q of another shape is refused; an unreadable entry is dropped and Q built again by the solver.
     with pytest.raises(InputError, match="Q must be a CSR matrix"):
         built.adopt_normal_matrix(torch.eye(3, dtype=Q.dtype).to_sparse_csr())
+    with pytest.raises(InputError, match="coarse level's matrix must be a CSR matrix"):
+        built.adopt_coarse_matrices([torch.eye(3, dtype=Q.dtype).to_sparse_csr()])
     entry.write_bytes(entry.read_bytes()[:700])
     with pytest.warns(UserWarning, match="normal matrix cache entry .* is unreadable"):
-        assert not read_normal_matrices(key, [built])
+        assert read_normal_matrices(key, [built]) is None
     assert not entry.exists()
+
+
+def test_coarse_levels_a_later_solve_builds_are_kept_beside_a_q_read(cache):
+    """LF builds Q and no coarse level; FISTA after it reads Q, builds the levels and keeps them too."""
+    scene = _scene()
+    assert run_virtual(scene, cache=True, progress=False, solver="lf").report["transport_cache"] == "stored"
+    (entry,) = cache.glob("normal-*.pt")
+    key = entry.name[len("normal-"):-3]
+
+    def levels_kept():
+        (op,) = cached_transport(key, lambda: pytest.fail("built again instead of read"))[0]
+        return read_normal_matrices(key, [op])
+
+    assert levels_kept() == [0]
+    fista = run_virtual(scene, cache=True, progress=False)
+    assert levels_kept() == [len(fista.solution.info["coarse_iterations"])] != [0]
+
+
+def test_a_normal_entry_whose_coarse_level_does_not_fit_is_not_half_adopted(cache, monkeypatch):
+    scene = _scene()
+    run_virtual(scene, cache=True, progress=False)
+    (entry,) = cache.glob("normal-*.pt")
+    key = entry.name[len("normal-"):-3]
+    (op,) = cached_transport(key, lambda: pytest.fail("built again instead of read"))[0]
+    assert read_normal_matrices(key, [op]) is not None
+    # The same Q, with a coarse level of another size: refused whole, Q included, and the entry removed.
+    monkeypatch.setattr(TransportOperator, "coarse_matrices", lambda self: [torch.eye(3).to_sparse_csr()])
+    assert keep_normal_matrices(key, [op])
+    (again,) = cached_transport(key, lambda: pytest.fail("built again instead of read"))[0]
+    with pytest.warns(UserWarning, match="normal matrix cache entry .* is unreadable"):
+        assert read_normal_matrices(key, [again]) is None
+    assert again.normal_matrix() is None and not entry.exists()
 
 
 def test_the_cast_rays_read_back_render_what_casting_renders(cache):

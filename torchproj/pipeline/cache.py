@@ -148,31 +148,46 @@ def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOpera
     return ops, how if kept else NOT_KEPT
 
 
-def read_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
-    """Give the operators read under transport key ``key`` the ``Q = A^T A`` an earlier solve built for
-    them (:func:`keep_normal_matrices`); whether it did (an unreadable entry is removed, with a warning)."""
+def read_normal_matrices(key: str, ops: list[TransportOperator]) -> list[int] | None:
+    """Give the operators read under transport key ``key`` the ``Q = A^T A`` and the coarse levels'
+    ``P^T Q P`` an earlier solve built for them (:func:`keep_normal_matrices`).
+
+    Returns:
+        per operator the number of coarse levels read, or None where nothing was (no entry, or an
+        unreadable one: removed with a warning, and the operators left as they were).
+    """
     path = cache_dir() / f"normal-{key}.pt"
     if not path.is_file():
-        return False
+        return None
 
     def adopt(payload):
-        check(len(payload["Q"]) == len(ops), f"{len(payload['Q'])} matrices for {len(ops)} operators")
-        for op, Q in zip(ops, payload["Q"]):
-            if Q is not None:
-                op.adopt_normal_matrix(Q)
-        return True
+        coarse = payload.get("coarse", [[] for _ in payload["Q"]])
+        check(len(payload["Q"]) == len(ops) == len(coarse), f"{len(payload['Q'])} matrices for {len(ops)} operators")
+        try:
+            for op, Q, levels in zip(ops, payload["Q"], coarse):
+                check(Q is not None or not levels, "coarse levels kept without their Q")
+                if Q is not None:
+                    op.adopt_normal_matrix(Q)
+                    op.adopt_coarse_matrices(levels)
+        except Exception:
+            for op in ops:  # all or nothing: a solve builds what it needs again
+                op.forget_normal_equations()
+            raise
+        return [len(levels) for levels in coarse]
 
-    return _read(path, key, "normal matrix", adopt, device=ops[0].val.device) is not None
+    return _read(path, key, "normal matrix", adopt, device=ops[0].val.device)
 
 
 def keep_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
     """Keep the ``Q = A^T A`` a solve built for the operators kept under transport key ``key`` (those it
-    built in the matrix form; a colour run forgets each channel's after its solve and keeps none)."""
+    built in the matrix form; a colour run forgets each channel's after its solve and keeps none), and
+    the coarse levels it built on them."""
     matrices = [op.normal_matrix() for op in ops]
     if all(Q is None for Q in matrices):
         return False
     folder = cache_dir()
-    return _write(folder, folder / f"normal-{key}.pt", {"key": key, "Q": matrices}, "normal matrix")
+    return _write(folder, folder / f"normal-{key}.pt",
+                  {"key": key, "Q": matrices, "coarse": [op.coarse_matrices() for op in ops]}, "normal matrix")
 
 
 def read_geometry(rig: VirtualRig) -> str | None:

@@ -329,7 +329,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     colour_weights = _colour_weights(states, targets, colour_weights)
     options = dict(merge=gain_offset is None and image is None and not exact and footprint == "nearest"
                    and not rows_on_camera, footprint=footprint, colour_weights=colour_weights, device=device)
-    normal_read = False
+    normal_read = None  # per operator the coarse levels read with its Q, where a Q was read
     if cache_key is None:
         ops, how = build_operators(states, targets, **options), None
     else:
@@ -337,7 +337,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
         ops, how = cached_transport(cache_key, lambda: build_operators(states, targets, **options), device)
         # Q = A^T A, which the solvers build from the matrix, is kept beside it by the first solve (a solve
         # on the exact light uses another matrix).
-        normal_read = how == "read" and not exact and read_normal_matrices(cache_key, ops)
+        normal_read = read_normal_matrices(cache_key, ops) if how == "read" and not exact else None
     kept, op = list(ops), ops[0]
     if exact:
         ops = light_transport(cal.rig, targets, op)
@@ -358,7 +358,8 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
                                             chains=chains, solver_options=options)
     timings["solve"] = time.perf_counter() - t0
-    if cache_key is not None and not normal_read and how != NOT_KEPT:
+    if cache_key is not None and how != NOT_KEPT and (normal_read is None or any(
+            len(o.coarse_matrices()) > n for o, n in zip(kept, normal_read))):
         t0 = time.perf_counter()
         if keep_normal_matrices(cache_key, kept):  # nothing to keep where the solve iterated on products
             timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0

@@ -43,7 +43,7 @@ from ..core.checks import check
 from ..core.progress import progress_bar
 from ..core.sparse import csr_tensor, spmm
 from ..transport.build import StateCalibration
-from ..transport.operator import TransportOperator
+from ..transport.operator import TransportOperator, entry_rows
 from .solvers import SolveResult, _clamp_, _stop, check_bounds, coarse_start
 
 __all__ = ["CHAINS", "fundamental_between_projectors", "epipolar_bands", "epipolar_chains", "component_chains",
@@ -136,8 +136,7 @@ def component_chains(op: TransportOperator) -> torch.Tensor:
 def _q_entries(Q: torch.Tensor):
     """Row, column and value of every entry of a CSR matrix (for ``Q = A^T A``: every pair of cells
     that light one camera pixel)."""
-    crow, col = Q.crow_indices().long(), Q.col_indices().long()
-    return torch.repeat_interleave(torch.arange(Q.shape[0], device=col.device), crow.diff()), col, Q.values()
+    return entry_rows(Q), Q.col_indices().long(), Q.values()
 
 
 def _within(op: TransportOperator, group: torch.Tensor, entries=None) -> torch.Tensor:
@@ -313,8 +312,10 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     check(inner_iter >= 1, f"inner_iter must be >= 1, got {inner_iter}")
     t0 = time.perf_counter()
-    ne = op.normal_equations().jacobi()  # unit diagonal: the same scaling FISTA runs on
-    rows, col, val = _q_entries(ne.Q)  # Q's pattern: the scaling keeps it
+    plain = op.normal_equations()
+    rows, col, unscaled = _q_entries(plain.Q)
+    ne = plain.jacobi(rows)  # unit diagonal: the same scaling FISTA runs on; the same pattern
+    val = ne.Q.values()
     chain, colour = _chain_index(op, chains, calibrations, band, (rows, col, val))
     n_colours = int(colour.max()) + 1
     # Each column's place among the columns of its colour.
@@ -362,13 +363,13 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
                        time_s=time.perf_counter() - t0, converged=converged, method="eo",
                        info={"blocks": int(sizes.shape[0]), "largest_block": int(sizes.max()),
                              "median_block": float(sizes.float().median()), "colours": len(colours),
-                             "coupled_weight": _coupled_weight((rows, col, op.normal_equations().Q.values()), chain),
+                             "coupled_weight": _coupled_weight(unscaled, entry_colours),
                              "coarse_iterations": coarse_iterations})
 
 
-def _coupled_weight(entries, block: torch.Tensor) -> float:
-    """Share of ``A^T A``'s weight (the sum of Q's entries: every product of two cells' light on one camera
-    pixel) between cells of different blocks: what a split into independent blocks would drop."""
-    rows, col, val = entries
-    val = val.double()
-    return float(val[block[rows] != block[col]].sum() / val.sum().clamp_min(1e-300))
+def _coupled_weight(values: torch.Tensor, entry_colours) -> float:
+    """Share of ``A^T A``'s weight (the sum of Q's entries ``values``: every product of two cells' light on
+    one camera pixel) between cells of different blocks: what a split into independent blocks would drop.
+    Blocks of one colour share no entry (:func:`_colours`), so that is the weight between colours."""
+    values = values.double()
+    return float(torch.where(entry_colours[0] != entry_colours[1], values, 0).sum() / values.sum().clamp_min(1e-300))

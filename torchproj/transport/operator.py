@@ -382,6 +382,14 @@ class TransportOperator(nn.Module):
             columns of the level above (the operator's own columns for the first) to this level's.
         """
         check(levels >= 0, f"levels must be >= 0, got {levels}")
+        ne, out = self.normal_equations(form), []
+        for block in self._level_blocks(levels):
+            ne = ne.coarsened(block)
+            out.append((ne, block))
+        return out
+
+    def _level_blocks(self, levels: int) -> list[torch.Tensor]:
+        """The ``block`` of each of the first ``levels`` coarse levels (fewer where coarsening stops), cached."""
         device = self.column_cell.device
         if getattr(self, "_blocks_device", None) != device:
             self._blocks, self._blocks_complete, self._blocks_device = [], False, device
@@ -393,11 +401,30 @@ class TransportOperator(nn.Module):
                 self._blocks_complete = True
             else:
                 self._blocks.append((block, *coarse))
-        ne, out = self.normal_equations(form), []
-        for block, *_ in self._blocks[:levels]:
-            ne = ne.coarsened(block)
-            out.append((ne, block))
+        return [block for block, *_ in self._blocks[:levels]]
+
+    def coarse_matrices(self) -> list[torch.Tensor]:
+        """The coarse levels' ``P^T Q P`` that :meth:`coarse_levels` has built in the matrix form, finest
+        first (empty where none): what a cache can keep beside ``Q`` (on the default scene scipy's triple
+        products take about as long as building ``Q``)."""
+        ne, out = getattr(self, "_normal", None), []
+        for block, *_ in getattr(self, "_blocks", []):
+            if ne is None or ne._coarse is None or ne._coarse[0] is not block:
+                break
+            ne = ne._coarse[1]
+            out.append(ne.Q)
         return out
+
+    def adopt_coarse_matrices(self, matrices: list[torch.Tensor]) -> None:
+        """Take the coarse levels' ``P^T Q P`` built earlier for this same matrix (from
+        :meth:`coarse_matrices`, kept by a cache keyed by the matrix) instead of building them; ``Q``
+        must be adopted or built first. Each level's shape and layout are checked against its blocks."""
+        check(getattr(self, "_normal", None) is not None, "adopt Q (adopt_normal_matrix) before its coarse levels")
+        blocks = self._level_blocks(len(matrices))
+        check(len(blocks) == len(matrices), f"{len(matrices)} coarse levels for an operator that has {len(blocks)}")
+        ne = self._normal
+        for block, Q in zip(blocks, matrices):
+            ne = ne.adopt_coarsened(block, Q)
 
     def with_rhs(self, rhs: torch.Tensor, constant: torch.Tensor | None = None) -> "TransportOperator":
         """The same ``A`` with other targets (rows in the same order): shares the matrices and ``Q``.
@@ -620,16 +647,27 @@ class NormalEquations:
             self._coarse = (block, NormalEquations(Q, _sum_blocks(self.q, block, n), self.c))
         return self._coarse[1]
 
-    def jacobi(self) -> "NormalEquations":
+    def adopt_coarsened(self, block: torch.Tensor, Q: torch.Tensor) -> "NormalEquations":
+        """What :meth:`coarsened` gives for ``block``, with its ``P^T Q P`` given (built earlier, a cache's)."""
+        n = int(block.max()) + 1
+        check(Q.layout == torch.sparse_csr and tuple(Q.shape) == (n, n) and Q.dtype == self.Q.dtype,
+              f"a coarse level's matrix must be a CSR matrix of {n} x {n} {self.Q.dtype}, got {Q.layout} "
+              f"{tuple(Q.shape)} {Q.dtype}")
+        self._coarse = (block, NormalEquations(Q.to(self.q.device), _sum_blocks(self.q, block, n), self.c))
+        return self._coarse[1]
+
+    def jacobi(self, rows: torch.Tensor | None = None) -> "NormalEquations":
         """The system in the variables ``z = p / scale`` with ``scale = diag(Q)^-1/2`` (cached).
 
         ``S Q S`` has a unit diagonal, which evens out how strongly each projector cell is seen (fall-off,
         vignetting, cells at the edge of a target) and lets gradient methods take longer steps.
         The box ``lo <= p <= hi`` stays a box: ``lo / scale <= z <= hi / scale``.
+
+        ``rows``: the row of each of ``Q``'s entries (:func:`entry_rows`), where the caller has them.
         """
         if self._jacobi is None:
             crow, col, val = self.Q.crow_indices(), self.Q.col_indices(), self.Q.values()
-            rows = torch.repeat_interleave(torch.arange(self.Q.shape[0], device=val.device), crow.diff())
+            rows = entry_rows(self.Q) if rows is None else rows
             diag = torch.zeros(self.Q.shape[0], dtype=val.dtype, device=val.device).index_add_(
                 0, rows, torch.where(rows == col, val, torch.zeros_like(val)))
             s = diag.clamp_min(1e-30).rsqrt()
@@ -774,6 +812,12 @@ class ProductNormalEquations(NormalEquations):
     def _nonnegative(self) -> bool:
         """Whether ``A^T A`` has no negative entry: where A has none (:meth:`NormalEquations.lipschitz`)."""
         return float(self.A.values().min()) >= 0
+
+
+def entry_rows(matrix: torch.Tensor) -> torch.Tensor:
+    """The row of every stored entry of a CSR matrix, :math:`(nnz,)` int64 (with ``col_indices``: its COO form)."""
+    crow = matrix.crow_indices()
+    return torch.repeat_interleave(torch.arange(matrix.shape[0], device=crow.device), crow.diff())
 
 
 def _tie_columns(matrix: torch.Tensor, block: torch.Tensor, n: int) -> torch.Tensor:
