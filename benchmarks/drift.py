@@ -5,6 +5,7 @@
     python benchmarks/drift.py --noise --captures 6 --out benchmarks/results/drift   # camera noise: frames, relax
     python benchmarks/drift.py --moved-models --scenes box_cylinders@0.25 suite-1-7 \
            --kinds translation_mm rotation_deg camera_mm --out benchmarks/results/drift   # exact moves
+    python benchmarks/drift.py --unchanged --out benchmarks/results/drift   # no change: the loop's own limit
 
 Each scene is calibrated once as written. Then, per kind of change and two magnitudes (module
 :mod:`torchproj.scene.show`; the first projector changes, or the camera), the scene is shown in the
@@ -31,6 +32,7 @@ captures per state, stale to ceiling, and the SSIM gained; ``--chart`` redraws i
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import json
 import statistics
@@ -310,6 +312,88 @@ def moved_markdown(study: dict) -> list[str]:
     return lines + [""]
 
 
+UNCHANGED_SCENES = ("sphere_three_projectors", "suite-1-7", "box_cylinders@0.25", "suite-5-6", "suite-7-3")
+
+
+@contextlib.contextmanager
+def noise_free_loop():
+    """While inside, ``run_virtual``'s loop captures the expected light (no camera noise, no
+    quantisation): where the loop's defect correction converges when nothing but the model is wrong."""
+    import torchproj.pipeline.run as run_module
+
+    real = run_module.rig_measure
+    run_module.rig_measure = lambda world, ops, targets, frames=1: real(world, ops, targets, frames, noise=False)
+    try:
+        yield
+    finally:
+        run_module.rig_measure = real
+
+
+def closed(start: float, end: float, ceiling: float) -> float | None:
+    """The share of a target's gap to the ceiling closed, where it has one (0.05 dB or more)."""
+    return (end - start) / (ceiling - start) if ceiling - start >= 0.05 else None
+
+
+def summed_error(psnr_db: list[float], pixels: list[int]) -> float:
+    """The loop's loss on a common scale: each target's mean squared error times its pixels, summed."""
+    return sum(n * 10 ** (-p / 10) for p, n in zip(psnr_db, pixels))
+
+
+def unchanged_study(specs, captures: int) -> dict:
+    """The loop in the world it was calibrated in: what it wins of the gap between the calibrated
+    model and the ceiling after 5 and ``captures`` captures per state, and where the same loop ends
+    with noise-free captures (``captures`` of them): the fixed point of a loop whose gradient is the
+    model's, which no number of captures passes."""
+    out = {}
+    for spec in specs:
+        data = scene_data(spec)
+        data.pop("show", None)
+        scene = parse_scene(data, name=data["name"])
+        cal = calibrate_virtual(scene)
+        runs = {}
+        for label, n, exact in (("loop@5", 5, False), (f"loop@{captures}", captures, False),
+                                (f"noise-free@{captures}", captures, True)):
+            with noise_free_loop() if exact else contextlib.nullcontext():
+                runs[label] = run_virtual(scene, calibration=cal, refine=n - 1, ceiling=label == "loop@5",
+                                          progress=False).report
+        first = runs["loop@5"]
+        pixels = [t["pixels"] for t in first["targets"]]
+        row = {"targets": [t["name"] for t in first["targets"]], "pixels": pixels,
+               "calibrated": [s["psnr_db"] for s in first["refine"]["start"]],
+               "ceiling": [t["ceiling"]["psnr_db"] for t in first["targets"]]}
+        for label, report in runs.items():
+            row[label] = [t["psnr_db"] for t in report["targets"]]
+        start, ceiling = summed_error(row["calibrated"], pixels), summed_error(row["ceiling"], pixels)
+        row["summed_closed"] = {label: (start - summed_error(row[label], pixels)) / (start - ceiling)
+                                if start > ceiling else None for label in runs}
+        out[spec] = row
+        print("unchanged", spec, {k: v for k, v in row.items() if k != "pixels"}, flush=True)
+    return out
+
+
+def unchanged_markdown(study: dict, captures: int) -> list[str]:
+    labels = ["loop@5", f"loop@{captures}", f"noise-free@{captures}"]
+    lines = ["## The world it was calibrated in", "",
+             "PSNR per target (dB), scored as `run` scores; `calibrated`: the patterns solved on the calibration (the "
+             "loop's start); `loop@n`: the loop's kept patterns after n captures per state; `noise-free@n`: the same "
+             "loop with captures of the expected light (no noise, no quantisation), where a loop that follows the "
+             "model's gradient converges; `closed`: the share of the gap to the ceiling won, per target below the "
+             "ceiling by 0.05 dB or more, and of the summed squared error (the loop's loss).", "",
+             "| scene | target | calibrated | " + " | ".join(labels) + " | ceiling | closed (" + " / ".join(labels)
+             + ") |", "|---|---|---|---|---|---|---|---|"]
+    for spec, row in study.items():
+        for k, name in enumerate(row["targets"]):
+            shares = [closed(row["calibrated"][k], row[label][k], row["ceiling"][k]) for label in labels]
+            lines.append(f"| {spec} | {name} | {row['calibrated'][k]:.2f} | "
+                         + " | ".join(f"{row[label][k]:.2f}" for label in labels) + f" | {row['ceiling'][k]:.2f} | "
+                         + " / ".join("above" if v is None else f"{v:.0%}" for v in shares) + " |")
+        summed = row["summed_closed"]
+        lines.append(f"| {spec} | summed squared error | | | | | | "
+                     + " / ".join("none" if summed[label] is None else f"{summed[label]:.0%}" for label in labels)
+                     + " |")
+    return lines + [""]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/drift"))
@@ -321,7 +405,14 @@ def main() -> None:
     ap.add_argument("--chart", action="store_true", help="only redraw drift.png from --out's results.json")
     ap.add_argument("--moved-models", action="store_true", help="only the moved models given the exact moves "
                     "(moved_models/ under --out; --scenes and --kinds choose)")
+    ap.add_argument("--unchanged", action="store_true", help="only the loop in the world it was calibrated in "
+                    "(unchanged/ under --out; --scenes defaults to the held-out kinds and unseen seeds)")
     args = ap.parse_args()
+    if args.unchanged:
+        specs = args.scenes if args.scenes != list(SCENES) else list(UNCHANGED_SCENES)
+        study = unchanged_study(specs, args.captures)
+        write_results(args.out / "unchanged", study, "\n".join(unchanged_markdown(study, args.captures)))
+        return
     if args.chart:
         chart(json.loads((args.out / "results.json").read_text()), args.out / "drift.png")
         return

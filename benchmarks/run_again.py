@@ -3,8 +3,9 @@
     python benchmarks/run_again.py --out benchmarks/results/run_again
 
 On the default scene (the paper's rig), with an empty cache folder of its own: ``run --no-cache``
-(the cold run), ``run`` (simulates and keeps the calibration, its transport and the rays it cast), then
-``run --solver pgd`` and ``run --objective ssim`` (read them); then ``position --no-cache``, ``position`` (keeps its own
+(the cold run), ``run`` (simulates and keeps the calibration, its transport, the solve's ``Q`` and coarse
+levels and the rays it cast), then ``run`` again, ``run --solver pgd``, ``run --objective ssim`` and ``run
+--solver eo --bounds=-100,255`` (read them); then ``position --no-cache``, ``position`` (keeps its own
 scene's) and ``position`` again (reads them). Wall time, peak resident memory and the stage timings
 of ``report.json``; writes ``results.json`` and ``results.md``.
 """
@@ -24,7 +25,9 @@ from common import machine, write_results
 from torchproj.pipeline.cache import CACHE_DIR_ENV
 
 RUNS = (("run, cold, --no-cache", ["run", "--no-cache"]), ("run, first, keeps the calibration and transport", ["run"]),
-        ("run again, --solver pgd", ["run", "--solver", "pgd"]), ("run again, --objective ssim", ["run", "--objective", "ssim"]),
+        ("run again, the same command", ["run"]), ("run again, --solver pgd", ["run", "--solver", "pgd"]),
+        ("run again, --objective ssim", ["run", "--objective", "ssim"]),
+        ("run again, --solver eo --bounds=-100,255", ["run", "--solver", "eo", "--bounds=-100,255"]),
         ("position, cold, --no-cache", ["position", "--no-cache"]), ("position, first, keeps them", ["position"]),
         ("position again", ["position"]))
 
@@ -32,11 +35,15 @@ RUNS = (("run, cold, --no-cache", ["run", "--no-cache"]), ("run, first, keeps th
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/run_again"))
+    parser.add_argument("--commands", nargs="+", choices=("run", "position"), default=["run", "position"],
+                        help="which commands' rows to time (default both)")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         os.environ[CACHE_DIR_ENV] = str(Path(tmp) / "cache")  # the children inherit it
         for k, (label, extra) in enumerate(RUNS):
+            if extra[0] not in args.commands:
+                continue
             out, peak = Path(tmp) / f"run{k}", Path(tmp) / f"run{k}.peak"
             wall = _timed([sys.executable, "-c", _CLI, str(peak), *extra, "--out", str(out)])
             report = json.loads((out / "report.json").read_text())
