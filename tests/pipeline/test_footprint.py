@@ -3,12 +3,16 @@
 import json
 
 import pytest
+import torch
 import yaml
 
 from torchproj.cli import main
 from torchproj.core import InputError
 from torchproj.pipeline import calibrate_virtual, choose_footprint, run_virtual, scene_targets
+from torchproj.pipeline.footprint import SCREEN_ITERATIONS, _expected_loss, _share_rows
 from torchproj.scene import builtin_config, load_scene, parse_scene, scale_config
+from torchproj.solve import solve_fista
+from torchproj.transport import build_transport
 
 
 def _fine_camera():
@@ -26,6 +30,7 @@ def test_auto_keeps_nearest_where_the_shares_say_a_pixel_sees_one_cell():
     choice = choose_footprint(cal.states, scene_targets(scene, None, cal.rig))
     assert choice.footprint == "nearest"
     assert max(choice.expected_loss_db.values()) < 0.2 and "within 0.2 dB" in choice.reason
+    assert choice.iterations > SCREEN_ITERATIONS  # under the tolerance early: nearest solved on before deciding
     # The captures agree: area gains no more than the tolerance over nearest.
     runs = {fp: run_virtual(scene, footprint=fp, calibration=cal, progress=False) for fp in ("auto", "nearest", "area")}
     assert runs["auto"].report["footprint"] == "nearest"
@@ -43,7 +48,19 @@ def test_auto_takes_area_where_pixels_span_cells_and_says_why():
     assert choice.footprint == "area"
     worst = max(choice.expected_loss_db, key=choice.expected_loss_db.get)
     assert choice.expected_loss_db[worst] > 0.2 and worst in choice.reason
+    # Decided on nearest's early patterns, whose estimate is under the one nearest solved to the end gives.
+    assert choice.iterations == SCREEN_ITERATIONS and "already after 10 of nearest's iterations" in choice.reason
+    targets = scene_targets(scene, None, cal.rig)
+    op = build_transport(cal.states, targets, footprint="nearest", merge=False)
+    solved = solve_fista(op, (0.0, 1.0), progress=False, max_iter=300)
+    assert solved.iterations > SCREEN_ITERATIONS
+    final = _expected_loss(op, _share_rows(cal.states, targets, op), solved.patterns, targets)
+    assert all(choice.expected_loss_db[name] <= final[name] + 1e-9 for name in final)
+    # Screened: no start from nearest's early patterns, so auto shows exactly what area shows.
+    assert choice.start_for(op) is None
     auto = run_virtual(scene, footprint="auto", calibration=cal, progress=False)
+    area = run_virtual(scene, footprint="area", calibration=cal, progress=False)
+    assert all(torch.equal(a, b) for a, b in zip(auto.patterns, area.patterns))
     near = run_virtual(scene, footprint="nearest", calibration=cal, progress=False)
     assert auto.report["footprint"] == "area" and "footprint" in auto.report["timings_s"]
     target = [t["name"] for t in auto.report["targets"]].index(worst)
