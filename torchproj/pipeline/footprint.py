@@ -70,7 +70,8 @@ class FootprintChoice:
         expected_loss_db: per target name, nearest's expected PSNR loss against a model that holds
             the measured shares (None where no shares were measured).
         tolerance_db: the loss accepted.
-        seconds: time the choice took (nearest built and solved once).
+        seconds: time the choice took (nearest built and solved: for :data:`SCREEN_ITERATIONS` iterations
+            where that decides, else to the end).
         reason: one sentence for the report.
         iterations: nearest's iterations the estimate was taken after (0 where none was solved):
             :data:`SCREEN_ITERATIONS` where the early estimate already exceeded the tolerance.
