@@ -61,7 +61,7 @@ from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
 from .edges import EdgePixels
-from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, read_graycode_folder
+from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, read_graycode_folder, sequence_paths
 from .graycode import CellShares, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import ProjectorCalibration, calibrate_projector, check_decoded, warn_if_few_decoded
 from .response import ResponseCurve, primary_patterns, ramp_pattern
@@ -265,6 +265,8 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     ramps: list = [None] * len(projectors)
     shape = None
     jobs = [(state, j, entry) for state, entries in layout.items() for j, entry in enumerate(entries)]
+    for _, _, (_, folder, size, k) in jobs:  # a file missing from the last folder is named before minutes of decoding
+        sequence_paths(folder, size, bits=k)
     for state, j, (name, folder, size, k) in progress_bar(jobs, "calibrating states x projectors", progress):
         capture = read_graycode_folder(folder, size, bits=k)
         if shape is None:

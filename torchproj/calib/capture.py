@@ -22,7 +22,7 @@ from ..core.errors import CaptureError
 from ..core.imageio import read_image, write_image
 from .graycode import sequence_bits
 
-__all__ = ["GraycodeCapture", "read_graycode_folder", "write_graycode_folder", "DEFAULT_NAMES",
+__all__ = ["GraycodeCapture", "read_graycode_folder", "sequence_paths", "write_graycode_folder", "DEFAULT_NAMES",
            "RAMP_NAMES", "CHECKER_NAMES", "PRIMARY_NAMES"]
 
 DEFAULT_NAMES = "graycode_{:02d}.png"
@@ -54,20 +54,14 @@ class GraycodeCapture:
     primaries: torch.Tensor | None = None
 
 
-def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, int],
-                         names: str = DEFAULT_NAMES, bits: int | tuple[int, int] | None = None) -> GraycodeCapture:
-    """Read and check a capture folder.
-
-    Args:
-        folder: the folder.
-        projector_size: ``(width, height)`` of the projector that showed the sequence.
-        names: file name template, formatted with the image index (``graycode_{:02d}.png``).
-        bits: pattern pairs per axis of a shortened sequence
-            (:func:`~torchproj.calib.graycode.sequence_bits`); None: the full sequence.
+def sequence_paths(folder: str | os.PathLike, projector_size: tuple[int, int], names: str = DEFAULT_NAMES,
+                   bits: int | tuple[int, int] | None = None) -> list[Path]:
+    """The Gray-code sequence's files of a capture folder, in pattern order, checked by name only
+    (every one there, none beyond the sequence): what :func:`read_graycode_folder` reads, and what
+    a capture root's every folder is checked for before any is decoded (arguments as there).
 
     Raises:
-        CaptureError: naming the file and what to do, for a missing folder or image, an unreadable
-            file, images of different sizes, or a white capture that shows no projector light.
+        CaptureError: naming the folder or file and what to do.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -88,6 +82,25 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
                            f"{projector_size[0]}x{projector_size[1]} projector's {count} ({nx} column + {ny} row "
                            "bits, then white and black); check --projector and --bits, or move extra files out of "
                            "the folder")
+    return paths
+
+
+def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, int],
+                         names: str = DEFAULT_NAMES, bits: int | tuple[int, int] | None = None) -> GraycodeCapture:
+    """Read and check a capture folder.
+
+    Args:
+        folder: the folder.
+        projector_size: ``(width, height)`` of the projector that showed the sequence.
+        names: file name template, formatted with the image index (``graycode_{:02d}.png``).
+        bits: pattern pairs per axis of a shortened sequence
+            (:func:`~torchproj.calib.graycode.sequence_bits`); None: the full sequence.
+
+    Raises:
+        CaptureError: naming the file and what to do, for a missing folder or image, an unreadable
+            file, images of different sizes, or a white capture that shows no projector light.
+    """
+    paths = sequence_paths(folder, projector_size, names, bits)
     # PNG decoding releases the GIL: read on a few threads.
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         images = list(pool.map(read_image, paths))
