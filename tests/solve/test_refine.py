@@ -57,6 +57,23 @@ def test_a_brighter_world_is_brought_to_its_own_optimum(op):
     assert all(0 <= float(v) <= 1 for v in (result.patterns.min(), result.patterns.max()))
 
 
+def test_a_world_that_answers_twice_as_strongly_is_not_left_in_a_two_cycle(op):
+    # Every projector 1.9 times brighter than calibrated: a full step along the surrogate overshoots
+    # the optimum by 0.9 of the miss, each capture a little better than the last (a slow 2-cycle
+    # about the optimum). The surrogate promised far more than each such capture gained, so the
+    # loop shortens its step, and half a step lands within 5% of the miss.
+    A = op.dense().double().numpy()
+    truth = 1.9 * A
+    start = solve_fista(op, max_iter=3000, tol=1e-12).patterns
+    result = refine_patterns(op, start, world(op, truth), responses=RESPONSES, iterations=4, solver_iterations=500)
+    best = optimum(truth, op.rhs.double().numpy())
+    losses = [h["loss"] for h in result.history]
+    assert losses[1] < losses[0] and losses[1] > 2 * best  # the full step: better, far from the optimum
+    assert result.history[1]["predicted"] < 1.01 * best  # what the model promised it
+    assert [h["step"] for h in result.history[:3]] == [1.0, 1.0, 0.5]
+    assert min(losses) <= best * 1.02
+
+
 def test_the_loop_never_returns_worse_than_it_began(op):
     # A world the model cannot describe (its columns shuffled): whatever the loop tries, it keeps the
     # best capture, the start included, and reports it.

@@ -23,6 +23,14 @@ its last, and ``relax`` < 1 averages the defect over captures (``d_k = d_{k-1} +
 both). The best captured iterate is returned, the start among them: the loop never returns worse
 than it began, as the camera measured it.
 
+The step along the surrogate shrinks as a trust region does (the ratio test of trust-region
+methods): by half where a capture is worse than the best, and by half where it is better by less
+than a quarter (:data:`OVERPROMISED`) of what the surrogate promised. A world that answers a step
+more strongly than the model does (a projector 1.9 times brighter, or moved, with the model's
+footprints short of the light's) sends full steps past the optimum: each capture a little better
+than the last, a slow 2-cycle about it. A pure gain ``g`` leaves a miss of ``(1 - s g)`` per step
+of length ``s``, so half a step brings ``g = 1.9`` within 5%, where full steps keep 90% of it.
+
 This is torchproj's construction (defect correction, also called iterative learning control); the
 paper solves once on its calibrated ``A``.
 """
@@ -42,13 +50,16 @@ from .compensate import projectable_patterns
 from .objectives import ImageLoss, image_objective, solve_ssim
 from .solvers import check_bounds, solve_fista
 
-__all__ = ["REFINE_SOLVER_ITERATIONS", "RefineResult", "captured_loss", "carry_patterns", "refine_patterns"]
+__all__ = ["OVERPROMISED", "REFINE_SOLVER_ITERATIONS", "RefineResult", "captured_loss", "carry_patterns", "refine_patterns"]
 
 # FISTA iterations per loop step: the start is the last iterate, one capture away from the optimum,
 # so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.87-0.98 s
 # (1.41 s the first after re-registering: it builds the new model's Q) and 60 kept the same captured
 # PSNR (19.37 / 17.65 dB).
 REFINE_SOLVER_ITERATIONS = 30
+# A capture better than the best by less than this share of the surrogate's promised decrease halves
+# the step (the ratio test of trust-region methods, whose textbook shrink threshold this is).
+OVERPROMISED = 0.25
 
 
 @dataclass
@@ -60,7 +71,9 @@ class RefineResult:
         images: per projector the uint8 images of ``patterns`` (what to show).
         best: which capture it was (0: the start).
         history: per capture, ``{capture, loss, psnr_db and ssim (per target, from the captured
-            rows), step, solve_s}``; ``loss`` is :func:`captured_loss` (or the image objective's).
+            rows), step, solve_s, predicted}``; ``loss`` is :func:`captured_loss` (or the image
+            objective's), ``predicted`` the loss the surrogate promised for that capture's patterns
+            (none for the start).
         time_s: the loop's time, captures included.
     """
 
@@ -181,6 +194,7 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
     p = start.detach().clamp(lo, hi)
     best = None  # {loss, capture, p, images, measured, defect}
     step = 1.0
+    promised = None  # the surrogate's loss at the best iterate and at the patterns shown next
     history = []
     bar = progress_bar(desc="refine", enabled=progress, total=iterations + 1)
     for k in range(iterations + 1):
@@ -196,6 +210,8 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
                 loss = float(image_loss.of_rows(measured))
         history.append({"capture": k, "loss": loss, "psnr_db": psnr_db, "ssim": _captured_ssim(ops[0], measured, targets),
                         "step": step})
+        if promised is not None:
+            history[-1]["predicted"] = promised[1]
         new_ops = remodel(ops, p, measured) if remodel is not None and k < iterations else None
         if new_ops is not None:
             new_ops = _operators(new_ops)
@@ -210,6 +226,11 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
         with torch.no_grad():
             fresh = measured - _rows(ops, p)
         if best is None or loss < best["loss"]:
+            if promised is not None and best["loss"] - loss < OVERPROMISED * (promised[0] - promised[1]):
+                # Better, but by far less than the surrogate promised: the world answers the step
+                # differently from the model at that length (a 2-cycle about the optimum where it
+                # answers more strongly). Shorter steps from here on, as a trust region shrinks.
+                step /= 2
             defect = fresh if best is None or new_ops is not None else best["defect"] + relax * (fresh - best["defect"])
             best = {"loss": loss, "capture": k, "p": p, "images": images, "measured": measured, "defect": defect}
         else:
@@ -223,10 +244,23 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
         base = best["p"]
         target = _update(ops, base, best["defect"], (lo, hi), image, solver_iterations)
         p = base + step * (target - base)
+        promised = _surrogate_loss(ops, (base, p), best["defect"], image_loss if image is not None else None)
         history[-1]["solve_s"] = round(time.perf_counter() - t_solve, 4)
     bar.close()
     return RefineResult(patterns=best["p"], images=best["images"], best=best["capture"], history=history,
                         time_s=time.perf_counter() - t0)
+
+
+def _surrogate_loss(ops, patterns, defect: torch.Tensor, image_loss) -> tuple[float, ...]:
+    """The loop's loss as the surrogate ``A p + defect`` predicts it, for each of ``patterns``."""
+    targets = _targets(ops).double()
+    out = []
+    with torch.no_grad():
+        for p in patterns:
+            rows = _rows(ops, p) + defect
+            out.append(float(image_loss.of_rows(rows)) if image_loss is not None
+                       else float((rows.double() - targets).pow(2).sum()))
+    return tuple(out)
 
 
 def _update(ops, p: torch.Tensor, defect: torch.Tensor, bounds, image, solver_iterations: int) -> torch.Tensor:
