@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 from .graycode import check_full_sequence, stripe_signs
@@ -118,7 +119,10 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
     slope = map_slope(prj_xy)
     known = torch.isfinite(prj_xy).all(-1)
     source = known & torch.isfinite(slope).all(-1).all(-1)  # pixels whose surface can be carried over
-    examine = lit & (depth_edges(prj_xy) | ~known)
+    # A pixel with no mapped pixel within reach has no candidate: left out before the candidates'
+    # work (a capture that decodes nothing would otherwise send every lit pixel through it).
+    reach = F.max_pool2d(source.float()[None, None], 2 * _REACH + 1, stride=1, padding=_REACH)[0, 0] > 0
+    examine = lit & (depth_edges(prj_xy) | ~known) & reach
     ys, xs = torch.nonzero(examine, as_tuple=True)
     step = torch.arange(-_REACH, _REACH + 1, device=device)
     window_y, window_x = (t.reshape(-1) for t in torch.meshgrid(step, step, indexing="ij"))  # the 5 x 5 window
