@@ -42,15 +42,19 @@ def optimum(matrix, rhs):
     return float(((matrix @ x - rhs[:, 0]) ** 2).sum())
 
 
+def loop_in_a_brighter_world(op, gain):
+    """Four updates from the model's optimum in a world ``gain`` times brighter than calibrated:
+    the loop's result, scipy's optimum of that world, and each capture's loss."""
+    truth = gain * op.dense().double().numpy()
+    start = solve_fista(op, max_iter=3000, tol=1e-12).patterns
+    result = refine_patterns(op, start, world(op, truth), responses=RESPONSES, iterations=4, solver_iterations=500)
+    return result, optimum(truth, op.rhs.double().numpy()), [h["loss"] for h in result.history]
+
+
 def test_a_brighter_world_is_brought_to_its_own_optimum(op):
     # Every projector 30% brighter than calibrated: the stale patterns overshoot; four captures and
     # updates reach the optimum of the world as it is (scipy), where the stale ones are far from it.
-    A = op.dense().double().numpy()
-    truth = 1.3 * A
-    start = solve_fista(op, max_iter=3000, tol=1e-12).patterns
-    result = refine_patterns(op, start, world(op, truth), responses=RESPONSES, iterations=4, solver_iterations=500)
-    best = optimum(truth, op.rhs.double().numpy())
-    losses = [h["loss"] for h in result.history]
+    result, best, losses = loop_in_a_brighter_world(op, 1.3)
     assert losses[0] > 1.3 * best
     assert min(losses) <= best * 1.01  # 8-bit patterns: a hair above the continuous optimum
     assert result.best == int(np.argmin(losses)) and result.best > 0
@@ -62,12 +66,7 @@ def test_a_world_that_answers_twice_as_strongly_is_not_left_in_a_two_cycle(op):
     # the optimum by 0.9 of the miss, each capture a little better than the last (a slow 2-cycle
     # about the optimum). The surrogate promised far more than each such capture gained, so the
     # loop shortens its step, and half a step lands within 5% of the miss.
-    A = op.dense().double().numpy()
-    truth = 1.9 * A
-    start = solve_fista(op, max_iter=3000, tol=1e-12).patterns
-    result = refine_patterns(op, start, world(op, truth), responses=RESPONSES, iterations=4, solver_iterations=500)
-    best = optimum(truth, op.rhs.double().numpy())
-    losses = [h["loss"] for h in result.history]
+    result, best, losses = loop_in_a_brighter_world(op, 1.9)
     assert losses[1] < losses[0] and losses[1] > 2 * best  # the full step: better, far from the optimum
     assert result.history[1]["predicted"] < 1.01 * best  # what the model promised it
     assert [h["step"] for h in result.history[:3]] == [1.0, 1.0, 0.5]
