@@ -51,7 +51,14 @@ def test_a_brighter_projector_is_won_back_to_the_shown_worlds_ceiling(calibratio
     assert max(c - s["psnr_db"] for c, s in zip(ceilings, refine["start"])) > 1.0  # the stale model loses a dB...
     for ceiling, row in zip(ceilings, report["targets"]):
         assert row["psnr_db"] > ceiling - 0.3  # ...and the loop brings every target within 0.3 dB of the ceiling
-    assert "Camera in the loop" in run_markdown(report)
+    text = run_markdown(report)
+    assert "Camera in the loop" in text
+    # Each capture's loss beside the model's promise for it, and where the loop shortened its step.
+    history = refine["history"]
+    assert "predicted" not in history[0] and all(h["predicted"] > 0 for h in history[1:])
+    assert all(f"{h['capture']}: {h['loss']:.4g} ({h['predicted']:.4g})" in text for h in history[1:])
+    halved = [str(a["capture"]) for a, b in zip(history, history[1:]) if b["step"] < a["step"]]
+    assert (f"halved after capture {', '.join(halved)}:" in text) if halved else ("halved" not in text)
 
 
 def test_an_unchanged_world_loses_nothing_in_the_loop(calibration):

@@ -504,7 +504,21 @@ def _show_lines(report: dict) -> list[str]:
         lines += [f"Camera in the loop: {refine['captures_per_state']} captures per state ({refine['frames']} per step), "
                   f"best at capture {refine['best_capture']}. PSNR (dB) of the solver's patterns as captured: {start}; "
                   f"per capture, on the model's rows: {trail}. The table scores the kept patterns.", ""]
+        lines += _promise_lines(refine["history"])
     return lines
+
+
+def _promise_lines(history: list[dict]) -> list[str]:
+    """What the model promised each capture's patterns against what the camera gave, and where the
+    loop shortened its step: where the two part, the world answers otherwise than the model."""
+    promised = [h for h in history if "predicted" in h]
+    if not promised:
+        return []
+    pairs = "; ".join(f"{h['capture']}: {h['loss']:.4g} ({h['predicted']:.4g})" for h in promised)
+    halved = [a["capture"] for a, b in zip(history, history[1:]) if b["step"] < a["step"]]
+    why = (f" The step was halved after capture {', '.join(map(str, halved))}: a capture worse than the best, or "
+           "better by less than a quarter of what the model promised." if halved else "")
+    return [f"The loop's loss as captured (and as the model promised it) per capture: {pairs}.{why}", ""]
 
 
 # The paper's prototype (EO_0^255 on two planes, its table of PSNR and SSIM per plane, scored against
