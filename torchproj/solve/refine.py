@@ -252,14 +252,13 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
 
 
 def _surrogate_loss(ops, patterns, defect: torch.Tensor, image_loss) -> tuple[float, ...]:
-    """The loop's loss as the surrogate ``A p + defect`` predicts it, for each of ``patterns``."""
-    targets = _targets(ops).double()
+    """The loop's loss as the surrogate ``A p + defect`` predicts it, for each of ``patterns``: the
+    captures' loss (:func:`captured_loss`, or the image objective's) on the predicted rows."""
     out = []
     with torch.no_grad():
         for p in patterns:
             rows = _rows(ops, p) + defect
-            out.append(float(image_loss.of_rows(rows)) if image_loss is not None
-                       else float((rows.double() - targets).pow(2).sum()))
+            out.append(float(image_loss.of_rows(rows)) if image_loss is not None else captured_loss(ops, rows)[0])
     return tuple(out)
 
 
