@@ -228,6 +228,11 @@ def _grey_image(image: torch.Tensor) -> torch.Tensor:
     return _grey(image[None] if image.dim() <= 3 else image)[0]
 
 
+def _grey_at(images: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+    """(N, C, H, W) or (N, H, W) captures at the flat camera ``pixels`` (M,) -> (N, M) float, as :func:`_grey`."""
+    return _grey(images.flatten(-2)[..., pixels, None]).float()[..., 0]
+
+
 def _contrast(white: torch.Tensor, black: torch.Tensor) -> torch.Tensor:
     """White minus black of each pixel, grey :math:`(H, W)`: the span a pair's difference is read in."""
     return _grey_image(white).float() - _grey_image(black).float()
@@ -507,10 +512,29 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
               f"cells name cells outside the {projector_size[0]}x{projector_size[1]} projector; -1 marks a pixel "
               "without one")
         cells = torch.where(valid[..., None], cells, -1).to(torch.int32)
+    # Only the pixels with a cell are measured, gathered from each pair (the same values, element by
+    # element, as a pass over the whole frame): on the default scene about half the frame, and a
+    # handful of pixels where calibration measures its partly decoded ones again.
+    pixels = torch.nonzero(valid.reshape(-1))[:, 0]
     across = torch.full((*valid.shape, 2, 2), float("nan"), device=valid.device)
     outside = torch.full((*valid.shape, 2), float("nan"), device=valid.device)
-    for axis, (bits, first, size) in enumerate(((nx, 0, projector_size[0]), (ny, nx, projector_size[1]))):
-        cell = cells[..., axis].long().clamp(0, size - 1)
+    measured, far_shares = _shares_at(patterns, span.reshape(-1)[pixels], cells.reshape(-1, 2)[pixels], pixels,
+                                      (nx, ny), projector_size)
+    across.view(-1, 2, 2)[pixels] = measured
+    outside.view(-1, 2)[pixels] = far_shares
+    return CellShares(cells, across, outside)
+
+
+def _shares_at(patterns: torch.Tensor, span: torch.Tensor, cells: torch.Tensor, pixels: torch.Tensor,
+               bits: tuple[int, int], projector_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`cell_shares` at the flat camera ``pixels`` :math:`(N,)`, each with its white minus black
+    ``span`` :math:`(N,)` and its cell ``cells`` :math:`(N, 2)`: ``across`` :math:`(N, 2, 2)` and
+    ``outside`` :math:`(N, 2)`."""
+    n = pixels.numel()
+    across = torch.empty((n, 2, 2), device=pixels.device)
+    outside = torch.empty((n, 2), device=pixels.device)
+    for axis, (axis_bits, first, size) in enumerate(((bits[0], 0, projector_size[0]), (bits[1], bits[0], projector_size[1]))):
+        cell = cells[:, axis].long().clamp(0, size - 1)
         gray = cell ^ (cell >> 1)
         edges = []  # per side: the pair whose stripe edge it is, or -1 at the projector's border
         for step in (-1, 1):
@@ -518,20 +542,20 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
             border = (other < 0) | (other >= size)  # the projector lights nothing past its edge
             flip = (gray ^ (other ^ (other >> 1))).clamp_min(1)  # the one Gray bit the two cells differ in
             bit = torch.log2(flip.to(torch.float32)).round().long()
-            edges.append(torch.where(border, -1, bits - 1 - bit))
-        found = [torch.zeros(valid.shape, device=valid.device) for _ in edges]
-        far = torch.zeros(valid.shape, device=valid.device)
-        for i in range(bits):  # one pair at a time, as the decoder: the stack is tens of images
-            shown = _grey(patterns[2 * (first + i):2 * (first + i) + 2]).float()
-            mine = ((gray >> (bits - 1 - i)) & 1).to(torch.float32) * 2 - 1  # what pair i shows on cell n
+            edges.append(torch.where(border, -1, axis_bits - 1 - bit))
+        found = [torch.zeros(n, device=pixels.device) for _ in edges]
+        far = torch.zeros(n, device=pixels.device)
+        for i in range(axis_bits):  # one pair at a time, as the decoder: the stack is tens of images
+            shown = _grey_at(patterns[2 * (first + i):2 * (first + i) + 2], pixels)
+            mine = ((gray >> (axis_bits - 1 - i)) & 1).to(torch.float32) * 2 - 1  # what pair i shows on cell n
             share = _pair_share(shown, span, mine)
             for pair, seen in zip(edges, found):
                 torch.where(pair == i, share, seen, out=seen)
             far = torch.where((edges[0] == i) | (edges[1] == i), far, torch.maximum(far, share))
         for side, (pair, seen) in enumerate(zip(edges, found)):
-            across[..., axis, side] = torch.where(valid & (pair >= 0), seen, float("nan"))
-        outside[..., axis] = torch.where(valid, far, float("nan"))
-    return CellShares(cells, across, outside)
+            across[:, axis, side] = torch.where(pair >= 0, seen, float("nan"))
+        outside[:, axis] = far
+    return across, outside
 
 
 # A pattern pair counts as one more capture of white and of black for a pixel whose cell lies at least

@@ -276,10 +276,13 @@ def _partial_shares(capture: GraycodeCapture, seen: GrayDecoding, shares: CellSh
     size = torch.tensor(projector_size, device=mapped.device)
     near = torch.nan_to_num(mapped, nan=-1.0).round()
     open_cells = seen.partial & ~seen.valid & ((near >= 0) & (near < size)).all(-1)
-    # The fully decoded pixels keep their cells, so their shares come out as before: one pass over
-    # the pairs costs the same for any number of pixels, and nothing is merged by hand.
-    cells = torch.where(open_cells[..., None], near.to(torch.int32), shares.cell)
-    merged = cell_shares(capture.patterns, capture.white, capture.black, seen, projector_size, cells=cells)
+    # Only those pixels are measured (a few hundred on the default scene); the fully decoded ones
+    # keep the shares they have.
+    added = cell_shares(capture.patterns, capture.white, capture.black, seen, projector_size,
+                        cells=torch.where(open_cells[..., None], near.to(torch.int32), -1))
+    merged = CellShares(torch.where(open_cells[..., None], added.cell, shares.cell),
+                        torch.where(open_cells[..., None, None], added.across, shares.across),
+                        torch.where(open_cells[..., None], added.outside, shares.outside))
     return merged, open_cells & (merged.outside <= WIDE_SHARE).all(-1)
 
 
