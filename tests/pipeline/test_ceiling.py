@@ -168,3 +168,39 @@ def test_a_bending_camera_is_refused_before_calibrating(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "linear in the camera's values only with gamma 1" in err and "calibrat" not in err
         assert not (tmp_path / "out").exists()
+
+
+def _border_sums(op, j):
+    """Per row of ``op``, the light of projector ``j`` and whether it reaches ``j``'s border cells."""
+    w, h = op.projector_sizes[j]
+    mine = op.column_projector[op.col] == j
+    cell = op.column_cell[op.col]
+    edge = mine & ((cell % w == 0) | (cell % w == w - 1) | (cell // w == 0) | (cell // w == h - 1))
+    row = torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff())
+    total = torch.zeros(op.shape[0]).index_add_(0, row[mine], op.val[mine])
+    return total, torch.zeros(op.shape[0], dtype=torch.bool).index_put_((row[edge],), torch.tensor(True))
+
+
+def test_rows_past_the_projectors_edge_carry_the_light_the_pixel_measured():
+    """A wall wider than the projectors' field: a camera pixel whose square runs past a projector's
+    edge is lit only by its samples on the projector, and its measured white minus black is their
+    light alone. The ``area`` rows give those samples the whole weight, as the exact light does
+    (with each sample a fixed share of the square, such rows fell short by up to half of it)."""
+    # Camera pixels about two cells wide, so that a pixel on the edge has many samples past it.
+    config = small_config(camera=(64, 48), projector=(128, 96), supersampling=4)
+    config["surfaces"]["near_plane"]["size"] = [1.2, 0.9]  # the projectors light about 0.53 x 0.40 m of it
+    config["states"] = [{"name": "near", "surfaces": ["near_plane"]}]
+    scene = parse_scene(config, name="wide_wall")
+    cal = calibrate_virtual(scene, oracle=True)  # the exact maps and weights: only the footprint differs
+    targets = scene_targets(scene, None, cal.rig)
+    rows = build_transport(cal.states, targets, footprint="area", merge=False)
+    (exact,) = light_transport(cal.rig, targets, rows)
+    for j in range(len(rows.projector_sizes)):
+        model, _ = _border_sums(rows, j)
+        light, border = _border_sums(exact, j)
+        border &= model > 0  # the pixels whose centre the projector lights (the others have no map for it)
+        assert int(border.sum()) > 50
+        error = (model[border] / light[border] - 1).abs()
+        # The oracle's weight is the exact row's total; what is left is rows that also reach cells the
+        # exact light does not (their samples' cells against the camera's), not light lost off the edge.
+        assert float(error.median()) < 0.01 and float(error.quantile(0.9)) < 0.05, (j, error.median(), error.max())

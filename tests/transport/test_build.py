@@ -634,7 +634,8 @@ def test_a_states_map_slope_is_taken_once_and_again_when_the_map_changes():
 
 
 def _counted(u, slope, ok, size, samples):
-    """A pixel's cells by counting its samples one by one in Python: the reference for the binned rows."""
+    """A pixel's cells by counting its samples one by one in Python: the reference for the binned rows.
+    Each cell's share is its samples over the samples that fall on the projector."""
     w, h = size
     offset = build.pixel_square(samples, u.dtype, u.device)
     rows = []
@@ -644,8 +645,9 @@ def _counted(u, slope, ok, size, samples):
             x, y = (torch.nan_to_num(slope[n]) @ o + u[n] + 0.5).floor().tolist()
             if ok[n] and 0 <= x < w and 0 <= y < h:
                 cell = int(y) * w + int(x)
-                found[cell] = found.get(cell, 0.0) + 1 / offset.shape[0]
-        rows.append(found)
+                found[cell] = found.get(cell, 0) + 1
+        on = sum(found.values())
+        rows.append({cell: count / on for cell, count in found.items()})
     return rows
 
 

@@ -390,22 +390,26 @@ def _sampled_cells(u: torch.Tensor, slope: torch.Tensor, ok: torch.Tensor, size:
     points = points.floor_()
     x, y = points.unbind(-1)
     inside = ok[:, None] & (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    share = 1.0 / offset.shape[0]
+    # Each row's light is shared among its samples on the projector. A sample past the projector's
+    # edge sees no light of it, and the pixel's measured white minus black (the row's weight) is
+    # the light of the others alone: where the surface runs on past the projector's field, the
+    # samples on it take the whole weight, not their count over all the square's.
+    share = (1.0 / inside.sum(1, keepdim=True).clamp_min(1)).to(u.dtype)
 
-    def by_sorting(xs, ys, lit):
+    def by_sorting(xs, ys, lit, each):
         flat = torch.where(lit, ys * w + xs, -1.0).to(torch.int32)
-        return _combine(flat, torch.where(flat >= 0, share, 0.0).to(u.dtype))
+        return _combine(flat, torch.where(flat >= 0, each, 0.0).to(u.dtype))
 
     # Most rows' samples fall in a few cells' window: binned there, no sort is needed (below). Rows
     # whose window is wider (a grazing face, a wide disc) are combined by sorting their samples.
     if x.numel() < _BINNED_MIN:
-        return by_sorting(x, y, inside)
+        return by_sorting(x, y, inside, share)
     near, x0, y0, span = _windows(x, y, inside)
     if bool(near.all()):
         return _binned(x, y, inside, x0, y0, span, share, w)
     close, wide = torch.nonzero(near)[:, 0], torch.nonzero(~near)[:, 0]
-    parts = [_binned(x[close], y[close], inside[close], x0[close], y0[close], span, share, w),
-             by_sorting(x[wide], y[wide], inside[wide])]
+    parts = [_binned(x[close], y[close], inside[close], x0[close], y0[close], span, share[close], w),
+             by_sorting(x[wide], y[wide], inside[wide], share[wide])]
     cells, values = _stack_rows([c for c, _ in parts], [v for _, v in parts])
     back = torch.argsort(torch.cat([close, wide]))  # back to the rows' own order
     return cells[back], values[back]
@@ -431,15 +435,16 @@ def _windows(x: torch.Tensor, y: torch.Tensor, inside: torch.Tensor):
     return near, x0, y0, span
 
 
-def _binned(x, y, inside, x0, y0, span: tuple[int, int], share: float, w: int):
+def _binned(x, y, inside, x0, y0, span: tuple[int, int], share: torch.Tensor, w: int):
     """:func:`_combine` for samples :math:`(N, S)` that lie within a ``span`` window of cells from
-    each row's ``x0``, ``y0``: each sample's ``share`` added to its cell's bin, the lit bins kept.
+    each row's ``x0``, ``y0``: each sample's ``share`` (its row's, :math:`(N, 1)`) added to its
+    cell's bin, the lit bins kept.
     Bins go row by row of the window, so each row's cells come out ascending, as sorting gives them."""
     kx, ky = span
     bins = kx * ky
     local = torch.where(inside, (y - y0[:, None]) * kx + (x - x0[:, None]), float(bins)).long()
     light = torch.zeros(x.shape[0], bins + 1, dtype=x.dtype, device=x.device)
-    light.scatter_add_(1, local, torch.full_like(x, share))
+    light.scatter_add_(1, local, share.expand_as(x).contiguous())
     light = light[:, :bins]
     offsets = torch.arange(bins, device=x.device)
     cells = ((y0.long()[:, None] + offsets // kx) * w + x0.long()[:, None] + offsets % kx)
