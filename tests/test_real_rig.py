@@ -371,3 +371,24 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
     which = [name for name, _, _ in bundle.projectors].index(names[0])
     kept = StateCalibration.from_bundle(bundle)["together"].shares[which].checker
     torch.testing.assert_close(kept, torch.from_numpy(checker), equal_nan=True)
+
+
+def test_a_state_whose_ramp_shows_few_bars_takes_the_response_from_another_folder(tmp_path):
+    """Folders are read in name order, so the narrow far plane's ramp (a couple of its 32 bars seen)
+    comes first: the projector's response is fitted from the near state's instead; with the far
+    state alone it is refused, naming the projector and the folder."""
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["surfaces"]["far_plane"]["size"] = [0.04, 0.3]
+    scene = parse_scene(data, name="narrow_far")
+    rig = VirtualRig(scene)
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            write_graycode_folder(tmp_path / "root" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
+    bundle = calibrate_folders(tmp_path / "root", {"*": (128, 96)})
+    for (name, _, _), response in zip(bundle.projectors, bundle.responses):
+        true_b = next(p.response_b[0] for p in scene.projectors if p.name == name)
+        assert abs(float(response.b[0]) - true_b) < 0.05
+    (tmp_path / "root" / "near").rename(tmp_path / "near")
+    with pytest.raises(CaptureError, match=r"projector 'lower': no state's ramp captures fit its response; "
+                                           r".*far.lower: the ramp capture shows only"):
+        calibrate_folders(tmp_path / "root", {"*": (128, 96)})

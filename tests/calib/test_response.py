@@ -1,10 +1,13 @@
+import pytest
 import torch
 
 from torchproj.calib import calibrate_projector, fit_response, measure_ramp, ramp_pattern
-from torchproj.pipeline import simulate_calibration
+from torchproj.core import InputError
+from torchproj.pipeline import calibrate_virtual, simulate_calibration, simulate_scene
+from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
 
-from ..helpers import small_scene
+from ..helpers import small_config, small_scene
 
 
 def test_ramp_and_mirror_add_up_to_one():
@@ -107,3 +110,35 @@ def test_colour_mixing_is_measured_as_shares_of_white_and_undone_by_compensation
     with pytest.raises(InputError, match="lit well enough"):
         fit_colour_mixing(cap.primaries, cap.black + 0.01, cap.black)
     assert primary_patterns(4, 2)[1, :, 0, 0].tolist() == [0.0, 1.0, 0.0]
+
+
+def _narrow_far_plane(states):
+    """The paper's rig, small, with a far plane a few of the ramp's 32 bars wide."""
+    config = small_config(camera=(200, 150), projector=(128, 96))
+    config["surfaces"]["far_plane"]["size"] = [0.04, 0.3]  # about two 2.1 cm bars at 1 m
+    config["states"] = [{"name": s, "surfaces": [f"{s}_plane"]} for s in states]
+    return parse_scene(config, name="narrow_far")
+
+
+def test_a_state_whose_ramp_shows_few_bars_leaves_the_response_to_another():
+    """A projector's response is the same in every state: a small object that sees only a couple of
+    the ramp's bars leaves it to a state that sees more, in either order, and the report of
+    ``torchproj simulate`` says so for that state; a projector no state fits is refused by name."""
+    for order in (["near", "far"], ["far", "near"]):
+        scene = _narrow_far_plane(order)
+        fitted = calibrate_virtual(scene, progress=False).responses
+        for response, proj in zip(fitted, scene.projectors):  # the near plane's ramp, whatever the order
+            assert abs(float(response.b[0]) - proj.response_b[0]) < 0.05
+    only = calibrate_projector(simulate_calibration(VirtualRig(_narrow_far_plane(["far"])), "far", 0), (128, 96),
+                               require_response=False)
+    assert only.response is None and "usable levels" in only.response_note
+    with pytest.raises(InputError, match="projector 'upper': no state's ramp fits its response; in state 'far': "
+                                         "the ramp capture shows only"):
+        calibrate_virtual(_narrow_far_plane(["far"]), progress=False)
+
+
+def test_simulate_reports_a_state_without_its_own_response(tmp_path):
+    text = simulate_scene(_narrow_far_plane(["near", "far"]), tmp_path, progress=False)
+    far = [line for line in text.splitlines() if line.startswith("| far |")]
+    assert len(far) == 2 and all("none, too few ramp bars seen" in line for line in far)
+    assert (tmp_path / "calibration.png").exists()

@@ -253,7 +253,8 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         options: passed to :func:`~torchproj.calib.calibrate_projector` (thresholds, hole size,
             plane tolerance).
 
-    The response of each projector comes from the first state whose folder holds the ramps.
+    The response of each projector comes from the first state whose folder holds ramps that show
+    enough of their bars (a small object in one state may see only a few).
     """
     root = Path(root)
     layout = _projector_folders(root, sizes, states, bits)
@@ -263,6 +264,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     maps, black, decoded, decoded_lit, homographies = {}, {}, {}, {}, {}
     responses: list[ResponseCurve | None] = [None] * len(projectors)
     ramps: list = [None] * len(projectors)
+    unfit: dict[int, str] = {}  # projector -> why its first ramp that showed too few bars fit nothing
     shape = None
     jobs = [(state, j, entry) for state, entries in layout.items() for j, entry in enumerate(entries)]
     for _, _, (_, folder, size, k) in jobs:  # a file missing from the last folder is named before minutes of decoding
@@ -275,7 +277,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
             raise CaptureError(f"{folder}: images of size {tuple(capture.white.shape)} (C, H, W), but earlier "
                                f"folders hold {shape}; all captures must come from one camera setting")
         try:
-            cal = calibrate_projector(capture, size, bits=k, **options)
+            cal = calibrate_projector(capture, size, bits=k, require_response=False, **options)
         except InputError as exc:  # e.g. a ramp with no usable levels or a block map off the plane: name the folder
             raise CaptureError(f"{folder}: {exc}") from None
         if cal.homography is not None:
@@ -287,6 +289,11 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         black.setdefault(state, []).append(capture.black)
         if responses[j] is None and cal.response is not None:
             responses[j], ramps[j] = cal.response, cal.ramp
+        if cal.response_note is not None:
+            unfit.setdefault(j, f"{folder}: {cal.response_note}")
+    for j, note in unfit.items():
+        if responses[j] is None:
+            raise CaptureError(f"projector {projectors[j][0]!r}: no state's ramp captures fit its response; {note}")
     missing = [n for (n, _, _), r in zip(projectors, responses) if r is None]
     if missing:
         warnings.warn(f"no ramp captures for {missing}: solving will assume a linear response there", stacklevel=2)

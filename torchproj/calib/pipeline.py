@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from ..core.checks import check
-from ..core.errors import CaptureError
+from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
 from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_shares, checker_shares, decode_gray,
                        graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
@@ -57,8 +57,11 @@ class ProjectorCalibration:
         cam_xy: :math:`(H_p, W_p, 2)` inverse map, camera coordinates per projector cell,
             small holes filled; NaN where unknown.
         count: :math:`(H_p, W_p)` camera pixels that decoded to each cell (before filling).
-        response: fitted response curve, if the capture held a ramp.
+        response: fitted response curve, if the capture held a ramp (and, with
+            ``require_response=False``, it showed enough levels).
         ramp: ``(levels (L,), measured (L, C))``, the points the curve was fitted to, or None.
+        response_note: why a ramp the capture held gave no response (too few of its bars seen),
+            with ``require_response=False``; else None.
         timings_s: seconds spent in each step.
         homography: for a shortened sequence, the homography ``prj_xy`` comes from; else None.
         colour_contrast: for a colour camera, :math:`(C, H, W)` white minus black per camera
@@ -95,12 +98,14 @@ class ProjectorCalibration:
     shares: CellShares | None = None
     dim_xy: torch.Tensor | None = None
     blur: torch.Tensor | None = None
+    response_note: str | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
                         black_threshold: float = BLACK_THRESHOLD, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
                         max_hole: int = 16, ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
-                        plane_tolerance: float = 1.0, crease_ratio: float = CREASE_RATIO) -> ProjectorCalibration:
+                        plane_tolerance: float = 1.0, crease_ratio: float = CREASE_RATIO,
+                        require_response: bool = True) -> ProjectorCalibration:
     """Decode, refine, fill, invert and fit the response of one capture.
 
     A shortened sequence (``bits``) decodes to blocks of cells only. Its map is then one
@@ -124,6 +129,9 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
             (projector pixels, :func:`~torchproj.calib.fit_homography`) that counts as a plane.
         crease_ratio: how much better a refining window beside a pixel must fit than the centred one
             (:func:`refine_subpixel`); ``math.inf``: the centred window only.
+        require_response: refuse a ramp whose bars the camera sees too few of to fit a response
+            (an object that covers a few of the 32 bars). False: give no response and say why
+            (``response_note``), for a rig whose other states' ramps fit this projector's response.
     """
     m = _forward_map(capture, projector_size, white_threshold=white_threshold, black_threshold=black_threshold,
                      dim_threshold=dim_threshold, subpixel=subpixel, max_hole=max_hole, bits=bits,
@@ -148,14 +156,20 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         blur = measure_blur(capture.patterns, capture.white, capture.black, prj_xy, projector_size,
                             step=max(8, round((height * width / 1500) ** 0.5)))
         timings["blur"] = time.perf_counter() - t0
-    response = ramp = None
+    response = ramp = note = None
     if capture.ramp is not None:
         t0 = time.perf_counter()
         # Ramp bars are told apart by projector column: the decoded cell, or the fitted coordinate
         # where blocks are wider than a bar.
         columns = dec.prj_xy[..., 0] if fit is None else prj_xy[..., 0]
-        levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, columns,
-                                        projector_size[0], ramp_steps)
+        try:
+            levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, columns,
+                                            projector_size[0], ramp_steps)
+        except InputError as exc:
+            if require_response:
+                raise
+            note, levels = str(exc), None
+    if capture.ramp is not None and levels is not None:
         mixing = None
         if capture.primaries is not None and capture.white.shape[0] == 3:
             mixing = fit_colour_mixing(capture.primaries, capture.white, capture.black, dec.valid)
@@ -178,7 +192,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         timings["stripes"] = time.perf_counter() - t0
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
-                                edges=edges, shares=shares, dim_xy=dim_xy, blur=blur)
+                                edges=edges, shares=shares, dim_xy=dim_xy, blur=blur, response_note=note)
 
 
 @dataclass

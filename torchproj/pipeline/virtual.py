@@ -237,10 +237,24 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     if bits is not None:
         shown = [sequence_bits(p.width, p.height, bits) for p in scene.projectors]
         homographies = {name: [pc.homography for pc in pcs] for name, pcs in per_state.items()}
-    return VirtualCalibration(rig=rig, states=states, black=black,
-                              responses=[pc.response for pc in next(iter(per_state.values()))],
+    return VirtualCalibration(rig=rig, states=states, black=black, responses=_first_responses(per_state, scene),
                               seconds=time.perf_counter() - t0, bits=shown, homographies=homographies,
                               decoded=decoded, decode=decode)
+
+
+def _first_responses(per_state: dict[str, list], scene: Scene) -> list:
+    """Each projector's response from the first state whose ramp showed enough of its bars
+    (``per_state``: each state's :class:`~torchproj.calib.ProjectorCalibration` per projector); a
+    projector none of whose states did is refused, with the first state's reason."""
+    responses = []
+    for j, proj in enumerate(scene.projectors):
+        fitted = [pcs[j].response for pcs in per_state.values() if pcs[j].response is not None]
+        if not fitted:
+            state, pcs = next(iter(per_state.items()))
+            raise InputError(f"projector {proj.name!r}: no state's ramp fits its response; in state {state!r}: "
+                             f"{pcs[j].response_note}")
+        responses.append(fitted[0])
+    return responses
 
 
 def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: float = 1.0, noise: bool = True,
@@ -279,8 +293,10 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
             capture = through(name, j, capture)
         t2 = time.perf_counter()
         try:
+            # A projector's response is the same in every state: a state whose ramp shows too few
+            # bars (a small object) leaves it to another (calibrate_virtual).
             calibration = calibrate_projector(capture, (proj.width, proj.height), bits=bits,
-                                              plane_tolerance=plane_tolerance)
+                                              plane_tolerance=plane_tolerance, require_response=False)
         except InputError as exc:  # a block map off the plane, or nothing decoded: say which state and projector
             raise InputError(f"state {name!r}, projector {proj.name!r}: {exc}") from None
         warn_if_few_decoded(calibration.decoding, f"state {name!r}, projector {proj.name!r}")
@@ -343,22 +359,26 @@ def check_calibration(rig: VirtualRig, state: str, projector: int, capture: Gray
     """
     proj = rig.scene.projectors[projector]
     truth = rig.geometry(state).prj_xy[projector]
-    ramps = torch.cat([ramp_pattern(proj.width, proj.height), ramp_pattern(proj.width, proj.height, mirrored=True)])
-    shot = rig.capture(state, {projector: calibration.response.to_pattern(ramps)}, noise=noise)
-    span = capture.white - capture.black
-    lit = calibration.decoding.valid & (span.mean(0) > 0.1)
-    flat = (((shot - capture.black) / span.clamp_min(1e-3)).mean(1).sum(0))[lit]
     counts = calibration.decoding.counts()
     report = {"state": state, "projector": proj.name, "block_cells": list(calibration.decoding.block),
               "decode": {k: counts[k] for k in ("lit", "full", "partial", "none")},
               "decoding_integer": decoding_accuracy(calibration.decoding.prj_xy, truth).as_dict(),
               "decoding_subpixel": decoding_accuracy(calibration.prj_xy, truth).as_dict(),
-              "response_fit": calibration.response.as_dict(), "response_true_b": list(proj.response_b),
-              "compensated_ramp_sum": {"mean": float(flat.mean()), "std": float(flat.std())}}
-    levels, measured = calibration.ramp
+              "response_fit": None, "response_true_b": list(proj.response_b), "compensated_ramp_sum": None,
+              "response_note": calibration.response_note}
     row = {"label": f"{state}/{proj.name}", "prj_xy": calibration.prj_xy,
-           "error": (calibration.prj_xy - truth).norm(dim=-1), "levels": levels.numpy(), "measured": measured.numpy(),
-           "response": calibration.response, "true_b": proj.response_b[0]}
+           "error": (calibration.prj_xy - truth).norm(dim=-1), "levels": None}
+    if calibration.response is not None:  # else this state's ramp showed too few bars (response_note)
+        ramps = torch.cat([ramp_pattern(proj.width, proj.height), ramp_pattern(proj.width, proj.height, mirrored=True)])
+        shot = rig.capture(state, {projector: calibration.response.to_pattern(ramps)}, noise=noise)
+        span = capture.white - capture.black
+        lit = calibration.decoding.valid & (span.mean(0) > 0.1)
+        flat = (((shot - capture.black) / span.clamp_min(1e-3)).mean(1).sum(0))[lit]
+        report["response_fit"] = calibration.response.as_dict()
+        report["compensated_ramp_sum"] = {"mean": float(flat.mean()), "std": float(flat.std())}
+        levels, measured = calibration.ramp
+        row.update(levels=levels.numpy(), measured=measured.numpy(), response=calibration.response,
+                   true_b=proj.response_b[0])
     return report, row
 
 
@@ -438,13 +458,15 @@ def simulate_markdown(report: dict) -> str:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["calibrations"]:
         di, ds = r["decoding_integer"], r["decoding_subpixel"]
-        b = "/".join(f"{v:.3f}" for v in r["response_fit"]["b"])
         tb = "/".join(f"{v:g}" for v in r["response_true_b"])
-        f = r["compensated_ramp_sum"]
+        if r["response_fit"] is None:  # this state's ramp showed too few bars: another state's fits
+            b, flat = f"none, too few ramp bars seen ({tb})", "-"
+        else:
+            b = "/".join(f"{v:.3f}" for v in r["response_fit"]["b"]) + f" ({tb})"
+            flat = f"{r['compensated_ramp_sum']['mean']:.3f} / {r['compensated_ramp_sum']['std']:.3f}"
         lines.append(f"| {r['state']} | {r['projector']} | {'x'.join(map(str, r['block_cells']))} | "
                      f"{_decode_shares(r.get('decode'), di['decoded'])} | {di['exact']:.2%} | "
-                     f"{di['rms_px']:.3f} | {ds['decoded']:.2%} | {ds['rms_px']:.3f} | {b} ({tb}) | "
-                     f"{f['mean']:.3f} / {f['std']:.3f} |")
+                     f"{di['rms_px']:.3f} | {ds['decoded']:.2%} | {ds['rms_px']:.3f} | {b} | {flat} |")
     t = report["timings_s"]
     lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
     return "\n".join(lines)
