@@ -42,7 +42,7 @@ from matplotlib.figure import Figure
 from torchproj.calib import graycode_patterns, measure_blur
 from torchproj.core import InputError
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
-                                scene_targets, simulate_calibration, solve_on_light_transport)
+                                scene_targets, simulate_calibration, solve_on_light_transport, true_responses)
 from torchproj.scene import BUILTIN_SCENES, load_scene
 from torchproj.solve import make_patterns
 from torchproj.transport import build, build_channel_transports, build_transport, has_colour_weights, planar_calibration
@@ -134,7 +134,8 @@ def measure(name: str, scale: float, log=print, blur: bool = False, share_limits
         built = time.perf_counter() - t0
         t0 = time.perf_counter()
         if model == "ceiling":
-            result, _, patterns = solve_on_light_transport(ops, BOUNDS, cal.responses, max_iter=CEILING_ITERATIONS)
+            result, _, patterns = solve_on_light_transport(ops, BOUNDS, true_responses(cal.rig.scene),
+                                                           max_iter=CEILING_ITERATIONS)
         else:
             result, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False)
         solved = time.perf_counter() - t0

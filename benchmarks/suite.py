@@ -33,7 +33,7 @@ from common import machine, write_results
 from matplotlib.figure import Figure
 
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, choose_footprint, evaluate_patterns,
-                                light_transport, scene_targets, solve_on_light_transport)
+                                light_transport, scene_targets, solve_on_light_transport, true_responses)
 from torchproj.pipeline.run import build_operators
 from torchproj.scene import load_scene
 from torchproj.scene.procedural import KINDS, parse_suite_name, procedural_config, suite_names
@@ -78,7 +78,9 @@ def solve_model(cal, targets, model: str) -> tuple:
     built = time.perf_counter() - t0
     t0 = time.perf_counter()
     if model == "ceiling":
-        result, _, patterns = solve_on_light_transport(ops, BOUNDS, cal.responses, max_iter=CEILING_ITERATIONS)
+        # The projectors' own responses, as run's --ceiling: a fitted response's error is calibration's.
+        result, _, patterns = solve_on_light_transport(ops, BOUNDS, true_responses(cal.rig.scene),
+                                                       max_iter=CEILING_ITERATIONS)
     else:
         result, _, patterns = make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False,
                                             solver_options=choice and choice.solver_options(ops, "fista"))

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from common import machine, nonzero_rows, row_sums, with_matrix, write_results
 
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_patterns, light_transport,
-                                scene_targets, solve_on_light_transport)
+                                scene_targets, solve_on_light_transport, true_responses)
 from torchproj.scene import load_scene
 from torchproj.solve import make_patterns
 from torchproj.transport import TransportOperator, build_transport
@@ -87,7 +87,7 @@ def measure(name: str, log=print) -> dict | None:
         for label, op in runs.items():
             iterations = CEILING_ITERATIONS if label == "ceiling" else None
             if label == "ceiling":
-                _, _, patterns = solve_on_light_transport([op], BOUNDS, cal.responses, max_iter=iterations)
+                _, _, patterns = solve_on_light_transport([op], BOUNDS, true_responses(cal.rig.scene), max_iter=iterations)
             else:
                 _, _, patterns = make_patterns([op], "fista", BOUNDS, cal.responses, progress=False)
             scores[label] = evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False).targets

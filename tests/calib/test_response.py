@@ -142,3 +142,36 @@ def test_simulate_reports_a_state_without_its_own_response(tmp_path):
     far = [line for line in text.splitlines() if line.startswith("| far |")]
     assert len(far) == 2 and all("none, too few ramp bars seen" in line for line in far)
     assert (tmp_path / "calibration.png").exists()
+
+
+def test_a_normalised_ramp_fits_its_exponent_from_a_few_bars():
+    """A normalised response is 0 at 0 and 1 at 1 by construction, and compensation uses the exponent
+    alone: fitted as ``x^b``, four noisy levels from a narrow object (two bars of the ramp, two of its
+    mirror) give b within 0.02; the paper's three free parameters trade it against a and c there."""
+    g = torch.Generator().manual_seed(3)
+    levels = torch.tensor([6, 7, 24, 25]) / 31.0
+    measured = levels ** 2.3 + 0.004 * torch.randn(4, generator=g)
+    anchored = fit_response(levels, measured, normalised=True)
+    assert float(anchored.a[0]) == 1.0 and float(anchored.c[0]) == 0.0
+    assert abs(float(anchored.b[0]) - 2.3) < 0.02
+    free = fit_response(levels, measured)
+    assert abs(float(free.b[0]) - 2.3) > 2 * abs(float(anchored.b[0]) - 2.3)
+
+
+def test_the_mirrored_ramp_adds_the_levels_from_the_other_end():
+    """A narrow plane off to the left sees the ramp's low bars only; with its mirror the same columns
+    add the levels ``1 - k / 31``, and the exponent fitted from that state alone is the true one
+    within 0.02."""
+    config = small_config(camera=(200, 150), projector=(128, 96))
+    config["surfaces"]["far_plane"].update(size=[0.1, 0.3], pose={"position": [-0.2, 0.0, 1.0]})
+    scene = parse_scene(config, name="left_far")
+    rig = VirtualRig(scene)
+    for j, proj in enumerate(scene.projectors):
+        cap = simulate_calibration(rig, "far", j)
+        cal = calibrate_projector(cap, (128, 96))
+        columns = cal.decoding.prj_xy[..., 0]
+        alone, _ = measure_ramp(cap.ramp[0], cap.white, cap.black, columns, 128)
+        both, _ = measure_ramp(cap.ramp[0], cap.white, cap.black, columns, 128, mirrored=cap.ramp[1])
+        assert 4 <= len(alone) and float(alone.max()) < 0.4  # the low end only
+        torch.testing.assert_close(both, torch.cat([alone, torch.flip(1 - alone, [0])]))
+        assert abs(float(cal.response.b[0]) - proj.response_b[0]) < 0.02

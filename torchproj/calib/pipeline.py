@@ -164,7 +164,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         columns = dec.prj_xy[..., 0] if fit is None else prj_xy[..., 0]
         try:
             levels, measured = measure_ramp(capture.ramp[0], capture.white, capture.black, columns,
-                                            projector_size[0], ramp_steps)
+                                            projector_size[0], ramp_steps,
+                                            mirrored=capture.ramp[1] if len(capture.ramp) > 1 else None)
         except InputError as exc:
             if require_response:
                 raise
@@ -176,7 +177,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
             # Channel c saw sum_p mixing[c, p] r_p(x) of the grey ramp: the primaries' own curves
             # are the measured levels through the mixing's inverse.
             measured = measured @ torch.linalg.inv(mixing.double()).T.to(measured)
-        response = fit_response(levels, measured)
+        response = fit_response(levels, measured, normalised=True)
         response.mixing = mixing
         ramp = (levels, measured)
         timings["response"] = time.perf_counter() - t0

@@ -132,11 +132,16 @@ def fit_colour_mixing(primaries: torch.Tensor, white: torch.Tensor, black: torch
 
 def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_x: torch.Tensor,
                  projector_width: int, steps: int = 32, margin: float = 1.5,
-                 min_contrast: float = 0.05) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-level normalised response from one capture of :func:`ramp_pattern`.
+                 min_contrast: float = 0.05, mirrored: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-level normalised response from one capture of :func:`ramp_pattern` (and of its mirror).
+
+    The mirror shows bar ``k`` at level ``1 - k / (steps - 1)``: an object that sees a few bars
+    low on the ramp sees them high on the mirror, so the two together span the curve from both ends
+    (our choice; the paper shows one ramp).
 
     Args:
         ramp, white, black: :math:`(C, H, W)` captures of the ramp, all-white and all-black.
+        mirrored: optional :math:`(C, H, W)` capture of the mirrored ramp.
         prj_x: :math:`(H, W)` decoded projector column per camera pixel (NaN where invalid).
         projector_width: projector width in pixels.
         steps: number of bars in the ramp.
@@ -158,8 +163,13 @@ def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, p
     frac = pos - level
     contrast = (white - black).min(0).values
     ok = torch.isfinite(prj_x) & (frac * bar >= margin) & ((1 - frac) * bar >= margin) & (contrast >= min_contrast)
-    norm = ((ramp - black) / (white - black).clamp_min(1e-6))[:, ok]  # (C, M)
+    span = (white - black).clamp_min(1e-6)
+    norm = ((ramp - black) / span)[:, ok]  # (C, M)
     lv = level[ok].long()
+    if mirrored is not None:
+        check_shape(mirrored, "mirrored ramp", [sizes["C"], sizes["H"], sizes["W"]])
+        norm = torch.cat([norm, ((mirrored - black) / span)[:, ok]], 1)
+        lv = torch.cat([lv, steps - 1 - lv])  # the mirror's bar k shows level steps - 1 - k
     levels, response = [], []
     for k in range(steps):
         sel = lv == k
@@ -173,12 +183,19 @@ def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, p
     return torch.tensor(levels), torch.stack(response)
 
 
-def fit_response(levels: torch.Tensor, response: torch.Tensor) -> ResponseCurve:
-    """Least-squares fit of ``a x^b + c`` per channel (scipy's ``curve_fit``).
+def fit_response(levels: torch.Tensor, response: torch.Tensor, normalised: bool = False) -> ResponseCurve:
+    """Least-squares fit of ``a x^b + c`` per channel (scipy's ``curve_fit``), the paper's curve.
 
     Args:
         levels: :math:`(L,)` nominal values in [0, 1].
         response: :math:`(L,)` or :math:`(L, C)` measured relative light.
+        normalised: the response is normalised by each pixel's black and white
+            (:func:`measure_ramp`), so it is 0 at 0 and 1 at 1 by construction: fit ``x^b`` alone
+            (``a = 1``, ``c = 0``). Compensation uses ``b`` alone (:meth:`ResponseCurve.to_pattern`),
+            and where the levels seen span a small part of the curve (an object a few bars wide)
+            three free parameters trade ``b`` against ``a`` and ``c``: suite-97-10's fitted
+            exponents missed the true ones by up to 0.65 that way (our choice; the paper fits the
+            unnormalised captures).
 
     Returns:
         the fitted :class:`ResponseCurve`.
@@ -192,6 +209,10 @@ def fit_response(levels: torch.Tensor, response: torch.Tensor) -> ResponseCurve:
     params = []
     for ch in range(response.shape[1]):
         y = response[:, ch].double().numpy()
+        if normalised:
+            (b,), _ = curve_fit(lambda x, b: np.power(x, b), x, y, p0=(2.0,), bounds=([0.2], [6.0]), maxfev=10000)
+            params.append((1.0, b, 0.0))
+            continue
         p, _ = curve_fit(lambda x, a, b, c: a * np.power(x, b) + c, x, y, p0=(1.0, 2.0, 0.0),
                          bounds=([1e-6, 0.2, -1.0], [10.0, 6.0, 1.0]), maxfev=10000)
         params.append(p)
