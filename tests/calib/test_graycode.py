@@ -9,6 +9,7 @@ import torch
 
 from torchproj.calib import warn_if_few_decoded
 from torchproj.calib.maps import depth_edges
+from torchproj.calib.graycode import CREASE_RATIO, _refine_again
 from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, checker_patterns,
                              checker_shares, decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
@@ -528,3 +529,27 @@ def test_stripe_contrast_keeps_white_minus_black_where_stripes_do_not_read_as_wh
     dimmer = cap.black + 0.95 * (cap.patterns - cap.black)
     span = stripe_contrast(dimmer, cap.white, cap.black, cal.shares.cell, (256, 192))
     assert torch.equal(span, (cap.white - cap.black).float())
+
+
+def test_fitting_again_near_changed_pixels_is_the_whole_fit():
+    """Calibration's second fit runs only on the tiles within a window's width of the pixels whose
+    values changed: the same map as a fit over the whole image (to float32 round-off), on a map with a
+    crease, holes and partly decoded pixels of wider spread."""
+    g = torch.Generator().manual_seed(5)
+    h, w = 150, 200
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    crease = torch.where(x > 90, (x - 90) * 0.8, 0.0)  # a box's two faces meeting
+    truth = torch.stack([40 + 1.3 * x + 0.2 * y + crease, 20 + 0.1 * x + 1.1 * y], -1)
+    before = truth + 0.3 * torch.randn(h, w, 2, generator=g)
+    valid = torch.rand(h, w, generator=g) > 0.1
+    spread = torch.where(torch.rand(h, w, 1, generator=g) > 0.9, 4, 1).expand(h, w, 2)
+    changed = torch.zeros(h, w, dtype=torch.bool)
+    changed[torch.randint(0, h, (40,), generator=g), torch.randint(0, w, (40,), generator=g)] = True
+    after = torch.where(changed[..., None], truth + 0.05 * torch.randn(h, w, 2, generator=g), before)
+    first = refine_subpixel(before, valid, spread=spread)
+    spread_after = torch.where(changed[..., None], 1, spread)
+    whole = refine_subpixel(after, valid, spread=spread_after)
+    again = _refine_again(after, valid, first, changed, spread_after, CREASE_RATIO)
+    assert torch.equal(torch.isnan(whole), torch.isnan(again))
+    assert float((torch.nan_to_num(whole) - torch.nan_to_num(again)).abs().max()) < 1e-3
+    assert float((torch.nan_to_num(whole) - torch.nan_to_num(first)).abs().max()) > 0.01  # the change moved the map

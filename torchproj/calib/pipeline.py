@@ -11,8 +11,8 @@ import torch
 from ..core.checks import check
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
-from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, cell_shares, checker_shares, decode_gray,
-                       graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
+from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, cell_shares, checker_shares,
+                       decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .blur import measure_blur
@@ -252,8 +252,8 @@ def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, w
             # rms, the fully decoded pixels' too (their windows hold partly decoded ones). A third
             # fit leaves the faces' error where it is (within 0.0001 cells rms): docs/accuracy.md "The ceiling".
             coarse = torch.where(sharp[..., None], shares.means(), coarse)
-            mapped = refine_subpixel(coarse, seen.valid | seen.partial, spread=torch.where(sharp[..., None], 1, seen.spread),
-                                     crease_ratio=crease_ratio)
+            mapped = _refine_again(coarse, seen.valid | seen.partial, mapped, sharp,
+                                   torch.where(sharp[..., None], 1, seen.spread), crease_ratio)
         prj_xy = torch.where((dec.valid | dec.partial)[..., None], mapped, float("nan"))
         if max_hole:
             prj_xy, mapped = fill_holes(prj_xy, max_hole), fill_holes(mapped, max_hole)
