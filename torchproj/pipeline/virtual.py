@@ -252,7 +252,7 @@ def _first_responses(per_state: dict[str, list], scene: Scene) -> list:
         if not fitted:
             state, pcs = next(iter(per_state.items()))
             raise InputError(f"projector {proj.name!r}: no state's ramp fits its response; in state {state!r}: "
-                             f"{pcs[j].response_note}")
+                             f"{pcs[j].response_note or 'no ramp was captured'}")
         responses.append(fitted[0])
     return responses
 
