@@ -2,6 +2,7 @@ import numpy as np
 import torch
 
 from torchproj.calib import fill_holes, inverse_map
+from torchproj.calib.maps import depth_edges, map_slope
 
 
 def test_inverse_map_matches_a_plain_loop():
@@ -38,3 +39,25 @@ def test_fill_holes_fills_small_interior_holes_only():
     assert torch.isnan(filled[0, 15:18]).all()
     known = torch.isfinite(values).all(-1)
     assert torch.equal(filled[known], values[known])
+
+
+def _line_map(xs: list[float]) -> torch.Tensor:
+    """A map one row of pixels high whose x coordinate runs through ``xs`` (y constant)."""
+    x = torch.tensor(xs, dtype=torch.float32)
+    return torch.stack([x, torch.full_like(x, 10.0)], -1)[None].repeat(3, 1, 1)
+
+
+def test_a_small_jump_between_surfaces_is_a_depth_edge_and_a_steep_surface_is_not():
+    """Two planes a few centimetres apart in depth part by two or three cells, under the 4 cells that
+    always count: against the steps beside it such a jump is an edge, in one step or spread over the
+    two beside a pixel that sees both; a steep surface's steps of up to 3.5 cells growing smoothly
+    are not, and its slope is taken across them."""
+    one_step = _line_map([0, 1, 2, 3, 4, 7, 8, 9, 10, 11])  # a 3-cell jump between 4 and 7
+    assert depth_edges(one_step)[1].nonzero()[:, 0].tolist() == [4, 5]
+    spread = _line_map([0, 1, 2, 3, 5.6, 8.2, 9.2, 10.2, 11.2, 12.2])  # 2.6 and 2.6 beside pixel 4
+    assert depth_edges(spread)[1].nonzero()[:, 0].tolist() == [3, 4, 5]
+    steep = _line_map([0, 2.6, 5.3, 8.1, 11.0, 14.0, 17.1, 20.3, 23.6, 27.0])  # steps 2.6 -> 3.4
+    assert not depth_edges(steep).any()
+    slope = map_slope(steep)[1, 5, 0, 0]
+    assert abs(float(slope) - 3.0) < 0.2  # the mean step over two pixels either side
+    assert float(map_slope(one_step)[1, 4, 0, 0]) == 1.0  # the pixel beside the jump: its own side only

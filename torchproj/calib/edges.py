@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 from .graycode import check_full_sequence, stripe_signs
-from .maps import EDGE_STEP, depth_edges, map_slope, pixel_square
+from .maps import EDGE_JUMP, depth_edges, map_slope, pixel_square
 
 __all__ = ["EdgePixels", "find_edge_pixels"]
 
@@ -150,8 +150,8 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         span = apart.square().sum(-1)
         share = (((observed[:, None] - b) * apart).sum(-1) / span.clamp_min(1e-6)).clamp(0, 1)
         miss = (observed[:, None] - b - share[..., None] * apart).square().sum(-1)
-        # Two surfaces: candidates more than a depth edge's step apart, both mapped.
-        distinct = (xy[:, pairs[0]] - xy[:, pairs[1]]).abs().amax(-1) > EDGE_STEP
+        # Two surfaces: candidates more than the smallest depth edge's step apart, both mapped.
+        distinct = (xy[:, pairs[0]] - xy[:, pairs[1]]).abs().amax(-1) > EDGE_JUMP
         usable = ok[:, pairs[0]] & ok[:, pairs[1]] & distinct & (span > 0)
         usable &= (share >= _MIN_SHARE) & (share <= 1 - _MIN_SHARE)
         miss = miss.masked_fill(~usable, float("inf"))
