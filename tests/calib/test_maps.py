@@ -54,7 +54,7 @@ def test_a_small_jump_between_surfaces_is_a_depth_edge_and_a_steep_surface_is_no
     are not, and its slope is taken across them."""
     one_step = _line_map([0, 1, 2, 3, 4, 7, 8, 9, 10, 11])  # a 3-cell jump between 4 and 7
     assert depth_edges(one_step)[1].nonzero()[:, 0].tolist() == [4, 5]
-    spread = _line_map([0, 1, 2, 3, 5.6, 8.2, 9.2, 10.2, 11.2, 12.2])  # 2.6 and 2.6 beside pixel 4
+    spread = _line_map([0, 1, 2, 3, 5.8, 8.6, 9.6, 10.6, 11.6, 12.6])  # 2.8 and 2.8 beside pixel 4
     assert depth_edges(spread)[1].nonzero()[:, 0].tolist() == [3, 4, 5]
     steep = _line_map([0, 2.6, 5.3, 8.1, 11.0, 14.0, 17.1, 20.3, 23.6, 27.0])  # steps 2.6 -> 3.4
     assert not depth_edges(steep).any()
