@@ -142,7 +142,8 @@ def map_slope(prj_xy: torch.Tensor) -> torch.Tensor:
 
     Per axis, the mean of the steps between neighbouring mapped pixels within ``_SLOPE_REACH``
     pixels either side, taken outwards from the pixel and stopped at a depth edge (a step over
-    :data:`EDGE_STEP` cells): on a surface, the central difference over ``2 _SLOPE_REACH`` pixels;
+    :data:`EDGE_STEP` cells, or a jump over the steps beside it, :func:`depth_edges`): on a
+    surface, the central difference over ``2 _SLOPE_REACH`` pixels;
     beside an object's outline, the steps on the pixel's own side only. NaN where no step is known.
     """
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
