@@ -801,8 +801,8 @@ def _refine_again(prj_xy: torch.Tensor, valid: torch.Tensor, before: torch.Tenso
     default scene's two million."""
     reach = 2 * (window // 2)
     height, width = valid.shape
-    near = torch.nn.functional.max_pool2d(changed.float()[None, None], 2 * reach + 1, 1, reach)
-    tiles = torch.nn.functional.max_pool2d(near, _AGAIN_TILE, _AGAIN_TILE, ceil_mode=True)[0, 0] > 0
+    near = F.max_pool2d(changed.float()[None, None], 2 * reach + 1, 1, reach)
+    tiles = F.max_pool2d(near, _AGAIN_TILE, _AGAIN_TILE, ceil_mode=True)[0, 0] > 0
     out = before.clone()
     for ty, tx in torch.nonzero(tiles).tolist():
         y0, x0 = ty * _AGAIN_TILE, tx * _AGAIN_TILE

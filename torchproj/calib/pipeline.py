@@ -169,18 +169,18 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         except InputError as exc:
             if require_response:
                 raise
-            note, levels = str(exc), None
-    if capture.ramp is not None and levels is not None:
-        mixing = None
-        if capture.primaries is not None and capture.white.shape[0] == 3:
-            mixing = fit_colour_mixing(capture.primaries, capture.white, capture.black, dec.valid)
-            # Channel c saw sum_p mixing[c, p] r_p(x) of the grey ramp: the primaries' own curves
-            # are the measured levels through the mixing's inverse.
-            measured = measured @ torch.linalg.inv(mixing.double()).T.to(measured)
-        response = fit_response(levels, measured, normalised=True)
-        response.mixing = mixing
-        ramp = (levels, measured)
-        timings["response"] = time.perf_counter() - t0
+            note = str(exc)
+        else:
+            mixing = None
+            if capture.primaries is not None and capture.white.shape[0] == 3:
+                mixing = fit_colour_mixing(capture.primaries, capture.white, capture.black, dec.valid)
+                # Channel c saw sum_p mixing[c, p] r_p(x) of the grey ramp: the primaries' own curves
+                # are the measured levels through the mixing's inverse.
+                measured = measured @ torch.linalg.inv(mixing.double()).T.to(measured)
+            response = fit_response(levels, measured, normalised=True)
+            response.mixing = mixing
+            ramp = (levels, measured)
+            timings["response"] = time.perf_counter() - t0
     colour = (capture.white - capture.black).float() if capture.white.dim() == 3 and capture.white.shape[0] > 1 else None
     if shares is not None:
         # Every transport row is weighted by white minus black; the pairs whose stripes hold a pixel's
