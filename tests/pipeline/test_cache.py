@@ -64,6 +64,9 @@ def test_the_normal_matrix_a_solve_built_is_read_back_with_its_transport(cache):
     # The coarse levels the first solve started from come back with Q.
     (levels,) = read_normal_matrices(key, [built])
     assert levels == len(first.solution.info["coarse_iterations"]) > 0
+    # So do the Lipschitz bounds FISTA computed on each level's scaled system (30 products each).
+    kept_bounds = [b["jacobi"] for b in built.lipschitz_bounds()]
+    assert len(kept_bounds) == levels + 1 and all(b is not None for b in kept_bounds)
     Q = built.normal_matrix()
     x = torch.rand(built.shape[1], 1, dtype=built.val.dtype)
     torch.testing.assert_close(Q @ x, built.A_adjoint(built.A(x)), rtol=1e-4, atol=1e-6)
@@ -72,6 +75,9 @@ def test_the_normal_matrix_a_solve_built_is_read_back_with_its_transport(cache):
     for (ne, _), kept in zip(fresh.coarse_levels(levels), read_back, strict=True):  # P^T Q P built here
         torch.testing.assert_close(kept.to_dense(), ne.Q.to_dense())
     assert built.coarse_levels(levels)[0][0].Q is read_back[0]  # used, not built again
+    assert [ne.jacobi().lipschitz() for ne in fresh._normal_levels()] == kept_bounds  # computed here: the same
+    with pytest.raises(InputError, match="Lipschitz bound"):
+        built.adopt_lipschitz_bounds([{"lipschitz": -1.0, "jacobi": None}])
     # The next run solves on it and lands where the first did.
     again = run_virtual(scene, cache=True, progress=False, solver="pgd")
     assert again.report["transport_cache"] == "read"
@@ -192,6 +198,30 @@ def test_the_transport_read_back_is_the_one_built_and_its_key_follows_targets_an
     with pytest.warns(UserWarning, match="transport cache entry .* is unreadable"):
         _, how = cached_transport(key, lambda: [build_transport(cal.states, targets, merge=False)])
     assert how == "recomputed"
+
+
+def test_a_transport_entry_is_mapped_and_one_kept_without_its_transpose_still_reads(cache):
+    """Entries are mapped, not read (POSIX): an operator read back works on after its entry is removed
+    (evicted by a later run). An entry kept before transposes were (no ``transpose``) is read, and its
+    transpose computed."""
+    scene = _scene()
+    cal, _ = cached_calibration(scene)
+    targets = scene_targets(scene, None, cal.rig)
+    key = transport_key(calibration_key(scene, oracle=False, bits=None, plane_tolerance=1.0), targets,
+                        footprint="area", merge=False, colour_weights="grey", device="cpu")
+    (built,), _ = cached_transport(key, lambda: [build_transport(cal.states, targets, merge=False)])
+    (entry,) = cache.glob("transport-*.pt")
+    payload = torch.load(entry, weights_only=False)
+    del payload["operators"][0]["transpose"]
+    torch.save(payload, entry)
+    (read,), how = cached_transport(key, lambda: pytest.fail("built again instead of read"))
+    assert how == "read"
+    entry.unlink()
+    x = torch.rand(read.shape[1], read.channels, dtype=read.rhs.dtype)
+    y = torch.rand(read.shape[0], read.channels, dtype=read.rhs.dtype)
+    assert torch.equal(read.A(x), built.A(x)) and torch.equal(read.A_adjoint(y), built.A_adjoint(y))
+    for name in ("t_crow", "t_col", "t_val"):
+        assert torch.equal(getattr(read, name), getattr(built, name)), name
 
 
 def test_the_key_follows_the_scene_and_options_not_its_name_targets_or_show():

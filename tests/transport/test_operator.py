@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from torchproj.transport import StateCalibration, build_transport, cell_blocks
+from torchproj.core.errors import InputError
+from torchproj.transport import StateCalibration, TransportOperator, build_transport, cell_blocks
 from torchproj.transport.operator import _blockwise_sum
 
 from ..helpers import LARGE, synthetic_calibration, targets
@@ -240,3 +241,19 @@ def test_an_operator_with_its_normal_equations_cached_can_be_deep_copied(op):
     p = torch.rand(op.shape[1], op.channels, dtype=op.val.dtype)
     torch.testing.assert_close(twin.A(p), op.A(p))
     torch.testing.assert_close(twin.normal_equations("matrix").q, op.normal_equations("matrix").q)
+
+
+def test_a_transpose_given_is_the_one_computed_and_a_wrong_one_is_refused(op):
+    """A cache keeps ``A^T``'s CSR arrays beside ``A``'s: an operator given them has what one that sorts
+    its own nonzeros computes (its adjoint the dense ``A^T x``); arrays of another shape are refused."""
+    given = TransportOperator(op._csr(), op.rhs, op.column_projector, op.column_cell, op.projector_sizes,
+                              transpose=(op.t_crow.clone(), op.t_col.clone(), op.t_val.clone()))
+    computed = TransportOperator(op._csr(), op.rhs, op.column_projector, op.column_cell, op.projector_sizes)
+    for name in ("t_crow", "t_col", "t_val"):
+        assert torch.equal(getattr(given, name), getattr(computed, name)), name
+    y = torch.rand(op.shape[0], 2, dtype=torch.float64)
+    dense = op._csr().to_dense().double()
+    assert torch.allclose(given.A_adjoint(y), dense.T @ y)
+    with pytest.raises(InputError, match="transpose"):
+        TransportOperator(op._csr(), op.rhs, op.column_projector, op.column_cell, op.projector_sizes,
+                          transpose=(op.t_crow[:-1], op.t_col, op.t_val))

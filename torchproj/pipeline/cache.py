@@ -149,8 +149,8 @@ def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOpera
 
 
 def read_normal_matrices(key: str, ops: list[TransportOperator]) -> list[int] | None:
-    """Give the operators read under transport key ``key`` the ``Q = A^T A`` and the coarse levels'
-    ``P^T Q P`` an earlier solve built for them (:func:`keep_normal_matrices`).
+    """Give the operators read under transport key ``key`` the ``Q = A^T A``, the coarse levels'
+    ``P^T Q P`` and the Lipschitz bounds an earlier solve built for them (:func:`keep_normal_matrices`).
 
     Returns:
         per operator the number of coarse levels read, or None where nothing was (no entry, or an
@@ -163,12 +163,15 @@ def read_normal_matrices(key: str, ops: list[TransportOperator]) -> list[int] | 
     def adopt(payload):
         coarse = payload.get("coarse", [[] for _ in payload["Q"]])
         check(len(payload["Q"]) == len(ops) == len(coarse), f"{len(payload['Q'])} matrices for {len(ops)} operators")
+        bounds = payload.get("lipschitz", [[] for _ in payload["Q"]])  # entries kept before bounds were: none
+        check(len(bounds) == len(ops), f"{len(bounds)} Lipschitz bounds for {len(ops)} operators")
         try:
-            for op, Q, levels in zip(ops, payload["Q"], coarse):
+            for op, Q, levels, known in zip(ops, payload["Q"], coarse, bounds):
                 check(Q is not None or not levels, "coarse levels kept without their Q")
                 if Q is not None:
                     op.adopt_normal_matrix(Q)
                     op.adopt_coarse_matrices(levels)
+                    op.adopt_lipschitz_bounds(known)
         except Exception:
             for op in ops:  # all or nothing: a solve builds what it needs again
                 op.forget_normal_equations()
@@ -180,14 +183,15 @@ def read_normal_matrices(key: str, ops: list[TransportOperator]) -> list[int] | 
 
 def keep_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
     """Keep the ``Q = A^T A`` a solve built for the operators kept under transport key ``key`` (those it
-    built in the matrix form; a colour run forgets each channel's after its solve and keeps none), and
-    the coarse levels it built on them."""
+    built in the matrix form; a colour run forgets each channel's after its solve and keeps none), the
+    coarse levels it built on them and the Lipschitz bounds it computed on each (30 products a level)."""
     matrices = [op.normal_matrix() for op in ops]
     if all(Q is None for Q in matrices):
         return False
     folder = cache_dir()
     return _write(folder, folder / f"normal-{key}.pt",
-                  {"key": key, "Q": matrices, "coarse": [op.coarse_matrices() for op in ops]}, "normal matrix")
+                  {"key": key, "Q": matrices, "coarse": [op.coarse_matrices() for op in ops],
+                   "lipschitz": [op.lipschitz_bounds() for op in ops]}, "normal matrix")
 
 
 def read_geometry(rig: VirtualRig) -> str | None:
@@ -222,8 +226,9 @@ def keep_geometry(rig: VirtualRig) -> str:
 
 
 def _operator_parts(op: TransportOperator) -> dict:
-    """What rebuilds ``op``: its matrix and bookkeeping (its transpose is rebuilt from them)."""
-    return {"crow": op.crow, "col": op.col, "val": op.val, "shape": op.shape, "rhs": op.rhs,
+    """What rebuilds ``op``: its matrix, its transpose and bookkeeping."""
+    return {"crow": op.crow, "col": op.col, "val": op.val, "transpose": (op.t_crow, op.t_col, op.t_val),
+            "shape": op.shape, "rhs": op.rhs,
             "column_projector": op.column_projector, "column_cell": op.column_cell,
             "projector_sizes": op.projector_sizes, "constant": op.constant, "row_target": op.row_target,
             "scale": op.scale, "row_pixel": op.row_pixel, "camera_size": op.camera_size,
@@ -233,7 +238,9 @@ def _operator_parts(op: TransportOperator) -> dict:
 def _operator(parts: dict, device) -> TransportOperator:
     parts = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in parts.items()}
     matrix = csr_tensor(parts.pop("crow"), parts.pop("col"), parts.pop("val"), parts.pop("shape"))
-    return TransportOperator(matrix, **parts)
+    transpose = parts.pop("transpose", None)  # entries kept before it was: computed again
+    transpose = None if transpose is None else tuple(t.to(device) for t in transpose)
+    return TransportOperator(matrix, **parts, transpose=transpose)
 
 
 def cached_calibration(scene: Scene, *, device="cpu", progress=None, oracle: bool = False, bits: int | None = None,
@@ -279,7 +286,10 @@ def _read(path: Path, key: str, what: str, make, device="cpu"):
     used), or None (the entry removed) where anything is wrong with it."""
     try:
         # The cache is this user's own folder, written by torchproj; the entry is checked against its key.
-        payload = torch.load(path, map_location=device, weights_only=False)
+        # Mapped, not read, where the system lets a mapped file be removed or replaced (POSIX): a run
+        # touches only the parts it uses (a calibration holds every map, share and capture; scoring
+        # reads a few), and those straight from the page cache.
+        payload = torch.load(path, map_location=device, weights_only=False, mmap=os.name == "posix")
         if not isinstance(payload, dict) or payload.get("key") != key:
             raise ValueError("its key does not match its name")
         made = make(payload)

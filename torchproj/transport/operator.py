@@ -13,6 +13,7 @@ adjoint is a product as fast as the forward one. Autograd flows through :meth:`A
 from __future__ import annotations
 
 import copy
+import math
 
 import torch
 from torch import nn
@@ -138,6 +139,9 @@ class TransportOperator(nn.Module):
             mix pixels. It is what :meth:`to_camera` places rows by.
         camera_size: ``(width, height)`` of the camera, with ``row_pixel``.
         target_count: number of targets (default: the largest ``row_target`` plus one).
+        transpose: ``(crow, col, val)`` of ``A^T`` in CSR, as an operator's ``t_crow``, ``t_col``,
+            ``t_val`` hold them (a cache keeps them: computing them is a sort of every nonzero);
+            default: computed from ``matrix``. Only their shapes are checked.
 
     Convention: pixel and cell indices follow :mod:`torchproj.core.conventions` (``(x, y)`` order,
     flat index ``y * W + x``).
@@ -149,7 +153,8 @@ class TransportOperator(nn.Module):
     def __init__(self, matrix: torch.Tensor, rhs: torch.Tensor, column_projector: torch.Tensor,
                  column_cell: torch.Tensor, projector_sizes: list[tuple[int, int]], constant: torch.Tensor | None = None,
                  row_target: torch.Tensor | None = None, scale: float = 1.0, row_pixel: torch.Tensor | None = None,
-                 camera_size: tuple[int, int] | None = None, target_count: int | None = None):
+                 camera_size: tuple[int, int] | None = None, target_count: int | None = None,
+                 transpose: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None):
         super().__init__()
         check(matrix.layout == torch.sparse_csr, "matrix must be a CSR tensor (torch.sparse_csr)")
         matrix = csr_tensor(matrix.crow_indices(), matrix.col_indices(), matrix.values(), matrix.shape)
@@ -164,11 +169,19 @@ class TransportOperator(nn.Module):
                                         "lit by at least one projector (drop unlit pixels from the target)")
         # The CSR arrays as dense tensors of their own, not views into a sparse tensor: a compiled graph
         # (torch.compile) can carry the one and not the other.
-        transposed = _transpose(matrix)  # A^T in CSR, for an adjoint as fast as the forward product
-        for prefix, m in (("", matrix), ("t_", transposed)):
-            self.register_buffer(prefix + "crow", m.crow_indices().clone())
-            self.register_buffer(prefix + "col", m.col_indices().clone())
-            self.register_buffer(prefix + "val", m.values().clone())
+        for name, array in zip(("crow", "col", "val"), (matrix.crow_indices(), matrix.col_indices(), matrix.values())):
+            self.register_buffer(name, array.clone())
+        if transpose is None:
+            transposed = _transpose(matrix)  # A^T in CSR, for an adjoint as fast as the forward product
+            transpose = (transposed.crow_indices().clone(), transposed.col_indices().clone(), transposed.values().clone())
+        else:
+            t_crow, t_col, t_val = transpose
+            check(t_crow.shape == (n_cols + 1,) and t_col.shape == t_val.shape == self.val.shape
+                  and t_val.dtype == self.val.dtype and int(t_crow[-1]) == self.val.numel(),
+                  f"transpose must be the CSR arrays of a {n_cols} x {n_rows} matrix with {self.val.numel()} "
+                  "nonzeros (the transpose this operator's own matrix gives)")
+        for name, array in zip(("t_crow", "t_col", "t_val"), transpose):
+            self.register_buffer(name, array)
         self.register_buffer("rhs", rhs)
         self.register_buffer("column_projector", column_projector)
         self.register_buffer("column_cell", column_cell)
@@ -407,13 +420,33 @@ class TransportOperator(nn.Module):
         """The coarse levels' ``P^T Q P`` that :meth:`coarse_levels` has built in the matrix form, finest
         first (empty where none): what a cache can keep beside ``Q`` (on the default scene scipy's triple
         products take 0.5-1.0 s, against 1.4-1.6 s to build ``Q``)."""
+        return [ne.Q for ne in self._normal_levels()[1:]]
+
+    def _normal_levels(self) -> list["NormalEquations"]:
+        """The matrix form's normal equations and its coarse levels built so far, finest first."""
         ne, out = getattr(self, "_normal", None), []
+        if ne is None:
+            return out
+        out.append(ne)
         for block, *_ in getattr(self, "_blocks", []):
-            if ne is None or ne._coarse is None or ne._coarse[0] is not block:
+            if ne._coarse is None or ne._coarse[0] is not block:
                 break
             ne = ne._coarse[1]
-            out.append(ne.Q)
+            out.append(ne)
         return out
+
+    def lipschitz_bounds(self) -> list[dict]:
+        """Per level of :meth:`_normal_levels` (``Q``, then each coarse level's ``P^T Q P``), the Lipschitz
+        bounds computed on it (:meth:`NormalEquations.known_lipschitz`): what a cache keeps beside them."""
+        return [ne.known_lipschitz() for ne in self._normal_levels()]
+
+    def adopt_lipschitz_bounds(self, bounds: list[dict]) -> None:
+        """Take :meth:`lipschitz_bounds` kept for this same matrix, once its ``Q`` and coarse levels are
+        adopted (one entry per level; levels not adopted are refused)."""
+        levels = self._normal_levels()
+        check(len(bounds) <= len(levels), f"Lipschitz bounds for {len(bounds)} levels, {len(levels)} adopted")
+        for ne, known in zip(levels, bounds):
+            ne.adopt_lipschitz(known)
 
     def adopt_coarse_matrices(self, matrices: list[torch.Tensor]) -> None:
         """Take the coarse levels' ``P^T Q P`` built earlier for this same matrix (from
@@ -591,6 +624,7 @@ class NormalEquations:
         self.two_q = 2 * q
         self._lipschitz = None
         self._jacobi = None
+        self._jacobi_lipschitz = None  # the scaled system's bound, known before it is built (a cache's)
         self._coarse = None
         self._bounds = {}
 
@@ -611,7 +645,7 @@ class NormalEquations:
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
         """The same ``Q`` (and its cached scaling and Lipschitz bound) with new ``q`` and ``c``."""
         new = self._with(q, c)
-        new._lipschitz = self._lipschitz
+        new._lipschitz, new._jacobi_lipschitz = self._lipschitz, self._jacobi_lipschitz
         if self._jacobi is not None:
             s = self._jacobi.scale
             new._jacobi = self._jacobi._with(q * s, c, s)
@@ -672,7 +706,28 @@ class NormalEquations:
             s = diag.clamp_min(1e-30).rsqrt()
             Q = csr_tensor(crow, col, val * s[rows] * s[col], self.Q.shape)
             self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
+            self._jacobi._lipschitz = self._jacobi_lipschitz
         return self._jacobi
+
+    def known_lipschitz(self) -> dict:
+        """The Lipschitz bounds computed so far (:meth:`lipschitz`), of this system and of its Jacobi-scaled
+        one (None where not yet): what a cache can keep beside ``Q`` (30 products each to compute)."""
+        return {"lipschitz": self._lipschitz,
+                "jacobi": self._jacobi._lipschitz if self._jacobi is not None else self._jacobi_lipschitz}
+
+    def adopt_lipschitz(self, known: dict) -> None:
+        """Take bounds :meth:`known_lipschitz` gave for this same ``Q`` (a cache keyed by the matrix), each
+        a positive number or None (then computed when asked)."""
+        for key in ("lipschitz", "jacobi"):
+            value = known.get(key)
+            check(value is None or (isinstance(value, float) and math.isfinite(value) and value > 0),
+                  f"a Lipschitz bound must be a positive number or None, got {key}={value!r}")
+        if known.get("lipschitz") is not None:
+            self._lipschitz = known["lipschitz"]
+        if known.get("jacobi") is not None:
+            self._jacobi_lipschitz = known["jacobi"]
+            if self._jacobi is not None:
+                self._jacobi._lipschitz = known["jacobi"]
 
     def bound(self, value: float) -> torch.Tensor | float:
         """A bound on ``p`` as a bound on this system's variables, ``value / scale`` (cached).
