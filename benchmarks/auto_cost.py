@@ -7,18 +7,21 @@ Per scene of the procedural suite (small size, calibrated once), as ``run`` buil
 (FISTA, least squares, bounds 0..255), interleaved and each the median of ``--repeats``:
 
 - ``area``: the area model built and solved;
-- ``auto``: :func:`~torchproj.pipeline.choose_footprint` (nearest built and solved for
-  :data:`~torchproj.pipeline.footprint.SCREEN_ITERATIONS` iterations, to the end only where the early
-  estimate is within the tolerance), then the chosen model built and solved (from nearest's patterns
-  where nearest was solved to the end);
-- ``auto, no screen``: nearest always solved to the end before deciding (the decision before the
-  screen: ``SCREEN_ITERATIONS`` set to the pipeline's 300), area then solved as ``auto`` solves it.
+- ``auto``: :func:`~torchproj.pipeline.choose_footprint` (nearest's expected loss first on the
+  targets' back-projection, before nearest is built; where that is within the tolerance, nearest
+  built and solved for :data:`~torchproj.pipeline.footprint.SCREEN_ITERATIONS` iterations, to the
+  end only where the early estimate is within the tolerance too), then the chosen model built and
+  solved (from nearest's patterns where nearest was solved to the end);
+- ``auto, iterations``: the rule before the back-projection's screen (``SCREEN_BACK_PROJECTION``
+  off): nearest always built and solved for ``SCREEN_ITERATIONS`` first;
+- ``auto, no screen``: nearest always solved to the end before deciding (both screens off:
+  ``SCREEN_ITERATIONS`` set to the pipeline's 300), area then solved as ``auto`` solves it.
 
 Writes ``results.json`` and ``results.md``: seconds, auto's choice, the decision's share, the ratio
 to area's cost, the solve's objective against area's, whether auto showed area's very patterns,
 each target's PSNR on the rig's captures (in results.json: camera noise moves it), and nearest's
-expected loss per target after 5, 10 and 20 iterations and at the end (what the screen assumes:
-the early ones no higher).
+expected loss per target on the back-projection, after 5, 10 and 20 iterations and at the end
+(what the screens assume: the earlier ones no higher).
 """
 
 from __future__ import annotations
@@ -50,26 +53,27 @@ def _solve(cal, targets, model: str, choice=None):
     return make_patterns(ops, "fista", BOUNDS, cal.responses, progress=False, solver_options=options), ops
 
 
-def _auto(cal, targets, screen: int):
-    footprint.SCREEN_ITERATIONS = screen
+def _auto(cal, targets, screen: int, back_projection: bool = True):
+    footprint.SCREEN_ITERATIONS, footprint.SCREEN_BACK_PROJECTION = screen, back_projection
     try:
         t0 = time.perf_counter()
         choice = choose_footprint(cal.states, targets, BOUNDS)
         decided = time.perf_counter() - t0
         return _solve(cal, targets, choice.footprint, choice), choice, decided
     finally:
-        footprint.SCREEN_ITERATIONS = SCREEN
+        footprint.SCREEN_ITERATIONS, footprint.SCREEN_BACK_PROJECTION = SCREEN, True
 
 
 EARLY = (5, 10, 20)
 
 
 def estimates(cal, targets) -> dict[str, list[float]]:
-    """Nearest's expected loss per target (dB) after each of :data:`EARLY` iterations and at the end
-    (the pipeline's limit): what the screen assumes is that the early ones are no higher."""
+    """Nearest's expected loss per target (dB) on the targets' back-projection (``"0"``), after each of
+    :data:`EARLY` iterations and at the end (the pipeline's limit): what the screens assume is that the
+    earlier ones are no higher."""
     op = build_transport(cal.states, targets, footprint="nearest", merge=False)
     shares = footprint._share_rows(cal.states, targets, op)
-    out = {}
+    out = {"0": [round(v, 4) for v in footprint._back_projected_loss(cal.states, targets, BOUNDS).values()]}
     for n in (*EARLY, PIPELINE_ITERATIONS["fista"]):
         patterns = solve_fista(op, BOUNDS, progress=False, max_iter=n).patterns
         out[str(n)] = [round(v, 4) for v in footprint._expected_loss(op, shares, patterns, targets).values()]
@@ -81,7 +85,8 @@ def measure(name: str, repeats: int) -> dict:
     targets = scene_targets(cal.rig.scene, None, cal.rig)
     runs = {"area": lambda: (_solve(cal, targets, "area"), None, 0.0),
             "auto": lambda: _auto(cal, targets, SCREEN),
-            "auto, no screen": lambda: _auto(cal, targets, PIPELINE_ITERATIONS["fista"])}
+            "auto, iterations": lambda: _auto(cal, targets, SCREEN, back_projection=False),
+            "auto, no screen": lambda: _auto(cal, targets, PIPELINE_ITERATIONS["fista"], back_projection=False)}
     times = {label: [] for label in runs}
     decisions = {label: [] for label in runs}
     last = {}
@@ -109,25 +114,30 @@ def measure(name: str, repeats: int) -> dict:
 
 
 def markdown(rows: list[dict], title: str) -> str:
+    labels = ("auto", "auto, iterations", "auto, no screen")
     lines = [f"# {title}", "", "Median seconds of the repeats (build and solve; auto's include its decision). "
              "Ratio: over area's. `objective`: the solve's objective over area's (model space, no camera noise); "
-             "`area's patterns`: whether auto showed exactly area's. Camera noise moves a small scene's captured PSNR "
-             "by up to 0.3 dB between captures of the same patterns, so the captures are not compared here.", "",
-             "| scene | area (s) | auto (s) | decision (s) | nearest iterations | ratio | objective | area's patterns "
-             "| auto, no screen (s) | decision (s) | ratio | objective | chose |", "|" + "---|" * 13]
+             "`area's patterns`: whether auto showed exactly area's; `iterations`: nearest's before the choice (0: "
+             "decided on the back-projection). Camera noise moves a small scene's captured PSNR by up to 0.3 dB "
+             "between captures of the same patterns, so the captures are not compared here.", "",
+             "| scene | area (s) | " + " | ".join(f"{label} (s) | decision (s) | iterations | ratio | objective"
+                                                 for label in labels) + " | area's patterns | chose |",
+             "|" + "---|" * (4 + 5 * len(labels))]
     for r in rows:
-        a, s, n = r["area"], r["auto"], r["auto, no screen"]
-        lines.append(f"| {r['scene']} | {a['seconds']:.3f} | {s['seconds']:.3f} | {s['decision_s']:.3f} | "
-                     f"{s['nearest_iterations']} | {s['seconds'] / a['seconds']:.2f} | {s['objective_over_area']:+.2%} | "
-                     f"{'yes' if s['same_patterns'] else 'no'} | {n['seconds']:.3f} | {n['decision_s']:.3f} | "
-                     f"{n['seconds'] / a['seconds']:.2f} | {n['objective_over_area']:+.2%} | {s['chose']} |")
+        a, s = r["area"], r["auto"]
+        cells = [f"{r[label]['seconds']:.3f} | {r[label]['decision_s']:.3f} | {r[label]['nearest_iterations']} | "
+                 f"{r[label]['seconds'] / a['seconds']:.2f} | {r[label]['objective_over_area']:+.2%}" for label in labels]
+        lines.append(f"| {r['scene']} | {a['seconds']:.3f} | " + " | ".join(cells)
+                     + f" | {'yes' if s['same_patterns'] else 'no'} | {s['chose']} |")
     end = str(PIPELINE_ITERATIONS["fista"])
-    pairs = [(r["nearest_estimates_db"][str(n)][k], final) for r in rows for n in EARLY
-             for k, final in enumerate(r["nearest_estimates_db"][end])]
-    lines.append(f"\nNearest's expected loss after {', '.join(map(str, EARLY))} iterations at or below its value at the "
-                 f"end ({end}): {sum(early <= final + 1e-9 for early, final in pairs)} of {len(pairs)} "
-                 f"(target, iterations) pairs, over {sum(len(r['nearest_estimates_db'][end]) for r in rows)} targets.")
-    for label in ("auto", "auto, no screen"):
+    steps = ["0", *map(str, EARLY), end]
+    pairs = [(r["nearest_estimates_db"][a][k], r["nearest_estimates_db"][b][k]) for r in rows
+             for a, b in zip(steps, steps[1:]) for k in range(len(r["nearest_estimates_db"][end]))]
+    lines.append(f"\nNearest's expected loss on the back-projection, after {', '.join(map(str, EARLY))} iterations and "
+                 f"at the end ({end}), each at or below the next: {sum(x <= y + 1e-9 for x, y in pairs)} of {len(pairs)} "
+                 f"pairs, over {sum(len(r['nearest_estimates_db'][end]) for r in rows)} targets; the back-projection's "
+                 f"at or below the end's on {sum(x <= y + 1e-9 for r in rows for x, y in zip(r['nearest_estimates_db']['0'], r['nearest_estimates_db'][end]))}.")
+    for label in labels:
         ratios = sorted(r[label]["seconds"] / r["area"]["seconds"] for r in rows)
         lines.append(f"\n`{label}` over area: median {statistics.median(ratios):.2f}, best {ratios[0]:.2f}, "
                      f"worst {ratios[-1]:.2f}.")

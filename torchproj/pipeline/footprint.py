@@ -17,15 +17,19 @@ residual to the targets), it gives each target's expected loss in PSNR,
 ``tolerance_db``, nearest is chosen; else area. Our rule (the paper models one cell per pixel):
 where the shares say that a pixel's light stays on one cell, a richer model has nothing to add.
 
-The estimate is taken first on nearest's patterns after :data:`SCREEN_ITERATIONS` iterations from
-its coarse start. Those patterns are smoother than the solution and leave more of the targets
+The estimate is taken first before anything is built or solved, on the targets' back-projection
+through nearest's rows (each cell the weighted mean of what its pixels ask, ``A^T b / A^T A 1``),
+then, where that does not decide, on nearest's patterns after :data:`SCREEN_ITERATIONS` iterations
+from its coarse start. Both are smoother than the solution and leave more of the targets
 unexplained, and both make the estimate smaller than at the end: on the procedural suite's seed 1
-(20 scenes, 60 targets) each target's estimate after 5, 10 and 20 iterations was at or below its
-value at the end but for 8 of those 180, by at most 0.02 dB where nearest had all but converged
-(``benchmarks/auto_cost.py``). So where even the early one is over the tolerance, area is chosen without
-solving nearest to the end (our rule, which saves the rest of that solve), and solved from its own
-coarse start, so that it shows exactly what ``footprint="area"`` shows; otherwise nearest is solved
-to the end and decided on as before (the benchmark measures both rules).
+(20 scenes, 60 targets) each target's estimate on the back-projection was at or below its value
+after 10 iterations, and that at or below its value at the end but for 8 of 180 (target,
+iterations) pairs, by at most 0.02 dB where nearest had all but converged
+(``benchmarks/auto_cost.py``). So where even the earlier one is over the tolerance, area is chosen
+without solving nearest further (our rule, which saves building and solving nearest: the
+back-projection costs one pass over nearest's rows and the shares'), and solved from its own
+coarse start, so that it shows exactly what ``footprint="area"`` shows; otherwise nearest is
+solved to the end and decided on as before (the benchmark measures each rule).
 
 Where no shares were measured (a shortened Gray-code sequence, maps from homographies, a bundle
 written without them) nothing tells the models apart from the captures, and area is chosen.
@@ -45,14 +49,18 @@ from ..core.sparse import spmm
 from ..solve import solve_fista
 from ..solve.compensate import iteration_limit
 from ..transport import FOOTPRINTS, StateCalibration, Target, TransportOperator, build_transport, csr_from_coo
+# build_transport's own rows and scale, before assembly: the screen needs nearest's rows, not its operator
+from ..transport.build import _scale, _target_rows
 
-__all__ = ["AUTO", "AUTO_TOLERANCE_DB", "SCREEN_ITERATIONS", "FootprintChoice", "check_footprint", "choose_footprint"]
+__all__ = ["AUTO", "AUTO_TOLERANCE_DB", "SCREEN_BACK_PROJECTION", "SCREEN_ITERATIONS", "FootprintChoice", "check_footprint", "choose_footprint"]
 
 AUTO = "auto"
 # The loss against the richest model that auto accepts for a cheaper one: the issue's "within 0.2 dB".
 AUTO_TOLERANCE_DB = 0.2
-#: Nearest's iterations before its expected loss is first looked at (module docstring).
+#: Nearest's iterations before its expected loss is first looked at on its patterns (module docstring).
 SCREEN_ITERATIONS = 10
+#: Whether the expected loss is looked at on the targets' back-projection first (module docstring).
+SCREEN_BACK_PROJECTION = True
 
 
 def check_footprint(footprint: str) -> None:
@@ -70,11 +78,12 @@ class FootprintChoice:
         expected_loss_db: per target name, nearest's expected PSNR loss against a model that holds
             the measured shares (None where no shares were measured).
         tolerance_db: the loss accepted.
-        seconds: time the choice took (nearest built and solved: for :data:`SCREEN_ITERATIONS` iterations
-            where that decides, else to the end).
+        seconds: time the choice took (the back-projection's estimate where that decides; else nearest
+            built and solved: for :data:`SCREEN_ITERATIONS` iterations where that decides, else to the end).
         reason: one sentence for the report.
-        iterations: nearest's iterations the estimate was taken after (0 where none was solved):
-            :data:`SCREEN_ITERATIONS` where the early estimate already exceeded the tolerance.
+        iterations: nearest's iterations the estimate was taken after: 0 where the back-projection's
+            estimate already exceeded the tolerance (or no shares were measured),
+            :data:`SCREEN_ITERATIONS` where the early estimate did.
     """
 
     footprint: str
@@ -134,6 +143,13 @@ def choose_footprint(states: dict[str, StateCalibration], targets: list[Target],
         return FootprintChoice("area", None, tolerance_db, time.perf_counter() - t0,
                                "area: no cell shares were measured (a shortened Gray-code sequence, homography maps "
                                "or a bundle without them), so nothing tells the models apart; the richest is kept")
+    loss = _back_projected_loss(states, targets, bounds) if SCREEN_BACK_PROJECTION else {"": 0.0}
+    worst = max(loss, key=loss.get)
+    if loss[worst] > tolerance_db:
+        return FootprintChoice("area", loss, tolerance_db, time.perf_counter() - t0,
+                               f"area: the measured cell shares put nearest's expected loss at {loss[worst]:.2f} dB on "
+                               f"{worst}, over {tolerance_db:g} dB already on the targets' back-projection (an estimate "
+                               "that rises as nearest's patterns sharpen), before nearest was built")
     op = build_transport(states, targets, footprint="nearest", merge=False, device=device)
     shares = _share_rows(states, targets, op)
     result = solve_fista(op, bounds, progress=False, max_iter=SCREEN_ITERATIONS)
@@ -168,15 +184,45 @@ def _expected_loss(op: TransportOperator, shares: torch.Tensor, patterns: torch.
     """Per target name, nearest's expected PSNR loss on ``patterns`` (module docstring): what the rows of
     the measured ``shares`` differ from nearest's rows by, against nearest's residual to the targets."""
     with torch.no_grad():
-        nearest = op.A(patterns)
-        measured = spmm(shares, patterns)
+        return _loss_from_rows(op.A(patterns), spmm(shares, patterns), op.rhs, op.row_target, targets)
+
+
+def _loss_from_rows(nearest: torch.Tensor, measured: torch.Tensor, rhs: torch.Tensor, row_target: torch.Tensor,
+                    targets: list[Target]) -> dict[str, float]:
+    """Per target name, ``10 log10(1 + mean(difference^2) / mean(residual^2))`` over its rows, from
+    nearest's rows' values, the measured shares' and the right-hand side, :math:`(N, C)` each."""
     loss = {}
     for k, target in enumerate(targets):
-        rows = op.row_target == k
-        residual = float((nearest[rows] - op.rhs[rows]).double().pow(2).mean())
+        rows = row_target == k
+        residual = float((nearest[rows] - rhs[rows]).double().pow(2).mean())
         difference = float((measured[rows] - nearest[rows]).double().pow(2).mean())
         loss[target.name or f"target{k}"] = 10 * math.log10(1 + difference / max(residual, 1e-30))
     return loss
+
+
+def _back_projected_loss(states: dict[str, StateCalibration], targets: list[Target],
+                         bounds: tuple[float, float]) -> dict[str, float]:
+    """Per target name, nearest's expected loss (:func:`_loss_from_rows`) on the targets' back-projection
+    through nearest's rows, before anything is built or solved (module docstring).
+
+    Nearest's rows come straight from the maps (each pixel's cell and weight per projector,
+    as :func:`~torchproj.transport.build_transport` takes them); each cell's pattern is the weighted mean of
+    what its rows ask over what all projectors give there, ``p = A^T b / A^T A 1``, clamped to the box.
+    A cell no row lights is black, as a cell that is no column of nearest's operator."""
+    rows = _target_rows(states, targets, "nearest", colour=False)
+    rhs = rows.values * _scale(rows.vals, None)
+    sizes = rows.sizes
+    count = sum(w * h for w, h in sizes)
+    used = rows.cols >= 0
+    row = torch.nonzero(used)[:, 0]
+    cell, weight = rows.cols[used], rows.vals[used]
+    asked = rhs.new_zeros(count, rhs.shape[1]).index_add_(0, cell, weight[:, None] * rhs[row])
+    given = rhs.new_zeros(count).index_add_(0, cell, weight * rows.vals.sum(1)[row])
+    patterns = torch.where(given[:, None] > 0, asked / given.clamp_min(1e-30)[:, None], 0.0).clamp(*bounds)
+    nearest = torch.zeros_like(rhs).index_add_(0, row, weight[:, None] * patterns[cell])
+    at_row, at_cell, share = (t.to(rhs.device) for t in _share_parts(states, targets, rows.target, rows.pixel, sizes))
+    measured = torch.zeros_like(rhs).index_add_(0, at_row, share[:, None] * patterns[at_cell])
+    return _loss_from_rows(nearest, measured, rhs, rows.target, targets)
 
 
 def _cell_index(op: TransportOperator) -> tuple[torch.Tensor, int]:
@@ -186,20 +232,22 @@ def _cell_index(op: TransportOperator) -> tuple[torch.Tensor, int]:
     return starts[op.column_projector] + op.column_cell, int(starts[-1])
 
 
-def _share_rows(states: dict[str, StateCalibration], targets: list[Target], op: TransportOperator) -> torch.Tensor:
-    """CSR, ``op``'s rows (camera pixels) as the measured shares place each pixel's light: on its share cell
-    ``n`` the share not measured across an edge, on each neighbour ``n +- 1`` along x and y the share
-    measured across that edge, each times the projector's weight; over ``op``'s columns (a cell that
-    is no column is black in every pattern of ``op``)."""
-    sizes = op.projector_sizes
+def _share_parts(states: dict[str, StateCalibration], targets: list[Target], row_target: torch.Tensor,
+                 row_pixel: torch.Tensor, sizes: list[tuple[int, int]]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rows (camera pixels: each ``row_target``'s pixel ``row_pixel``) as the measured shares place each
+    pixel's light, in coordinates: ``(row, cell, value)`` :math:`(E,)`, ``cell`` one index over every
+    projector's cells (:func:`_cell_index`'s). A row's pixel gives its share cell ``n`` the share not
+    measured across an edge, each neighbour ``n +- 1`` along x and y the share measured across that
+    edge, each times the projector's weight."""
     starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
-    cells, count = _cell_index(op)
-    column = torch.full((count,), -1, dtype=torch.int64)
-    column[cells.cpu()] = torch.arange(op.shape[1])
-    rows, cols, vals = [], [], []
-    for k, target in enumerate(targets):
-        which = torch.nonzero(op.row_target.cpu() == k)[:, 0]
-        pixels = op.row_pixel.cpu()[which]
+    rows, cells, vals = [], [], []
+    row_target, row_pixel = row_target.cpu(), row_pixel.cpu()
+    row_state = torch.tensor([[t.state for t in targets].index(t.state) for t in targets])[row_target]
+    for first, target in enumerate(targets):  # each state's rows together: fewer, longer passes
+        if [t.state for t in targets].index(target.state) != first:
+            continue
+        which = torch.nonzero(row_state == first)[:, 0]
+        pixels = row_pixel[which]
         state = states[target.state]
         for j, (w, h) in enumerate(sizes):
             shares, weight = state.shares[j], state.weight[j].reshape(-1)[pixels].float()
@@ -216,12 +264,23 @@ def _share_rows(states: dict[str, StateCalibration], targets: list[Target], op: 
                     moved = cell.clone()
                     moved[:, axis] += step
                     parts.append((moved, across[:, axis, side]))
+            lit = torch.isfinite(weight) & (weight > 0)
             for at, share in parts:
-                inside = (at[:, 0] >= 0) & (at[:, 0] < w) & (at[:, 1] >= 0) & (at[:, 1] < h) & (share > 0)
-                inside &= torch.isfinite(weight) & (weight > 0)
-                col = torch.where(inside, column[starts[j] + (at[:, 1] * w + at[:, 0]).clamp(0, w * h - 1)], -1)
-                keep = col >= 0
+                keep = (at[:, 0] >= 0) & (at[:, 0] < w) & (at[:, 1] >= 0) & (at[:, 1] < h) & (share > 0) & lit
                 rows.append(which[keep])
-                cols.append(col[keep])
+                cells.append(starts[j] + at[keep, 1] * w + at[keep, 0])
                 vals.append((weight * share)[keep])
-    return csr_from_coo(torch.cat(rows), torch.cat(cols), torch.cat(vals), op.shape).to(op.val.device)
+    return torch.cat(rows), torch.cat(cells), torch.cat(vals)
+
+
+def _share_rows(states: dict[str, StateCalibration], targets: list[Target], op: TransportOperator) -> torch.Tensor:
+    """CSR, ``op``'s rows (camera pixels) as the measured shares place each pixel's light
+    (:func:`_share_parts`), over ``op``'s columns (a cell that is no column is black in every pattern
+    of ``op``)."""
+    cells, count = _cell_index(op)
+    column = torch.full((count,), -1, dtype=torch.int64)
+    column[cells.cpu()] = torch.arange(op.shape[1])
+    rows, at, vals = _share_parts(states, targets, op.row_target, op.row_pixel, op.projector_sizes)
+    col = column[at]
+    keep = col >= 0
+    return csr_from_coo(rows[keep], col[keep], vals[keep], op.shape).to(op.val.device)
