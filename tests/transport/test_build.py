@@ -452,11 +452,17 @@ def test_cell_shares_must_fit_the_state():
     for bad, message in (([shares()], "state 'near' has 1 cell-share sets for 2 projectors"),
                          ([shares(), shares(camera=(15, 21))], r"shares\[1\] of state 'near': cell shares' cell"),
                          ([shares(), shares(cell_value=12)], "cell shares name cells outside the 10x8 projector"),
-                         ([shares(across=1.5), shares()], "cell shares' across must lie in")):
+                         ([shares(), shares(cell_value=-2)], "cell shares name cells outside the 10x8 projector"),
+                         ([shares(across=1.5), shares()], "cell shares' across must lie in"),
+                         ([shares(), shares(across=-0.1)], "cell shares' across must lie in")):
         cals = synthetic_calibration()
         cals["near"].shares = bad
         with pytest.raises(InputError, match=message):
             build_transport(cals, targets(), footprint="area", scale=0.7)
+    # Shares not measured (NaN, or infinite from a pixel with no light) are not checked.
+    cals = synthetic_calibration()
+    cals["near"].shares = [shares(across=float("nan")), shares(across=float("inf"))]
+    build_transport(cals, targets(), footprint="area", scale=0.7)
 
 
 def _global_rows(op):

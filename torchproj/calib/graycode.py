@@ -464,17 +464,18 @@ class CellShares:
         check_shape(self.cell, f"{where}: cell shares' cell", [*camera, 2])
         check_shape(self.across, f"{where}: cell shares' across", [*camera, 2, 2])
         check_shape(self.outside, f"{where}: cell shares' outside", [*camera, 2])
-        decoded = (self.cell >= 0).all(-1)
-        size = torch.tensor(projector_size, device=self.cell.device)
-        check(bool(((self.cell < size) & (self.cell >= -1)).all() and ((self.cell >= 0) | ~decoded[..., None]).all()),
+        # Reductions, not masks: these run on every build, on every state and projector.
+        x, y = self.cell[..., 0], self.cell[..., 1]
+        check(x.numel() == 0 or (int(self.cell.min()) >= -1 and int(x.max()) < projector_size[0]
+                                 and int(y.max()) < projector_size[1]),
               f"{where}: cell shares name cells outside the {projector_size[0]}x{projector_size[1]} projector")
         if self.checker is not None:
             check_shape(self.checker, f"{where}: cell shares' checker", list(camera))
         for name, share in (("across", self.across), ("outside", self.outside), ("checker", self.checker)):
-            if share is None:
+            if share is None or share.numel() == 0:
                 continue
-            share = share[torch.isfinite(share)]
-            check(bool(((share >= 0) & (share <= 1)).all()), f"{where}: cell shares' {name} must lie in [0, 1]")
+            low, high = torch.nan_to_num(share, nan=0.0, posinf=0.0, neginf=0.0).aminmax()  # finite ones only
+            check(float(low) >= 0 and float(high) <= 1, f"{where}: cell shares' {name} must lie in [0, 1]")
 
 
 def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, decoding: GrayDecoding,
