@@ -240,6 +240,7 @@ def _share_parts(states: dict[str, StateCalibration], targets: list[Target], row
     measured across an edge, each neighbour ``n +- 1`` along x and y the share measured across that
     edge, each times the projector's weight."""
     starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
+    steps = torch.tensor([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]])
     rows, cells, vals = [], [], []
     row_target, row_pixel = row_target.cpu(), row_pixel.cpu()
     row_state = torch.tensor([[t.state for t in targets].index(t.state) for t in targets])[row_target]
@@ -257,19 +258,16 @@ def _share_parts(states: dict[str, StateCalibration], targets: list[Target], row
             # A pixel without a share cell (filled holes, dim light) keeps its nearest cell whole.
             cell = torch.where(known[:, None], cell, nearest)
             across = torch.nan_to_num(shares.across.reshape(-1, 2, 2)[pixels].float(), nan=0.0)
-            across = torch.where(known[:, None, None], across, 0.0)
-            parts = [(cell, 1 - across.sum((1, 2)))]
-            for axis in (0, 1):
-                for side, step in enumerate((-1, 1)):
-                    moved = cell.clone()
-                    moved[:, axis] += step
-                    parts.append((moved, across[:, axis, side]))
-            lit = torch.isfinite(weight) & (weight > 0)
-            for at, share in parts:
-                keep = (at[:, 0] >= 0) & (at[:, 0] < w) & (at[:, 1] >= 0) & (at[:, 1] < h) & (share > 0) & lit
-                rows.append(which[keep])
-                cells.append(starts[j] + at[keep, 1] * w + at[keep, 0])
-                vals.append((weight * share)[keep])
+            across = torch.where(known[:, None, None], across, 0.0).reshape(-1, 4)
+            # The five places, cell first, then x - 1, x + 1, y - 1, y + 1 (across's order), all at once.
+            at = cell[None] + steps.to(cell.device)[:, None]
+            share = torch.cat([1 - across.sum(1, keepdim=True), across], 1).T
+            keep = ((at >= 0).all(-1) & (at[..., 0] < w) & (at[..., 1] < h) & (share > 0)
+                    & (torch.isfinite(weight) & (weight > 0))[None])
+            part, pixel = torch.nonzero(keep, as_tuple=True)
+            rows.append(which[pixel.cpu()])
+            cells.append((starts[j] + at[part, pixel, 1].cpu() * w + at[part, pixel, 0].cpu()))
+            vals.append((weight[pixel] * share[part, pixel]).cpu())
     return torch.cat(rows), torch.cat(cells), torch.cat(vals)
 
 
