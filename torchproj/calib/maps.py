@@ -106,15 +106,19 @@ EDGE_STEP = 4.0
 EDGE_JUMP, EDGE_EXCESS = 2.5, 1.5
 
 
-def _steps(prj_xy: torch.Tensor, dim: int, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The step ``u[p + k + 1] - u[p + k]`` along ``dim`` at every pixel ``p`` and whether both ends
-    are mapped (inside the image)."""
-    ahead, here = (torch.roll(prj_xy, -(k + 1), dim), torch.roll(prj_xy, -k, dim))
-    step = ahead - here
+def _steps(prj_xy: torch.Tensor, dim: int, k: int, known: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The step ``u[p + k + 1] - u[p + k]`` along ``dim`` at every pixel ``p``, whether both ends are
+    mapped (inside the image) and the step's larger coordinate. Each is the step to the next pixel
+    rolled by ``k``: that step, its finiteness and size are taken once per map and axis and kept in
+    ``known`` (one subtraction and one roll per ``k`` instead of two rolls and a subtraction)."""
+    if "next" not in known:
+        step = torch.roll(prj_xy, -1, dim) - prj_xy  # wraps round at the end: masked below
+        known["next"] = step, torch.isfinite(step).all(-1), step.abs().amax(-1)
+    step, finite, size = (torch.roll(t, -k, dim) if k else t for t in known["next"])
     inner = torch.zeros(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
     lo, hi = max(0, -k), prj_xy.shape[dim] - max(0, k + 1)  # roll wraps round
     inner.narrow(dim, lo, max(hi - lo, 0)).fill_(True)
-    return step, inner & torch.isfinite(step).all(-1)
+    return step, inner & finite, size
 
 
 def _edge_steps(prj_xy: torch.Tensor, dim: int, k: int, known: dict | None = None):
@@ -124,8 +128,7 @@ def _edge_steps(prj_xy: torch.Tensor, dim: int, k: int, known: dict | None = Non
     known = {} if known is None else known
     for i in (k - 1, k, k + 1):
         if i not in known:
-            step, ok = _steps(prj_xy, dim, i)
-            known[i] = step, ok, step.abs().amax(-1)
+            known[i] = _steps(prj_xy, dim, i, known)
     step, ok, size = known[k]
     around = torch.full(size.shape, float("inf"), dtype=torch.promote_types(size.dtype, torch.float32), device=size.device)
     for i in (k - 1, k + 1):
