@@ -24,6 +24,8 @@ objective equal to the unmerged one.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import torch
@@ -683,10 +685,22 @@ def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch
 
 
 def _stack_rows(cells: list[torch.Tensor], values: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Blocks of rows with different numbers of slots, one below the other, each widened to the widest."""
+    """Blocks of rows with different numbers of slots, one below the other, each widened to the widest
+    (written into one array: padding each block and joining them copied every slot twice)."""
     width = max(c.shape[1] for c in cells)
-    blocks = [_widen(c, v, width) for c, v in zip(cells, values)]
-    return torch.cat([c for c, _ in blocks]), torch.cat([v for _, v in blocks])
+    if len(cells) == 1:
+        return _widen(cells[0], values[0], width)
+    promote = functools.partial(functools.reduce, torch.promote_types)
+    dtype = promote(v.dtype for v in values)
+    out_cells = torch.full((sum(c.shape[0] for c in cells), width), -1, dtype=promote(c.dtype for c in cells),
+                           device=cells[0].device)
+    out_values = torch.zeros(out_cells.shape, dtype=dtype, device=values[0].device)
+    start = 0
+    for c, v in zip(cells, values):
+        out_cells[start:start + c.shape[0], :c.shape[1]] = c
+        out_values[start:start + c.shape[0], :c.shape[1]] = v
+        start += c.shape[0]
+    return out_cells, out_values
 
 
 def _footprint(prj_xy: torch.Tensor, weight: torch.Tensor, size: tuple[int, int], model: str,
