@@ -64,9 +64,9 @@ def test_the_normal_matrix_a_solve_built_is_read_back_with_its_transport(cache):
     # The coarse levels the first solve started from come back with Q.
     (levels,) = read_normal_matrices(key, [built])
     assert levels == len(first.solution.info["coarse_iterations"]) > 0
-    # So do the Lipschitz bounds FISTA computed on each level's scaled system (30 products each).
-    kept_bounds = [b["jacobi"] for b in built.lipschitz_bounds()]
-    assert len(kept_bounds) == levels + 1 and all(b is not None for b in kept_bounds)
+    # So do the Jacobi scaling FISTA ran each level on and that system's Lipschitz bound.
+    scalings = [setup["jacobi"] for setup in built.solver_setup()]
+    assert len(scalings) == levels + 1 and all(j is not None and j["lipschitz"] is not None for j in scalings)
     Q = built.normal_matrix()
     x = torch.rand(built.shape[1], 1, dtype=built.val.dtype)
     torch.testing.assert_close(Q @ x, built.A_adjoint(built.A(x)), rtol=1e-4, atol=1e-6)
@@ -75,9 +75,13 @@ def test_the_normal_matrix_a_solve_built_is_read_back_with_its_transport(cache):
     for (ne, _), kept in zip(fresh.coarse_levels(levels), read_back, strict=True):  # P^T Q P built here
         torch.testing.assert_close(kept.to_dense(), ne.Q.to_dense())
     assert built.coarse_levels(levels)[0][0].Q is read_back[0]  # used, not built again
-    assert [ne.jacobi().lipschitz() for ne in fresh._normal_levels()] == kept_bounds  # computed here: the same
-    with pytest.raises(InputError, match="Lipschitz bound"):
-        built.adopt_lipschitz_bounds([{"lipschitz": -1.0, "jacobi": None}])
+    for ne, j in zip(fresh._normal_levels(), scalings, strict=True):  # computed here: the same, bit for bit
+        assert torch.equal(ne.jacobi().Q.values(), j["values"]) and torch.equal(ne.jacobi().scale, j["scale"])
+        assert ne.jacobi().lipschitz() == j["lipschitz"]
+    with pytest.raises(InputError, match="kept lipschitz must be a positive number"):
+        built.adopt_solver_setup([{"lipschitz": -1.0, "jacobi": None}])
+    with pytest.raises(InputError, match="kept Jacobi scaling"):
+        built.adopt_solver_setup([{"lipschitz": None, "jacobi": dict(scalings[0], scale=scalings[0]["scale"][:-1])}])
     # The next run solves on it and lands where the first did.
     again = run_virtual(scene, cache=True, progress=False, solver="pgd")
     assert again.report["transport_cache"] == "read"

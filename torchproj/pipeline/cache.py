@@ -150,7 +150,7 @@ def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOpera
 
 def read_normal_matrices(key: str, ops: list[TransportOperator]) -> list[int] | None:
     """Give the operators read under transport key ``key`` the ``Q = A^T A``, the coarse levels'
-    ``P^T Q P`` and the Lipschitz bounds an earlier solve built for them (:func:`keep_normal_matrices`).
+    ``P^T Q P`` and the solver's setup on them an earlier solve built (:func:`keep_normal_matrices`).
 
     Returns:
         per operator the number of coarse levels read, or None where nothing was (no entry, or an
@@ -163,15 +163,15 @@ def read_normal_matrices(key: str, ops: list[TransportOperator]) -> list[int] | 
     def adopt(payload):
         coarse = payload.get("coarse", [[] for _ in payload["Q"]])
         check(len(payload["Q"]) == len(ops) == len(coarse), f"{len(payload['Q'])} matrices for {len(ops)} operators")
-        bounds = payload.get("lipschitz", [[] for _ in payload["Q"]])  # entries kept before bounds were: none
-        check(len(bounds) == len(ops), f"{len(bounds)} Lipschitz bounds for {len(ops)} operators")
+        setups = payload.get("setup", [[] for _ in payload["Q"]])  # entries kept before setups were: none
+        check(len(setups) == len(ops), f"{len(setups)} solver setups for {len(ops)} operators")
         try:
-            for op, Q, levels, known in zip(ops, payload["Q"], coarse, bounds):
+            for op, Q, levels, setup in zip(ops, payload["Q"], coarse, setups):
                 check(Q is not None or not levels, "coarse levels kept without their Q")
                 if Q is not None:
                     op.adopt_normal_matrix(Q)
                     op.adopt_coarse_matrices(levels)
-                    op.adopt_lipschitz_bounds(known)
+                    op.adopt_solver_setup(setup)
         except Exception:
             for op in ops:  # all or nothing: a solve builds what it needs again
                 op.forget_normal_equations()
@@ -184,14 +184,15 @@ def read_normal_matrices(key: str, ops: list[TransportOperator]) -> list[int] | 
 def keep_normal_matrices(key: str, ops: list[TransportOperator]) -> bool:
     """Keep the ``Q = A^T A`` a solve built for the operators kept under transport key ``key`` (those it
     built in the matrix form; a colour run forgets each channel's after its solve and keeps none), the
-    coarse levels it built on them and the Lipschitz bounds it computed on each (30 products a level)."""
+    coarse levels it built on them and what it computed on each level (Lipschitz bounds, 30 products
+    each; the Jacobi scaling, three passes over the entries)."""
     matrices = [op.normal_matrix() for op in ops]
     if all(Q is None for Q in matrices):
         return False
     folder = cache_dir()
     return _write(folder, folder / f"normal-{key}.pt",
                   {"key": key, "Q": matrices, "coarse": [op.coarse_matrices() for op in ops],
-                   "lipschitz": [op.lipschitz_bounds() for op in ops]}, "normal matrix")
+                   "setup": [op.solver_setup() for op in ops]}, "normal matrix")
 
 
 def read_geometry(rig: VirtualRig) -> str | None:

@@ -435,18 +435,18 @@ class TransportOperator(nn.Module):
             out.append(ne)
         return out
 
-    def lipschitz_bounds(self) -> list[dict]:
-        """Per level of :meth:`_normal_levels` (``Q``, then each coarse level's ``P^T Q P``), the Lipschitz
-        bounds computed on it (:meth:`NormalEquations.known_lipschitz`): what a cache keeps beside them."""
-        return [ne.known_lipschitz() for ne in self._normal_levels()]
+    def solver_setup(self) -> list[dict]:
+        """Per level of :meth:`_normal_levels` (``Q``, then each coarse level's ``P^T Q P``), what the
+        solvers computed on it (:meth:`NormalEquations.setup`): what a cache keeps beside them."""
+        return [ne.setup() for ne in self._normal_levels()]
 
-    def adopt_lipschitz_bounds(self, bounds: list[dict]) -> None:
-        """Take :meth:`lipschitz_bounds` kept for this same matrix, once its ``Q`` and coarse levels are
+    def adopt_solver_setup(self, setups: list[dict]) -> None:
+        """Take :meth:`solver_setup` kept for this same matrix, once its ``Q`` and coarse levels are
         adopted (one entry per level; levels not adopted are refused)."""
         levels = self._normal_levels()
-        check(len(bounds) <= len(levels), f"Lipschitz bounds for {len(bounds)} levels, {len(levels)} adopted")
-        for ne, known in zip(levels, bounds):
-            ne.adopt_lipschitz(known)
+        check(len(setups) <= len(levels), f"a solver setup for {len(setups)} levels, {len(levels)} adopted")
+        for ne, setup in zip(levels, setups):
+            ne.adopt_setup(setup)
 
     def adopt_coarse_matrices(self, matrices: list[torch.Tensor]) -> None:
         """Take the coarse levels' ``P^T Q P`` built earlier for this same matrix (from
@@ -624,7 +624,6 @@ class NormalEquations:
         self.two_q = 2 * q
         self._lipschitz = None
         self._jacobi = None
-        self._jacobi_lipschitz = None  # the scaled system's bound, known before it is built (a cache's)
         self._coarse = None
         self._bounds = {}
 
@@ -645,7 +644,7 @@ class NormalEquations:
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
         """The same ``Q`` (and its cached scaling and Lipschitz bound) with new ``q`` and ``c``."""
         new = self._with(q, c)
-        new._lipschitz, new._jacobi_lipschitz = self._lipschitz, self._jacobi_lipschitz
+        new._lipschitz = self._lipschitz
         if self._jacobi is not None:
             s = self._jacobi.scale
             new._jacobi = self._jacobi._with(q * s, c, s)
@@ -706,28 +705,36 @@ class NormalEquations:
             s = diag.clamp_min(1e-30).rsqrt()
             Q = csr_tensor(crow, col, val * s[rows] * s[col], self.Q.shape)
             self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
-            self._jacobi._lipschitz = self._jacobi_lipschitz
         return self._jacobi
 
-    def known_lipschitz(self) -> dict:
-        """The Lipschitz bounds computed so far (:meth:`lipschitz`), of this system and of its Jacobi-scaled
-        one (None where not yet): what a cache can keep beside ``Q`` (30 products each to compute)."""
+    def setup(self) -> dict:
+        """What the solvers computed on this ``Q`` so far and a cache can keep beside it: the Lipschitz
+        bound (:meth:`lipschitz`, 30 products) and, where built, the Jacobi scaling (:meth:`jacobi`:
+        three passes over ``Q``'s entries) with its own bound; None where not computed."""
+        j = self._jacobi
         return {"lipschitz": self._lipschitz,
-                "jacobi": self._jacobi._lipschitz if self._jacobi is not None else self._jacobi_lipschitz}
+                "jacobi": None if j is None else {"scale": j.scale, "values": j.Q.values(), "lipschitz": j._lipschitz}}
 
-    def adopt_lipschitz(self, known: dict) -> None:
-        """Take bounds :meth:`known_lipschitz` gave for this same ``Q`` (a cache keyed by the matrix), each
-        a positive number or None (then computed when asked)."""
-        for key in ("lipschitz", "jacobi"):
-            value = known.get(key)
+    def adopt_setup(self, setup: dict) -> None:
+        """Take what :meth:`setup` gave for this same ``Q`` (a cache keyed by the matrix): bounds positive
+        numbers or None, the scaling's shapes those of this ``Q`` (checked before anything is taken)."""
+        j = setup.get("jacobi")
+        bounds = {"lipschitz": setup.get("lipschitz"), "jacobi's lipschitz": None if j is None else j.get("lipschitz")}
+        for key, value in bounds.items():
             check(value is None or (isinstance(value, float) and math.isfinite(value) and value > 0),
-                  f"a Lipschitz bound must be a positive number or None, got {key}={value!r}")
-        if known.get("lipschitz") is not None:
-            self._lipschitz = known["lipschitz"]
-        if known.get("jacobi") is not None:
-            self._jacobi_lipschitz = known["jacobi"]
-            if self._jacobi is not None:
-                self._jacobi._lipschitz = known["jacobi"]
+                  f"a kept {key} must be a positive number or None, got {value!r}")
+        if j is not None:
+            n, nnz = self.Q.shape[0], self.Q.values().numel()
+            check(torch.is_tensor(j.get("scale")) and tuple(j["scale"].shape) == (n, 1)
+                  and torch.is_tensor(j.get("values")) and tuple(j["values"].shape) == (nnz,)
+                  and j["values"].dtype == self.Q.dtype,
+                  f"a kept Jacobi scaling must be a ({n}, 1) scale and {nnz} {self.Q.dtype} values")
+        self._lipschitz = setup.get("lipschitz") or self._lipschitz
+        if j is not None:
+            scale = j["scale"].to(self.q.device)
+            Q = csr_tensor(self.Q.crow_indices(), self.Q.col_indices(), j["values"].to(self.q.device), self.Q.shape)
+            self._jacobi = NormalEquations(Q, self.q * scale, self.c, scale)
+            self._jacobi._lipschitz = j.get("lipschitz")
 
     def bound(self, value: float) -> torch.Tensor | float:
         """A bound on ``p`` as a bound on this system's variables, ``value / scale`` (cached).
