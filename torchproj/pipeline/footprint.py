@@ -144,13 +144,14 @@ def choose_footprint(states: dict[str, StateCalibration], targets: list[Target],
         return FootprintChoice("area", None, tolerance_db, time.perf_counter() - t0,
                                "area: no cell shares were measured (a shortened Gray-code sequence, homography maps "
                                "or a bundle without them), so nothing tells the models apart; the richest is kept")
-    loss = _back_projected_loss(states, targets, bounds) if SCREEN_BACK_PROJECTION else {"": 0.0}
-    worst = max(loss, key=loss.get)
-    if loss[worst] > tolerance_db:
-        return FootprintChoice("area", loss, tolerance_db, time.perf_counter() - t0,
-                               f"area: the measured cell shares put nearest's expected loss at {loss[worst]:.2f} dB on "
-                               f"{worst}, over {tolerance_db:g} dB already on the targets' back-projection (an estimate "
-                               "that rises as nearest's patterns sharpen), before nearest was built")
+    if SCREEN_BACK_PROJECTION:
+        loss = _back_projected_loss(states, targets, bounds)
+        worst = max(loss, key=loss.get)
+        if loss[worst] > tolerance_db:
+            return FootprintChoice("area", loss, tolerance_db, time.perf_counter() - t0,
+                                   f"area: the measured cell shares put nearest's expected loss at {loss[worst]:.2f} dB "
+                                   f"on {worst}, over {tolerance_db:g} dB already on the targets' back-projection (an "
+                                   "estimate that rises as nearest's patterns sharpen), before nearest was built")
     op = build_transport(states, targets, footprint="nearest", merge=False, device=device)
     shares = _share_rows(states, targets, op)
     result = solve_fista(op, bounds, progress=False, max_iter=SCREEN_ITERATIONS)
@@ -244,13 +245,10 @@ def _share_parts(states: dict[str, StateCalibration], targets: list[Target], row
     steps = torch.tensor([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]])
     rows, cells, vals = [], [], []
     row_target, row_pixel = row_target.cpu(), row_pixel.cpu()
-    row_state = torch.tensor([[t.state for t in targets].index(t.state) for t in targets])[row_target]
-    for first, target in enumerate(targets):  # each state's rows together: fewer, longer passes
-        if [t.state for t in targets].index(target.state) != first:
-            continue
-        which = torch.nonzero(row_state == first)[:, 0]
+    for name in dict.fromkeys(t.state for t in targets):  # each state's rows together: fewer, longer passes
+        which = torch.nonzero(torch.tensor([t.state == name for t in targets])[row_target])[:, 0]
         pixels = row_pixel[which]
-        state = states[target.state]
+        state = states[name]
         for j, (w, h) in enumerate(sizes):
             shares, weight = state.shares[j], state.weight[j].reshape(-1)[pixels].float()
             cell = shares.cell.reshape(-1, 2)[pixels].long()
