@@ -13,6 +13,8 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
+from .core.conventions import to_numpy
+
 __all__ = ["decode_summary", "calibration_summary", "run_overview", "depth_selectivity", "positioning_feedback"]
 
 
@@ -42,11 +44,11 @@ def decode_summary(path: str | os.PathLike, prj_xy: torch.Tensor, contrast: torc
     n = 4 if points is not None else 3
     fig = Figure(figsize=(4.2 * n, 3.6))
     axes = fig.subplots(1, n)
-    _map_panel(axes[0], prj_xy[..., 0].numpy(), "projector x (column)", label="px")
-    _map_panel(axes[1], prj_xy[..., 1].numpy(), "projector y (row)", label="px")
-    _map_panel(axes[2], contrast.numpy(), "white - black (decoding confidence)", cmap="gray")
+    _map_panel(axes[0], to_numpy(prj_xy[..., 0]), "projector x (column)", label="px")
+    _map_panel(axes[1], to_numpy(prj_xy[..., 1]), "projector y (row)", label="px")
+    _map_panel(axes[2], to_numpy(contrast), "white - black (decoding confidence)", cmap="gray")
     if points is not None:
-        _map_panel(axes[3], points[..., 2].numpy(), "triangulated depth z", cmap="turbo",
+        _map_panel(axes[3], to_numpy(points[..., 2]), "triangulated depth z", cmap="turbo",
                    label="calibration units")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
@@ -68,14 +70,14 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict], title: str = 
     errors = [row["error"][torch.isfinite(row["error"])] for row in rows if row.get("error") is not None]
     top = max((float(torch.quantile(e.float()[:1_000_000], 0.99)) for e in errors if e.numel()), default=0.5)
     for ax_row, row in zip(axes, rows):
-        _map_panel(ax_row[0], row["prj_xy"][..., 0].numpy(), f"{row['label']}: projector x", label="px")
-        _map_panel(ax_row[1], row["prj_xy"][..., 1].numpy(), f"{row['label']}: projector y", label="px")
+        _map_panel(ax_row[0], to_numpy(row["prj_xy"][..., 0]), f"{row['label']}: projector x", label="px")
+        _map_panel(ax_row[1], to_numpy(row["prj_xy"][..., 1]), f"{row['label']}: projector y", label="px")
         if row.get("error") is not None:
-            _map_panel(ax_row[2], row["error"].numpy(), "|decoded - true| (sub-pixel)", cmap="magma",
+            _map_panel(ax_row[2], to_numpy(row["error"]), "|decoded - true| (sub-pixel)", cmap="magma",
                        label="projector px", vmin=0, vmax=max(top, 1e-3))
         elif row.get("valid") is not None:
             valid = row["valid"]
-            _map_panel(ax_row[2], valid.float().numpy(), f"decoded ({float(valid.float().mean()):.1%} of the camera)",
+            _map_panel(ax_row[2], to_numpy(valid.float()), f"decoded ({float(valid.float().mean()):.1%} of the camera)",
                        cmap="gray", vmin=0, vmax=1)
         else:
             ax_row[2].axis("off")
@@ -84,10 +86,10 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict], title: str = 
             x = torch.linspace(0, 1, 200)
             response = row["response"]
             ax.plot(row["levels"], row["measured"][:, 0], "o", ms=3, label="measured (median)")
-            ax.plot(x.numpy(), response(x[None, None])[0, 0].numpy(), "-",
+            ax.plot(to_numpy(x), to_numpy(response(x[None, None])[0, 0]), "-",
                     label=f"fit a x^b + c, b={float(response.b[0]):.3f}")
             if row.get("true_b") is not None:
-                ax.plot(x.numpy(), x.numpy() ** row["true_b"], "--", label=f"true x^{row['true_b']:.2f}")
+                ax.plot(to_numpy(x), to_numpy(x) ** row["true_b"], "--", label=f"true x^{row['true_b']:.2f}")
             ax.set_xlabel("pattern value x", fontsize=LABEL_PT)
             ax.set_ylabel("relative light (white - black = 1)", fontsize=LABEL_PT)
             ax.legend(fontsize=LABEL_PT)
@@ -114,7 +116,7 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
     for ax in axes.ravel():
         ax.axis("off")
     for j, (pat, name) in enumerate(zip(patterns, projector_names)):
-        img = pat.permute(1, 2, 0).numpy()
+        img = to_numpy(pat.permute(1, 2, 0))
         axes[0, j].imshow(img[..., 0] if img.shape[2] == 1 else img, cmap="gray", vmin=0, vmax=255)
         axes[0, j].set_title(f"pattern for projector {name} (8-bit)", fontsize=TITLE_PT)
     if len(patterns) < n_cols:  # the room beside the patterns: the scores, so no panel is empty
@@ -125,7 +127,7 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
     errors = [(t.estimate - t.values).abs().mean(0, keepdim=True) for t in targets]
     # numpy's quantile selects (a partition), torch's sorts: the same value, a tenth of the time on a
     # million pixels
-    top = max((float(np.quantile(e[0][t.covered].numpy(), 0.99)) for e, t in zip(errors, targets) if t.covered.any()),
+    top = max((float(np.quantile(to_numpy(e[0][t.covered]), 0.99)) for e, t in zip(errors, targets) if t.covered.any()),
               default=0.5)
     top = max(top, 1e-3)
     for row, (t, err) in enumerate(zip(targets, errors), start=1):
@@ -136,7 +138,7 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
         def crop(img):
             c = img[:, y0:y1, x0:x1].clone()
             c[:, ~mask] = float("nan")
-            c = c.permute(1, 2, 0).numpy()
+            c = to_numpy(c.permute(1, 2, 0))
             return c[..., 0] if c.shape[2] == 1 else np.nan_to_num(c)
 
         for col, (img, panel_title) in enumerate([(t.values, f"target {t.name}"),

@@ -1,4 +1,5 @@
-"""The CUDA path against the CPU one. Skipped where torch sees no GPU (CI has none)."""
+"""The CUDA path against the CPU one: on a GPU where torch sees one, and everywhere on the stand-in
+of ``tests/fake_cuda.py``, which checks where tensors live (CI has no GPU)."""
 
 import pytest
 import torch
@@ -6,10 +7,20 @@ import torch
 from torchproj.solve import solve_fista, solve_pgd
 from torchproj.transport import build_transport
 
+from ..fake_cuda import fake_cuda
 from ..helpers import LARGE, synthetic_calibration, targets
 
-pytestmark = pytest.mark.skipif(not torch.cuda.is_available(),
-                                reason="no CUDA device: the GPU path is checked on machines that have one")
+
+@pytest.fixture(autouse=True, params=["gpu", "stand-in"])
+def cuda_device(request):
+    """``"cuda"`` is a GPU, or the stand-in on a machine without one."""
+    if request.param == "gpu":
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA device: the GPU itself is checked on machines that have one")
+        yield
+    else:
+        with fake_cuda():
+            yield
 
 
 def rig():

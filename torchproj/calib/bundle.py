@@ -56,7 +56,7 @@ import numpy as np
 import torch
 
 from ..core.checks import SIZE_LIMIT
-from ..core.conventions import MAX_MIXING_CONDITION
+from ..core.conventions import MAX_MIXING_CONDITION, to_numpy
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
@@ -168,7 +168,7 @@ class CalibrationBundle:
             for (name, _, _), m, response, ramp in zip(self.projectors, maps, self.responses, self.ramps):
                 row = {"label": f"{state}/{name}", "prj_xy": m["prj_xy"], "error": None, "valid": m["valid"]}
                 if ramp is not None:
-                    row.update(levels=ramp[0].numpy(), measured=ramp[1].numpy(), response=response)
+                    row.update(levels=to_numpy(ramp[0]), measured=to_numpy(ramp[1]), response=response)
                 rows.append(row)
         return rows
 
@@ -350,9 +350,9 @@ def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_ca
     for state, maps in bundle.states.items():
         (folder / state).mkdir(parents=True, exist_ok=True)
         for (name, _, _), m in zip(bundle.projectors, maps):
-            np.savez_compressed(folder / state / f"{name}.npz", **{k: v.numpy() for k, v in m.items()})
+            np.savez_compressed(folder / state / f"{name}.npz", **{k: to_numpy(v) for k, v in m.items()})
             files.setdefault(state, {})[name] = f"{state}/{name}.npz"
-        np.savez_compressed(folder / state / "black.npz", black=bundle.black[state].numpy())
+        np.savez_compressed(folder / state / "black.npz", black=to_numpy(bundle.black[state]))
     meta = {
         "format": "torchproj calibration bundle", "version": BUNDLE_VERSION,
         "camera": {"size": list(bundle.camera_size), "channels": bundle.channels},

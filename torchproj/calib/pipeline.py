@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from ..core.checks import check
+from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
 from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, cell_shares, checker_shares,
@@ -342,14 +343,14 @@ class DecodedFolder:
 
         folder, cal = Path(folder), self.calibration
         dec = cal.decoding
-        arrays = {"prj_xy": dec.prj_xy.numpy().astype(np.float32), "prj_xy_refined": cal.prj_xy.numpy(),
-                  "valid": dec.valid.numpy(), "contrast": dec.contrast.numpy().astype(np.float32),
-                  "cam_xy": cal.cam_xy.numpy(), "count": cal.count.numpy().astype(np.int32)}
+        arrays = {"prj_xy": to_numpy(dec.prj_xy).astype(np.float32), "prj_xy_refined": to_numpy(cal.prj_xy),
+                  "valid": to_numpy(dec.valid), "contrast": to_numpy(dec.contrast).astype(np.float32),
+                  "cam_xy": to_numpy(cal.cam_xy), "count": to_numpy(cal.count).astype(np.int32)}
         if self.points is not None:
             ok = torch.isfinite(self.points).all(-1)
-            arrays["points"] = self.points.numpy()
-            grey = (self.white.mean(0)[ok] * 255).clamp(0, 255).to(torch.uint8).numpy()
-            write_ply(folder / "points.ply", self.points[ok].numpy(), np.repeat(grey[:, None], 3, 1))
+            arrays["points"] = to_numpy(self.points)
+            grey = to_numpy((self.white.mean(0)[ok] * 255).clamp(0, 255).to(torch.uint8))
+            write_ply(folder / "points.ply", to_numpy(self.points[ok]), np.repeat(grey[:, None], 3, 1))
         np.savez_compressed(folder / "correspondence.npz", **arrays)
         write_json(folder / "report.json", self.report)
         decode_summary(folder / "decoded.png", dec.prj_xy, dec.contrast, self.points,

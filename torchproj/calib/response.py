@@ -51,15 +51,17 @@ class ResponseCurve:
     c: torch.Tensor
     mixing: torch.Tensor | None = None
 
-    def _params(self):
-        return (t.view(-1, 1, 1) for t in (self.a, self.b, self.c))
+    def _params(self, x: torch.Tensor):
+        """a, b, c shaped to broadcast over ``x``'s channels, on its device (a curve fitted where the
+        captures were serves patterns made anywhere)."""
+        return (t.to(x.device).view(-1, 1, 1) for t in (self.a, self.b, self.c))
 
     def _mixes(self, x: torch.Tensor) -> bool:
         return self.mixing is not None and x.dim() >= 3 and x.shape[-3] == 3
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """Relative light for pattern values x, as the camera's channels see it."""
-        a, b, c = self._params()
+        a, b, c = self._params(x)
         y = a * x.clamp(0, 1) ** b + c
         if self._mixes(y):
             y = torch.einsum("cp,...phw->...chw", self.mixing.to(y), y)
@@ -73,7 +75,7 @@ class ResponseCurve:
         see: the primaries' light is ``mixing^-1 y`` first, and light no primary can give (a
         colour outside the projector's gamut as this camera sees it) is clipped to [0, 1].
         """
-        _, b, _ = self._params()
+        _, b, _ = self._params(y)
         if self._mixes(y):
             y = torch.einsum("pc,...chw->...phw", torch.linalg.inv(self.mixing.double()).to(y), y)
         return y.clamp(0, 1) ** (1 / b)
@@ -205,10 +207,10 @@ def fit_response(levels: torch.Tensor, response: torch.Tensor, normalised: bool 
     if response.dim() == 1:
         response = response[:, None]
     check_shape(response, "response", [levels.shape[0], "C"])
-    x = levels.double().numpy()
+    x = levels.double().cpu().numpy()  # scipy fits on the host
     params = []
     for ch in range(response.shape[1]):
-        y = response[:, ch].double().numpy()
+        y = response[:, ch].double().cpu().numpy()
         if normalised:
             (b,), _ = curve_fit(lambda x, b: np.power(x, b), x, y, p0=(2.0,), bounds=([0.2], [6.0]), maxfev=10000)
             params.append((1.0, b, 0.0))
@@ -216,5 +218,5 @@ def fit_response(levels: torch.Tensor, response: torch.Tensor, normalised: bool 
         p, _ = curve_fit(lambda x, a, b, c: a * np.power(x, b) + c, x, y, p0=(1.0, 2.0, 0.0),
                          bounds=([1e-6, 0.2, -1.0], [10.0, 6.0, 1.0]), maxfev=10000)
         params.append(p)
-    p = torch.tensor(np.array(params), dtype=torch.float32)
+    p = torch.tensor(np.array(params), dtype=torch.float32, device=response.device)
     return ResponseCurve(a=p[:, 0], b=p[:, 1], c=p[:, 2])

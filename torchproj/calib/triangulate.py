@@ -81,8 +81,8 @@ def read_opencv_calibration(path: str | os.PathLike) -> ProCamCalibration:
 
 def _normalised(points: torch.Tensor, K: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     """Undistorted normalised image coordinates (z = 1 plane) of pixel points :math:`(N, 2)`."""
-    eye = torch.eye(3, dtype=points.dtype)[None]
-    return undistort_points(points[None], K[None].to(points.dtype), dist[None].to(points.dtype),
+    eye = torch.eye(3, dtype=points.dtype, device=points.device)[None]
+    return undistort_points(points[None], K[None].to(points), dist[None].to(points),
                             new_K=eye, num_iters=20)[0]
 
 
@@ -101,8 +101,9 @@ def triangulate(cam_xy: torch.Tensor, prj_xy: torch.Tensor, calib: ProCamCalibra
     check_shape(prj_xy, "prj_xy", ["N", 2])
     cam_n = _normalised(cam_xy.double(), calib.cam_K, calib.cam_dist)
     prj_n = _normalised(prj_xy.double(), calib.prj_K, calib.prj_dist)
-    P1 = torch.cat([torch.eye(3, dtype=torch.float64), torch.zeros(3, 1, dtype=torch.float64)], 1)
-    P2 = calib.prj_from_cam
+    # The calibration (a file's few numbers) is on the host; the points may be on a GPU.
+    P1 = torch.cat([torch.eye(3, dtype=torch.float64), torch.zeros(3, 1, dtype=torch.float64)], 1).to(cam_n.device)
+    P2 = calib.prj_from_cam.to(cam_n)
     return triangulate_points(P1[None], P2[None], cam_n[None], prj_n[None])[0]
 
 

@@ -26,13 +26,16 @@ patterns).
 **Colour.** Channels are ``(R, G, B)``. A projector's colour mixing (how a colour camera sees its
 primaries) is a 3 x 3 matrix whose row c is camera channel c and column p projector primary p:
 channel c sees ``sum_p mixing[c, p] light_p``. No mixing is the identity.
+
+**Devices.** Tensors may live on any torch device (``--device cuda``); what leaves torch for numpy,
+scipy, files or figures goes through :func:`to_numpy`, which brings it to the host first.
 """
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["DEFAULT_COLOUR_MIXING", "MAX_MIXING_CONDITION", "pixel_grid", "round_to_pixel"]
+__all__ = ["DEFAULT_COLOUR_MIXING", "MAX_MIXING_CONDITION", "pixel_grid", "round_to_pixel", "to_numpy"]
 
 # The virtual rig's colour mixing where a scene gives none: a projector's primaries against a Bayer
 # camera's filters, green leaking most (its band sits between the others), each row summing to 1 so
@@ -72,3 +75,9 @@ def round_to_pixel(coords: torch.Tensor) -> torch.Tensor:
         int64 tensor of the same shape.
     """
     return torch.floor(coords + 0.5).to(torch.int64)
+
+
+def to_numpy(tensor: torch.Tensor):
+    """A tensor's values as a numpy array on the host, from any device and detached from autograd
+    (numpy cannot read a GPU's memory; ``Tensor.numpy()`` refuses a CUDA tensor)."""
+    return tensor.detach().cpu().numpy()

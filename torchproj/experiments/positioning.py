@@ -33,7 +33,7 @@ from ..pipeline import simulate_calibration
 from ..calib.triangulate import ProCamCalibration, triangulate
 from ..core.checks import check
 from ..core.progress import progress_bar
-from ..core.conventions import pixel_grid
+from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import ConfigError, InputError
 from ..scene.config import Scene, State, Surface
 from ..scene.pose import rotation_from_rotvec
@@ -183,14 +183,14 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
                                      targets=[], seed=seed)
     rig = VirtualRig(scan_scene, device=device)
     cam = scene.camera
-    grid = pixel_grid(cam.height, cam.width).double()
+    grid = pixel_grid(cam.height, cam.width, device=rig.device).double()
     points, owner = [], []
     for j, proj in enumerate(scene.projectors):
         prj_xy = scan_map(simulate_calibration(rig, "scan", j), (proj.width, proj.height))
         valid = torch.isfinite(prj_xy).all(-1)
         if not bool(valid.any()):
             continue
-        in_cam = triangulate(grid[valid], prj_xy[valid].double(), rig_procam(scene, j)).numpy()
+        in_cam = to_numpy(triangulate(grid[valid], prj_xy[valid].double(), rig_procam(scene, j)))
         points.append(in_cam @ cam.world_from_cam[:3, :3].T + cam.world_from_cam[:3, 3])
         owner.append(np.full(len(in_cam), j))
     if not points:
@@ -468,7 +468,7 @@ def placement_error(placed, reference, distance: float, mask=None) -> dict:
 
     if not distance > 0:
         raise InputError(f"--distance must be the object-projector distance (> 0), got {distance:g}")
-    keep = None if mask is None else read_image(mask).mean(0).numpy() > 0.5
+    keep = None if mask is None else to_numpy(read_image(mask).mean(0)) > 0.5
     placed_points = _scan_points(Path(placed), keep)
     reference_points = _scan_points(Path(reference), keep)
     if len(placed_points) == 0 or len(reference_points) == 0:

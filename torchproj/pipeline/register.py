@@ -103,9 +103,11 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
         pixels = first.row_pixel[rows].cpu()
         cal = states[target.state]
         basis = _affine_basis(pixels, w_cam, h_cam)
-        base = [torch.nan_to_num(m.reshape(-1, 2)[pixels].double()) + moved[rows, j] for j, m in enumerate(cal.prj_xy)]
-        weight = [wt.reshape(-1)[pixels].double() for wt in cal.weight]
-        usable = [torch.isfinite(m.reshape(-1, 2)[pixels]).all(-1) & (wt > 0) for m, wt in zip(cal.prj_xy, weight)]
+        # The fit is a few thousand rows: on the host, where the patterns' images already are.
+        maps = [m.reshape(-1, 2)[pixels.to(m.device)].double().cpu() for m in cal.prj_xy]
+        base = [torch.nan_to_num(m) + moved[rows, j] for j, m in enumerate(maps)]
+        weight = [wt.reshape(-1)[pixels.to(wt.device)].double().cpu() for wt in cal.weight]
+        usable = [torch.isfinite(m).all(-1) & (wt > 0) for m, wt in zip(maps, weight)]
         theta = torch.zeros(n_proj, 7, dtype=torch.float64)  # affine x (3), affine y (3), gain - 1
         offset = torch.zeros((), dtype=torch.float64)
         residual0 = residual_base[rows]

@@ -163,10 +163,10 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
              for j, p in enumerate(patterns)}
     captures = {state: calibration.rig.capture(state, shown, noise=noise)[0].cpu()
                 for state in dict.fromkeys(t.state for t in targets)}
-    regions = []
+    regions = []  # scored on the host, beside the captures
     for target in targets:
-        lit = states[target.state].lit()
-        regions.append(lit if target.mask is None else lit & target.mask)
+        lit = states[target.state].lit().cpu()
+        regions.append(lit if target.mask is None else lit & target.mask.cpu())
     on_camera = [target_on_camera(target, region) for target, region in zip(targets, regions)]
     cells = _cell_maps(states, targets)
     ghosts = ghost_images(states, targets, on_camera, cells)

@@ -18,6 +18,7 @@ from ..calib import (DIM_THRESHOLD, GraycodeCapture, ResponseCurve, calibrate_pr
                      graycode_patterns, primary_patterns, ramp_pattern, sequence_bits, warn_if_few_decoded)
 from ..core.checks import check
 from ..core.choices import BLACK_THRESHOLD
+from ..core.conventions import to_numpy
 from ..core.errors import InputError
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
@@ -377,7 +378,7 @@ def check_calibration(rig: VirtualRig, state: str, projector: int, capture: Gray
         report["response_fit"] = calibration.response.as_dict()
         report["compensated_ramp_sum"] = {"mean": float(flat.mean()), "std": float(flat.std())}
         levels, measured = calibration.ramp
-        row.update(levels=levels.numpy(), measured=measured.numpy(), response=calibration.response,
+        row.update(levels=to_numpy(levels), measured=to_numpy(measured), response=calibration.response,
                    true_b=proj.response_b[0])
     return report, row
 
@@ -414,9 +415,9 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
         result, row = check_calibration(rig, state, j, capture, cal, noise=noise)
         out = folder / "calibration" / state / scene.projectors[j].name
         out.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out / "correspondence.npz", prj_xy=cal.prj_xy.numpy(),
-                            prj_xy_integer=cal.decoding.prj_xy.numpy(), cam_xy=cal.cam_xy.numpy(),
-                            count=cal.count.numpy(), contrast=cal.decoding.contrast.numpy())
+        np.savez_compressed(out / "correspondence.npz", prj_xy=to_numpy(cal.prj_xy),
+                            prj_xy_integer=to_numpy(cal.decoding.prj_xy), cam_xy=to_numpy(cal.cam_xy),
+                            count=to_numpy(cal.count), contrast=to_numpy(cal.decoding.contrast))
         results.append(result)
         rows.append(row)
         del capture  # see calibrate_rig

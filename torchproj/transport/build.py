@@ -315,8 +315,9 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
         x0, x1, y0, y1 = float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max())
         corners = torch.tensor([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
     src = torch.tensor([[0.0, 0.0], [w_img - 1, 0.0], [w_img - 1, h_img - 1], [0.0, h_img - 1]])
-    dst_from_src = get_perspective_transform(src[None], corners[None])  # 1x3x3, pixel centres
-    image = torch.cat([target.image.float(), torch.ones(1, h_img, w_img)])[None]
+    # The warp runs where the mask lives (a user's image is on the host, the maps may be on a GPU).
+    dst_from_src = get_perspective_transform(src[None], corners.cpu()[None]).to(mask.device)  # 1x3x3, pixel centres
+    image = torch.cat([target.image.float().cpu(), torch.ones(1, h_img, w_img)])[None].to(mask.device)
     warped = warp_perspective(image, dst_from_src, (H, W), mode="bilinear", align_corners=True)[0]
     covered = mask & (warped[-1] > 0.999)
     return warped[:-1].clamp(0, 1), covered
@@ -842,7 +843,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
                   f"calibrate it with a colour camera, or use build_transport's one grey weight")
             for j, c in enumerate(cal.colour_weight):
                 check_shape(c, f"colour_weight[{j}] of state {target.state!r}", [n_ch, *lit.shape])
-        mask = lit if target.mask is None else target.mask.to(torch.bool)
+        mask = lit if target.mask is None else target.mask.to(device=lit.device, dtype=torch.bool)
         check_shape(mask, f"target {target.name!r} mask", list(lit.shape))
         check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
                                         f"{target.state!r}: no pixel of its mask is lit by any projector")
@@ -878,7 +879,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         row_cols.append(cols[lit_rows])
         row_vals.append(vals[lit_rows])
         row_values.append(values.reshape(n_ch, -1)[:, rows[lit_rows]].T)
-        row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64))
+        row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64, device=rows.device))
         row_pix.append(rows[lit_rows])
         if colour:
             row_ratio.append(torch.stack(ratio, 1)[lit_rows])
@@ -904,14 +905,14 @@ def _assemble(cols: torch.Tensor, vals: torch.Tensor, sizes: list[tuple[int, int
     # once (projectors' cells are offset apart), so each row's used slots in ascending order give CSR
     # directly. The footprints' rows come ascending already (each projector's cells first, in order,
     # and projectors' blocks side by side): the rows are sorted only where they are not.
-    starts = torch.tensor([0] + [w * h for w, h in sizes]).cumsum(0)
+    starts = torch.tensor([0] + [w * h for w, h in sizes], device=cols.device).cumsum(0)
     used = cols >= 0
     counts = used.sum(1)
-    crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64)
+    crow = torch.zeros(cols.shape[0] + 1, dtype=torch.int64, device=cols.device)
     crow[1:] = torch.cumsum(counts, 0)
     flat = cols[used]
     step = flat[1:] - flat[:-1]
-    first = torch.zeros(flat.numel(), dtype=torch.bool)
+    first = torch.zeros(flat.numel(), dtype=torch.bool, device=cols.device)
     first[crow[:-1][counts > 0]] = True  # a row's first nonzero follows another row's last
     if not bool(((step > 0) | first[1:]).all()):
         cols, order = torch.sort(cols, dim=1)
@@ -919,7 +920,7 @@ def _assemble(cols: torch.Tensor, vals: torch.Tensor, sizes: list[tuple[int, int
         used = cols >= 0
         check(not bool((used[:, 1:] & (cols[:, 1:] == cols[:, :-1])).any()), "a row names one cell twice")
         flat = cols[used]
-    lights = torch.zeros(int(starts[-1]), dtype=torch.bool)
+    lights = torch.zeros(int(starts[-1]), dtype=torch.bool, device=cols.device)
     lights[flat] = True
     global_cols = torch.nonzero(lights)[:, 0]
     number = torch.cumsum(lights, 0) - 1
@@ -999,7 +1000,8 @@ def build_channel_transports(calibrations: dict[str, StateCalibration], targets:
     crow, variable, value, cell, projector = _assemble(rows.cols, rows.vals, rows.sizes)
     n_rows = rows.cols.shape[0]
     # Each nonzero's row and projector, to pick its ratio.
-    nonzero_row, nonzero_projector = torch.repeat_interleave(torch.arange(n_rows), crow.diff()), projector[variable]
+    nonzero_row = torch.repeat_interleave(torch.arange(n_rows, device=crow.device), crow.diff())
+    nonzero_projector = projector[variable]
     ops = []
     for c in range(rows.values.shape[1]):
         matrix = csr_tensor(crow, variable, value * rows.ratio[nonzero_row, nonzero_projector, c], (n_rows, cell.numel()))
@@ -1034,7 +1036,7 @@ def retarget_rhs(op, calibrations: dict[str, StateCalibration], targets: list[Ta
     rhs = torch.empty(op.shape[0], channels.pop(), dtype=op.rhs.dtype)
     for k, target in enumerate(targets):
         lit = calibrations[target.state].lit()
-        mask = lit if target.mask is None else target.mask.to(torch.bool) & lit
+        mask = lit if target.mask is None else target.mask.to(device=lit.device, dtype=torch.bool) & lit
         values, covered = target_on_camera(target, mask)
         rows = torch.nonzero(op.row_target.cpu() == k)[:, 0]
         pixels = op.row_pixel.cpu()[rows]
