@@ -770,6 +770,9 @@ def _merge(columns: torch.Tensor, values: torch.Tensor, rhs: torch.Tensor, targe
     return (*(torch.cat([x[alone], m])[order] for x, m in zip((columns, values, rhs, target), merged)), constant)
 
 
+EIGH_CHUNK = 16384  # groups per batched eigen-decomposition in _merge_groups
+
+
 def _merge_groups(columns, values, rhs, target, group, n_groups):
     """:func:`_merge` for rows already grouped (``group`` :math:`(N,)` of ``n_groups``); also returns
     the group of each new row, before the constant."""
@@ -780,7 +783,11 @@ def _merge_groups(columns, values, rhs, target, group, n_groups):
     cross = torch.zeros(n_groups, s, rhs.shape[1], dtype=torch.float64, device=a.device)
     cross.index_add_(0, group, a[:, :, None] * rhs.double()[:, None, :])
     total = rhs.double().pow(2).sum(0)
-    lam, vec = torch.linalg.eigh(gram)  # ascending eigenvalues, (G, s) and (G, s, s)
+    # Ascending eigenvalues, (G, s) and (G, s, s). In chunks: cuSOLVER's batched solver sizes its
+    # workspace in 32-bit integers and failed (CUSOLVER_STATUS_INTERNAL_ERROR) on the half-size
+    # rig's few hundred thousand groups on an H100; on the CPU the chunks cost nothing.
+    parts = [torch.linalg.eigh(chunk) for chunk in gram.split(EIGH_CHUNK)]
+    lam, vec = torch.cat([q[0] for q in parts]), torch.cat([q[1] for q in parts])
     keep = lam > lam[:, -1:].clamp_min(1e-300) * 1e-9
     root = lam.clamp_min(0).sqrt()
     rows_val = (root[:, :, None] * vec.transpose(1, 2))  # (G, k, s): row k = sqrt(l_k) v_k^T
