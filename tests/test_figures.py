@@ -25,3 +25,33 @@ def test_calibration_errors_of_a_twentieth_of_a_pixel_are_not_drawn_black(tmp_pa
     errors = rgb[:, :, rgb.shape[2] // 2:rgb.shape[2] * 3 // 4]  # the third of four columns: the error maps
     bright = (errors[0] > 0.8) & (errors[1] > 0.4)  # magma's upper half: orange to yellow
     assert bright.sum() > 2000
+
+
+def test_images_are_averaged_down_to_their_panel_with_nan_left_out():
+    """A 1500 x 1100 image in a 480-pixel panel is drawn from block means (scikit-image's block_reduce with
+    a NaN-ignoring mean is the reference), no fewer pixels than the panel shows; a small one as it is."""
+    import warnings
+
+    from matplotlib.figure import Figure
+    from skimage.measure import block_reduce
+
+    from torchproj.figures import _shown
+
+    fig = Figure(figsize=(13.2, 10.8))
+    ax = fig.subplots(3, 3)[1, 1]
+    rng = np.random.default_rng(0)
+    image = rng.random((1100, 1500, 3))
+    image[rng.random((1100, 1500)) < 0.3] = np.nan
+    image[:40, :40] = np.nan  # whole blocks unknown
+    shown = _shown(image, ax)
+    box = ax.get_position()
+    panel = (box.height * 10.8 * DPI, box.width * 13.2 * DPI)
+    k = -(-image.shape[0] // shown.shape[0])  # the block size: shown is the ceiling of the image over it
+    assert k >= 2 and shown.shape[0] >= panel[0] and shown.shape[1] >= panel[1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # nanmean of an all-NaN block
+        want = block_reduce(image, (k, k, 1), func=np.nanmean, cval=np.nan)
+    np.testing.assert_allclose(shown, want, rtol=1e-12, equal_nan=True)
+    assert np.isnan(shown[0, 0]).all()
+    small = rng.random((300, 400))
+    assert _shown(small, ax) is small

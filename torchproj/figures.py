@@ -27,8 +27,31 @@ def _save(fig: Figure, path: str | os.PathLike, dpi: int = DPI) -> None:
     fig.savefig(path, dpi=dpi, pil_kwargs={"compress_level": 3})
 
 
+def _shown(data: np.ndarray, ax, dpi: int = DPI) -> np.ndarray:
+    """``data`` :math:`(H, W)` or :math:`(H, W, C)` averaged over blocks of pixels down to no fewer than
+    the panel ``ax`` shows, NaN left out of each mean (NaN where a whole block is).
+
+    A PNG holds no more detail than its panel can show, and matplotlib draws a 1500 x 1100 image into
+    a 480-pixel panel several times slower than one of the panel's own size (eight such panels: 0.85
+    against 0.18 s). Averaging, not picking every k-th pixel, keeps fine patterns from aliasing.
+    """
+    box = ax.get_position()
+    width, height = ax.figure.get_size_inches()
+    k = int(min(data.shape[0] / max(box.height * height * dpi, 1), data.shape[1] / max(box.width * width * dpi, 1)))
+    if k < 2:
+        return data
+    h, w = -(-data.shape[0] // k) * k, -(-data.shape[1] // k) * k
+    padded = np.full((h, w, *data.shape[2:]), np.nan)
+    padded[:data.shape[0], :data.shape[1]] = data
+    blocks = padded.reshape(h // k, k, w // k, k, *data.shape[2:])
+    known = ~np.isnan(blocks)
+    count = known.sum((1, 3))
+    total = np.where(known, blocks, 0.0).sum((1, 3))
+    return np.divide(total, count, out=np.full(total.shape, np.nan), where=count > 0)
+
+
 def _map_panel(ax, data, title, cmap="viridis", label=None, **kw):
-    im = ax.imshow(np.ma.masked_invalid(data), cmap=cmap, interpolation="nearest", **kw)
+    im = ax.imshow(np.ma.masked_invalid(_shown(data, ax)), cmap=cmap, interpolation="nearest", **kw)
     ax.set_title(title, fontsize=TITLE_PT)
     ax.set_xticks([])
     ax.set_yticks([])
@@ -116,8 +139,9 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
     for ax in axes.ravel():
         ax.axis("off")
     for j, (pat, name) in enumerate(zip(patterns, projector_names)):
-        img = to_numpy(pat.permute(1, 2, 0))
-        axes[0, j].imshow(img[..., 0] if img.shape[2] == 1 else img, cmap="gray", vmin=0, vmax=255)
+        img = _shown(to_numpy(pat.permute(1, 2, 0)) / 255.0, axes[0, j])
+        axes[0, j].imshow(img[..., 0] if img.shape[2] == 1 else img, cmap="gray", vmin=0, vmax=1,
+                          interpolation="nearest")
         axes[0, j].set_title(f"pattern for projector {name} (8-bit)", fontsize=TITLE_PT)
     if len(patterns) < n_cols:  # the room beside the patterns: the scores, so no panel is empty
         lines = ["scores (captured against target)", ""] + [
@@ -143,7 +167,8 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
 
         for col, (img, panel_title) in enumerate([(t.values, f"target {t.name}"),
                                                   (t.estimate, f"captured: {t.psnr_db:.1f} dB, SSIM {t.ssim:.2f}")]):
-            axes[row, col].imshow(crop(img), interpolation="nearest", cmap="gray", vmin=0, vmax=1)
+            axes[row, col].imshow(_shown(crop(img), axes[row, col]), interpolation="nearest", cmap="gray", vmin=0,
+                                  vmax=1)
             axes[row, col].set_title(panel_title, fontsize=TITLE_PT)
         axes[row, 2].axis("on")
         _map_panel(axes[row, 2], crop(err), f"|captured - target| (crosstalk {t.crosstalk:.2f})", cmap="magma",
