@@ -83,7 +83,8 @@ def test_a_run_on_cuda_reads_what_a_cpu_run_kept(configs, tmp_path):
 def test_simulate_on_cuda_decodes_as_on_the_cpu(configs, tmp_path):
     assert main(["simulate", str(configs["paper_two_planes"]), "--out", str(tmp_path / "cpu")]) == 0
     with fake_cuda():
-        assert main(["simulate", str(configs["paper_two_planes"]), "--device", "cuda", "--out", str(tmp_path / "gpu")]) == 0
+        assert main(["simulate", str(configs["paper_two_planes"]), "--device", "cuda",
+                     "--out", str(tmp_path / "gpu")]) == 0
     cpu, gpu = (json.loads((tmp_path / k / "report.json").read_text()) for k in ("cpu", "gpu"))
     assert gpu["device"] == "cuda" and len(gpu["calibrations"]) == len(cpu["calibrations"]) == 4
     for c, g in zip(cpu["calibrations"], gpu["calibrations"]):
