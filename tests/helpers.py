@@ -127,3 +127,19 @@ class RigDisplay:
         """What it shows as the rig takes patterns: :math:`(1, C, H, W)` in [0, 1]."""
         image = torch.from_numpy(self.image.astype(np.float32) / 255)
         return image.permute(2, 0, 1)[None] if image.dim() == 3 else image[None, None]
+
+
+def calibrate_bench(root: Path, scene, projector: str = "128x96", out: str = "calib") -> Path:
+    """A bench made of files: every state's and projector's Gray-code captures on the virtual rig written
+    as a bench stores them (``root/captures``), then ``torchproj calibrate`` into ``root/<out>``."""
+    from torchproj.calib import write_graycode_folder
+    from torchproj.cli import main
+    from torchproj.pipeline import simulate_calibration
+    from torchproj.sim import VirtualRig
+
+    rig = VirtualRig(scene)
+    for st in scene.states:
+        for j, p in enumerate(scene.projectors):
+            write_graycode_folder(root / "captures" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
+    assert main(["calibrate", str(root / "captures"), "--projector", projector, "--out", str(root / out)]) == 0
+    return root / out

@@ -20,13 +20,10 @@ import numpy as np
 import pytest
 import yaml
 
-from torchproj.calib import write_graycode_folder
 from torchproj.cli import main
-from torchproj.pipeline import simulate_calibration
 from torchproj.scene import parse_scene
-from torchproj.sim import VirtualRig
 
-from .helpers import small_config
+from .helpers import calibrate_bench, small_config
 
 # What a hand-edited YAML or a typo gives: wrong types, signs, NaN, inf, huge sizes, empties.
 BAD_VALUES = [None, "", "abc", -1, 0, 0.5, 1e30, -1e30, float("nan"), float("inf"), 10 ** 12, True, [], {}, [1],
@@ -192,12 +189,7 @@ def capture_root_for(root: Path) -> Path:
     bundle (``root/bundle``), made with ``torchproj calibrate``."""
     data = tiny_config()
     data["states"] = sorted(data["states"], key=lambda s: s["name"])
-    scene = parse_scene(data, name="tiny")
-    rig = VirtualRig(scene)
-    for st in scene.states:
-        for j, p in enumerate(scene.projectors):
-            write_graycode_folder(root / "captures" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
-    assert main(["calibrate", str(root / "captures"), "--projector", "128x96", "--out", str(root / "bundle")]) == 0
+    calibrate_bench(root, parse_scene(data, name="tiny"), out="bundle")
     return root
 
 

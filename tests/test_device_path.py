@@ -12,14 +12,12 @@ import json
 import pytest
 import yaml
 
-from torchproj.calib import write_graycode_folder
 from torchproj.cli import main
-from torchproj.pipeline import simulate_calibration
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
 
 from .fake_cuda import fake_cuda
-from .helpers import small_config
+from .helpers import calibrate_bench, small_config
 
 
 @pytest.fixture(scope="module")
@@ -97,13 +95,7 @@ def bench(tmp_path_factory):
     """A small two-plane bench calibrated from files (``torchproj calibrate`` has no device: decoding
     files is the host's)."""
     scene = parse_scene(small_config(camera=(200, 150), projector=(128, 96)), name="bench")
-    root = tmp_path_factory.mktemp("device_bench")
-    rig = VirtualRig(scene)
-    for st in scene.states:
-        for j, p in enumerate(scene.projectors):
-            write_graycode_folder(root / "captures" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
-    assert main(["calibrate", str(root / "captures"), "--projector", "128x96", "--out", str(root / "calib")]) == 0
-    return root / "calib", rig
+    return calibrate_bench(tmp_path_factory.mktemp("device_bench"), scene), VirtualRig(scene)
 
 
 def test_solve_and_the_bench_loop_on_cuda_as_on_the_cpu(bench, tmp_path):

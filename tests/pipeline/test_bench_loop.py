@@ -6,15 +6,13 @@ import json
 import pytest
 import torch
 
-from torchproj.calib import write_graycode_folder
 from torchproj.cli import main
 from torchproj.core import CaptureError, InputError, read_image, write_image
-from torchproj.pipeline import simulate_calibration
 from torchproj.pipeline.bench_loop import refine_bundle
 from torchproj.scene import parse_scene, shown_scene
 from torchproj.sim import VirtualRig
 
-from ..helpers import RigDisplay, small_config
+from ..helpers import RigDisplay, calibrate_bench, small_config
 
 TARGETS = ["near=camera", "far=coffee"]
 
@@ -24,16 +22,10 @@ def bench(tmp_path_factory):
     """A small two-plane bench calibrated from files, and the world the patterns are then shown in:
     the upper projector's lamp 25% brighter than at calibration."""
     data = small_config(camera=(200, 150), projector=(128, 96))
-    scene = parse_scene(data, name="bench")
-    root = tmp_path_factory.mktemp("bench")
-    rig = VirtualRig(scene)
-    for st in scene.states:
-        for j, p in enumerate(scene.projectors):
-            write_graycode_folder(root / "captures" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
-    assert main(["calibrate", str(root / "captures"), "--projector", "128x96", "--out", str(root / "calib")]) == 0
+    calib = calibrate_bench(tmp_path_factory.mktemp("bench"), parse_scene(data, name="bench"))
     data["show"] = {"projectors": {"upper": {"gain": 1.25}}}
     world = VirtualRig(shown_scene(parse_scene(data, name="bench")))
-    return root / "calib", world
+    return calib, world
 
 
 def photograph(world, step):
