@@ -228,6 +228,32 @@ def test_a_transport_entry_is_mapped_and_one_kept_without_its_transpose_still_re
         assert torch.equal(getattr(read, name), getattr(built, name)), name
 
 
+def test_reading_an_entry_says_nothing_of_sparse_invariant_checks(cache, monkeypatch):
+    """torch.load (2.11 with CUDA) warned on every run from the cache that sparse invariant checks are
+    implicitly off; they are off as for every CSR torchproj builds, and a user is not told each time."""
+    import warnings
+
+    scene = _scene()
+    cal, _ = cached_calibration(scene)
+    targets = scene_targets(scene, None, cal.rig)
+    key = transport_key(calibration_key(scene, oracle=False, bits=None, plane_tolerance=1.0), targets,
+                        footprint="area", merge=False, colour_weights="grey", device="cpu")
+    cached_transport(key, lambda: [build_transport(cal.states, targets, merge=False)])
+    load = torch.load
+
+    def load_as_cuda_torch_does(*args, **kwargs):
+        warnings.warn("Sparse invariant checks are implicitly disabled. Memory errors (e.g. SEGFAULT) will occur "
+                      "when operating on a sparse tensor which violates the invariants", UserWarning, stacklevel=2)
+        return load(*args, **kwargs)
+
+    monkeypatch.setattr(torch, "load", load_as_cuda_torch_does)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        (read,), how = cached_transport(key, lambda: pytest.fail("built again instead of read"))
+    assert how == "read" and read.shape[0] > 0
+    assert not [w for w in seen if "Sparse invariant" in str(w.message)]
+
+
 def test_the_key_follows_the_scene_and_options_not_its_name_targets_or_show():
     scene = _scene()
     key = calibration_key(scene, oracle=False, bits=None, plane_tolerance=1.0)

@@ -290,7 +290,12 @@ def _read(path: Path, key: str, what: str, make, device="cpu"):
         # Mapped, not read, where the system lets a mapped file be removed or replaced (POSIX): a run
         # touches only the parts it uses (a calibration holds every map, share and capture; scoring
         # reads a few), and those straight from the page cache.
-        payload = torch.load(path, map_location=device, weights_only=False, mmap=os.name == "posix")
+        # torch.load asks whether to validate the sparse matrices it rebuilt, and (2.11 with CUDA) warns on
+        # every run that the checks are off unless asked for: they stay off, as for every CSR torchproj
+        # builds (core.sparse.csr_tensor), and the warning is not shown.
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
+            payload = torch.load(path, map_location=device, weights_only=False, mmap=os.name == "posix")
         if not isinstance(payload, dict) or payload.get("key") != key:
             raise ValueError("its key does not match its name")
         made = make(payload)
