@@ -290,10 +290,11 @@ def _read(path: Path, key: str, what: str, make, device="cpu"):
         # Mapped, not read, where the system lets a mapped file be removed or replaced (POSIX): a run
         # touches only the parts it uses (a calibration holds every map, share and capture; scoring
         # reads a few), and those straight from the page cache.
-        # torch.load asks whether to validate the sparse matrices it rebuilt, and (2.11 with CUDA) warns on
-        # every run that the checks are off unless asked for: they stay off, as for every CSR torchproj
-        # builds (core.sparse.csr_tensor), and the warning is not shown.
+        # Rebuilding the sparse matrices, torch.load (2.11 with CUDA) warned on every run that CSR support
+        # is beta and that invariant checks are off unless asked for: they stay off, as for every CSR
+        # torchproj builds, and neither warning is shown (core.sparse.csr_tensor silences the same two).
         with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
             warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
             payload = torch.load(path, map_location=device, weights_only=False, mmap=os.name == "posix")
         if not isinstance(payload, dict) or payload.get("key") != key:
