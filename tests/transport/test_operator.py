@@ -77,6 +77,38 @@ def test_with_rhs_carries_the_coarse_levels(op):
         torch.testing.assert_close(ne.jacobi().q, ref.jacobi().q, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("form", ["matrix", "products"])
+def test_what_one_set_of_targets_computes_on_q_every_other_set_reuses(form):
+    """Copies made before anything was solved (a video's frames, a loop's steps): the scaling, bounds
+    and coarse levels one copy's solve computes are its parent's and every other copy's, not computed
+    again per copy; each copy's targets are its own (against a fresh build with them)."""
+    from torchproj.solve import solve_fista
+
+    cals = synthetic_calibration(shape=(40, 50), sizes=LARGE)
+    op = build_transport(cals, targets(channels=3), scale=0.8).double()
+    root = op.normal_equations(form)
+    fresh = [build_transport(cals, targets(channels=3, seed=s), scale=0.8).double() for s in (7, 8)]
+    first, second = (op.with_rhs(f.rhs, f.constant) for f in fresh)
+    assert root._jacobi is None and root._coarse is None
+    first.normal_equations(form).jacobi().lipschitz()  # what a solve on the first copy computes
+    for level, _ in first.coarse_levels(2, form):
+        level.jacobi().lipschitz()
+    assert root._jacobi is not None and root._jacobi._lipschitz is not None and root._coarse is not None
+    ne = second.normal_equations(form)
+    assert ne.jacobi().scale is root.jacobi().scale and ne.lipschitz() == root.lipschitz()
+    assert ne.jacobi().lipschitz() == root.jacobi().lipschitz()
+    for (level, block), (mine, _), (ref, ref_block) in zip(op.coarse_levels(2, form), second.coarse_levels(2, form),
+                                                         fresh[1].coarse_levels(2, form)):
+        assert torch.equal(block, ref_block)
+        shared = (mine.Q is level.Q) if form == "matrix" else (mine.A is level.A)
+        assert shared and mine.jacobi().scale is level.jacobi().scale
+        torch.testing.assert_close(mine.q, ref.q, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(mine.jacobi().q, ref.jacobi().q, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ne.jacobi().q, fresh[1].normal_equations(form).jacobi().q, rtol=1e-12, atol=1e-12)
+    solved = solve_fista(second, (0, 1), max_iter=200, tol=1e-9).objective
+    assert solved == pytest.approx(solve_fista(fresh[1], (0, 1), max_iter=200, tol=1e-9).objective, rel=1e-6)
+
+
 def test_bounds_of_the_scaled_system_are_shared_by_every_set_of_targets(op):
     ne = op.normal_equations()
     assert ne.bound(0.7) == 0.7  # no scaling: a number

@@ -470,6 +470,7 @@ class TransportOperator(nn.Module):
         check_shape(rhs, "rhs", [self.shape[0], "C"])
         check_finite(rhs, "rhs")
         rhs = rhs.to(self.val.device, self.val.dtype)
+        self._level_blocks(0)  # the coarse levels' blocks: one list, whichever operator builds them
         new = copy.copy(self)
         new._buffers = dict(self._buffers)
         new._buffers["rhs"] = rhs
@@ -626,6 +627,9 @@ class NormalEquations:
         self._jacobi = None
         self._coarse = None
         self._bounds = {}
+        # The relative (with_targets) that holds what depends on Q alone: its scaling, bound and coarse
+        # levels are computed once there, whichever relative asks first. None: this one holds its own.
+        self._origin = None
 
     @classmethod
     def from_operator(cls, op: TransportOperator, Q: torch.Tensor | None = None) -> "NormalEquations":
@@ -642,17 +646,20 @@ class NormalEquations:
         return cls(Q.to(op.val.device), op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
 
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
-        """The same ``Q`` (and its cached scaling and Lipschitz bound) with new ``q`` and ``c``."""
+        """The same ``Q`` with new ``q`` and ``c``. What depends on ``Q`` alone (the Jacobi scaling, the
+        Lipschitz bounds, the coarse levels' ``P^T Q P``) is shared with this system and every other
+        it was made from or makes: computed once, by whichever solves first (a video's frames, a
+        loop's steps and a batch of target sets each solved on :meth:`TransportOperator.with_rhs`
+        paid them again on every solve)."""
         new = self._with(q, c)
-        new._lipschitz = self._lipschitz
-        if self._jacobi is not None:
-            s = self._jacobi.scale
-            new._jacobi = self._jacobi._with(q * s, c, s)
-            new._jacobi._lipschitz = self._jacobi._lipschitz
-            new._jacobi._bounds = self._jacobi._bounds
-        if self._coarse is not None:
-            block, coarse = self._coarse
-            new._coarse = (block, coarse.with_targets(_sum_blocks(q, block, coarse.q.shape[0]), c))
+        new._origin = self._origin if self._origin is not None else self
+        return new
+
+    def _sharing(self, origin: "NormalEquations", q: torch.Tensor) -> "NormalEquations":
+        """``origin`` (the scaled or a coarse system of this one's origin) with ``q`` and this system's
+        constant, sharing what is computed on it."""
+        new = origin._with(q, self.c, origin.scale)
+        new._origin, new._bounds = origin, origin._bounds
         return new
 
     def _with(self, q: torch.Tensor, c: torch.Tensor, scale: torch.Tensor | None = None) -> "NormalEquations":
@@ -665,6 +672,9 @@ class NormalEquations:
         ``block`` is :math:`(N_{cols},)` (see :func:`cell_blocks`); the result is cached for that
         tensor, and :meth:`with_targets` carries it over with the new targets.
         """
+        if (self._coarse is None or self._coarse[0] is not block) and self._origin is not None:
+            coarse = self._origin.coarsened(block)
+            self._coarse = (block, self._sharing(coarse, _sum_blocks(self.q, block, coarse.q.shape[0])))
         if self._coarse is None or self._coarse[0] is not block:
             from scipy.sparse import csr_matrix
 
@@ -697,6 +707,9 @@ class NormalEquations:
 
         ``rows``: the row of each of ``Q``'s entries (:func:`entry_rows`), where the caller has them.
         """
+        if self._jacobi is None and self._origin is not None:
+            j = self._origin.jacobi(rows)
+            self._jacobi = self._sharing(j, self.q * j.scale)
         if self._jacobi is None:
             crow, col, val = self.Q.crow_indices(), self.Q.col_indices(), self.Q.values()
             rows = entry_rows(self.Q) if rows is None else rows
@@ -773,6 +786,8 @@ class NormalEquations:
         the largest eigenvalue from above (Collatz-Wielandt) and tightens as x converges. Otherwise
         the power-iteration estimate gets a 5% margin.
         """
+        if self._lipschitz is None and self._origin is not None:
+            self._lipschitz = self._origin.lipschitz(iterations)
         if self._lipschitz is None:
             x = torch.ones(self.q.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
             for _ in range(iterations):
@@ -849,6 +864,9 @@ class ProductNormalEquations(NormalEquations):
 
     def coarsened(self, block: torch.Tensor) -> "ProductNormalEquations":
         """``A P`` (columns summed per ``block``), ``P^T q`` and ``c``; cached for that tensor."""
+        if (self._coarse is None or self._coarse[0] is not block) and self._origin is not None:
+            coarse = self._origin.coarsened(block)
+            self._coarse = (block, self._sharing(coarse, _sum_blocks(self.q, block, coarse.q.shape[0])))
         if self._coarse is None or self._coarse[0] is not block:
             n = int(block.max()) + 1
             tied = _tie_columns(self.A, block, n)
@@ -859,6 +877,9 @@ class ProductNormalEquations(NormalEquations):
     def jacobi(self) -> "ProductNormalEquations":
         """The system in ``z = p / scale`` with ``scale = diag(A^T A)^-1/2``: A's columns scaled to unit
         norm (cached)."""
+        if self._jacobi is None and self._origin is not None:
+            j = self._origin.jacobi()
+            self._jacobi = self._sharing(j, self.q * j.scale)
         if self._jacobi is None:
             crow, col, val = self.A.crow_indices(), self.A.col_indices(), self.A.values()
             norm = torch.zeros(self.A.shape[1], dtype=val.dtype, device=val.device).index_add_(0, col.long(), val * val)
