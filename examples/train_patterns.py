@@ -3,6 +3,7 @@
     python examples/train_patterns.py                  # the paper's rig at half resolution, ~1 minute on 2 cores
     python examples/train_patterns.py --scale 1        # the full-size rig
     python examples/train_patterns.py --loss kornia    # kornia's SSIM (11x11 Gaussian window) instead
+    python examples/train_patterns.py --device cuda    # on a GPU (the default where torch sees one)
 
 A training-style script as a user of the library would write it: calibrate the virtual rig (or
 load a bench's bundle with ``torchproj.load_bundle``), build the image-space model, run a clamped
@@ -80,22 +81,25 @@ def main(argv=None) -> int:
     parser.add_argument("--lr", type=float, default=0.02, help="initial learning rate (default 0.02)")
     parser.add_argument("--l2-weight", type=float, default=0.1, help="weight of the relative squared error (0.1)")
     parser.add_argument("--loss", choices=["torchproj", "kornia"], default="torchproj")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
+                        help="torch device (default: cuda where torch sees a GPU, else cpu)")
     parser.add_argument("--out", type=Path, default=Path("out/train_patterns"))
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
 
     scene = torchproj.load_scene(args.scene, scale=args.scale)
-    calibration = torchproj.calibrate_virtual(scene)  # on a bench: torchproj.load_bundle("calib")
+    calibration = torchproj.calibrate_virtual(scene, args.device)  # on a bench: torchproj.load_bundle("calib")
     targets = torchproj.scene_targets(scene, rig=calibration.rig)
-    model = torchproj.ProjectionModel.from_calibration(calibration, targets)  # starts at the least-squares optimum
+    # Starts at the least-squares optimum; the model, its loss and the optimiser live on the device.
+    model = torchproj.ProjectionModel.from_calibration(calibration, targets, device=args.device)
     before = torchproj.evaluate_patterns(calibration, model.to_patterns(), targets, scale=model.scale)
     print(f"calibrated and solved least squares in {time.perf_counter() - t0:.1f} s; training {args.steps} steps")
 
     with atomic_output(args.out) as stage:
         history = train(model, args.loss, args.steps, args.lr, args.l2_weight, stage / "checkpoint.pt")
         # Resume as a later script would: a fresh model of the same rig, its weights from the checkpoint.
-        resumed = torchproj.ProjectionModel.from_calibration(calibration, targets, start=None)
-        resumed.load_state_dict(torch.load(stage / "checkpoint.pt")["model"])
+        resumed = torchproj.ProjectionModel.from_calibration(calibration, targets, start=None, device=args.device)
+        resumed.load_state_dict(torch.load(stage / "checkpoint.pt", map_location=args.device)["model"])
         patterns = resumed.to_patterns()
         after = torchproj.evaluate_patterns(calibration, patterns, targets, scale=resumed.scale)
         (stage / "patterns").mkdir()
@@ -104,7 +108,8 @@ def main(argv=None) -> int:
         run_overview(stage / "overview.png", patterns, [p.name for p in scene.projectors], after.targets,
                      title=f"Fig. 1: train_patterns: scene {scene.name} at scale {args.scale}, {args.steps} Adam steps "
                            f"on {args.loss}'s SSIM")
-        report = {"scene": scene.name, "scale": args.scale, "loss": args.loss, "steps": args.steps, "lr": args.lr,
+        report = {"scene": scene.name, "scale": args.scale, "device": args.device, "loss": args.loss,
+                  "steps": args.steps, "lr": args.lr,
                   "l2_weight": args.l2_weight, "loss_history": history, "seconds": round(time.perf_counter() - t0, 1),
                   "evaluation": torchproj.pipeline.EVALUATION,
                   "targets": [{**a.as_dict(), "least_squares": {"psnr_db": b.psnr_db, "ssim": b.ssim,
