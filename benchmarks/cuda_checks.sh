@@ -8,6 +8,12 @@
 # CUDA sections of benchmarks/solvers.py (--cuda-only) and benchmarks/batch_solves.py. Writes
 # OUT/summary.txt (each step's exit status and wall seconds), OUT/log.txt (every step's output) and
 # the two benchmarks' results. DEVICE (default cuda) lets the script itself be tried on a CPU.
+# On the GPU machines (their image: torch with CUDA, no torchproj dependencies beyond numpy, scipy,
+# scikit-image and an OpenCV without contrib), carry kornia, kornia_rs and platformdirs as wheels
+# (the device tool's README says how) and put benchmarks/device_shim on PYTHONPATH for OpenCV's
+# Gray-code generator:
+#     pip install --no-index --no-deps --target /tmp/site .whl/*.whl
+#     PYTHONPATH=/tmp/site:$PWD/benchmarks/device_shim:$PWD bash benchmarks/cuda_checks.sh $OUT
 # CHECKS_BUDGET_S (default 380) skips the steps that would start after that many seconds;
 # CHECKS_SKIP names steps to leave out (space-separated, e.g. "test_cuda run_refine").
 set -u

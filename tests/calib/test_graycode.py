@@ -553,3 +553,20 @@ def test_fitting_again_near_changed_pixels_is_the_whole_fit():
     assert torch.equal(torch.isnan(whole), torch.isnan(again))
     assert float((torch.nan_to_num(whole) - torch.nan_to_num(again)).abs().max()) < 1e-3
     assert float((torch.nan_to_num(whole) - torch.nan_to_num(first)).abs().max()) > 0.01  # the change moved the map
+
+
+@pytest.mark.parametrize("size", [(1024, 768), (640, 480), (300, 200), (97, 51)])
+def test_the_gpu_machines_stand_in_generator_is_opencvs(size):
+    """benchmarks/device_shim gives machines whose OpenCV lacks the contrib modules OpenCV's Gray code:
+    the same images, in the same order."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "device_shim" / "sitecustomize.py"
+    spec = importlib.util.spec_from_file_location("device_shim", path)
+    shim = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(shim)  # leaves this cv2 alone: it has structured_light
+    ok, want = cv2.structured_light.GrayCodePattern.create(*size).generate()
+    done, got = shim.GrayCodePattern.create(*size).generate()
+    assert ok and done and len(got) == len(want)
+    assert all(np.array_equal(a, b) for a, b in zip(got, want))
