@@ -12,8 +12,11 @@ keeps tensors together, as on a GPU), and what a GPU refuses is refused here too
   tensors to be on the same device"), except copies between devices and a device tensor indexed
   by host indices, which torch allows.
 
-It checks where tensors live, not the numbers or the speed: kernels that differ on a GPU, and
-``torch.Generator`` devices, are only checked on a real one (``tests/solve/test_cuda.py``).
+It checks where tensors live, not the numbers or the speed: kernels that differ or fail on a GPU
+(cuSOLVER's batched eigen-decomposition did) are only checked on a real one
+(``tests/solve/test_cuda.py``, ``benchmarks/cuda_checks.sh``). ``torch.Generator(device="cuda")``,
+``torch.load(map_location="cuda")`` and ``nn.Parameter`` of a device tensor give host objects that
+read as on the device; ``torch.cuda.synchronize`` and the like do nothing.
 """
 
 from __future__ import annotations
