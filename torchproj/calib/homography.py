@@ -97,7 +97,7 @@ def fit_homography(prj_xy: torch.Tensor, *, block: tuple[int, int] = (1, 1), max
     cam = pixel_grid(*prj_xy.shape[:2], device=prj_xy.device, dtype=torch.float64)[ok]
     prj = prj_xy[ok].double()
     pick = _spread(n, max_points, prj_xy.device)
-    matrix = find_homography_dlt_iterated(cam[pick][None], prj[pick][None], torch.ones(1, len(pick), dtype=torch.float64, device=prj_xy.device),
+    matrix = find_homography_dlt_iterated(cam[pick][None], prj[pick][None], prj.new_ones(1, len(pick)),
                                           soft_inl_th=max(soft_threshold, bx, by), n_iter=iterations)[0]
     check(bool(torch.isfinite(matrix).all()), "the homography fit failed (degenerate correspondences: are the decoded "
                                               "pixels on a line?)")

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..core.checks import check, check_shape
+from ..core.conventions import to_numpy
 
 __all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
 
@@ -207,10 +208,10 @@ def fit_response(levels: torch.Tensor, response: torch.Tensor, normalised: bool 
     if response.dim() == 1:
         response = response[:, None]
     check_shape(response, "response", [levels.shape[0], "C"])
-    x = levels.double().cpu().numpy()  # scipy fits on the host
+    x = to_numpy(levels.double())  # scipy fits on the host
     params = []
     for ch in range(response.shape[1]):
-        y = response[:, ch].double().cpu().numpy()
+        y = to_numpy(response[:, ch].double())
         if normalised:
             (b,), _ = curve_fit(lambda x, b: np.power(x, b), x, y, p0=(2.0,), bounds=([0.2], [6.0]), maxfev=10000)
             params.append((1.0, b, 0.0))
