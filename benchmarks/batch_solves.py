@@ -47,6 +47,8 @@ def main() -> None:
     ap.add_argument("--sets", type=int, default=16)
     ap.add_argument("--device", default="cpu", help="torch device (default cpu)")
     args = ap.parse_args()
+    if args.sets < 1:
+        ap.error(f"--sets must be at least 1, got {args.sets}")
     scene = load_scene("paper_two_planes", scale=args.scale)
     cal, _ = cached_calibration(scene, device=args.device)
     targets = scene_targets(scene, None, cal.rig)

@@ -40,6 +40,8 @@ def main(argv=None) -> int:
                         help="which commands' rows to time (default both)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of each command that reads the cache (median)")
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats must be at least 1, got {args.repeats}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         os.environ[CACHE_DIR_ENV] = str(Path(tmp) / "cache")  # the children inherit it
