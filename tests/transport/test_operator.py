@@ -289,3 +289,22 @@ def test_a_transpose_given_is_the_one_computed_and_a_wrong_one_is_refused(op):
     with pytest.raises(InputError, match="transpose"):
         TransportOperator(op._csr(), op.rhs, op.column_projector, op.column_cell, op.projector_sizes,
                           transpose=(op.t_crow[:-1], op.t_col, op.t_val))
+
+
+@pytest.mark.parametrize("index_dtype", [torch.int32, torch.int64])
+@pytest.mark.parametrize("given_rows", [False, True])
+def test_the_jacobi_scaling_is_dense_algebra_with_either_index_type(op, index_dtype, given_rows):
+    """``S Q S`` with ``S = diag(Q)^-1/2`` against float64 dense algebra, on Q's indices as scipy's product
+    gives them (int32) and as torch's own (int64), with each entry's row given (EO's call) or not."""
+    from torchproj.core.sparse import csr_tensor
+    from torchproj.transport.operator import NormalEquations, entry_rows
+
+    Q = op.normal_equations("matrix").Q
+    Q = csr_tensor(Q.crow_indices().to(index_dtype), Q.col_indices().to(index_dtype), Q.values(), Q.shape)
+    ne = NormalEquations(Q, torch.ones(Q.shape[0], 1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64))
+    scaled = ne.jacobi(entry_rows(Q) if given_rows else None)
+    dense = Q.to_dense()
+    s = dense.diagonal().rsqrt()
+    torch.testing.assert_close(scaled.Q.to_dense(), s[:, None] * dense * s[None, :], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(scaled.scale[:, 0], s, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(scaled.Q.to_dense().diagonal(), torch.ones_like(s), rtol=1e-12, atol=1e-12)

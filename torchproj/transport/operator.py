@@ -712,11 +712,17 @@ class NormalEquations:
             self._jacobi = self._sharing(j, self.q * j.scale)
         if self._jacobi is None:
             crow, col, val = self.Q.crow_indices(), self.Q.col_indices(), self.Q.values()
-            rows = entry_rows(self.Q) if rows is None else rows
-            diag = torch.zeros(self.Q.shape[0], dtype=val.dtype, device=val.device).index_add_(
-                0, rows, torch.where(rows == col, val, torch.zeros_like(val)))
+            counts = crow.diff()
+            # Each entry's row in the indices' own type (half the bytes of int64 where they are int32,
+            # as scipy's product gives them); a CSR row holds its diagonal once, so it is written, not
+            # summed, and each entry's row scale is repeated along its row, not gathered by row index.
+            rows = torch.repeat_interleave(torch.arange(self.Q.shape[0], dtype=col.dtype, device=col.device),
+                                           counts) if rows is None else rows
+            on = rows == col
+            diag = torch.zeros(self.Q.shape[0], dtype=val.dtype, device=val.device)
+            diag[col[on].long()] = val[on]
             s = diag.clamp_min(1e-30).rsqrt()
-            Q = csr_tensor(crow, col, val * s[rows] * s[col], self.Q.shape)
+            Q = csr_tensor(crow, col, torch.repeat_interleave(s, counts).mul_(val).mul_(s[col]), self.Q.shape)
             self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
         return self._jacobi
 
