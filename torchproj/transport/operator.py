@@ -712,17 +712,15 @@ class NormalEquations:
             self._jacobi = self._sharing(j, self.q * j.scale)
         if self._jacobi is None:
             crow, col, val = self.Q.crow_indices(), self.Q.col_indices(), self.Q.values()
-            counts = crow.diff()
-            # Each entry's row in the indices' own type (half the bytes of int64 where they are int32,
-            # as scipy's product gives them); a CSR row holds its diagonal once, so it is written, not
-            # summed, and each entry's row scale is repeated along its row, not gathered by row index.
-            rows = torch.repeat_interleave(torch.arange(self.Q.shape[0], dtype=col.dtype, device=col.device),
-                                           counts) if rows is None else rows
+            # Each entry's row in the indices' own type (int32 as scipy's product gives them); a CSR row
+            # holds its diagonal once, so it is written, not summed, and each entry's row scale is
+            # repeated along its row, not gathered by row index.
+            rows = entry_rows(self.Q, col.dtype) if rows is None else rows
             on = rows == col
             diag = torch.zeros(self.Q.shape[0], dtype=val.dtype, device=val.device)
             diag[col[on].long()] = val[on]
             s = diag.clamp_min(1e-30).rsqrt()
-            Q = csr_tensor(crow, col, torch.repeat_interleave(s, counts).mul_(val).mul_(s[col]), self.Q.shape)
+            Q = csr_tensor(crow, col, torch.repeat_interleave(s, crow.diff()).mul_(val).mul_(s[col]), self.Q.shape)
             self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
         return self._jacobi
 
@@ -901,10 +899,11 @@ class ProductNormalEquations(NormalEquations):
         return float(self.A.values().min()) >= 0
 
 
-def entry_rows(matrix: torch.Tensor) -> torch.Tensor:
-    """The row of every stored entry of a CSR matrix, :math:`(nnz,)` int64 (with ``col_indices``: its COO form)."""
+def entry_rows(matrix: torch.Tensor, dtype: torch.dtype = torch.int64) -> torch.Tensor:
+    """The row of every stored entry of a CSR matrix, :math:`(nnz,)` of ``dtype`` (with ``col_indices``:
+    its COO form; int32 halves the bytes where an index only compares or gathers)."""
     crow = matrix.crow_indices()
-    return torch.repeat_interleave(torch.arange(matrix.shape[0], device=crow.device), crow.diff())
+    return torch.repeat_interleave(torch.arange(matrix.shape[0], dtype=dtype, device=crow.device), crow.diff())
 
 
 def _tie_columns(matrix: torch.Tensor, block: torch.Tensor, n: int) -> torch.Tensor:
