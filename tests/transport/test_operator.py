@@ -308,3 +308,32 @@ def test_the_jacobi_scaling_is_dense_algebra_with_either_index_type(op, index_dt
     torch.testing.assert_close(scaled.Q.to_dense(), s[:, None] * dense * s[None, :], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(scaled.scale[:, 0], s, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(scaled.Q.to_dense().diagonal(), torch.ones_like(s), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3, 500])
+def test_the_normal_matrix_is_dense_algebra_whatever_the_number_of_blocks(op, parts):
+    """``A^T A`` built in row blocks against float64 dense algebra: sorted columns in every row, and the
+    same to the bit as one block (each entry summed over the same rows in the same order); more blocks
+    than rows leave some empty."""
+    from torchproj.transport.operator import normal_matrix
+
+    Q = normal_matrix(op.crow, op.col, op.val, op.shape, parts=parts)
+    dense = op._csr().to_dense()
+    torch.testing.assert_close(Q.to_dense(), dense.T @ dense, rtol=1e-12, atol=1e-12)
+    crow, col = Q.crow_indices().long(), Q.col_indices().long()
+    rows = torch.repeat_interleave(torch.arange(Q.shape[0]), crow.diff())
+    assert bool((col[1:] > col[:-1])[rows[1:] == rows[:-1]].all())
+    whole = normal_matrix(op.crow, op.col, op.val, op.shape, parts=1)
+    assert torch.equal(Q.crow_indices(), whole.crow_indices()) and torch.equal(Q.col_indices(), whole.col_indices())
+    assert torch.equal(Q.values(), whole.values())
+
+
+def test_the_normal_matrix_of_a_float32_operator_is_summed_in_float64(op):
+    """A float32 ``A`` gets the float64 sums rounded once, not float32 sums."""
+    from torchproj.transport.operator import normal_matrix
+
+    single = op.float()
+    Q = normal_matrix(single.crow, single.col, single.val, single.shape, parts=2)
+    wide = normal_matrix(single.crow, single.col, single.val.double(), single.shape, parts=2)
+    assert Q.dtype == torch.float32
+    assert torch.equal(Q.values(), wide.values().float())
