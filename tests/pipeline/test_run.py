@@ -9,7 +9,7 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import InputError
-from torchproj.pipeline import calibrate_virtual, run_markdown, run_virtual, target_image
+from torchproj.pipeline import DEFAULT_IMAGES, calibrate_virtual, run_markdown, run_virtual, target_image
 from torchproj.experiments import depth_sweep
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
@@ -265,6 +265,37 @@ def test_target_images_by_name_or_file(tmp_path):
     assert target_image(str(tmp_path / "t.png"), 1).shape == (1, 10, 12)
     with pytest.raises(InputError, match="unknown image"):
         target_image("lena", 1)
+
+
+@pytest.mark.parametrize("name", DEFAULT_IMAGES)
+@pytest.mark.parametrize("channels", [1, 3])
+def test_a_default_image_read_from_its_file_is_what_its_loader_gives(name, channels):
+    """The default images scikit-image ships as PNGs are read from the file, without importing its
+    loaders: the same values to the bit as the loader's, in grey and in colour."""
+    import numpy as np
+    from skimage import color, data
+
+    raw = np.asarray(getattr(data, name)())
+    img = raw.astype(np.float32) / 255.0
+    img = img[..., None] if img.ndim == 2 else img
+    if img.shape[-1] == 1 and channels == 3:
+        img = np.repeat(img, 3, -1)
+    elif img.shape[-1] == 3 and channels == 1:
+        img = color.rgb2gray(img)[..., None]
+    assert torch.equal(target_image(name, channels), torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32))
+                       .permute(2, 0, 1))
+
+
+def test_the_default_scene_images_come_without_importing_scipy():
+    """Reading the default scene's targets imports neither ``skimage.io`` nor scipy (0.3 s of a
+    run from the cache); a fresh process tells, as this one has imported both already."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from torchproj.pipeline import target_image; target_image('astronaut', 3); "
+            "target_image('chelsea', 3); print(sorted(m for m in ('scipy', 'skimage.io') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
 
 
 def test_oracle_knows_the_pixels_a_decoder_could_see(box):

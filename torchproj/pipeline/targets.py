@@ -19,6 +19,10 @@ from ..transport import Target
 __all__ = ["DEFAULT_IMAGES", "default_images", "scene_images", "scene_targets", "target_image"]
 
 DEFAULT_IMAGES = ("astronaut", "chelsea", "coffee", "rocket", "camera")
+# Grey from RGB by the weights of scikit-image's rgb2gray (Poynton's luminance for CRT phosphors),
+# applied here because importing its colour module imports scipy (0.1 s of a run from the cache);
+# tests/pipeline/test_run.py compares the two to the bit.
+LUMINANCE = (0.2125, 0.7154, 0.0721)
 
 
 def target_image(name: str, channels: int) -> torch.Tensor:
@@ -28,10 +32,12 @@ def target_image(name: str, channels: int) -> torch.Tensor:
         :math:`(C, h, w)` float in [0, 1] with the camera's channel count (RGB to grey by luminance,
         grey repeated to RGB, alpha dropped).
     """
-    from skimage import color, data
+    from skimage import data  # a lazy package: its loaders import on first use
 
     if Path(name).suffix:
         img = read_image(name).permute(1, 2, 0).numpy()
+    elif (shipped := _shipped_file(name)) is not None:
+        img = read_image(shipped).permute(1, 2, 0).numpy()
     else:
         check(name in getattr(data, "__all__", dir(data)) and not name.startswith("_"),
               f"unknown image {name!r}: give an image file (with its suffix) or a scikit-image test image "
@@ -48,8 +54,25 @@ def target_image(name: str, channels: int) -> torch.Tensor:
     if img.shape[-1] == 1 and channels == 3:
         img = np.repeat(img, 3, -1)
     elif img.shape[-1] == 3 and channels == 1:
-        img = color.rgb2gray(img)[..., None]
+        img = (img @ np.asarray(LUMINANCE, dtype=img.dtype))[..., None]
     return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)
+
+
+def _shipped_file(name: str) -> Path | None:
+    """The PNG file scikit-image ships for default image ``name`` (:data:`DEFAULT_IMAGES`), where it
+    is there; None otherwise (then its loader reads it).
+
+    Its loader gives the same pixels from the same file, but the first call imports ``skimage.io``,
+    imageio and scipy (0.3 s of a 4.5 s run from the cache); the project's own reader takes 0.03 s.
+    Only PNGs, which every decoder reads to the same values, and only the default images, whose
+    loaders read their file as it is (``tests/pipeline/test_run.py`` compares each with its loader).
+    """
+    if name not in DEFAULT_IMAGES:
+        return None
+    from skimage import data
+
+    path = Path(data.__file__).parent / f"{name}.png"
+    return path if path.is_file() else None
 
 
 def default_images(count: int, channels: int) -> list[torch.Tensor]:

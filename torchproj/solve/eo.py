@@ -36,8 +36,6 @@ import time
 import numpy as np
 import torch
 from kornia.geometry.epipolar import find_fundamental
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from ..core.checks import check
 from ..core.progress import progress_bar
@@ -142,6 +140,9 @@ def _q_entries(Q: torch.Tensor):
 def _within(op: TransportOperator, group: torch.Tensor, entries=None) -> torch.Tensor:
     """Connected components of the columns through the rows whose cells all lie in one group,
     numbered group by group: :math:`(N_{cols},)` int64."""
+    from scipy.sparse import csr_matrix  # here: a run that solves with another method need not import scipy
+    from scipy.sparse.csgraph import connected_components
+
     Q = op.normal_equations().Q
     rows, col, _ = _q_entries(Q) if entries is None else entries
     same = (group[rows] == group[col]).to(torch.int8).cpu().numpy()
