@@ -7,6 +7,7 @@ import torch
 
 from torchproj.core.errors import InputError
 from torchproj.transport import StateCalibration, TransportOperator, build_transport, cell_blocks
+from torchproj.core.sparse import csr_tensor
 from torchproj.transport.operator import _blockwise_sum
 
 from ..helpers import LARGE, synthetic_calibration, targets
@@ -311,29 +312,34 @@ def test_the_jacobi_scaling_is_dense_algebra_with_either_index_type(op, index_dt
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3, 500])
-def test_the_normal_matrix_is_dense_algebra_whatever_the_number_of_blocks(op, parts):
+@pytest.mark.parametrize("transpose_given", [False, True])
+def test_the_gram_matrix_is_dense_algebra_whatever_the_number_of_blocks(op, parts, transpose_given):
     """``A^T A`` built in row blocks against float64 dense algebra: sorted columns in every row, and the
-    same to the bit as one block (each entry summed over the same rows in the same order); more blocks
-    than rows leave some empty."""
-    from torchproj.transport.operator import normal_matrix
+    same to the bit as scipy's one whole product (each entry summed over the same rows in the same
+    order), with the operator's transpose or one made here; more blocks than rows leave some empty."""
+    from scipy.sparse import csr_matrix
 
-    Q = normal_matrix(op.crow, op.col, op.val, op.shape, parts=parts)
+    from torchproj.transport.operator import gram_matrix
+
+    Q = gram_matrix(op._csr(), op._csr(transpose=True) if transpose_given else None, parts=parts)
     dense = op._csr().to_dense()
     torch.testing.assert_close(Q.to_dense(), dense.T @ dense, rtol=1e-12, atol=1e-12)
     crow, col = Q.crow_indices().long(), Q.col_indices().long()
     rows = torch.repeat_interleave(torch.arange(Q.shape[0]), crow.diff())
     assert bool((col[1:] > col[:-1])[rows[1:] == rows[:-1]].all())
-    whole = normal_matrix(op.crow, op.col, op.val, op.shape, parts=1)
-    assert torch.equal(Q.crow_indices(), whole.crow_indices()) and torch.equal(Q.col_indices(), whole.col_indices())
-    assert torch.equal(Q.values(), whole.values())
+    a = csr_matrix((op.val.numpy(), op.col.numpy(), op.crow.numpy()), shape=op.shape)
+    whole = (a.T @ a).tocsr()
+    whole.sort_indices()
+    assert torch.equal(crow, torch.from_numpy(whole.indptr).long()) and torch.equal(col, torch.from_numpy(whole.indices).long())
+    assert torch.equal(Q.values(), torch.from_numpy(whole.data))
 
 
-def test_the_normal_matrix_of_a_float32_operator_is_summed_in_float64(op):
+def test_the_gram_matrix_of_a_float32_operator_is_summed_in_float64(op):
     """A float32 ``A`` gets the float64 sums rounded once, not float32 sums."""
-    from torchproj.transport.operator import normal_matrix
+    from torchproj.transport.operator import gram_matrix
 
     single = op.float()
-    Q = normal_matrix(single.crow, single.col, single.val, single.shape, parts=2)
-    wide = normal_matrix(single.crow, single.col, single.val.double(), single.shape, parts=2)
+    Q = gram_matrix(single._csr(), parts=2)
+    wide = gram_matrix(csr_tensor(single.crow, single.col, single.val.double(), single.shape), parts=2)
     assert Q.dtype == torch.float32
     assert torch.equal(Q.values(), wide.values().float())

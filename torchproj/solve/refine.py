@@ -53,8 +53,8 @@ from .solvers import check_bounds, solve_fista
 __all__ = ["OVERPROMISED", "REFINE_SOLVER_ITERATIONS", "RefineResult", "captured_loss", "carry_patterns", "refine_patterns"]
 
 # FISTA iterations per loop step: the start is the last iterate, one capture away from the optimum,
-# so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.28-0.44 s
-# (1.28-1.42 s the first after re-registering: it builds the new model's Q, its scaling and step bound;
+# so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.26-0.30 s
+# (0.96-1.12 s the first after re-registering: it builds the new model's Q, its scaling and step bound;
 # docs/camera-in-the-loop.md); when 30 was chosen, 60 kept the same captured PSNR there.
 REFINE_SOLVER_ITERATIONS = 30
 # A capture better than the best by less than this share of the surrogate's promised decrease halves
@@ -189,6 +189,10 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
     image = image_objective(objective)
     check(image is None or len(ops) == 1, "an image objective couples the colour channels: refine it on one operator "
                                           "with the grey weight (build_transport)")
+    if remodel is not None:
+        # A remodelled operator's Q is built with scipy, which nothing else in a run from the cache
+        # imports: imported once here (0.1 s), where the loop starts, rather than inside its first update.
+        import scipy.sparse  # noqa: F401
     t0 = time.perf_counter()
     targets = _targets(ops)
     p = start.detach().clamp(lo, hi)

@@ -21,7 +21,7 @@ from torch import nn
 from ..core.checks import check, check_finite, check_shape
 from ..core.sparse import _INT32_LIMIT, csr_from_coo, csr_tensor, spmm
 
-__all__ = ["TransportOperator", "normal_form", "normal_matrix", "NormalEquations", "ProductNormalEquations", "csr_from_coo", "cell_blocks"]
+__all__ = ["TransportOperator", "normal_form", "gram_matrix", "NormalEquations", "ProductNormalEquations", "csr_from_coo", "cell_blocks"]
 
 # Below this many columns a coarser level saves nothing worth its setup.
 _MIN_COARSE_COLUMNS = 64
@@ -635,7 +635,7 @@ class NormalEquations:
     def from_operator(cls, op: TransportOperator, Q: torch.Tensor | None = None) -> "NormalEquations":
         """The normal equations of ``op``; ``Q``: its ``A^T A`` built earlier (a cache's), else built here."""
         if Q is None:
-            Q = normal_matrix(op.crow, op.col, op.val.detach(), op.shape)
+            Q = gram_matrix(op._csr(), op._csr(transpose=True))
         return cls(Q.to(op.val.device), op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
 
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
@@ -802,27 +802,35 @@ class NormalEquations:
         return float(self.Q.values().min()) >= 0
 
 
-def normal_matrix(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: tuple[int, int],
-                  parts: int | None = None) -> torch.Tensor:
-    """``Q = A^T A`` of the CSR matrix ``A`` (its arrays; :math:`(N_{rows}, N_{cols})`), as a CSR tensor
-    :math:`(N_{cols}, N_{cols})` of ``val``'s dtype, summed in float64 on the CPU.
+def gram_matrix(A: torch.Tensor, At: torch.Tensor | None = None, parts: int | None = None) -> torch.Tensor:
+    """``Q = A^T A`` of a CSR matrix ``A`` :math:`(N_{rows}, N_{cols})`, as a CSR tensor
+    :math:`(N_{cols}, N_{cols})` of ``A``'s dtype, summed in float64 on the CPU.
 
     scipy's sparse product builds it, one block of ``Q``'s rows per CPU thread (``parts``; default
     torch's thread count): block ``k`` is ``A^T[rows_k] A``, and scipy lets go of Python's lock inside
     the product, so the blocks run at once. Each entry is summed over the same rows in the same order
     as one whole product sums it, so ``Q`` is the same to the bit whatever ``parts`` is. The blocks are
     cut where ``A^T`` has equal shares of its nonzeros, and written straight into the result's arrays
-    (float64 -> ``val``'s dtype), so no float64 copy of the whole ``Q`` is made beside the blocks.
+    (float64 -> ``A``'s dtype), so no float64 copy of the whole ``Q`` is made beside the blocks.
+
+    Args:
+        At: ``A^T`` in CSR with each row's columns in order, where it is at hand (an operator holds
+            it); else transposed here.
     """
     from concurrent.futures import ThreadPoolExecutor
 
     from scipy.sparse import csr_matrix
 
-    a = csr_matrix((val.cpu().double().numpy(), col.cpu().numpy(), crow.cpu().numpy()), shape=shape)
-    at = a.T.tocsr()
-    parts = max(1, min(torch.get_num_threads() if parts is None else parts, at.shape[0]))
+    def scipy_csr(m: torch.Tensor):
+        return csr_matrix((m.values().detach().cpu().double().numpy(), m.col_indices().cpu().numpy(),
+                           m.crow_indices().cpu().numpy()), shape=tuple(m.shape))
+
+    a = scipy_csr(A)
+    at = a.T.tocsr() if At is None else scipy_csr(At)
+    n = at.shape[0]
+    parts = max(1, min(torch.get_num_threads() if parts is None else parts, n))
     nnz = torch.from_numpy(at.indptr).to(torch.int64)
-    cuts = [0, *torch.searchsorted(nnz, nnz[-1] * torch.arange(1, parts) // parts).tolist(), at.shape[0]]
+    cuts = [0, *torch.searchsorted(nnz, nnz[-1] * torch.arange(1, parts) // parts).tolist(), n]
 
     def block(k: int):
         q = at[cuts[k]:cuts[k + 1]] @ a
@@ -837,16 +845,16 @@ def normal_matrix(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shap
     starts = [0]
     for q in blocks:
         starts.append(starts[-1] + q.nnz)
-    index = torch.int32 if max(at.shape[0], starts[-1]) <= _INT32_LIMIT else torch.int64  # as csr_tensor keeps them
-    crow_q = torch.empty(at.shape[0] + 1, dtype=index)
+    index = torch.int32 if max(n, starts[-1]) <= _INT32_LIMIT else torch.int64  # as csr_tensor keeps them
+    crow_q = torch.empty(n + 1, dtype=index)
     col_q = torch.empty(starts[-1], dtype=index)
-    val_q = torch.empty(starts[-1], dtype=val.dtype)
+    val_q = torch.empty(starts[-1], dtype=A.dtype)
     crow_q[0] = 0
     for k, q in enumerate(blocks):
         crow_q[cuts[k] + 1:cuts[k + 1] + 1] = torch.from_numpy(q.indptr[1:]) + starts[k]
         col_q[starts[k]:starts[k + 1]] = torch.from_numpy(q.indices)
         val_q[starts[k]:starts[k + 1]] = torch.from_numpy(q.data)
-    return csr_tensor(crow_q, col_q, val_q, (at.shape[0], at.shape[0]))
+    return csr_tensor(crow_q, col_q, val_q, (n, n))
 
 
 def normal_form(op: "TransportOperator") -> str:
