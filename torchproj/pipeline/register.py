@@ -241,8 +241,10 @@ class Reregister:
         from .run import build_operators
 
         moved = {}
+        row_target = op.row_target.cpu()
         for state, cal in self.states.items():
-            mine = torch.tensor([self.targets[int(k)].state == state for k in op.row_target.cpu()])
+            # Each row's state through its target's (a Python loop over 2 M rows took 2.3 s a state).
+            mine = torch.tensor([t.state == state for t in self.targets], dtype=torch.bool)[row_target]
             if not bool(mine.any()):
                 moved[state] = cal
                 continue
