@@ -292,6 +292,22 @@ def test_a_transpose_given_is_the_one_computed_and_a_wrong_one_is_refused(op):
                           transpose=(op.t_crow[:-1], op.t_col, op.t_val))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_transpose_is_torchs_conversion_to_the_bit(op, dtype):
+    """scipy's transpose on the CPU gives the arrays torch's CSC conversion gives (each column's rows
+    in order), on the operator's matrix and on one with empty rows and columns."""
+    from torchproj.transport.operator import _transpose
+
+    sparse = torch.zeros(7, 9, dtype=dtype)
+    sparse[0, 3], sparse[0, 8], sparse[4, 3], sparse[6, 0], sparse[6, 8] = 1.5, -2.0, 0.25, 3.0, 4.0
+    for matrix in (op._csr().to(dtype), sparse.to_sparse_csr()):
+        mine, theirs = _transpose(matrix), matrix.to_sparse_csc()
+        assert torch.equal(mine.crow_indices().long(), theirs.ccol_indices().long())
+        assert torch.equal(mine.col_indices().long(), theirs.row_indices().long())
+        assert torch.equal(mine.values(), theirs.values())
+        assert torch.equal(mine.to_dense(), matrix.to_dense().T)
+
+
 @pytest.mark.parametrize("index_dtype", [torch.int32, torch.int64])
 @pytest.mark.parametrize("given_rows", [False, True])
 def test_the_jacobi_scaling_is_dense_algebra_with_either_index_type(op, index_dtype, given_rows):

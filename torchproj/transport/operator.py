@@ -966,8 +966,20 @@ def _tie_columns(matrix: torch.Tensor, block: torch.Tensor, n: int) -> torch.Ten
 
 
 def _transpose(matrix: torch.Tensor) -> torch.Tensor:
-    """The CSR transpose of a CSR matrix: its CSC arrays read as CSR. torch converts directly, without
-    the COO copies and sorts a transpose through coordinates would take (0.08 s against 0.53 s for 2 M
-    nonzeros, same arrays)."""
+    """The CSR transpose of a CSR matrix: its CSC arrays read as CSR.
+
+    On the CPU scipy converts it with one counting pass over the entries: 0.035 s against torch's
+    0.49 s on the default scene's 8.8 M, and 0.43 against 1.26 s on the 25 M of its rows moved, the
+    same arrays (each column's rows in order). Elsewhere torch converts it (which itself took 0.08 s
+    against 0.53 s for 2 M through coordinates).
+    """
+    shape = tuple(matrix.shape)
+    if matrix.device.type == "cpu":
+        from scipy.sparse import csr_matrix
+
+        csc = csr_matrix((matrix.values().detach().numpy(), matrix.col_indices().numpy(),
+                          matrix.crow_indices().numpy()), shape=shape).tocsc()
+        return csr_tensor(torch.from_numpy(csc.indptr), torch.from_numpy(csc.indices), torch.from_numpy(csc.data),
+                          shape[::-1])
     csc = matrix.to_sparse_csc()
-    return csr_tensor(csc.ccol_indices(), csc.row_indices(), csc.values(), tuple(matrix.shape)[::-1])
+    return csr_tensor(csc.ccol_indices(), csc.row_indices(), csc.values(), shape[::-1])
