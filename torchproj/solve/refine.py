@@ -53,8 +53,8 @@ from .solvers import check_bounds, solve_fista
 __all__ = ["OVERPROMISED", "REFINE_SOLVER_ITERATIONS", "RefineResult", "captured_loss", "carry_patterns", "refine_patterns"]
 
 # FISTA iterations per loop step: the start is the last iterate, one capture away from the optimum,
-# so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.26-0.30 s
-# (0.96-1.12 s the first after re-registering: it builds the new model's Q, its scaling and step bound;
+# so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.26-0.31 s
+# (0.88-1.15 s the first after re-registering: it builds the new model's Q, its scaling and step bound;
 # docs/camera-in-the-loop.md); when 30 was chosen, 60 kept the same captured PSNR there.
 REFINE_SOLVER_ITERATIONS = 30
 # A capture better than the best by less than this share of the surrogate's promised decrease halves
