@@ -292,10 +292,11 @@ def test_a_transpose_given_is_the_one_computed_and_a_wrong_one_is_refused(op):
                           transpose=(op.t_crow[:-1], op.t_col, op.t_val))
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
 def test_the_transpose_is_torchs_conversion_to_the_bit(op, dtype):
     """scipy's transpose on the CPU gives the arrays torch's CSC conversion gives (each column's rows
-    in order), on the operator's matrix and on one with empty rows and columns."""
+    in order), on the operator's matrix and on one with empty rows and columns; a dtype numpy lacks
+    goes through torch."""
     from torchproj.transport.operator import _transpose
 
     sparse = torch.zeros(7, 9, dtype=dtype)

@@ -970,11 +970,11 @@ def _transpose(matrix: torch.Tensor) -> torch.Tensor:
 
     On the CPU scipy converts it with one counting pass over the entries: 0.035 s against torch's
     0.49 s on the default scene's 8.8 M, and 0.43 against 1.26 s on the 25 M of its rows moved, the
-    same arrays (each column's rows in order). Elsewhere torch converts it (which itself took 0.08 s
-    against 0.53 s for 2 M through coordinates).
+    same arrays (each column's rows in order). Elsewhere (another device, a dtype numpy lacks) torch
+    converts it (which itself took 0.08 s against 0.53 s for 2 M through coordinates).
     """
     shape = tuple(matrix.shape)
-    if matrix.device.type == "cpu":
+    if matrix.device.type == "cpu" and matrix.dtype in (torch.float32, torch.float64):  # what numpy holds
         from scipy.sparse import csr_matrix
 
         csc = csr_matrix((matrix.values().detach().numpy(), matrix.col_indices().numpy(),
