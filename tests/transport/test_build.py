@@ -710,3 +710,20 @@ def test_assembly_sorts_rows_that_come_unordered():
     assert unordered[0].tolist() == [0, 3, 5, 8]
     with pytest.raises(InputError, match="one cell twice"):
         build._assemble(torch.tensor([[3, 3]]), torch.tensor([[0.1, 0.2]]), sizes)
+
+
+def test_stacked_rows_are_each_block_padded_and_the_blocks_are_let_go():
+    """Blocks of 3, 1 and 2 slots come out one below the other, padded with empty slots (cell -1,
+    value 0), in the cells' own integer type; the lists are emptied, so the caller keeps no block."""
+    from torchproj.transport.build import _stack_rows
+
+    cells = [torch.tensor([[4, 5, -1]], dtype=torch.int32), torch.tensor([[7], [8]], dtype=torch.int32),
+             torch.tensor([[1, 2]], dtype=torch.int32)]
+    values = [torch.tensor([[0.5, 0.25, 0.0]]), torch.tensor([[1.0], [0.75]]), torch.tensor([[0.125, 0.5]])]
+    out_cells, out_values = _stack_rows(cells, values)
+    assert out_cells.dtype == torch.int32
+    assert out_cells.tolist() == [[4, 5, -1], [7, -1, -1], [8, -1, -1], [1, 2, -1]]
+    assert out_values.tolist() == [[0.5, 0.25, 0.0], [1.0, 0.0, 0.0], [0.75, 0.0, 0.0], [0.125, 0.5, 0.0]]
+    assert cells == [] and values == []
+    one_cells, one_values = _stack_rows([torch.tensor([[3]], dtype=torch.int32)], [torch.tensor([[2.0]])])
+    assert one_cells.tolist() == [[3]] and one_values.tolist() == [[2.0]]

@@ -38,7 +38,7 @@ from ..calib.bundle import cell_shares_of, edge_pixels
 from ..calib.edges import EdgePixels
 from ..calib.graycode import WIDE_SHARE, CellShares
 from ..core.lens import disc_points, points_for_diameter
-from ..core.sparse import csr_tensor
+from ..core.sparse import _INT32_LIMIT, csr_tensor
 from .operator import TransportOperator
 
 __all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
@@ -687,20 +687,29 @@ def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch
 
 def _stack_rows(cells: list[torch.Tensor], values: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """Blocks of rows with different numbers of slots, one below the other, each widened to the widest
-    (written into one array: padding each block and joining them copied every slot twice)."""
+    (written into one array: padding each block and joining them copied every slot twice).
+
+    Takes the blocks out of the two lists as it writes them (the lists are left empty), so that each
+    block is freed once copied, where the caller holds no other reference: the stacked rows and the
+    blocks are never all held at once.
+    """
     width = max(c.shape[1] for c in cells)
     if len(cells) == 1:
-        return _widen(cells[0], values[0], width)
+        return _widen(cells.pop(), values.pop(), width)
     promote = functools.partial(functools.reduce, torch.promote_types)
     dtype = promote(v.dtype for v in values)
     out_cells = torch.full((sum(c.shape[0] for c in cells), width), -1, dtype=promote(c.dtype for c in cells),
                            device=cells[0].device)
     out_values = torch.zeros(out_cells.shape, dtype=dtype, device=values[0].device)
     start = 0
-    for c, v in zip(cells, values):
+    cells.reverse()
+    values.reverse()
+    while cells:
+        c, v = cells.pop(), values.pop()
         out_cells[start:start + c.shape[0], :c.shape[1]] = c
         out_values[start:start + c.shape[0], :c.shape[1]] = v
         start += c.shape[0]
+        del c, v
     return out_cells, out_values
 
 
@@ -858,6 +867,9 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         rows = torch.nonzero(covered.reshape(-1))[:, 0]
         cols, vals, ratio = [], [], []
         offset = 0
+        # Global cells fit int32 on any rig (a few million cells): half the bytes of the rows' largest
+        # arrays, which set the cold run's peak memory where the last target's rows are stacked.
+        cell_type = torch.int32 if sum(w * h for w, h in cal.projector_sizes) <= _INT32_LIMIT else torch.int64
         for name, per in (("blur maps", cal.blur), ("edge-pixel sets", cal.edges), ("cell-share sets", cal.shares)):
             check(per is None or len(per) == len(cal.prj_xy),
                   f"state {target.state!r} has {len(per or [])} {name} for {len(cal.prj_xy)} projectors: "
@@ -875,7 +887,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
                     check(not torch.isinf(cal.blur[j]).any(), f"blur[{j}] of state {target.state!r} holds "
                                                               "infinite diameters: give them in cells, NaN where unknown")
             c, v = cal._rows(j, rows, footprint)
-            cols.append(torch.where(c >= 0, c + offset, -1))
+            cols.append(torch.where(c >= 0, c + offset, -1).to(cell_type))
             vals.append(v)
             if colour:
                 ratio.append(_channel_ratio(cal.colour_weight[j].reshape(n_ch, -1)[:, rows].float(),
@@ -883,8 +895,10 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
             offset += sizes[j][0] * sizes[j][1]
         cols, vals = torch.cat(cols, 1), torch.cat(vals, 1)
         lit_rows = (vals > 0).any(1)
-        row_cols.append(cols[lit_rows])
-        row_vals.append(vals[lit_rows])
+        every = bool(lit_rows.all())  # then the rows as they are, not a copy of them
+        row_cols.append(cols if every else cols[lit_rows])
+        row_vals.append(vals if every else vals[lit_rows])
+        del cols, vals
         row_values.append(values.reshape(n_ch, -1)[:, rows[lit_rows]].T)
         row_tgt.append(torch.full((int(lit_rows.sum()),), ti, dtype=torch.int64, device=rows.device))
         row_pix.append(rows[lit_rows])
