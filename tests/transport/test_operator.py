@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -360,3 +361,20 @@ def test_the_gram_matrix_of_a_float32_operator_is_summed_in_float64(op):
     wide = gram_matrix(csr_tensor(single.crow, single.col, single.val.double(), single.shape), parts=2)
     assert Q.dtype == torch.float32
     assert torch.equal(Q.values(), wide.values().float())
+
+
+def test_each_coarse_level_is_scipys_triple_product_to_the_bit(op):
+    """``(P^T (Q P))^T`` in CSR is what ``(P^T @ Q @ P).tocsr()`` gives, entry for entry, on every level
+    of a symmetric ``Q`` (the CSC copy of ``Q`` that product makes is left out)."""
+    from scipy.sparse import csr_matrix
+
+    ne = op.normal_equations("matrix")
+    for level_ne, block in op.coarse_levels(3):
+        q = csr_matrix((ne.Q.values().numpy(), ne.Q.col_indices().numpy(), ne.Q.crow_indices().numpy()), shape=ne.Q.shape)
+        tie = csr_matrix((np.ones(len(block)), (np.arange(len(block)), block.numpy())), shape=(len(block), int(block.max()) + 1))
+        expected = (tie.T @ q @ tie).tocsr()
+        expected.sort_indices()
+        assert torch.equal(level_ne.Q.crow_indices().long(), torch.from_numpy(expected.indptr).long())
+        assert torch.equal(level_ne.Q.col_indices().long(), torch.from_numpy(expected.indices).long())
+        assert torch.equal(level_ne.Q.values(), torch.from_numpy(expected.data).to(level_ne.Q.dtype))
+        ne = level_ne
