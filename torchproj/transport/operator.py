@@ -516,16 +516,24 @@ class TransportOperator(nn.Module):
         x0, y0 = torch.floor(x), torch.floor(y)
         fx, fy = x - x0, y - y0
         offsets = torch.cumsum(torch.cat([torch.zeros(1, dtype=torch.int64, device=device), widths * heights]), 0)
+        # The two columns and two rows of cells around each moved entry, each computed once for the
+        # four cells it borders. A share past the projector's edge stays on the edge cell: every row
+        # keeps its light.
+        ix, iy = x0.long(), y0.long()
+        across = [torch.minimum((ix + d).clamp_min(0), w - 1) for d in (0, 1)]
+        down = [torch.minimum((iy + d).clamp_min(0), h - 1) for d in (0, 1)]
+        weight_x, weight_y = (1 - fx, fx), (1 - fy, fy)
+        base, value = offsets[projector], self.val.double()
+        del x, y, x0, y0, ix, iy, move, cell  # a full rig's are tens of millions of entries each
         rows, cells, vals = [], [], []
-        for dx, dy, share in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
-                              (1, 1, fx * fy)):
-            # A share past the projector's edge stays on the edge cell: every row keeps its light.
-            cx, cy = torch.minimum((x0 + dx).long().clamp_min(0), w - 1), torch.minimum((y0 + dy).long().clamp_min(0), h - 1)
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            share = weight_x[dx] * weight_y[dy]
             keep = torch.nonzero(share > 0)[:, 0]  # found once, not once per array a mask would index
             rows.append(row[keep])
-            cells.append((offsets[projector] + cy * w + cx)[keep])
-            vals.append((self.val[keep].double() * share[keep]).to(self.val.dtype))
-        del x, y, x0, y0, fx, fy, move, cell, w, h  # a full rig's are tens of millions of entries each
+            cells.append((base + down[dy] * w + across[dx])[keep])
+            vals.append((value[keep] * share[keep]).to(self.val.dtype))
+            del share, keep
+        del fx, fy, weight_x, weight_y, across, down, base, value, w, h
         rows, cells, vals = torch.cat(rows), torch.cat(cells), torch.cat(vals)
         # The cells reached, in order, and each entry's column among them: what torch.unique(cells,
         # return_inverse=True) gives, by marking the rig's cells instead of sorting every entry (the
