@@ -686,8 +686,7 @@ class NormalEquations:
             from scipy.sparse import csr_matrix
 
             n = int(block.max()) + 1
-            q_mat = csr_matrix((self.Q.values().detach().cpu().double().numpy(), self.Q.col_indices().cpu().numpy(),
-                                self.Q.crow_indices().cpu().numpy()), shape=self.Q.shape)
+            q_mat = _to_scipy(self.Q, torch.float64)
             tie = csr_matrix((torch.ones(len(block), dtype=torch.float64).numpy(),
                               (torch.arange(len(block)).numpy(), block.cpu().numpy())), shape=(len(block), n))
             # (P^T (Q P))^T, built in CSR and transposed: what (tie.T @ q_mat @ tie).tocsr() gives, without
@@ -698,8 +697,7 @@ class NormalEquations:
             # against 0.30 s, and the levels' building peaks 0.30 GB above what it starts from, not 0.44.
             coarse = (tie.T.tocsr() @ (q_mat @ tie)).T.tocsr()
             coarse.sort_indices()
-            return self.adopt_coarsened(block, csr_tensor(torch.from_numpy(coarse.indptr), torch.from_numpy(coarse.indices),
-                                                          torch.from_numpy(coarse.data).to(self.Q.dtype), coarse.shape))
+            return self.adopt_coarsened(block, _from_scipy(coarse, self.Q.dtype))
         return self._coarse[1]
 
     def adopt_coarsened(self, block: torch.Tensor, Q: torch.Tensor) -> "NormalEquations":
@@ -839,14 +837,8 @@ def gram_matrix(A: torch.Tensor, At: torch.Tensor | None = None, parts: int | No
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from scipy.sparse import csr_matrix
-
-    def scipy_csr(m: torch.Tensor):
-        return csr_matrix((m.values().detach().cpu().double().numpy(), m.col_indices().cpu().numpy(),
-                           m.crow_indices().cpu().numpy()), shape=tuple(m.shape))
-
-    a = scipy_csr(A)
-    at = a.T.tocsr() if At is None else scipy_csr(At)
+    a = _to_scipy(A, torch.float64)
+    at = a.T.tocsr() if At is None else _to_scipy(At, torch.float64)
     n = at.shape[0]
     parts = max(1, min(torch.get_num_threads() if parts is None else parts, n))
     nnz = torch.from_numpy(at.indptr).to(torch.int64)
@@ -989,11 +981,25 @@ def _transpose(matrix: torch.Tensor) -> torch.Tensor:
     """
     shape = tuple(matrix.shape)
     if matrix.device.type == "cpu" and matrix.dtype in (torch.float32, torch.float64):  # what numpy holds
-        from scipy.sparse import csr_matrix
-
-        csc = csr_matrix((matrix.values().detach().numpy(), matrix.col_indices().numpy(),
-                          matrix.crow_indices().numpy()), shape=shape).tocsc()
-        return csr_tensor(torch.from_numpy(csc.indptr), torch.from_numpy(csc.indices), torch.from_numpy(csc.data),
-                          shape[::-1])
+        return _from_scipy(_to_scipy(matrix).tocsc(), shape=shape[::-1])
     csc = matrix.to_sparse_csc()
     return csr_tensor(csc.ccol_indices(), csc.row_indices(), csc.values(), shape[::-1])
+
+
+def _to_scipy(matrix: torch.Tensor, dtype: torch.dtype | None = None):
+    """scipy's CSR matrix of a torch CSR ``matrix``, on the host, its values in ``dtype`` (default their
+    own); index arrays already on the CPU are shared, not copied."""
+    from scipy.sparse import csr_matrix
+
+    values = matrix.values().detach().cpu()
+    return csr_matrix(((values if dtype is None else values.to(dtype)).numpy(), matrix.col_indices().cpu().numpy(),
+                       matrix.crow_indices().cpu().numpy()), shape=tuple(matrix.shape))
+
+
+def _from_scipy(matrix, dtype: torch.dtype | None = None, shape: tuple[int, int] | None = None) -> torch.Tensor:
+    """A torch CSR tensor of a scipy matrix's compressed arrays (``indptr``, ``indices``, ``data``), its
+    values in ``dtype`` (default their own). ``shape``: what the arrays describe read as CSR, where that
+    is not the matrix's own (a CSC matrix's arrays are its transpose's CSR)."""
+    values = torch.from_numpy(matrix.data)
+    return csr_tensor(torch.from_numpy(matrix.indptr), torch.from_numpy(matrix.indices),
+                      values if dtype is None else values.to(dtype), tuple(matrix.shape) if shape is None else shape)
