@@ -189,10 +189,6 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
     image = image_objective(objective)
     check(image is None or len(ops) == 1, "an image objective couples the colour channels: refine it on one operator "
                                           "with the grey weight (build_transport)")
-    if remodel is not None:
-        # A remodelled operator's Q is built with scipy, which nothing else in a run from the cache
-        # imports: imported once here (0.1 s), where the loop starts, rather than inside its first update.
-        import scipy.sparse  # noqa: F401
     t0 = time.perf_counter()
     targets = _targets(ops)
     p = start.detach().clamp(lo, hi)
