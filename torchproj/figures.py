@@ -216,7 +216,10 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
 
     Args:
         profiles: position name -> :func:`~torchproj.pipeline.feedback_profile` output.
-        trials: per trial, ``{"position", "trial", "history" (feedback per look), "rmse_mm"}``.
+        trials: per trial, ``{"position", "trial", "history" (feedback per look), "rmse_mm"}``, and
+            ``"coarse_looks"`` where looks 1 to that many scored the coarse feedback
+            (:func:`~torchproj.experiments.place_by_feedback`): the best so far is the feedback's own,
+            carried through them.
     """
     fig = Figure(figsize=(12, 8))
     axes = fig.subplots(2, 2)
@@ -246,7 +249,9 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
     for t in trials:
         k = names.index(t["position"]) if t["position"] in names else 0
         # Colour by position, line style by trial: a position's trials had one colour and could not be told apart.
-        axes[3].plot(np.maximum.accumulate(np.asarray(t["history"])), color=colours[k % len(colours)], lw=1.4,
+        own = np.asarray(t["history"], dtype=float)
+        own[1:1 + t.get("coarse_looks", 0)] = -np.inf
+        axes[3].plot(np.maximum.accumulate(own), color=colours[k % len(colours)], lw=1.4,
                      linestyle=styles[int(t["trial"]) % len(styles)],
                      label=f"{t['position']} #{t['trial']}: {t['rmse_mm']:.1f} mm")
     axes[3].set_xlabel("camera looks")

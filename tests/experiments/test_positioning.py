@@ -10,6 +10,8 @@ import yaml
 from torchproj.cli import main
 from torchproj.core import ConfigError, InputError
 from torchproj.experiments import box_surface_distance, evaluate_positioning, place_by_feedback, pose_error, random_pose_near, scan_distance, scan_surface
+from torchproj.experiments.positioning import (FINE_PIXELS, PlacementTrial, _box_window, _posed, coarse_looks,
+                                               fine_stride)
 from torchproj.scene import parse_scene, rotation_from_euler_deg
 from torchproj.sim import VirtualRig
 
@@ -125,6 +127,79 @@ def test_placement_climbs_a_peak_it_can_only_sample():
     assert len(history) == len(looks) <= 600 and max(history) == pytest.approx(feedback(placed), abs=1e-9)
 
 
+def test_coarse_to_fine_placement_looks_coarse_first_then_fine():
+    goal = np.eye(4)
+    goal[:3, 3] = [0.0, 0.0, 0.71]
+    calls = []
+
+    def peak(pose, width):
+        err = pose_error(pose, goal)
+        return 20 - err["distance_mm"] ** 2 / width - err["rotation_deg"] ** 2 / width * 10
+
+    def fine(pose):  # sharp: a narrow peak
+        calls.append("fine")
+        return peak(pose, 5.0)
+
+    def coarse(pose):  # blunt: a wide one, on a scale of its own
+        calls.append("coarse")
+        return 100 + peak(pose, 200.0)
+
+    start = random_pose_near(goal, 0.02, 5.0, np.random.default_rng(4))
+    placed, history = place_by_feedback(fine, start, step_m=0.02, step_deg=5.0, max_evaluations=200, coarse=coarse)
+    n = coarse_looks(200)
+    assert n == 99 and len(history) == len(calls) <= 200
+    # One fine look at the start, the coarse looks, then only fine ones.
+    assert calls[0] == "fine" and calls[1:1 + n].count("coarse") == len(calls[1:1 + n]) and "coarse" not in calls[1 + n:]
+    assert history[0] == pytest.approx(fine(start), abs=1e-9)
+    err = pose_error(placed, goal)
+    assert err["distance_mm"] < 0.5 and err["rotation_deg"] < 0.2
+    trial = PlacementTrial("near", 0, start, placed, history, {}, 0.0, 0.0, 0.0, coarse_looks=n)
+    own = trial.fine_history()
+    assert len(own) == len(history) - n and max(own) < 100 <= min(history[1:1 + n])  # no coarse value among them
+    assert max(own) == pytest.approx(fine(placed), abs=1e-9)
+
+
+def test_the_fine_feedback_keeps_enough_pixels():
+    region = torch.zeros(600, 800, dtype=torch.bool)
+    region[100:500, 100:600] = True  # 200,000 pixels: every 4th keeps 12,500
+    assert fine_stride(region) == 4
+    region[:] = False
+    region[:250, :250] = True  # 62,500: every 2nd keeps 15,625, every 3rd 7,056
+    assert fine_stride(region) == 2 and int(region[::2, ::2].sum()) >= FINE_PIXELS > int(region[::3, ::3].sum())
+    region[:] = False
+    region[:50, :50] = True  # too few for any stride but 1
+    assert fine_stride(region) == 1
+
+
+def test_a_scan_window_is_the_same_camera_where_the_box_can_be(box_scene):
+    import dataclasses
+
+    box = box_scene.surfaces["box_near"]
+    pose = random_pose_near(box.world_from_local, 0.02, 5.0, np.random.default_rng(1))
+    cam = box_scene.camera
+    x0, y0, window = _box_window(cam, _posed(box, pose))
+    assert 0 < window.width < cam.width and 0 < window.height < cam.height
+    # The window's pixels look along the full camera's rays for the same pixels.
+    full = VirtualRig(box_scene)
+    part = VirtualRig(dataclasses.replace(box_scene, camera=window))
+    _, d_part = part.camera_rays(1)
+    _, d_full = full.camera_rays(1)
+    rows = torch.arange(y0, y0 + window.height)[:, None] * cam.width + torch.arange(x0, x0 + window.width)
+    assert torch.allclose(d_part, d_full[rows.reshape(-1)], atol=1e-6)
+    # Every sample ray of the full camera that meets the box (the simulator's own caster) is in a
+    # pixel of the window, and the window is no more than the margin wider than those pixels.
+    casters = full._materials([_posed(box, pose)])[0]
+    o, d = full.camera_rays(cam.supersampling)
+    t, _ = casters[0].hit(o, d)
+    pixel = torch.nonzero(torch.isfinite(t))[:, 0] // cam.supersampling**2
+    x, y = pixel % cam.width, pixel // cam.width
+    assert int(x.min()) >= x0 and int(x.max()) < x0 + window.width and int(y.min()) >= y0 and int(y.max()) < y0 + window.height
+    assert int(x.min()) - x0 <= 3 and int(y.min()) - y0 <= 3
+    assert x0 + window.width - 1 - int(x.max()) <= 3 and y0 + window.height - 1 - int(y.max()) <= 3
+    # A distorting lens keeps the whole image.
+    assert _box_window(dataclasses.replace(cam, distortion=(0.1, 0, 0, 0, 0)), _posed(box, pose))[2].width == cam.width
+
+
 def test_scan_measures_a_known_displacement(box_scene):
     box = box_scene.surfaces["box_near"]
     at_goal = scan_surface(box_scene, box, box.world_from_local)
@@ -205,7 +280,8 @@ def test_position_needs_each_target_on_one_box(tmp_path, capsys):
 
 
 def test_position_refuses_bad_settings(box_scene):
-    for kwargs in ({"trials": 0}, {"spread_mm": -1}, {"max_evaluations": 3}):
+    for kwargs in ({"trials": 0}, {"spread_mm": -1}, {"max_evaluations": 3}, {"feedback_stride": 0},
+                   {"feedback_stride": 1.5}):
         with pytest.raises(InputError, match="must"):
             evaluate_positioning(box_scene, **kwargs)
     # A start a metre off is a search of the room, not a placement: refused at once, saying how far is allowed.

@@ -120,40 +120,85 @@ class _Feedback:
         return psnr(((shot - self.black) / self.scale).clamp(0, 1), self.values)
 
 
-def place_by_feedback(feedback, start: np.ndarray, *, step_m: float, step_deg: float, max_evaluations: int = 200,
-                      tolerance_m: float = 2e-4) -> tuple[np.ndarray, list[float]]:
-    """Move a box from ``start`` to where ``feedback(pose)`` (higher is better) peaks.
-
-    Nelder-Mead over the displacement from the start (3 translations, 3 rotations about the box's
-    centre), its first simplex a step of ``step_m`` / ``step_deg`` along each. It never sees the
-    goal: only the feedback of the poses it tries.
-
-    Returns:
-        the placed pose and the feedback of every pose tried, in order.
-    """
+def _nelder_mead(feedback, start: np.ndarray, origin: np.ndarray, scale: np.ndarray, looks: int, tolerance: float,
+                 history: list[float]) -> np.ndarray:
+    """Nelder-Mead on ``feedback`` over the displacement ``origin + x * scale`` from ``start``, at
+    most ``looks`` looks (appended to ``history``); returns the best displacement it found."""
     from scipy.optimize import minimize
 
-    scale = np.r_[np.full(3, step_m), np.full(3, math.radians(step_deg))]
-    history: list[float] = []
+    first = len(history)
 
     def cost(x):
-        history.append(feedback(_moved(start, x * scale)))
+        history.append(feedback(_moved(start, origin + x * scale)))
         return -history[-1]
 
     # A simplex that has collapsed may sit on a ridge rather than the peak: start again from the
     # best pose with a simplex half as large, as a person nudges the box once more, until a restart
     # no longer helps or the looks are used up.
     x, best, size = np.zeros(6), -math.inf, 1.0
-    while len(history) < max_evaluations:
+    while len(history) - first < looks:
         simplex = x + np.vstack([np.zeros(6), size * np.eye(6)])
         res = minimize(cost, x, method="Nelder-Mead",
-                       options={"initial_simplex": simplex, "maxfev": max_evaluations - len(history),
-                                "xatol": tolerance_m / step_m, "fatol": 0.01, "adaptive": True})
+                       options={"initial_simplex": simplex, "maxfev": looks - (len(history) - first),
+                                "xatol": tolerance, "fatol": 0.01, "adaptive": True})
         if -res.fun < best + 0.05:
             x = res.x if -res.fun > best else x
             break
         x, best, size = res.x, -res.fun, size / 2
-    return _moved(start, x * scale), history
+    return origin + x * scale
+
+
+def place_by_feedback(feedback, start: np.ndarray, *, step_m: float, step_deg: float, max_evaluations: int = 200,
+                      tolerance_m: float = 2e-4, coarse=None) -> tuple[np.ndarray, list[float]]:
+    """Move a box from ``start`` to where ``feedback(pose)`` (higher is better) peaks.
+
+    Nelder-Mead over the displacement from the start (3 translations, 3 rotations about the box's
+    centre), its first simplex a step of ``step_m`` / ``step_deg`` along each. It never sees the
+    goal: only the feedback of the poses it tries.
+
+    With ``coarse`` (a second feedback, cheaper: the same score on fewer pixels), the placement goes
+    coarse to fine, as a person first gets the image roughly onto the box and then brings its
+    detail into line: one look with ``feedback`` at the start, half of the looks on ``coarse`` from
+    the start (until its simplex is within ``COARSE_TOLERANCE_M``), then the rest on ``feedback``
+    from the best coarse pose, its first simplex ``FINE_STEP`` times the steps. Far from the goal a
+    sparse sample of the image says which way to move as well as a dense one; near it, more pixels
+    tell finer moves apart. A choice of torchproj's (the paper's people placed boxes by eye),
+    measured in ``benchmarks/placement.py``.
+
+    Returns:
+        the placed pose and the feedback of every look, in order (with ``coarse``, looks 1 to
+        ``coarse_looks(max_evaluations)`` are the coarse feedback's values, on its own scale).
+    """
+    scale = np.r_[np.full(3, step_m), np.full(3, math.radians(step_deg))]
+    history: list[float] = []
+    if coarse is None:
+        x = _nelder_mead(feedback, start, np.zeros(6), scale, max_evaluations, tolerance_m / step_m, history)
+        return _moved(start, x), history
+    history.append(feedback(start))
+    rough: list[float] = []
+    x = _nelder_mead(coarse, start, np.zeros(6), scale, coarse_looks(max_evaluations), COARSE_TOLERANCE_M / step_m,
+                     rough)
+    fine = scale * np.r_[np.full(3, FINE_STEP[0]), np.full(3, FINE_STEP[1])]
+    history += rough
+    x = _nelder_mead(feedback, start, x, fine, max_evaluations - len(history), tolerance_m / fine[0], history)
+    return _moved(start, x), history
+
+
+COARSE_TOLERANCE_M = 1e-3  # the coarse stage stops once its simplex is within a millimetre
+FINE_STEP = (0.1, 0.2)  # the fine stage's first simplex: a tenth of the translation step, a fifth of the turn
+COARSE_STRIDE = 4  # the coarse feedback scores every 4th pixel in each direction
+FINE_PIXELS = 10_000  # the fine feedback scores at the sparsest stride (up to 4) that keeps this many pixels
+
+
+def coarse_looks(max_evaluations: int) -> int:
+    """How many of a coarse-to-fine placement's looks go to the coarse stage: half of those after the first."""
+    return (max_evaluations - 1) // 2
+
+
+def fine_stride(region: torch.Tensor) -> int:
+    """The sparsest stride (1-4) whose grid keeps at least ``FINE_PIXELS`` of the target's pixels
+    ``region`` :math:`(H, W)` (bool), else 1."""
+    return max([1] + [s for s in (2, 3, 4) if int(region[::s, ::s].sum()) >= FINE_PIXELS])
 
 
 # ------------------------------------------------------------------------------------------- scan
@@ -179,11 +224,13 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
         the projector each came from.
     """
     placed = _posed(surface, pose, "scanned")
-    scan_scene = dataclasses.replace(scene, surfaces={"scanned": placed}, states=[State("scan", ["scanned"])],
-                                     targets=[], seed=seed)
-    rig = VirtualRig(scan_scene, device=device)
     cam = scene.camera
-    grid = pixel_grid(cam.height, cam.width, device=rig.device).double()
+    x0, y0, window = _box_window(cam, placed)
+    scan_scene = dataclasses.replace(scene, camera=window, surfaces={"scanned": placed},
+                                     states=[State("scan", ["scanned"])], targets=[], seed=seed)
+    rig = VirtualRig(scan_scene, device=device)
+    grid = pixel_grid(window.height, window.width, device=rig.device).double()
+    grid += torch.tensor([x0, y0], dtype=grid.dtype, device=grid.device)  # the full camera's pixel coordinates
     points, owner = [], []
     for j, proj in enumerate(scene.projectors):
         prj_xy = scan_map(simulate_calibration(rig, "scan", j), (proj.width, proj.height))
@@ -196,6 +243,34 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
     if not points:
         return {"points": np.zeros((0, 3)), "projector": np.zeros(0, dtype=int)}
     return {"points": np.concatenate(points), "projector": np.concatenate(owner)}
+
+
+def _box_window(cam, box: Surface, margin: int = 2):
+    """The part of the camera's image a box can appear in, as a camera of its own.
+
+    Outside the image of the box's corners no ray meets the box (its image is the convex hull of
+    theirs through a pinhole), so the scan simulates only that window, ``margin`` pixels wider: a
+    cropped pinhole is the same camera with its principal point moved, so every pixel in it sees
+    what it saw (its noise is drawn afresh). Where the lens distorts or a corner is behind the
+    camera, the whole image.
+
+    Returns:
+        the window's left column and top row in the full image, and the cropped camera.
+    """
+    local = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)]) * np.asarray(box.size)
+    world = local @ box.world_from_local[:3, :3].T + box.world_from_local[:3, 3]
+    cam_from_world = np.linalg.inv(cam.world_from_cam)
+    points = world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    if cam.distortion or (points[:, 2] <= 1e-6).any():
+        return 0, 0, cam
+    u = cam.fx * points[:, 0] / points[:, 2] + cam.cx
+    v = cam.fy * points[:, 1] / points[:, 2] + cam.cy
+    left = int(np.clip(math.floor(u.min()) - margin, 0, cam.width - 1))
+    top = int(np.clip(math.floor(v.min()) - margin, 0, cam.height - 1))
+    right = int(np.clip(math.ceil(u.max()) + margin, left, cam.width - 1))
+    bottom = int(np.clip(math.ceil(v.max()) + margin, top, cam.height - 1))
+    return left, top, dataclasses.replace(cam, width=right - left + 1, height=bottom - top + 1, cx=cam.cx - left,
+                                          cy=cam.cy - top)
 
 
 def scan_distance(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -237,6 +312,11 @@ class PlacementTrial:
     rmse_mm: float
     rmse_percent: float
     seconds: float
+    coarse_looks: int = 0  # looks 1..coarse_looks scored the coarse feedback (place_by_feedback)
+
+    def fine_history(self) -> list[float]:
+        """The feedback's own values, the coarse looks left out: what the report's start and end compare."""
+        return [h for i, h in enumerate(self.history) if not 1 <= i <= self.coarse_looks]
 
 
 @dataclass
@@ -265,8 +345,8 @@ class PositioningResult:
                                 projector=t.scan["projector"], goal_pose=box.world_from_local, placed_pose=t.placed,
                                 start_pose=t.start, box_size=np.array(box.size))
         positioning_feedback(folder / "feedback.png", self.profiles,
-                             [{"position": t.position, "trial": t.trial, "history": t.history, "rmse_mm": t.rmse_mm}
-                              for t in self.trials])
+                             [{"position": t.position, "trial": t.trial, "history": t.history, "rmse_mm": t.rmse_mm,
+                               "coarse_looks": t.coarse_looks} for t in self.trials])
         text = position_markdown(self.report)
         write_json(folder / "report.json", self.report)
         (folder / "report.md").write_text(text)
@@ -293,7 +373,8 @@ def _rmse(points: np.ndarray, pose: np.ndarray, size) -> float:
 
 
 def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20.0, spread_deg: float = 5.0,
-                         seed: int = 0, max_evaluations: int = 200, profile_mm: float = 40.0, profile_steps: int = 8, feedback_stride: int = 2,
+                         seed: int = 0, max_evaluations: int = 200, profile_mm: float = 40.0, profile_steps: int = 8,
+                         feedback_stride: int | None = None, coarse_to_fine: bool = True,
                          device="cpu", progress=None, calibration: VirtualCalibration | None = None,
                          max_iter: int | None = None, solver: str = "fista", bounds_8bit=(0, 255),
                          outside: str = "clip", chains: str = "epipolar", cache: bool = False) -> PositioningResult:
@@ -308,7 +389,10 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         max_evaluations: camera looks a placement may take.
         profile_mm, profile_steps: the feedback chart's range (+-) and its samples on each side of the goal
             (spaced geometrically from 0.25 mm).
-        feedback_stride: score the camera image on every n-th pixel in each direction.
+        feedback_stride: score the camera image on every n-th pixel in each direction (None: the
+            sparsest of 1-4 that keeps ``FINE_PIXELS`` of the target's pixels, :func:`fine_stride`).
+        coarse_to_fine: place each box coarse to fine (:func:`place_by_feedback`): the first half of
+            the looks scored on every ``COARSE_STRIDE``-th pixel. False: every look on the feedback alone.
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
         cache: where no ``calibration`` is given, read the calibration and its transport from the
             cache where the same scene ran before, else keep them there, as ``torchproj run`` does
@@ -322,6 +406,9 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)  # before calibrating
     check(spread_mm >= 0 and spread_deg >= 0, "spread_mm and spread_deg must not be negative")
     check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
+    check(feedback_stride is None or (isinstance(feedback_stride, int) and feedback_stride >= 1),
+          f"feedback_stride must be a whole number of pixels, at least 1 (or None: chosen per target), got "
+          f"{feedback_stride!r}")
     positions = _positions(scene)
     # A trial starts where the person first puts the object: near enough that the camera still sees it
     # lit. Past a quarter of its distance from the projectors (or a quarter turn) it is a search of the
@@ -350,8 +437,12 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         detail = run.targets[k]
         goal = surface.world_from_local
         distance_mm = float(np.linalg.norm(goal[:3, 3] - prj_mid) * 1000)
+        stride = feedback_stride or fine_stride(detail.covered)
         feedback = _Feedback(cal.rig, surface, shown, detail.covered, detail.values, cal.black[state], scale,
-                             seed=1000 * (seed + 1) * (k + 1), stride=feedback_stride)
+                             seed=1000 * (seed + 1) * (k + 1), stride=stride)
+        # The coarse looks draw their noise from a stream of their own.
+        coarse = _Feedback(cal.rig, surface, shown, detail.covered, detail.values, cal.black[state], scale,
+                           seed=1000 * (seed + 1) * (k + 1) + 500_000, stride=COARSE_STRIDE) if coarse_to_fine else None
         # Finer near the goal, where the image comes together.
         side = np.geomspace(0.25, profile_mm, profile_steps)
         offsets = np.r_[-side[::-1], 0.0, side] / 1000
@@ -361,12 +452,12 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         row = {"name": name, "state": state, "surface": surface.name, "box_size_m": list(surface.size),
                "goal_pose": np.round(goal, 6).tolist(), "projector_distance_mm": round(distance_mm, 1),
                "psnr_db_at_goal": round(run.report["targets"][k]["psnr_db"], 3),
-               "feedback_at_goal_db": round(feedback(goal), 3),
+               "feedback_at_goal_db": round(feedback(goal), 3), "feedback_stride": stride,
                "scanner_rmse_mm": round(_rmse(floor["points"], goal, surface.size), 3)}
         if name in PAPER_RMSE_PERCENT:
             row["paper_rmse_percent"] = PAPER_RMSE_PERCENT[name]["percent"]
-        errors, new_rows = _place_trials(scene, feedback, name, surface, distance_mm, trials, spread_mm, spread_deg,
-                                         max_evaluations, rng, seed + 104729 * (k + 1), device, bar)
+        errors, new_rows = _place_trials(scene, feedback, coarse, name, surface, distance_mm, trials, spread_mm,
+                                         spread_deg, max_evaluations, rng, seed + 104729 * (k + 1), device, bar)
         placed_trials += errors
         trial_rows += new_rows
         row["rmse_mm_mean"] = round(float(np.mean([e.rmse_mm for e in errors])), 3)
@@ -377,12 +468,16 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     report = {
         "scene": scene.name, "seed": seed, "trials_per_position": trials,
         "start_spread": {"position_mm": spread_mm, "rotation_deg": spread_deg},
-        "max_evaluations": max_evaluations, "feedback_stride": feedback_stride,
+        "max_evaluations": max_evaluations, "feedback_stride": feedback_stride or "per target (fine_stride)",
+        "coarse_to_fine": {"coarse_stride": COARSE_STRIDE, "coarse_looks": coarse_looks(max_evaluations)}
+        if coarse_to_fine else None,
         "solver": solver, "bounds_8bit": list(bounds_8bit), "outside": outside,
         "method": (f"patterns solved by {solver} (bounds {bounds_8bit[0]:g}..{bounds_8bit[1]:g}) on the Gray-code "
                    "calibration; placement by Nelder-Mead on the "
                    "6-DoF displacement from the start, maximising the PSNR of the camera image against the target "
-                   "image over the target's camera pixels (no access to the true pose); scan by Gray code from "
+                   "image over the target's camera pixels (no access to the true pose)"
+                   + (f", coarse to fine (the first {coarse_looks(max_evaluations)} looks scored on every "
+                      f"{COARSE_STRIDE}th pixel)" if coarse_to_fine else "") + "; scan by Gray code from "
                    "each projector, triangulated with the rig's geometry; rmse is the RMS distance of the scanned "
                    "points from the box surface at the goal pose, percent of the distance from the goal box centre "
                    "to the midpoint of the projector centres"),
@@ -404,8 +499,8 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     return PositioningResult(report=report, trials=placed_trials, patterns=run.patterns, profiles=profiles)
 
 
-def _place_trials(scene, feedback, name, surface, distance_mm, trials, spread_mm, spread_deg, max_evaluations, rng,
-                  scan_seed, device, bar) -> tuple[list[PlacementTrial], list[dict]]:
+def _place_trials(scene, feedback, coarse, name, surface, distance_mm, trials, spread_mm, spread_deg, max_evaluations,
+                  rng, scan_seed, device, bar) -> tuple[list[PlacementTrial], list[dict]]:
     """``trials`` placements of one box from random starts near its goal, each scanned and scored."""
     goal = surface.world_from_local
     placed_trials, rows = [], []
@@ -413,20 +508,23 @@ def _place_trials(scene, feedback, name, surface, distance_mm, trials, spread_mm
         t0 = time.perf_counter()
         start = random_pose_near(goal, spread_mm / 1000, spread_deg, rng)
         placed, history = place_by_feedback(feedback, start, step_m=max(spread_mm, 1.0) / 1000,
-                                            step_deg=max(spread_deg, 1.0), max_evaluations=max_evaluations)
+                                            step_deg=max(spread_deg, 1.0), max_evaluations=max_evaluations,
+                                            coarse=coarse)
         t_scan = time.perf_counter()
         scan = scan_surface(scene, surface, placed, seed=scan_seed + t, device=device)
         t_scan = time.perf_counter() - t_scan
         rmse = _rmse(scan["points"], goal, surface.size)
         trial = PlacementTrial(position=name, trial=t, start=start, placed=placed, history=history, scan=scan,
-                               rmse_mm=rmse, rmse_percent=100 * rmse / distance_mm, seconds=time.perf_counter() - t0)
+                               rmse_mm=rmse, rmse_percent=100 * rmse / distance_mm, seconds=time.perf_counter() - t0,
+                               coarse_looks=coarse_looks(max_evaluations) if coarse is not None else 0)
         placed_trials.append(trial)
         rows.append({
             "position": name, "trial": t, "rmse_mm": round(rmse, 3), "rmse_percent": round(trial.rmse_percent, 4),
             "pose_error": pose_error(placed, goal), "start_pose_error": pose_error(start, goal),
             "scan_to_placed_box_rmse_mm": round(_rmse(scan["points"], placed, surface.size), 3),
             "scan_points": int(len(scan["points"])), "evaluations": len(history),
-            "feedback_start_db": round(history[0], 3), "feedback_final_db": round(max(history), 3),
+            "coarse_looks": trial.coarse_looks,
+            "feedback_start_db": round(history[0], 3), "feedback_final_db": round(max(trial.fine_history()), 3),
             "seconds": round(trial.seconds, 2), "scan_seconds": round(t_scan, 2)})
         bar.update()
     return placed_trials, rows
