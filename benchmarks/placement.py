@@ -8,9 +8,10 @@ image on the box against the target image). Two ways, each run in full by ``eval
 scanned), interleaved seed by seed so that both see the same machine:
 
 - ``fine``: every look scored on every second pixel (the method before coarse to fine);
-- ``coarse to fine`` (the default): one look at the start, half of the looks on every fourth pixel,
-  then the rest on the sparsest stride that keeps 10,000 of the target's pixels, from the coarse
-  stage's best pose with a simplex a tenth (translation) and a fifth (turn) as large.
+- ``coarse to fine`` (the default): one look at the start, half of the looks on the sparsest stride
+  that keeps 2,500 of the target's pixels (every fourth pixel here), then the rest on the sparsest
+  that keeps 10,000, from the coarse stage's best pose with a simplex a tenth (translation) and a
+  fifth (turn) as large.
 
 Writes ``results.json``, ``results.md`` (per method and position: the scans' RMSE to the goal box,
 the centre's offset and the turn, mean / median / worst over every trial; the placing and scanning

@@ -221,8 +221,6 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
             (:func:`~torchproj.experiments.place_by_feedback`): the best so far is the feedback's own,
             carried through them.
     """
-    from .experiments.positioning import COARSE_STRIDE
-
     fig = Figure(figsize=(12, 8))
     axes = fig.subplots(2, 2)
     axes = axes.ravel()
@@ -259,7 +257,7 @@ def positioning_feedback(path: str | os.PathLike, profiles: dict[str, dict], tri
     coarse = max((t.get("coarse_looks", 0) for t in trials), default=0)
     if coarse:
         axes[3].axvspan(1, 1 + coarse, color="grey", alpha=0.12, lw=0,
-                        label=f"coarse looks (every {COARSE_STRIDE}th pixel, their own scale: not drawn)")
+                        label="coarse looks (fewer pixels, their own scale: not drawn)")
     axes[3].set_xlabel("camera looks")
     axes[3].set_ylabel("best feedback so far (dB)")
     axes[3].set_title("placement trials (legend: scan RMSE)", fontsize=10)

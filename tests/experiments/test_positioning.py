@@ -10,8 +10,8 @@ import yaml
 from torchproj.cli import main
 from torchproj.core import ConfigError, InputError
 from torchproj.experiments import box_surface_distance, evaluate_positioning, place_by_feedback, pose_error, random_pose_near, scan_distance, scan_surface
-from torchproj.experiments.positioning import (FINE_PIXELS, PlacementTrial, _box_window, _posed, coarse_looks,
-                                               fine_stride)
+from torchproj.experiments.positioning import (COARSE_PIXELS, FINE_PIXELS, PlacementTrial, _box_window, _posed,
+                                               coarse_looks, feedback_stride_for)
 from torchproj.scene import parse_scene, rotation_from_euler_deg
 from torchproj.sim import VirtualRig
 
@@ -159,16 +159,17 @@ def test_coarse_to_fine_placement_looks_coarse_first_then_fine():
     assert max(own) == pytest.approx(fine(placed), abs=1e-9)
 
 
-def test_the_fine_feedback_keeps_enough_pixels():
+def test_the_feedbacks_keep_enough_pixels():
     region = torch.zeros(600, 800, dtype=torch.bool)
     region[100:500, 100:600] = True  # 200,000 pixels: every 4th keeps 12,500
-    assert fine_stride(region) == 4
+    assert feedback_stride_for(region) == 4 == feedback_stride_for(region, COARSE_PIXELS)
     region[:] = False
-    region[:250, :250] = True  # 62,500: every 2nd keeps 15,625, every 3rd 7,056
-    assert fine_stride(region) == 2 and int(region[::2, ::2].sum()) >= FINE_PIXELS > int(region[::3, ::3].sum())
+    region[:250, :250] = True  # 62,500: every 2nd keeps 15,625, every 3rd 7,056, every 4th 3,969
+    assert feedback_stride_for(region) == 2 and int(region[::2, ::2].sum()) >= FINE_PIXELS > int(region[::3, ::3].sum())
+    assert feedback_stride_for(region, COARSE_PIXELS) == 4
     region[:] = False
-    region[:50, :50] = True  # too few for any stride but 1
-    assert fine_stride(region) == 1
+    region[:80, :80] = True  # 6,400: too few for any fine stride but 1; every 2nd keeps 1,600 < 2,500
+    assert feedback_stride_for(region) == 1 == feedback_stride_for(region, COARSE_PIXELS)
 
 
 def test_a_scan_window_is_the_same_camera_where_the_box_can_be(box_scene):

@@ -186,8 +186,9 @@ def place_by_feedback(feedback, start: np.ndarray, *, step_m: float, step_deg: f
 
 COARSE_TOLERANCE_M = 1e-3  # the coarse stage stops once its simplex is within a millimetre
 FINE_STEP = (0.1, 0.2)  # the fine stage's first simplex: a tenth of the translation step, a fifth of the turn
-COARSE_STRIDE = 4  # the coarse feedback scores every 4th pixel in each direction
-FINE_PIXELS = 10_000  # the fine feedback scores at the sparsest stride (up to 4) that keeps this many pixels
+# The feedbacks score every n-th pixel in each direction, the sparsest n up to 4 that keeps this many of
+# the target's pixels: every 4th (coarse) and every 3rd / 2nd (fine) on the default scene's near / far box.
+COARSE_PIXELS, FINE_PIXELS = 2_500, 10_000
 
 
 def coarse_looks(max_evaluations: int) -> int:
@@ -195,10 +196,10 @@ def coarse_looks(max_evaluations: int) -> int:
     return (max_evaluations - 1) // 2
 
 
-def fine_stride(region: torch.Tensor) -> int:
-    """The sparsest stride (1-4) whose grid keeps at least ``FINE_PIXELS`` of the target's pixels
-    ``region`` :math:`(H, W)` (bool), else 1."""
-    return max([1] + [s for s in (2, 3, 4) if int(region[::s, ::s].sum()) >= FINE_PIXELS])
+def feedback_stride_for(region: torch.Tensor, pixels: int = FINE_PIXELS) -> int:
+    """The sparsest stride (1-4) whose grid keeps at least ``pixels`` of the target's pixels
+    ``region`` :math:`(H, W)` (bool), else 1: a small target is scored on every pixel, coarse or fine."""
+    return max([1] + [s for s in (2, 3, 4) if int(region[::s, ::s].sum()) >= pixels])
 
 
 # ------------------------------------------------------------------------------------------- scan
@@ -390,9 +391,10 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         profile_mm, profile_steps: the feedback chart's range (+-) and its samples on each side of the goal
             (spaced geometrically from 0.25 mm).
         feedback_stride: score the camera image on every n-th pixel in each direction (None: the
-            sparsest of 1-4 that keeps ``FINE_PIXELS`` of the target's pixels, :func:`fine_stride`).
+            sparsest of 1-4 that keeps ``FINE_PIXELS`` of the target's pixels, :func:`feedback_stride_for`).
         coarse_to_fine: place each box coarse to fine (:func:`place_by_feedback`): the first half of
-            the looks scored on every ``COARSE_STRIDE``-th pixel. False: every look on the feedback alone.
+            the looks scored on the sparsest stride that keeps ``COARSE_PIXELS``. False: every look on the
+            feedback alone.
         calibration: reuse an earlier :func:`calibrate_virtual` of the same scene.
         cache: where no ``calibration`` is given, read the calibration and its transport from the
             cache where the same scene ran before, else keep them there, as ``torchproj run`` does
@@ -437,12 +439,13 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         detail = run.targets[k]
         goal = surface.world_from_local
         distance_mm = float(np.linalg.norm(goal[:3, 3] - prj_mid) * 1000)
-        stride = feedback_stride or fine_stride(detail.covered)
+        stride = feedback_stride or feedback_stride_for(detail.covered)
+        rough = feedback_stride_for(detail.covered, COARSE_PIXELS)
         feedback = _Feedback(cal.rig, surface, shown, detail.covered, detail.values, cal.black[state], scale,
                              seed=1000 * (seed + 1) * (k + 1), stride=stride)
         # The coarse looks draw their noise from a stream of their own.
         coarse = _Feedback(cal.rig, surface, shown, detail.covered, detail.values, cal.black[state], scale,
-                           seed=1000 * (seed + 1) * (k + 1) + 500_000, stride=COARSE_STRIDE) if coarse_to_fine else None
+                           seed=1000 * (seed + 1) * (k + 1) + 500_000, stride=rough) if coarse_to_fine else None
         # Finer near the goal, where the image comes together.
         side = np.geomspace(0.25, profile_mm, profile_steps)
         offsets = np.r_[-side[::-1], 0.0, side] / 1000
@@ -453,6 +456,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
                "goal_pose": np.round(goal, 6).tolist(), "projector_distance_mm": round(distance_mm, 1),
                "psnr_db_at_goal": round(run.report["targets"][k]["psnr_db"], 3),
                "feedback_at_goal_db": round(feedback(goal), 3), "feedback_stride": stride,
+               "coarse_stride": rough if coarse_to_fine else None,
                "scanner_rmse_mm": round(_rmse(floor["points"], goal, surface.size), 3)}
         if name in PAPER_RMSE_PERCENT:
             row["paper_rmse_percent"] = PAPER_RMSE_PERCENT[name]["percent"]
@@ -468,16 +472,16 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     report = {
         "scene": scene.name, "seed": seed, "trials_per_position": trials,
         "start_spread": {"position_mm": spread_mm, "rotation_deg": spread_deg},
-        "max_evaluations": max_evaluations, "feedback_stride": feedback_stride or "per target (fine_stride)",
-        "coarse_to_fine": {"coarse_stride": COARSE_STRIDE, "coarse_looks": coarse_looks(max_evaluations)}
+        "max_evaluations": max_evaluations, "feedback_stride": feedback_stride or "per target",
+        "coarse_to_fine": {"coarse_looks": coarse_looks(max_evaluations), "coarse_pixels": COARSE_PIXELS}
         if coarse_to_fine else None,
         "solver": solver, "bounds_8bit": list(bounds_8bit), "outside": outside,
         "method": (f"patterns solved by {solver} (bounds {bounds_8bit[0]:g}..{bounds_8bit[1]:g}) on the Gray-code "
                    "calibration; placement by Nelder-Mead on the "
                    "6-DoF displacement from the start, maximising the PSNR of the camera image against the target "
                    "image over the target's camera pixels (no access to the true pose)"
-                   + (f", coarse to fine (the first {coarse_looks(max_evaluations)} looks scored on every "
-                      f"{COARSE_STRIDE}th pixel)" if coarse_to_fine else "") + "; scan by Gray code from "
+                   + (f", coarse to fine (the first {coarse_looks(max_evaluations)} looks after the first scored on "
+                      f"fewer pixels)" if coarse_to_fine else "") + "; scan by Gray code from "
                    "each projector, triangulated with the rig's geometry; rmse is the RMS distance of the scanned "
                    "points from the box surface at the goal pose, percent of the distance from the goal box centre "
                    "to the midpoint of the projector centres"),
