@@ -408,7 +408,8 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)  # before calibrating
     check(spread_mm >= 0 and spread_deg >= 0, "spread_mm and spread_deg must not be negative")
     check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
-    check(feedback_stride is None or (isinstance(feedback_stride, int) and feedback_stride >= 1),
+    check(feedback_stride is None or (isinstance(feedback_stride, int) and not isinstance(feedback_stride, bool)
+                                      and feedback_stride >= 1),
           f"feedback_stride must be a whole number of pixels, at least 1 (or None: chosen per target), got "
           f"{feedback_stride!r}")
     positions = _positions(scene)
