@@ -157,6 +157,40 @@ def test_coarse_to_fine_placement_looks_coarse_first_then_fine():
     own = trial.fine_history()
     assert len(own) == len(history) - n and max(own) < 100 <= min(history[1:1 + n])  # no coarse value among them
     assert max(own) == pytest.approx(fine(placed), abs=1e-9)
+    # A coarse stage whose simplex closes early (on a flat coarse feedback) leaves its looks to the fine stage.
+    calls.clear()
+
+    def flat(pose):
+        calls.append("coarse")
+        return 100.0
+
+    # (a first simplex of 1 mm is already within the coarse stage's tolerance)
+    placed, history = place_by_feedback(fine, start, step_m=0.001, step_deg=0.2, max_evaluations=200, coarse=flat)
+    early = calls.count("coarse")
+    assert 0 < early < n and calls[1:1 + early] == ["coarse"] * early and "coarse" not in calls[1 + early:]
+    assert len(history) == len(calls) <= 200 and history[1:1 + early] == [100.0] * early
+
+
+def test_a_trials_coarse_looks_are_counted_as_they_were_made(box_scene):
+    from torchproj.experiments import positioning
+
+    made = []
+    original = positioning.place_by_feedback
+
+    def counting(feedback, start, **kwargs):
+        before = kwargs["coarse"].count
+        out = original(feedback, start, **kwargs)
+        made.append(kwargs["coarse"].count - before)
+        return out
+
+    positioning.place_by_feedback = counting
+    try:
+        result = evaluate_positioning(box_scene, trials=1, max_evaluations=12, profile_steps=1)
+    finally:
+        positioning.place_by_feedback = original
+    assert [t.coarse_looks for t in result.trials] == made and all(0 < m <= coarse_looks(12) for m in made)
+    for t, row in zip(result.trials, result.report["trials"]):
+        assert row["coarse_looks"] == t.coarse_looks and row["feedback_final_db"] == round(max(t.fine_history()), 3)
 
 
 def test_the_feedbacks_keep_enough_pixels():

@@ -166,8 +166,9 @@ def place_by_feedback(feedback, start: np.ndarray, *, step_m: float, step_deg: f
     measured in ``benchmarks/placement.py``.
 
     Returns:
-        the placed pose and the feedback of every look, in order (with ``coarse``, looks 1 to
-        ``coarse_looks(max_evaluations)`` are the coarse feedback's values, on its own scale).
+        the placed pose and the feedback of every look, in order (with ``coarse``, looks 1 to k are
+        the coarse feedback's values, on its own scale: k is the number of ``coarse``'s calls, at most
+        ``coarse_looks(max_evaluations)``, fewer where its simplex closes first).
     """
     scale = np.r_[np.full(3, step_m), np.full(3, math.radians(step_deg))]
     history: list[float] = []
@@ -512,6 +513,7 @@ def _place_trials(scene, feedback, coarse, name, surface, distance_mm, trials, s
     for t in range(trials):
         t0 = time.perf_counter()
         start = random_pose_near(goal, spread_mm / 1000, spread_deg, rng)
+        counted = coarse.count if coarse is not None else 0
         placed, history = place_by_feedback(feedback, start, step_m=max(spread_mm, 1.0) / 1000,
                                             step_deg=max(spread_deg, 1.0), max_evaluations=max_evaluations,
                                             coarse=coarse)
@@ -521,7 +523,7 @@ def _place_trials(scene, feedback, coarse, name, surface, distance_mm, trials, s
         rmse = _rmse(scan["points"], goal, surface.size)
         trial = PlacementTrial(position=name, trial=t, start=start, placed=placed, history=history, scan=scan,
                                rmse_mm=rmse, rmse_percent=100 * rmse / distance_mm, seconds=time.perf_counter() - t0,
-                               coarse_looks=coarse_looks(max_evaluations) if coarse is not None else 0)
+                               coarse_looks=coarse.count - counted if coarse is not None else 0)
         placed_trials.append(trial)
         rows.append({
             "position": name, "trial": t, "rmse_mm": round(rmse, 3), "rmse_percent": round(trial.rmse_percent, 4),
