@@ -220,6 +220,7 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
     """Gray-code scan of one surface at ``pose`` on the virtual rig, with the rig's known geometry.
 
     Each projector shows its Gray code alone; every decoded camera pixel is triangulated against it.
+    Only the window of the camera image the box can appear in is simulated (:func:`_box_window`).
 
     Returns:
         ``points`` :math:`(N, 3)` world points (metres) and ``projector`` :math:`(N,)` the index of
