@@ -155,3 +155,11 @@ def test_json_reports_stay_json_whatever_the_scores(tmp_path):
     text = (tmp_path / "r.json").read_text()
     assert "Infinity" not in text and "NaN" not in text
     assert json.loads(text) == {"psnr_db": None, "low": None, "gap": None, "rows": [1.5, None]}
+
+
+def test_index_arrays_are_int32_while_they_fit():
+    from torchproj.core.sparse import csr_tensor, index_dtype
+
+    assert index_dtype(5, 2**31 - 1) == torch.int32 and index_dtype(5, 2**31) == torch.int64
+    m = csr_tensor(torch.tensor([0, 1, 2]), torch.tensor([1, 0]), torch.ones(2), (2, 2))
+    assert m.crow_indices().dtype == m.col_indices().dtype == torch.int32

@@ -6,10 +6,16 @@ import warnings
 
 import torch
 
-__all__ = ["csr_from_coo", "csr_tensor", "spmm"]
+__all__ = ["csr_from_coo", "csr_tensor", "index_dtype", "spmm"]
 
 _INT32_LIMIT = 2**31 - 1
 _WIDENED = (torch.float16, torch.bfloat16)  # stored in 16 bits, multiplied in float32
+
+
+def index_dtype(*sizes: int) -> torch.dtype:
+    """The index type torchproj keeps for arrays that count or point up to ``sizes``: int32 where
+    every one fits (:func:`csr_tensor`'s reason), else int64."""
+    return torch.int32 if max(sizes) <= _INT32_LIMIT else torch.int64
 
 
 def csr_tensor(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
@@ -23,7 +29,7 @@ def csr_tensor(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: 
     are off, which is what ``check_invariants=False`` asks; the products torchproj uses are stable and
     the callers build sorted arrays, so both warnings are silenced here rather than everywhere.
     """
-    if max(shape) <= _INT32_LIMIT and col.numel() <= _INT32_LIMIT:
+    if index_dtype(*shape, col.numel()) == torch.int32:
         crow, col = crow.to(torch.int32), col.to(torch.int32)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")

@@ -38,7 +38,7 @@ from ..calib.bundle import cell_shares_of, edge_pixels
 from ..calib.edges import EdgePixels
 from ..calib.graycode import WIDE_SHARE, CellShares
 from ..core.lens import disc_points, points_for_diameter
-from ..core.sparse import _INT32_LIMIT, csr_tensor
+from ..core.sparse import csr_tensor, index_dtype
 from .operator import TransportOperator
 
 __all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
@@ -869,7 +869,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         offset = 0
         # Global cells fit int32 on any rig (a few million cells): half the bytes of the rows' largest
         # arrays, which set the cold run's peak memory where the last target's rows are stacked.
-        cell_type = torch.int32 if sum(w * h for w, h in cal.projector_sizes) <= _INT32_LIMIT else torch.int64
+        cell_type = index_dtype(sum(w * h for w, h in cal.projector_sizes))
         for name, per in (("blur maps", cal.blur), ("edge-pixel sets", cal.edges), ("cell-share sets", cal.shares)):
             check(per is None or len(per) == len(cal.prj_xy),
                   f"state {target.state!r} has {len(per or [])} {name} for {len(cal.prj_xy)} projectors: "

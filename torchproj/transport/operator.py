@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from ..core.checks import check, check_finite, check_shape
-from ..core.sparse import _INT32_LIMIT, csr_from_coo, csr_tensor, spmm
+from ..core.sparse import csr_from_coo, csr_tensor, index_dtype, spmm
 
 __all__ = ["TransportOperator", "normal_form", "gram_matrix", "NormalEquations", "ProductNormalEquations", "csr_from_coo", "cell_blocks"]
 
@@ -857,7 +857,7 @@ def gram_matrix(A: torch.Tensor, At: torch.Tensor | None = None, parts: int | No
     starts = [0]
     for q in blocks:
         starts.append(starts[-1] + q.nnz)
-    index = torch.int32 if max(n, starts[-1]) <= _INT32_LIMIT else torch.int64  # as csr_tensor keeps them
+    index = index_dtype(n, starts[-1])  # as csr_tensor keeps them
     crow_q = torch.empty(n + 1, dtype=index)
     col_q = torch.empty(starts[-1], dtype=index)
     val_q = torch.empty(starts[-1], dtype=A.dtype)
