@@ -315,7 +315,7 @@ def test_position_needs_each_target_on_one_box(tmp_path, capsys):
 
 
 def test_position_refuses_bad_settings(box_scene):
-    for kwargs in ({"trials": 0}, {"spread_mm": -1}, {"max_evaluations": 3}, {"feedback_stride": 0},
+    for kwargs in ({"trials": 0}, {"spread_mm": -1}, {"spread_mm": float("nan")}, {"max_evaluations": 3}, {"feedback_stride": 0},
                    {"feedback_stride": 1.5}, {"feedback_stride": True}):
         with pytest.raises(InputError, match="must"):
             evaluate_positioning(box_scene, **kwargs)

@@ -408,7 +408,8 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     """
     check(trials >= 1, f"trials must be at least 1, got {trials}")
     check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)  # before calibrating
-    check(spread_mm >= 0 and spread_deg >= 0, "spread_mm and spread_deg must not be negative")
+    check(spread_mm >= 0 and spread_deg >= 0, f"spread_mm and spread_deg must be numbers >= 0 (mm, degrees), got "
+                                               f"{spread_mm!r} and {spread_deg!r}")  # NaN fails too
     check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
     check(feedback_stride is None or (isinstance(feedback_stride, int) and not isinstance(feedback_stride, bool)
                                       and feedback_stride >= 1),
