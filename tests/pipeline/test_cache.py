@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import threading
 
 import pytest
 import torch
@@ -13,7 +14,7 @@ from torchproj.pipeline.run import run_markdown
 from torchproj.pipeline import scene_targets
 from torchproj.pipeline.cache import (CACHE_DIR_ENV, CACHE_MAX_ENV, cached_calibration, cached_transport, calibration_key,
                                       geometry_key, keep_geometry, keep_normal_matrices, read_geometry, read_normal_matrices,
-                                      transport_key)
+                                      transport_key, writing_behind)
 from torchproj.core.errors import InputError
 from torchproj.scene.show import shown_scene
 from torchproj.sim import VirtualRig
@@ -303,3 +304,49 @@ def test_no_cache_from_the_command_line(cache, tmp_path):
     assert not cache.exists()
     assert main(["run", str(config), "--out", str(tmp_path / "b")]) == 0
     assert json.loads((tmp_path / "b" / "report.json").read_text())["calibration_cache"] == "stored"
+
+
+def test_entries_written_behind_are_whole_when_the_block_ends_and_hold_what_was_kept(cache):
+    """Within writing_behind the entries are written on another thread; leaving the block waits for them,
+    and each holds the payload as it was kept, whatever the caller changed in its own containers after."""
+    from torchproj.pipeline.cache import _write
+
+    writers = []
+    real_save = torch.save
+
+    def save(payload, path):
+        writers.append(threading.current_thread())
+        real_save(payload, path)
+
+    states = {"near": torch.arange(4.0)}
+    payload = {"key": "k", "states": states}
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(torch, "save", save)
+        with writing_behind() as behind:
+            assert _write(cache, cache / "entry.pt", payload, "calibration")
+            states["far"] = torch.zeros(2)  # the run goes on changing its own dict
+        assert not behind.refused
+    assert writers and all(t is not threading.main_thread() for t in writers)
+    kept = torch.load(cache / "entry.pt", weights_only=False)
+    assert list(kept["states"]) == ["near"] and torch.equal(kept["states"]["near"], torch.arange(4.0))
+    assert not list(cache.glob(".partial-*"))
+
+
+def test_a_write_refused_behind_the_run_is_reported_not_kept(cache, monkeypatch):
+    """A disk that refuses an entry while the run goes on (full, say): the run finishes, warns once it has
+    waited for its writes, and its report says which entry was not kept; nothing half-written stays."""
+    real_save = torch.save
+
+    def save(payload, path):
+        if "operators" in payload:
+            raise RuntimeError("No space left on device")
+        real_save(payload, path)
+
+    monkeypatch.setattr(torch, "save", save)
+    with pytest.warns(UserWarning, match="could not keep the transport"):
+        report = run_virtual(_scene(), cache=True, progress=False).report
+    assert (report["calibration_cache"], report["transport_cache"], report["cast_cache"]) == ("stored", "not kept", "stored")
+    assert not list(cache.glob("transport-*")) and not list(cache.glob(".partial-*"))
+    monkeypatch.setattr(torch, "save", real_save)
+    again = run_virtual(_scene(), cache=True, progress=False).report
+    assert (again["calibration_cache"], again["transport_cache"], again["cast_cache"]) == ("read", "stored", "read")

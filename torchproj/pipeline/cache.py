@@ -25,10 +25,16 @@ overrides it), are written whole (a temporary file renamed into place), and the 
 are removed past ``TORCHPROJ_CACHE_MAX_GB`` (default 2). An entry that does not load, or whose key
 does not match, is removed and recomputed, never trusted. The rig's noise generator is stored with
 the calibration, so that a run from the cache captures exactly what a run without it does.
+
+Within :func:`writing_behind` (a run does this), entries are written on one background thread while
+the run goes on: the default scene's four entries are 1.2 GB, about 2 s of a cold run's writing, which
+the disk does while the run builds, solves and scores. Leaving it waits for every entry to be whole.
 """
 
 from __future__ import annotations
 
+import contextlib
+import copy
 import dataclasses
 import hashlib
 import json
@@ -36,6 +42,7 @@ import os
 import tempfile
 import time
 import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +57,7 @@ from .virtual import VirtualCalibration, calibrate_virtual
 
 __all__ = ["CACHE_DIR_ENV", "CACHE_MAX_ENV", "cache_dir", "cached_calibration", "cached_transport", "calibration_key",
            "geometry_key", "keep_geometry", "keep_normal_matrices", "read_geometry", "read_normal_matrices",
-           "transport_key"]
+           "transport_key", "writing_behind"]
 
 CACHE_DIR_ENV = "TORCHPROJ_CACHE_DIR"
 CACHE_MAX_ENV = "TORCHPROJ_CACHE_MAX_GB"
@@ -309,19 +316,84 @@ def _read(path: Path, key: str, what: str, make, device="cpu"):
         return None
 
 
+class _Behind:
+    """The entries a :func:`writing_behind` block hands to its writer thread, written one at a time, in order."""
+
+    def __init__(self):
+        self.refused: set[str] = set()  # what each refused entry held ("calibration", ...), filled on leaving
+        self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="torchproj-cache")
+        self._writes: list[tuple[str, Path, Future]] = []
+
+    def submit(self, folder: Path, path: Path, payload: dict, what: str) -> None:
+        # The payload's containers are copied here, on the caller's thread, so that the run may go on
+        # changing its own dicts and lists while pickling walks the copies; tensors are shared, never copied
+        # (nothing changes a kept tensor in place after it is made).
+        self._writes.append((what, folder, self._writer.submit(_write_now, folder, path, _containers_copied(payload))))
+
+    def finish(self) -> None:
+        self._writer.shutdown(wait=True)
+        for what, folder, done in self._writes:
+            exc = done.exception()
+            if exc is None:
+                continue
+            if not isinstance(exc, (OSError, RuntimeError)):
+                raise exc
+            self.refused.add(what)
+            warnings.warn(f"could not keep the {what} in {folder} ({exc}); the next run will compute it again",
+                          stacklevel=4)
+
+
+_BEHIND: _Behind | None = None
+
+
+@contextlib.contextmanager
+def writing_behind():
+    """Write the cache entries kept inside the block on a background thread while the block goes on, and
+    wait for them on leaving (an interrupted block still leaves whole entries or none).
+
+    Yields:
+        an object whose ``refused`` set names, after the block, what the cache folder refused to keep
+        (``"calibration"``, ``"transport"``, ``"normal matrix"``, ``"cast geometry"``), each with a
+        warning: inside the block, keeping reports an entry kept as soon as the folder takes it.
+        Nested blocks share the outer one's writer.
+    """
+    global _BEHIND
+    if _BEHIND is not None:
+        yield _BEHIND
+        return
+    _BEHIND = behind = _Behind()
+    try:
+        yield behind
+    finally:
+        _BEHIND = None
+        behind.finish()
+
+
+def _containers_copied(value):
+    """``value`` with its dicts, lists, tuples and dataclass instances copied, down to the tensors and
+    other leaves (shared)."""
+    if isinstance(value, dict):
+        return {k: _containers_copied(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):
+        return type(value)(_containers_copied(v) for v in value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        copied = copy.copy(value)
+        for f in dataclasses.fields(value):
+            object.__setattr__(copied, f.name, _containers_copied(getattr(value, f.name)))
+        return copied
+    return value
+
+
 def _write(folder: Path, path: Path, payload: dict, what: str) -> bool:
     """``payload`` written whole to ``path`` (a temporary file renamed into place), then the cap kept;
-    whether it was written."""
+    whether it was written. Within :func:`writing_behind`, written on its thread: True once the folder
+    exists (a write the disk refuses later is reported when the block ends)."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt", dir=folder)
-        os.close(fd)
-        try:
-            torch.save(payload, tmp)
-            os.replace(tmp, path)
-        finally:
-            Path(tmp).unlink(missing_ok=True)
-        _evict(folder, keep=path)
+        if _BEHIND is not None:
+            _BEHIND.submit(folder, path, payload, what)
+        else:
+            _write_now(folder, path, payload)
         return True
     # A full or read-only cache folder costs the next run its time, not this run (torch.save reports a
     # write the disk refused as a RuntimeError).
@@ -329,6 +401,17 @@ def _write(folder: Path, path: Path, payload: dict, what: str) -> bool:
         warnings.warn(f"could not keep the {what} in {folder} ({exc}); the next run will compute it again",
                       stacklevel=4)
         return False
+
+
+def _write_now(folder: Path, path: Path, payload: dict) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt", dir=folder)
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    _evict(folder, keep=path)
 
 
 def _evict(folder: Path, keep: Path) -> None:

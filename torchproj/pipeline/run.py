@@ -29,7 +29,7 @@ from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
 from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry,
-                    keep_normal_matrices, read_geometry, read_normal_matrices, transport_key)
+                    keep_normal_matrices, read_geometry, read_normal_matrices, transport_key, writing_behind)
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
@@ -162,73 +162,81 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     check_footprint(footprint)
     images = scene_images(scene) if images is None else images  # a missing image file is refused before the work
     t_total = time.perf_counter()
-    cached = None
-    calibrated_with = dict(oracle=oracle is not None, bits=bits, plane_tolerance=plane_tolerance)
-    if calibration is not None:
-        cal = calibration
-    elif cache:
-        cal, cached = cached_calibration(scene, device=device, progress=progress, **calibrated_with)
-    else:
-        cal = calibrate_virtual(scene, device, progress, **calibrated_with)
-    timings = {"calibrate": cal.seconds if calibration is None else 0.0}
-    cast = {}  # how the cache served the rays cast through the world the patterns are shown in
+    # Cache entries are written on a background thread while the run goes on (1.2 GB on the default
+    # scene); the block waits for them before the report says what was kept.
+    with writing_behind() as behind:
+        cached = None
+        calibrated_with = dict(oracle=oracle is not None, bits=bits, plane_tolerance=plane_tolerance)
+        if calibration is not None:
+            cal = calibration
+        elif cache:
+            cal, cached = cached_calibration(scene, device=device, progress=progress, **calibrated_with)
+        else:
+            cal = calibrate_virtual(scene, device, progress, **calibrated_with)
+        timings = {"calibrate": cal.seconds if calibration is None else 0.0}
+        cast = {}  # how the cache served the rays cast through the world the patterns are shown in
 
-    def read_cast(rig):
-        if not rig.cast_geometry():  # a calibration simulated in this run has cast them already
-            cast["how"] = read_geometry(rig)
+        def read_cast(rig):
+            if not rig.cast_geometry():  # a calibration simulated in this run has cast them already
+                cast["how"] = read_geometry(rig)
 
-    world = shown_world(cal, scene, prepare=None if cached is None else read_cast)
-    if cached is not None and world is cal:
-        read_cast(cal.rig)
-    t0 = time.perf_counter()
-    states, maps, fits = select_maps(cal.states, maps, plane_tolerance, cal.homographies)
-    if fits is not None and cal.homographies is None:
-        timings["homography"] = time.perf_counter() - t0
-    targets = scene_targets(scene, images, cal.rig)
-    choice = None
-    if footprint == AUTO:
-        choice = choose_footprint(states, targets, bounds, device=device)
-        footprint, timings["footprint"] = choice.footprint, choice.seconds
+        world = shown_world(cal, scene, prepare=None if cached is None else read_cast)
+        if cached is not None and world is cal:
+            read_cast(cal.rig)
+        if cached is not None and cast.get("how") is None and _cast_all(world.rig):
+            cast["how"] = keep_geometry(world.rig)  # now, so that writing it overlaps the run; nothing casts more
+        t0 = time.perf_counter()
+        states, maps, fits = select_maps(cal.states, maps, plane_tolerance, cal.homographies)
+        if fits is not None and cal.homographies is None:
+            timings["homography"] = time.perf_counter() - t0
+        targets = scene_targets(scene, images, cal.rig)
+        choice = None
+        if footprint == AUTO:
+            choice = choose_footprint(states, targets, bounds, device=device)
+            footprint, timings["footprint"] = choice.footprint, choice.seconds
 
-    exact = oracle == "transport"
-    if image is not None or gain_offset is not None or exact:
-        colour_weights = "grey"  # these couple the channels (the transport oracle has its own per-channel light)
-    # The transport of a cached calibration is kept beside it: the same scene and targets again (another
-    # solver, objective or bounds) read it instead of building it.
-    keyed = None if cached is None else calibration_key(scene, **calibrated_with) + f"/maps={maps}"
-    solved = _build_and_solve(world if exact else cal, states, targets, bounds, solver=solver, image=image, exact=exact,
-                              gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
-                              device=device, timings=timings, outside=outside, chains=chains,
-                              solver_options=solver_options, colour_weights=colour_weights, start=choice,
-                              rows_on_camera=refine > 0, cache_key=keyed)
-    refined = None
-    if refine:
+        exact = oracle == "transport"
+        if image is not None or gain_offset is not None or exact:
+            colour_weights = "grey"  # these couple the channels (the transport oracle has its own per-channel light)
+        # The transport of a cached calibration is kept beside it: the same scene and targets again (another
+        # solver, objective or bounds) read it instead of building it.
+        keyed = None if cached is None else calibration_key(scene, **calibrated_with) + f"/maps={maps}"
+        solved = _build_and_solve(world if exact else cal, states, targets, bounds, solver=solver, image=image, exact=exact,
+                                  gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
+                                  device=device, timings=timings, outside=outside, chains=chains,
+                                  solver_options=solver_options, colour_weights=colour_weights, start=choice,
+                                  rows_on_camera=refine > 0, cache_key=keyed)
+        refined = None
+        if refine:
+            t0 = time.perf_counter()
+            measure = rig_measure(world, solved.ops, targets, refine_frames)
+            remodel = None if exact else Reregister(states, targets, footprint=footprint, colour_weights=colour_weights,
+                                                    device=device)
+            refined = refine_patterns(solved.ops, solved.result.patterns, measure, bounds, cal.responses,
+                                      iterations=refine, objective=image or "l2", relax=refine_relax, outside=outside,
+                                      progress=progress, remodel=remodel)
+            timings["refine"] = time.perf_counter() - t0
+            start_scores = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states,
+                                             paper=False).targets
+            solved.patterns = refined.images
         t0 = time.perf_counter()
-        measure = rig_measure(world, solved.ops, targets, refine_frames)
-        remodel = None if exact else Reregister(states, targets, footprint=footprint, colour_weights=colour_weights,
-                                                device=device)
-        refined = refine_patterns(solved.ops, solved.result.patterns, measure, bounds, cal.responses,
-                                  iterations=refine, objective=image or "l2", relax=refine_relax, outside=outside,
-                                  progress=progress, remodel=remodel)
-        timings["refine"] = time.perf_counter() - t0
-        start_scores = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states,
-                                         paper=False).targets
-        solved.patterns = refined.images
-    t0 = time.perf_counter()
-    evaluation = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
-    scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
-    timings["evaluate"] = time.perf_counter() - t0
-    if ceiling:
+        evaluation = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
+        scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
+        timings["evaluate"] = time.perf_counter() - t0
+        if ceiling:
+            t0 = time.perf_counter()
+            # With a gain and offset, the run is scored against the images it fitted (g t + o): the ceiling
+            # is asked for the same images, so that the two columns compare like with like.
+            asked = targets if gain_offset is None else _fitted_targets(targets, solved.result.info)
+            for row, score in zip(rows, _ceiling(world, states, asked, bounds, footprint, progress, device, outside)):
+                row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
+            timings["ceiling"] = time.perf_counter() - t0
+        if cached is not None and cast.get("how") is None:
+            t0 = time.perf_counter()
+            cast["how"] = keep_geometry(world.rig)
+            timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
         t0 = time.perf_counter()
-        # With a gain and offset, the run is scored against the images it fitted (g t + o): the ceiling
-        # is asked for the same images, so that the two columns compare like with like.
-        asked = targets if gain_offset is None else _fitted_targets(targets, solved.result.info)
-        for row, score in zip(rows, _ceiling(world, states, asked, bounds, footprint, progress, device, outside)):
-            row["ceiling"] = {"psnr_db": score.psnr_db, "ssim": score.ssim}
-        timings["ceiling"] = time.perf_counter() - t0
-    if cached is not None and cast.get("how") is None:
-        t0 = time.perf_counter()
-        cast["how"] = keep_geometry(world.rig)
+    if cached is not None:  # what the run waited for the cache's writes after its own work
         timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
@@ -236,9 +244,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     if choice is not None:
         report["footprint_choice"] = choice.as_dict()
     report["colour_weights"] = "channel" if len(solved.ops) > 1 and not exact else "grey"
-    report["calibration_cache"] = cached or "off"
-    report["transport_cache"] = solved.transport_cache or "off"
-    report["cast_cache"] = cast.get("how", "off")
+    report["calibration_cache"] = NOT_KEPT if "calibration" in behind.refused else cached or "off"
+    report["transport_cache"] = NOT_KEPT if "transport" in behind.refused else solved.transport_cache or "off"
+    report["cast_cache"] = NOT_KEPT if "cast geometry" in behind.refused else cast.get("how", "off")
     report["outside"] = outside
     if solver == "eo":
         report["chains"] = chains
@@ -255,6 +263,11 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     solution = solved.result if refined is None else dataclasses.replace(solved.result, patterns=refined.patterns)
     return RunResult(report=report, patterns=solved.patterns, captures=evaluation.captures, targets=scores,
                      solution=solution, scene=scene, calibration=cal)
+
+
+def _cast_all(rig) -> bool:
+    """Whether ``rig`` has cast every state of its scene (so that nothing later casts more)."""
+    return set(rig.cast_geometry()) == {st.name for st in rig.scene.states}
 
 
 def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside, chains,
