@@ -669,13 +669,19 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
         sweeps = _CHECKER_SWEEPS
     total = values.sum(1)  # each step keeps it
     total = torch.where(total > 0, total, 1.0)
+    # Once for every sweep: each condition's cells as 1 / 0 and the rest as 1 / 0 (products select
+    # faster than torch.where with a broadcast operand, and exactly: x 1 + y 0 is x), and its share
+    # NaN where it does not apply.
+    conditions = [(ones := far.to(values.dtype), 1 - ones, torch.where(~wider, share, float("nan")))
+                  for far, share in conditions]
+    values = values.clone()  # scaled in place below
     for _ in range(sweeps):
-        for far, share in conditions:
-            part = torch.where(far, values, 0.0).sum(1) / total
-            on = torch.isfinite(share) & ~wider & (part > _SHARE_TOL) & (part < 1 - _SHARE_TOL)
+        for far, near, share in conditions:
+            part = torch.mul(values, far).sum(1).div_(total)
+            on = (part > _SHARE_TOL) & (part < 1 - _SHARE_TOL) & torch.isfinite(share)
             up = torch.where(on, share / part.clamp_min(_SHARE_TOL), 1.0)
             down = torch.where(on, (1 - share) / (1 - part).clamp_min(_SHARE_TOL), 1.0)
-            values = values * torch.where(far, up[:, None], down[:, None])
+            values.mul_(torch.mul(near, down[:, None]).addcmul_(far, up[:, None]))  # up on the far cells, down elsewhere
     return values
 
 
