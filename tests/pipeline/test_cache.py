@@ -350,3 +350,31 @@ def test_a_write_refused_behind_the_run_is_reported_not_kept(cache, monkeypatch)
     monkeypatch.setattr(torch, "save", real_save)
     again = run_virtual(_scene(), cache=True, progress=False).report
     assert (again["calibration_cache"], again["transport_cache"], again["cast_cache"]) == ("read", "stored", "read")
+
+
+def test_a_block_that_raises_finishes_the_entry_being_written_and_drops_the_rest(cache):
+    """Ctrl-C during a run: the entry on the writer is finished whole, those not begun are not written,
+    and no partial file is left; the interrupt goes on up."""
+    from torchproj.pipeline.cache import _write
+
+    started, release = threading.Event(), threading.Event()
+    real_save = torch.save
+
+    def slow_save(payload, path):
+        started.set()
+        release.wait(5)
+        real_save(payload, path)
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(torch, "save", slow_save)
+        with pytest.raises(KeyboardInterrupt):
+            with writing_behind():
+                _write(cache, cache / "first.pt", {"key": "first"}, "calibration")
+                _write(cache, cache / "second.pt", {"key": "second"}, "transport")
+                assert started.wait(5)
+                # The first write goes on a second after the interrupt, long after the block has
+                # dropped the second (at once, on leaving).
+                threading.Timer(1.0, release.set).start()
+                raise KeyboardInterrupt
+    assert sorted(p.name for p in cache.iterdir()) == ["first.pt"]
+    assert torch.load(cache / "first.pt", weights_only=False) == {"key": "first"}

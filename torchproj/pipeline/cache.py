@@ -330,10 +330,12 @@ class _Behind:
         # (nothing changes a kept tensor in place after it is made).
         self._writes.append((what, folder, self._writer.submit(_write_now, folder, path, _containers_copied(payload))))
 
-    def finish(self) -> None:
-        self._writer.shutdown(wait=True)
+    def finish(self, abandoned: bool = False) -> None:
+        """Wait for the writes; ``abandoned`` (the block raised: an interrupt, an error): the entry being
+        written is finished, whole, and those not begun are dropped."""
+        self._writer.shutdown(wait=True, cancel_futures=abandoned)
         for what, folder, done in self._writes:
-            exc = done.exception()
+            exc = None if done.cancelled() else done.exception()
             if exc is None:
                 continue
             if not isinstance(exc, (OSError, RuntimeError)):
@@ -349,7 +351,8 @@ _BEHIND: _Behind | None = None
 @contextlib.contextmanager
 def writing_behind():
     """Write the cache entries kept inside the block on a background thread while the block goes on, and
-    wait for them on leaving (an interrupted block still leaves whole entries or none).
+    wait for them on leaving. A block that raises (Ctrl-C, an error) waits only for the entry being
+    written, which is left whole, and drops those not begun: whole entries or none, never a part.
 
     Yields:
         an object whose ``refused`` set names, after the block, what the cache folder refused to keep
@@ -364,9 +367,12 @@ def writing_behind():
     _BEHIND = behind = _Behind()
     try:
         yield behind
-    finally:
+    except BaseException:
         _BEHIND = None
-        behind.finish()
+        behind.finish(abandoned=True)
+        raise
+    _BEHIND = None
+    behind.finish()
 
 
 def _containers_copied(value):
