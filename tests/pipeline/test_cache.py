@@ -42,6 +42,8 @@ def test_a_second_run_reads_the_calibration_and_captures_the_same(cache):
     assert (first["calibration_cache"], second["calibration_cache"], plain["calibration_cache"]) == ("stored", "read", "off")
     assert (first["transport_cache"], second["transport_cache"], plain["transport_cache"]) == ("stored", "read", "off")
     assert (first["cast_cache"], second["cast_cache"], plain["cast_cache"]) == ("stored", "read", "off")
+    # The time the run waited for its writes is a stage of a run that wrote, and only of one.
+    assert "keep" in first["timings_s"] and "keep" not in second["timings_s"] and "keep" not in plain["timings_s"]
     # report.md says where the calibration, the model and the rays the captures render from came from.
     text, plain_text = run_markdown(second), run_markdown(plain)
     assert "virtual rig (read from the cache)" in text and "nonzeros (read from the cache)" in text

@@ -324,6 +324,11 @@ class _Behind:
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="torchproj-cache")
         self._writes: list[tuple[str, Path, Future]] = []
 
+    @property
+    def handed(self) -> int:
+        """How many entries the block has handed to its writer."""
+        return len(self._writes)
+
     def submit(self, folder: Path, path: Path, payload: dict, what: str) -> None:
         # The payload's containers are copied here, on the caller's thread, so that the run may go on
         # changing its own dicts and lists while pickling walks the copies; tensors are shared, never copied

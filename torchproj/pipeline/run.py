@@ -236,7 +236,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             cast["how"] = keep_geometry(world.rig)
             timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
         t0 = time.perf_counter()
-    if cached is not None:  # what the run waited for the cache's writes after its own work
+    if behind.handed:  # what the run waited for the cache's writes after its own work
         timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_total
     report = _report(scene, cal, solver, image, bounds_8bit, device, maps, solved, timings, rows, gain_offset, oracle)
