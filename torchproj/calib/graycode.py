@@ -535,14 +535,14 @@ def _shares_at(patterns: torch.Tensor, span: torch.Tensor, cells: torch.Tensor, 
     across = torch.empty((n, 2, 2), device=pixels.device)
     outside = torch.empty((n, 2), device=pixels.device)
     for axis, (axis_bits, first, size) in enumerate(((bits[0], 0, projector_size[0]), (bits[1], bits[0], projector_size[1]))):
-        cell = cells[:, axis].long().clamp(0, size - 1)
+        cell = cells[:, axis].to(torch.int32).clamp(0, size - 1)  # int32: half the bytes of each pass below
         gray = cell ^ (cell >> 1)
         edges = []  # per side: the pair whose stripe edge it is, or -1 at the projector's border
         for step in (-1, 1):
             other = cell + step
             border = (other < 0) | (other >= size)  # the projector lights nothing past its edge
             flip = (gray ^ (other ^ (other >> 1))).clamp_min(1)  # the one Gray bit the two cells differ in
-            bit = torch.log2(flip.to(torch.float32)).round().long()
+            bit = torch.log2(flip.to(torch.float32)).round().to(torch.int32)
             edges.append(torch.where(border, -1, axis_bits - 1 - bit))
         found = [torch.zeros(n, device=pixels.device) for _ in edges]
         far = torch.zeros(n, device=pixels.device)

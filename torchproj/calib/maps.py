@@ -113,7 +113,9 @@ def _steps(prj_xy: torch.Tensor, dim: int, k: int, known: dict) -> tuple[torch.T
     ``known`` (one subtraction and one roll per ``k`` instead of two rolls and a subtraction)."""
     if "next" not in known:
         step = torch.roll(prj_xy, -1, dim) - prj_xy  # wraps round at the end: masked below
-        known["next"] = step, torch.isfinite(step).all(-1), step.abs().amax(-1)
+        # Per axis, then combined: reductions over a last dimension of two run slower than one step each.
+        x, y = step.unbind(-1)
+        known["next"] = step, torch.isfinite(x) & torch.isfinite(y), torch.maximum(x.abs(), y.abs())
     step, finite, size = (torch.roll(t, -k, dim) if k else t for t in known["next"])
     inner = torch.zeros(prj_xy.shape[:2], dtype=torch.bool, device=prj_xy.device)
     lo, hi = max(0, -k), prj_xy.shape[dim] - max(0, k + 1)  # roll wraps round
@@ -130,11 +132,9 @@ def _edge_steps(prj_xy: torch.Tensor, dim: int, k: int, known: dict | None = Non
         if i not in known:
             known[i] = _steps(prj_xy, dim, i, known)
     step, ok, size = known[k]
-    around = torch.full(size.shape, float("inf"), dtype=torch.promote_types(size.dtype, torch.float32), device=size.device)
-    for i in (k - 1, k + 1):
-        _, there, other = known[i]
-        around = torch.minimum(around, torch.where(there, other, float("inf")))
-    around = torch.where(torch.isfinite(around), around, 0.0)  # no step known either side: the jump alone
+    (_, before, size_before), (_, after, size_after) = known[k - 1], known[k + 1]
+    around = torch.minimum(torch.where(before, size_before, float("inf")), torch.where(after, size_after, float("inf")))
+    around.masked_fill_(torch.isinf(around), 0.0)  # no step known either side: the jump alone
     edge = (size > EDGE_STEP) | ((size > EDGE_JUMP) & (size - around > EDGE_EXCESS))
     return step, ok, ok & edge
 
@@ -160,7 +160,7 @@ def map_slope(prj_xy: torch.Tensor) -> torch.Tensor:
             for i in range(_SLOPE_REACH):
                 step, ok, edge = _edge_steps(prj_xy, dim, i if side == 1 else -1 - i, known)
                 open_ &= ok & ~edge
-                total += torch.where(open_[..., None], step, 0.0)
+                total += step.masked_fill(~open_[..., None], 0.0)
                 count += open_
         slope[..., axis] = torch.where(count[..., None] > 0, total / count.clamp_min(1)[..., None], float("nan"))
     return slope
