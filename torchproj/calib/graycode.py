@@ -883,7 +883,7 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     best, score = planes[..., 0], misfit  # (H, W, 2): the centred window's value at the pixel
     if math.isfinite(crease_ratio):
         score = misfit / crease_ratio
-        shifted = valid & ~depth_edges(torch.where(valid[..., None], prj_xy, float("nan")))
+        shifted = valid & ~depth_edges(prj_xy.masked_fill(~valid[..., None], float("nan")))
         r = window // 2
         for dx, dy in ((r, 0), (-r, 0), (0, r), (0, -r)):
             # The window centred at (x + dx, y + dy), read at each pixel (x, y): its plane's value
@@ -895,7 +895,9 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
             misfit_there[here] = misfit[there]
             value = torch.zeros_like(best)
             plane = planes[there]
-            value[here] = plane[..., 0] - dx * plane[..., 1] - dy * plane[..., 2]
+            # Its plane read half a window along x or y: the other slope's term is zero (a plane is
+            # finite, or NaN in all three parts).
+            value[here] = plane[..., 0] - dx * plane[..., 1] if dx else plane[..., 0] - dy * plane[..., 2]
             take = shifted & (misfit_there < score)
             score = torch.where(take, misfit_there, score)
             best = torch.where(take[..., None], value, best)
