@@ -380,3 +380,34 @@ def test_a_block_that_raises_finishes_the_entry_being_written_and_drops_the_rest
                 raise KeyboardInterrupt
     assert sorted(p.name for p in cache.iterdir()) == ["first.pt"]
     assert torch.load(cache / "first.pt", weights_only=False) == {"key": "first"}
+
+
+def test_a_block_writes_behind_for_its_own_thread_only(cache):
+    """A run in another thread while one writes behind: the other thread's entry is written as it would be
+    alone, not queued behind this block's."""
+    from torchproj.pipeline.cache import _write
+
+    release = threading.Event()
+    real_save = torch.save
+
+    def save(payload, path):
+        if payload["key"] == "mine":
+            release.wait(5)
+        real_save(payload, path)
+
+    seen = {}
+
+    def other_run():
+        seen["kept"] = _write(cache, cache / "theirs.pt", {"key": "theirs"}, "calibration")
+        seen["whole"] = (cache / "theirs.pt").is_file()
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(torch, "save", save)
+        with writing_behind():
+            assert _write(cache, cache / "mine.pt", {"key": "mine"}, "calibration")
+            other = threading.Thread(target=other_run)
+            other.start()
+            other.join(5)
+            assert seen == {"kept": True, "whole": True} and not (cache / "mine.pt").exists()
+            release.set()
+    assert (cache / "mine.pt").is_file()

@@ -40,6 +40,7 @@ import hashlib
 import json
 import os
 import tempfile
+import threading
 import time
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -350,7 +351,8 @@ class _Behind:
                           stacklevel=4)
 
 
-_BEHIND: _Behind | None = None
+# Each thread's open writing_behind block (a run in another thread has its own writer).
+_LOCAL = threading.local()
 
 
 @contextlib.contextmanager
@@ -363,20 +365,21 @@ def writing_behind():
         an object whose ``refused`` set names, after the block, what the cache folder refused to keep
         (``"calibration"``, ``"transport"``, ``"normal matrix"``, ``"cast geometry"``), each with a
         warning: inside the block, keeping reports an entry kept as soon as the folder takes it.
-        Nested blocks share the outer one's writer.
+        Nested blocks share the outer one's writer; each thread has its own blocks (a run in another
+        thread writes as it would alone).
     """
-    global _BEHIND
-    if _BEHIND is not None:
-        yield _BEHIND
+    outer = getattr(_LOCAL, "behind", None)
+    if outer is not None:
+        yield outer
         return
-    _BEHIND = behind = _Behind()
+    _LOCAL.behind = behind = _Behind()
     try:
         yield behind
     except BaseException:
-        _BEHIND = None
+        _LOCAL.behind = None
         behind.finish(abandoned=True)
         raise
-    _BEHIND = None
+    _LOCAL.behind = None
     behind.finish()
 
 
@@ -401,8 +404,9 @@ def _write(folder: Path, path: Path, payload: dict, what: str) -> bool:
     exists (a write the disk refuses later is reported when the block ends)."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        if _BEHIND is not None:
-            _BEHIND.submit(folder, path, payload, what)
+        behind = getattr(_LOCAL, "behind", None)
+        if behind is not None:
+            behind.submit(folder, path, payload, what)
         else:
             _write_now(folder, path, payload)
         return True
