@@ -27,8 +27,9 @@ does not match, is removed and recomputed, never trusted. The rig's noise genera
 the calibration, so that a run from the cache captures exactly what a run without it does.
 
 Within :func:`writing_behind` (a run does this), entries are written on one background thread while
-the run goes on: the default scene's four entries are 1.2 GB, about 2 s of a cold run's writing, which
-the disk does while the run builds, solves and scores. Leaving it waits for every entry to be whole.
+the run builds, solves and scores: the default scene's four entries are 1.2 GB, a second or more of
+writing, several where the disk is still flushing earlier runs' entries. Leaving the block waits for
+every entry to be whole.
 """
 
 from __future__ import annotations
