@@ -763,14 +763,23 @@ def _window_planes(values: torch.Tensor, mask: torch.Tensor, window: int) -> tup
     xs = torch.arange(width, dtype=torch.float64, device=dev) - width // 2
     for top in range(0, height, _REFINE_STRIP):
         lo, hi = max(top - r, 0), min(top + _REFINE_STRIP + r, height)
-        u = (values[lo:hi].double() - centre).permute(2, 0, 1) * mask[lo:hi]  # (2, h, W)
+        # Only the columns within a window of a masked pixel of the strip (its margin rows included)
+        # get a plane: outside them every sum is of zeros. Cut to them, the running sums add the same
+        # values in the same order, so the planes are the same to the bit.
+        seen = torch.nonzero(mask[lo:hi].any(0))[:, 0]
+        if not seen.numel():
+            continue  # no plane in the strip: NaN, count 0, as allocated
+        left, right = max(int(seen[0]) - r, 0), min(int(seen[-1]) + r + 1, width)
+        part = slice(left, right)
+        u = (values[lo:hi, part].double() - centre).permute(2, 0, 1) * mask[lo:hi, part]  # (2, h, w)
         ys = torch.arange(hi - lo, dtype=torch.float64, device=dev)[:, None]
-        sums = _sliding_sums(_sliding_sums(torch.cat([u, u * xs, u * ys, u * u]), window, -1), window, -2)
+        xp = xs[part]
+        sums = _sliding_sums(_sliding_sums(torch.cat([u, u * xp, u * ys, u * u]), window, -1), window, -2)
         sums, y = sums[:, top - lo:top - lo + _REFINE_STRIP], ys[top - lo:top - lo + _REFINE_STRIP]
         su, sux, suy, suu = sums[0:2], sums[2:4], sums[4:6], sums[6:8]
         # Moments about the window's centre (x, y): a plane c0 + c1 dx + c2 dy.
-        n, sx, sy, sxx, sxy, syy = moments[:, top:top + sums.shape[1]].double()
-        sux, suy = sux - xs * su, suy - y * su
+        n, sx, sy, sxx, sxy, syy = moments[:, top:top + sums.shape[1], part].double()
+        sux, suy = sux - xp * su, suy - y * su
         # The symmetric 3 x 3 normal equations [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] solved
         # by their cofactors.
         a00, a01, a02 = sxx * syy - sxy * sxy, sy * sxy - sx * syy, sx * sxy - sy * sxx
@@ -784,9 +793,9 @@ def _window_planes(values: torch.Tensor, mask: torch.Tensor, window: int) -> tup
         rss = (suu - c0 * su - c1 * sux - c2 * suy).sum(0).clamp_min(0)
         rows = slice(top, top + n.shape[0])
         plane = torch.stack([c0 + centre[:, None, None], c1, c2], -1).permute(1, 2, 0, 3)
-        planes[rows] = torch.where(fixed[..., None, None], plane, float("nan")).float()
-        misfit[rows] = torch.where(fixed, rss / (2 * (n - 3)).clamp_min(1), float("nan")).float()
-        count[rows] = n.float()
+        planes[rows, part] = torch.where(fixed[..., None, None], plane, float("nan")).float()
+        misfit[rows, part] = torch.where(fixed, rss / (2 * (n - 3)).clamp_min(1), float("nan")).float()
+        count[rows, part] = n.float()
     return planes, misfit, count
 
 
