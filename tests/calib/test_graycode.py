@@ -9,7 +9,7 @@ import torch
 
 from torchproj.calib import warn_if_few_decoded
 from torchproj.calib.maps import depth_edges
-from torchproj.calib.graycode import CREASE_RATIO, _refine_again, _tiles_within
+from torchproj.calib.graycode import CREASE_RATIO, _refine_again, _tiles_within, _window_planes
 from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, checker_patterns,
                              checker_shares, decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
@@ -584,3 +584,34 @@ def test_the_tiles_a_second_fit_visits_are_those_a_dilation_reaches(size):
         near = torch.nn.functional.max_pool2d(mask.float()[None, None], 2 * reach + 1, 1, reach)
         expected = torch.nn.functional.max_pool2d(near, tile, tile, ceil_mode=True)[0, 0] > 0
         assert torch.equal(_tiles_within(mask, reach, tile), expected)
+
+
+def test_window_planes_are_each_windows_least_squares_plane_near_and_far_from_the_mask():
+    """Every window's plane, misfit and count against numpy's least squares on that window alone, at
+    pixels inside a masked block, on its border, a window beyond it, and beside a lone masked pixel far
+    off (the fit sums only the columns near masked pixels: none may lose its plane or gain one)."""
+    gen = torch.Generator().manual_seed(4)
+    height, width, window = 300, 260, 7
+    values = torch.rand(height, width, 2, generator=gen, dtype=torch.float64).float() * 4 + 100
+    mask = torch.zeros(height, width, dtype=torch.bool)
+    mask[40:270, 60:150] = torch.rand(230, 90, generator=gen) > 0.25
+    mask[150, 250] = True  # alone, far to the right
+    planes, misfit, count = _window_planes(values, mask, window)
+    r = window // 2
+    probes = [(100, 100), (40, 60), (37, 57), (36, 56), (269, 149), (272, 152), (273, 153), (150, 250), (152, 247),
+              (150, 246), (10, 10), (299, 259)]
+    for y, x in probes:
+        ys, xs = np.mgrid[y - r:y + r + 1, x - r:x + r + 1]
+        inside = (ys >= 0) & (ys < height) & (xs >= 0) & (xs < width)
+        ys, xs = ys[inside], xs[inside]
+        on = mask.numpy()[ys, xs]
+        assert count[y, x] == on.sum()
+        if on.sum() < 3:
+            assert torch.isnan(planes[y, x]).all() and torch.isnan(misfit[y, x])
+            continue
+        design = np.stack([np.ones(on.sum()), xs[on] - x, ys[on] - y], 1).astype(np.float64)
+        target = values.double().numpy()[ys[on], xs[on]]  # (n, 2)
+        coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+        rss = ((design @ coef - target) ** 2).sum()
+        np.testing.assert_allclose(planes[y, x].double().numpy(), coef.T, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(float(misfit[y, x]), rss / max(2 * (on.sum() - 3), 1), rtol=1e-3, atol=1e-6)
