@@ -9,7 +9,7 @@ import torch
 
 from torchproj.calib import warn_if_few_decoded
 from torchproj.calib.maps import depth_edges
-from torchproj.calib.graycode import CREASE_RATIO, _refine_again, _tiles_within, _window_planes
+from torchproj.calib.graycode import CREASE_RATIO, _refine_again, _window_planes
 from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, checker_patterns,
                              checker_shares, decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
@@ -570,20 +570,6 @@ def test_the_gpu_machines_stand_in_generator_is_opencvs(size):
     done, got = shim.GrayCodePattern.create(*size).generate()
     assert ok and done and len(got) == len(want)
     assert all(np.array_equal(a, b) for a, b in zip(got, want))
-
-
-@pytest.mark.parametrize("size", [(1200, 1600), (130, 70), (5, 9), (64, 128)])
-def test_the_tiles_a_second_fit_visits_are_those_a_dilation_reaches(size):
-    """_refine_again's tiles from the changed pixels' coordinates: the same as dilating the mask by the
-    reach (torch's max pooling) and asking which tiles hold any of it, at the image's edges too."""
-    gen = torch.Generator().manual_seed(sum(size))
-    reach, tile = 12, 64
-    for density in (0.0, 2e-5, 1e-3, 0.2):
-        mask = torch.rand(size, generator=gen) < density
-        mask[0, -1] = mask[-1, 0] = density > 0.1  # corners set, at the densest
-        near = torch.nn.functional.max_pool2d(mask.float()[None, None], 2 * reach + 1, 1, reach)
-        expected = torch.nn.functional.max_pool2d(near, tile, tile, ceil_mode=True)[0, 0] > 0
-        assert torch.equal(_tiles_within(mask, reach, tile), expected)
 
 
 def test_window_planes_are_each_windows_least_squares_plane_near_and_far_from_the_mask():

@@ -1,8 +1,9 @@
 import numpy as np
+import pytest
 import torch
 
 from torchproj.calib import fill_holes, inverse_map
-from torchproj.calib.maps import depth_edges, map_slope
+from torchproj.calib.maps import _tiles_within, depth_edges, map_slope
 
 
 def test_inverse_map_matches_a_plain_loop():
@@ -61,3 +62,53 @@ def test_a_small_jump_between_surfaces_is_a_depth_edge_and_a_steep_surface_is_no
     slope = map_slope(steep)[1, 5, 0, 0]
     assert abs(float(slope) - 3.0) < 0.2  # the mean step over two pixels either side
     assert float(map_slope(one_step)[1, 4, 0, 0]) == 1.0  # the pixel beside the jump: its own side only
+
+
+@pytest.mark.parametrize("size", [(1200, 1600), (130, 70), (5, 9), (64, 128)])
+def test_the_tiles_a_second_fit_visits_are_those_a_dilation_reaches(size):
+    """The tiles _refine_again and map_slope's like= visit, from the changed pixels' coordinates: the same as dilating the mask by the
+    reach (torch's max pooling) and asking which tiles hold any of it, at the image's edges too."""
+    gen = torch.Generator().manual_seed(sum(size))
+    reach, tile = 12, 64
+    for density in (0.0, 2e-5, 1e-3, 0.2):
+        mask = torch.rand(size, generator=gen) < density
+        mask[0, -1] = mask[-1, 0] = density > 0.1  # corners set, at the densest
+        near = torch.nn.functional.max_pool2d(mask.float()[None, None], 2 * reach + 1, 1, reach)
+        expected = torch.nn.functional.max_pool2d(near, tile, tile, ceil_mode=True)[0, 0] > 0
+        assert torch.equal(_tiles_within(mask, reach, tile), expected)
+
+
+def test_a_slope_taken_like_another_maps_is_the_slope_computed_whole():
+    """map_slope(b, like=(a, map_slope(a))) equals map_slope(b) to the bit: b is a with pixels added
+    (calibration's dim pixels) and removed, beside depth edges and the image's borders, and maps that
+    are the same or differ everywhere."""
+    gen = torch.Generator().manual_seed(8)
+    height, width = 200, 330
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32),
+                            indexing="ij")
+    a = torch.stack([0.6 * xs + 0.1 * ys, 0.05 * xs + 0.7 * ys], -1) + torch.rand(height, width, 2, generator=gen) * 0.2
+    a[:, 150:] += torch.tensor([9.0, 3.0])  # a depth edge down the middle
+    a[torch.rand(height, width, generator=gen) < 0.3] = float("nan")
+    b = a.clone()
+    extra = torch.rand(height, width, generator=gen) < 0.002
+    extra[0, 0] = extra[-1, -1] = extra[100, 149] = extra[5, -2] = True  # corners, the edge, a border
+    b[extra] = torch.rand(int(extra.sum()), 2, generator=gen) * 50
+    b[60:64, 10:13] = float("nan")  # and some pixels gone
+    slope_a = map_slope(a)
+    for other, theirs in ((a, slope_a), (b, map_slope(b)), (torch.rand(height, width, 2, generator=gen), None)):
+        theirs = map_slope(other) if theirs is None else theirs
+        taken = map_slope(b, like=(other, theirs))
+        whole = map_slope(b)
+        assert torch.equal(torch.isnan(taken), torch.isnan(whole))
+        assert torch.equal(torch.nan_to_num(taken), torch.nan_to_num(whole))
+    # The farthest a pixel's slope reads: a pixel added three to the right of a tile's last column turns
+    # the 3.25-cell step before it into a jump (the step after it is now 0.5 cells), which the slope at
+    # that column must no longer take in (its steps grow, so that leaving one out moves the mean).
+    row = torch.stack([3.0 * xs[0] + 0.001 * xs[0] ** 2, torch.zeros(width)], -1)
+    a = row.expand(height, width, 2).clone()
+    a[:, 130] = float("nan")
+    b = a.clone()
+    b[:, 130] = a[:, 129] + torch.tensor([0.5, 0.0])
+    taken, whole = map_slope(b, like=(a, map_slope(a))), map_slope(b)
+    assert not torch.equal(torch.nan_to_num(map_slope(a)[:, 127]), torch.nan_to_num(whole[:, 127]))
+    assert torch.equal(torch.isnan(taken), torch.isnan(whole)) and torch.equal(torch.nan_to_num(taken), torch.nan_to_num(whole))

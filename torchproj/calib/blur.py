@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check
+from ..core.checks import check, check_shape
 from ..core.lens import disc_points
 from .graycode import _grey, check_full_sequence, stripe_signs
 from .maps import map_slope, pixel_square
@@ -37,7 +37,7 @@ _AGREE = 1.0
 
 def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
                  projector_size: tuple[int, int], *, finest: int = 4, step: int = 16,
-                 min_contrast: float = 0.1) -> torch.Tensor:
+                 min_contrast: float = 0.1, slope: torch.Tensor | None = None) -> torch.Tensor:
     """Diameter in cells of each camera pixel's defocus disc, from the finest Gray-code captures.
 
     Args:
@@ -49,6 +49,7 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
         finest: how many of each axis' finest bits to compare.
         step: camera pixels between samples along each axis; each pixel takes its sample's value.
         min_contrast: white minus black, [0, 1] units, below which a pixel is too dark to judge.
+        slope: :math:`(H, W, 2, 2)` ``map_slope(prj_xy)`` where the caller has it; None: computed here.
 
     Returns:
         :math:`(H, W)` float32 diameters (0 = sharp), NaN where the map is unknown or no sample
@@ -61,7 +62,8 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     H, W = contrast.shape
     check(1 <= finest <= min(nx, ny), f"finest must be 1..{min(nx, ny)}, got {finest}")
     check(step >= 1, f"step must be >= 1, got {step}")
-    slope = map_slope(prj_xy)
+    slope = map_slope(prj_xy) if slope is None else slope
+    check_shape(slope, "slope", [H, W, 2, 2])
     # Samples on a grid, at pixel centres, where everything the prediction needs is known.
     device = prj_xy.device
     ys = torch.arange(step // 2, H, step, device=device)

@@ -91,7 +91,7 @@ class EdgePixels:
 
 
 def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
-                     projector_size: tuple[int, int]) -> EdgePixels:
+                     projector_size: tuple[int, int], slope: torch.Tensor | None = None) -> EdgePixels:
     """The pixels beside depth edges and the lit ones the map misses, each on one or two surfaces
     carried over from its neighbours (module docstring).
 
@@ -101,6 +101,7 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         white, black: :math:`(H, W)` or :math:`(C, H, W)`.
         prj_xy: :math:`(H, W, 2)` the refined map (NaN where unknown).
         projector_size: ``(width, height)``.
+        slope: :math:`(H, W, 2, 2)` ``map_slope(prj_xy)`` where the caller has it; None: computed here.
 
     Returns:
         the :class:`EdgePixels`: every lit pixel beside a depth edge, and every lit unmapped one with
@@ -116,7 +117,8 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         return (pair if pair.dim() == 2 else pair.mean(1)).diff(dim=0).neg()[0]
 
     lit = contrast > _MIN_CONTRAST
-    slope = map_slope(prj_xy)
+    slope = map_slope(prj_xy) if slope is None else slope
+    check_shape(slope, "slope", [H, W, 2, 2])
     known = torch.isfinite(prj_xy).all(-1)
     source = known & torch.isfinite(slope).all(-1).all(-1)  # pixels whose surface can be carried over
     # A pixel with no mapped pixel within reach has no candidate: left out before the candidates'

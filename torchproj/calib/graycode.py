@@ -43,7 +43,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 from ..core.choices import BLACK_THRESHOLD
-from .maps import depth_edges
+from .maps import _tiles_within, depth_edges
 
 __all__ = ["CREASE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "checker_patterns",
            "checker_shares", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel",
@@ -802,21 +802,6 @@ def _window_planes(values: torch.Tensor, mask: torch.Tensor, window: int) -> tup
 # Tiles (camera pixels a side) in which _refine_again fits again: each costs a fit over the tile and
 # a border of a window either side, so smaller tiles waste less where few pixels changed.
 _AGAIN_TILE = 64
-
-
-def _tiles_within(mask: torch.Tensor, reach: int, tile: int) -> torch.Tensor:
-    """:math:`(\\lceil H / t \\rceil, \\lceil W / t \\rceil)` bool: the ``tile x tile`` tiles of ``mask``
-    :math:`(H, W)` that hold a pixel within ``reach`` pixels (a square) of a set one. From the set
-    pixels' coordinates: each reaches the tiles of its square's corners, at most two a side where the
-    reach is under a tile (a dilation of the whole mask by a 25 x 25 square cost 0.15 s a map)."""
-    check(0 <= reach < tile, f"reach must be under the tile, got {reach} and {tile}")
-    height, width = mask.shape
-    ys, xs = torch.nonzero(mask, as_tuple=True)
-    rows = torch.stack([(ys - reach).clamp_min(0), (ys + reach).clamp_max(height - 1)]) // tile
-    cols = torch.stack([(xs - reach).clamp_min(0), (xs + reach).clamp_max(width - 1)]) // tile
-    tiles = torch.zeros(-(-height // tile), -(-width // tile), dtype=torch.bool, device=mask.device)
-    tiles[rows[:, None].expand(2, 2, -1), cols[None].expand(2, 2, -1)] = True
-    return tiles
 
 
 def _refine_again(prj_xy: torch.Tensor, valid: torch.Tensor, before: torch.Tensor, changed: torch.Tensor,

@@ -15,7 +15,7 @@ from .capture import GraycodeCapture
 from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, cell_shares, checker_shares,
                        decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
-from .maps import fill_holes, inverse_map
+from .maps import fill_holes, inverse_map, map_slope
 from .blur import measure_blur
 from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
@@ -146,8 +146,12 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
     edges = blur = None
     if fit is None:
         t0 = time.perf_counter()
-        edges = find_edge_pixels(capture.patterns, capture.white, capture.black,
-                                 torch.where(torch.isfinite(prj_xy), prj_xy, dim_xy), projector_size)
+        # The edges read the map with its dim pixels, the blur without: one slope serves both, computed
+        # again only near the dim pixels (map_slope's like=).
+        merged = torch.where(torch.isfinite(prj_xy), prj_xy, dim_xy)
+        merged_slope = map_slope(merged)
+        edges = find_edge_pixels(capture.patterns, capture.white, capture.black, merged, projector_size,
+                                 slope=merged_slope)
         timings["edges"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         # A lens focused elsewhere spreads each cell over a disc; the finest stripes show how wide.
@@ -155,7 +159,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         # pixel each way at most (0.4-0.6 s of a full-size calibration).
         height, width = prj_xy.shape[:2]
         blur = measure_blur(capture.patterns, capture.white, capture.black, prj_xy, projector_size,
-                            step=max(8, round((height * width / 1500) ** 0.5)))
+                            step=max(8, round((height * width / 1500) ** 0.5)),
+                            slope=map_slope(prj_xy, like=(merged, merged_slope)))
         timings["blur"] = time.perf_counter() - t0
     response = ramp = note = None
     if capture.ramp is not None:
