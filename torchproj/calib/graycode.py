@@ -43,7 +43,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 from ..core.choices import BLACK_THRESHOLD
-from .maps import _tiles_within, depth_edges
+from .maps import _recompute_near, depth_edges
 
 __all__ = ["CREASE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "checker_patterns",
            "checker_shares", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel",
@@ -814,17 +814,9 @@ def _refine_again(prj_xy: torch.Tensor, valid: torch.Tensor, before: torch.Tenso
     pixels, each with a border of that width (the same sums to float64 round-off: each fit centres
     its own values). Calibration's second fit changes a few hundred partly decoded pixels of the
     default scene's two million."""
-    reach = 2 * (window // 2)
-    height, width = valid.shape
-    out = before.clone()
-    for ty, tx in torch.nonzero(_tiles_within(changed, reach, _AGAIN_TILE)).tolist():
-        y0, x0 = ty * _AGAIN_TILE, tx * _AGAIN_TILE
-        y1, x1 = min(y0 + _AGAIN_TILE, height), min(x0 + _AGAIN_TILE, width)
-        ya, xa = max(y0 - reach, 0), max(x0 - reach, 0)
-        crop = slice(ya, min(y1 + reach, height)), slice(xa, min(x1 + reach, width))
-        part = refine_subpixel(prj_xy[crop], valid[crop], window=window, spread=spread[crop], crease_ratio=crease_ratio)
-        out[y0:y1, x0:x1] = part[y0 - ya:y1 - ya, x0 - xa:x1 - xa]
-    return out
+    return _recompute_near(changed, 2 * (window // 2), _AGAIN_TILE, before.clone(),
+                           lambda crop: refine_subpixel(prj_xy[crop], valid[crop], window=window, spread=spread[crop],
+                                                        crease_ratio=crease_ratio))
 
 
 def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,

@@ -179,22 +179,28 @@ _SLOPE_TILE = 64
 
 
 def _slope_like(prj_xy: torch.Tensor, other: torch.Tensor, slope: torch.Tensor) -> torch.Tensor:
-    """:func:`map_slope` of ``prj_xy`` from ``other``'s ``slope``: computed again on the tiles within
-    reach of a pixel where the maps differ (NaN matching NaN), each with a border of that reach."""
+    """:func:`map_slope` of ``prj_xy`` from ``other``'s ``slope``: computed again near the pixels where
+    the maps differ (NaN matching NaN)."""
     check_shape(other, "like's map", list(prj_xy.shape))
     check_shape(slope, "like's slope", [*prj_xy.shape[:2], 2, 2])
+    same = (prj_xy == other) | (torch.isnan(prj_xy) & torch.isnan(other))
     # A pixel's slope reads the steps up to _SLOPE_REACH pixels away along its row and column, and
     # the edge test the steps either side of those: the map _SLOPE_REACH + 1 pixels away.
-    reach = _SLOPE_REACH + 1
-    same = (prj_xy == other) | (torch.isnan(prj_xy) & torch.isnan(other))
-    differ = ~(same[..., 0] & same[..., 1])
-    out = slope.clone()
-    height, width = differ.shape
-    for ty, tx in torch.nonzero(_tiles_within(differ, reach, _SLOPE_TILE)).tolist():
-        y0, x0 = ty * _SLOPE_TILE, tx * _SLOPE_TILE
-        y1, x1 = min(y0 + _SLOPE_TILE, height), min(x0 + _SLOPE_TILE, width)
+    return _recompute_near(~(same[..., 0] & same[..., 1]), _SLOPE_REACH + 1, _SLOPE_TILE, slope.clone(),
+                           lambda crop: map_slope(prj_xy[crop]))
+
+
+def _recompute_near(changed: torch.Tensor, reach: int, tile: int, out: torch.Tensor, compute) -> torch.Tensor:
+    """``out`` :math:`(H, W, ...)`, each ``tile x tile`` tile within ``reach`` pixels of a ``changed``
+    :math:`(H, W)` pixel replaced by ``compute(crop)``: a per-pixel map computed on the crop (a pair of
+    slices), the tile with a border of ``reach``. For a map whose every pixel reads its input no
+    farther than ``reach`` away, each tile gets what computing it on the whole input gives."""
+    height, width = changed.shape
+    for ty, tx in torch.nonzero(_tiles_within(changed, reach, tile)).tolist():
+        y0, x0 = ty * tile, tx * tile
+        y1, x1 = min(y0 + tile, height), min(x0 + tile, width)
         ya, xa = max(y0 - reach, 0), max(x0 - reach, 0)
-        part = map_slope(prj_xy[ya:min(y1 + reach, height), xa:min(x1 + reach, width)])
+        part = compute((slice(ya, min(y1 + reach, height)), slice(xa, min(x1 + reach, width))))
         out[y0:y1, x0:x1] = part[y0 - ya:y1 - ya, x0 - xa:x1 - xa]
     return out
 

@@ -348,8 +348,7 @@ class _Behind:
             if not isinstance(exc, (OSError, RuntimeError)):
                 raise exc
             self.refused.add(what)
-            warnings.warn(f"could not keep the {what} in {folder} ({exc}); the next run will compute it again",
-                          stacklevel=4)
+            _warn_not_kept(what, folder, exc)
 
 
 # Each thread's open writing_behind block (a run in another thread has its own writer).
@@ -414,9 +413,14 @@ def _write(folder: Path, path: Path, payload: dict, what: str) -> bool:
     # A full or read-only cache folder costs the next run its time, not this run (torch.save reports a
     # write the disk refused as a RuntimeError).
     except (OSError, RuntimeError) as exc:
-        warnings.warn(f"could not keep the {what} in {folder} ({exc}); the next run will compute it again",
-                      stacklevel=4)
+        _warn_not_kept(what, folder, exc)
         return False
+
+
+def _warn_not_kept(what: str, folder: Path, exc: BaseException) -> None:
+    # stacklevel 5: the line it pointed at before this helper (4 from _write or the writer's finish), one
+    # frame further out.
+    warnings.warn(f"could not keep the {what} in {folder} ({exc}); the next run will compute it again", stacklevel=5)
 
 
 def _write_now(folder: Path, path: Path, payload: dict) -> None:
