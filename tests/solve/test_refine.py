@@ -8,7 +8,8 @@ from scipy.optimize import lsq_linear
 from torchproj.calib import ResponseCurve
 from torchproj.core import InputError
 from torchproj.solve import captured_loss, refine_patterns, solve_fista
-from torchproj.transport import build_transport
+from torchproj.core.sparse import csr_tensor
+from torchproj.transport import TransportOperator, build_transport
 
 from ..helpers import synthetic_calibration, targets
 
@@ -85,6 +86,31 @@ def test_the_loop_never_returns_worse_than_it_began(op):
     again = captured_loss(op, world(op, shuffled)(result.images))[0]
     assert again == pytest.approx(min(losses), rel=1e-6)
     assert again <= losses[0]
+
+
+def test_a_remodelled_world_is_refined_on_the_new_model_without_building_its_q(op):
+    """A remodel after the first capture hands the loop a model of the world as it is (30% brighter):
+    the updates solve on it through ``A`` and ``A^T`` (its ``Q`` is never built: inside an update it
+    is most of the first one's time) and reach that world's optimum, as on the model itself."""
+    truth = 1.3 * op.dense().double().numpy()
+    brighter = TransportOperator(csr_tensor(op.crow, op.col, 1.3 * op.val, op.shape), op.rhs, op.column_projector,
+                                 op.column_cell, op.projector_sizes, row_target=op.row_target, scale=op.scale,
+                                 row_pixel=op.row_pixel, camera_size=op.camera_size, target_count=op.target_count)
+    np.testing.assert_allclose(brighter.dense().double().numpy(), truth, rtol=1e-6)
+    handed = []
+
+    def remodel(ops, p, measured):
+        if handed:
+            return None
+        handed.append(brighter)
+        return brighter
+
+    start = solve_fista(op, max_iter=3000, tol=1e-12).patterns
+    result = refine_patterns(op, start, world(op, truth), responses=RESPONSES, iterations=3, solver_iterations=500,
+                             remodel=remodel)
+    losses = [h["loss"] for h in result.history]
+    assert result.history[0].get("remodelled") and brighter.normal_matrix() is None
+    assert min(losses) <= optimum(truth, op.rhs.double().numpy()) * 1.01 < losses[0]
 
 
 def test_an_unchanged_world_loses_nothing(op):

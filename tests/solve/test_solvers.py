@@ -48,6 +48,21 @@ def test_proximal_solvers_reach_the_bounded_optimum(problem, solver, bounds, pre
     assert float(res.patterns.min()) >= bounds[0] and float(res.patterns.max()) <= bounds[1]
 
 
+@pytest.mark.parametrize("solver", [solve_pgd, solve_fista])
+def test_the_product_form_reaches_the_same_optimum_without_building_q(solver):
+    """``form="products"`` iterates on ``A^T (A p)``: scipy's optimum as on ``Q``, and no ``Q`` built
+    (what the camera loop asks of a moved model's first updates)."""
+    op = build_transport(synthetic_calibration(shape=(30, 40)), targets(channels=3), scale=0.9).double()
+    A, b = op.dense().numpy(), op.rhs.numpy()
+    ref = reference(A, b, (0.0, 1.0))
+    res = solver(op, (0.0, 1.0), max_iter=20000, tol=1e-14, form="products", levels=2)
+    assert op.normal_matrix() is None and op.normal_equations("products").Q is None
+    assert res.objective == pytest.approx(objective(op, A, b, ref), rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(res.patterns.numpy(), ref, atol=2e-3)
+    with pytest.raises(InputError, match="form must be 'matrix', 'products' or 'auto'"):
+        solver(op, (0.0, 1.0), form="dense")
+
+
 @pytest.fixture(scope="module")
 def tied_problem():
     """Large enough for two coarse levels (see ``tests/transport/test_operator.py``)."""

@@ -54,8 +54,9 @@ __all__ = ["OVERPROMISED", "REFINE_SOLVER_ITERATIONS", "RefineResult", "captured
 
 # FISTA iterations per loop step: the start is the last iterate, one capture away from the optimum,
 # so a tenth of a cold solve's work reaches it. On paper_bumped at full size an update takes 0.26-0.31 s
-# (0.88-1.15 s the first after re-registering: it builds the new model's Q, its scaling and step bound;
-# docs/camera-in-the-loop.md); when 30 was chosen, 60 kept the same captured PSNR there.
+# on the calibrated model's Q, 0.45-0.54 s on a re-registered model's A and A^T (0.68-0.82 s the first:
+# its scaling and step bound; docs/camera-in-the-loop.md); when 30 was chosen, 60 kept the same
+# captured PSNR there.
 REFINE_SOLVER_ITERATIONS = 30
 # A capture better than the best by less than this share of the surrogate's promised decrease halves
 # the step (the ratio test of trust-region methods, whose textbook shrink threshold this is).
@@ -194,6 +195,7 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
     p = start.detach().clamp(lo, hi)
     best = None  # {loss, capture, p, images, measured, defect}
     step = 1.0
+    form = "auto"  # the normal equations' form the updates solve on (_update)
     promised = None  # the surrogate's loss at the best iterate and at the patterns shown next
     history = []
     bar = progress_bar(desc="refine", enabled=progress, total=iterations + 1)
@@ -222,6 +224,7 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
                 best["p"] = carry_patterns(best["p"], ops[0], new_ops[0])
                 best["defect"] = best["measured"] - _rows(new_ops, best["p"])
             ops = new_ops
+            form = "products"
             history[-1]["remodelled"] = True
         with torch.no_grad():
             fresh = measured - _rows(ops, p)
@@ -242,7 +245,7 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
             break
         t_solve = time.perf_counter()
         base = best["p"]
-        target = _update(ops, base, best["defect"], (lo, hi), image, solver_iterations)
+        target = _update(ops, base, best["defect"], (lo, hi), image, solver_iterations, form)
         p = base + step * (target - base)
         promised = _surrogate_loss(ops, (base, p), best["defect"], image_loss if image is not None else None)
         history[-1]["solve_s"] = round(time.perf_counter() - t_solve, 4)
@@ -262,14 +265,23 @@ def _surrogate_loss(ops, patterns, defect: torch.Tensor, image_loss) -> tuple[fl
     return tuple(out)
 
 
-def _update(ops, p: torch.Tensor, defect: torch.Tensor, bounds, image, solver_iterations: int) -> torch.Tensor:
+def _update(ops, p: torch.Tensor, defect: torch.Tensor, bounds, image, solver_iterations: int,
+            form: str = "auto") -> torch.Tensor:
     """The surrogate's optimum from ``p``: the bounded least squares on the targets less the defect,
-    then the image objective on ``A p + defect`` where one is asked."""
+    then the image objective on ``A p + defect`` where one is asked.
+
+    ``form``: the normal equations' (:func:`~torchproj.solve.solve_fista`). The loop passes
+    ``"products"`` once a remodel has given it new operators: their ``Q`` would be built inside the
+    next update, which on the default rig (``torchproj run paper_bumped --refine 4``) took that
+    update to 0.93-1.05 s (``Q`` 0.45 s, its scaling and bound 0.3 s, before 30 iterations), over
+    the loop's 1 s an update. On ``A`` and ``A^T`` it takes 0.73-0.80 s, and each later update
+    0.45-0.53 s against 0.28-0.30 s: the loop's total stays within its run-to-run spread (11.3-11.7
+    against 11.0-11.7 s, three runs each), the same captured scores."""
     for o in ops:  # built (or found) on the operator itself, so that every update's targets share it
-        o.normal_equations("auto")
+        o.normal_equations(form)
     moved = [o.with_rhs(o.rhs - (defect if len(ops) == 1 else defect[:, c:c + 1])) for c, o in enumerate(ops)]
     solved = [solve_fista(o, bounds, x0=p if len(ops) == 1 else p[:, c:c + 1], max_iter=solver_iterations,
-                          progress=False).patterns for c, o in enumerate(moved)]
+                          progress=False, form=form).patterns for c, o in enumerate(moved)]
     p = solved[0] if len(ops) == 1 else torch.cat(solved, 1)
     if image is None:
         return p

@@ -95,19 +95,20 @@ def _stop(prev: float, cur: float, tol: float) -> bool:
 
 def solve_pgd(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, tol: float = 1e-6,
               x0: torch.Tensor | None = None, precondition: bool = True, levels: int = 0,
-              progress: bool | None = None) -> SolveResult:
+              progress: bool | None = None, form: str = "auto") -> SolveResult:
     """Projected gradient with step 1/L: monotone (the objective never rises).
 
     ``precondition`` runs it on the Jacobi-scaled normal equations (still a box, still step 1/L of
     the scaled system; see :meth:`NormalEquations.jacobi`). ``levels`` as in :func:`solve_fista`;
-    0 by default, so that PGD stays the textbook reference the benchmarks compare against.
+    0 by default, so that PGD stays the textbook reference the benchmarks compare against. ``form`` as
+    in :func:`solve_fista`.
     """
-    return _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate=False)
+    return _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate=False, form=form)
 
 
 def solve_fista(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, tol: float = 1e-6,
                 x0: torch.Tensor | None = None, precondition: bool = True, levels: int = 3,
-                progress: bool | None = None) -> SolveResult:
+                progress: bool | None = None, form: str = "auto") -> SolveResult:
     """FISTA (accelerated projected gradient, step 1/L) with adaptive restart, started coarse to fine.
 
     Momentum is reset whenever the objective would rise (O'Donoghue & Candes), so the reported
@@ -125,8 +126,13 @@ def solve_fista(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500
     full rig, in the box, with the same objective, so ``history`` runs through all levels. ``iterations`` and
     ``max_iter`` count the full-resolution iterations; ``info["coarse_iterations"]`` gives the
     others, coarsest first. With ``x0`` the solve starts there instead.
+
+    ``form``: the normal equations iterated on (:meth:`TransportOperator.normal_equations`):
+    ``"auto"`` (:func:`~torchproj.transport.normal_form`) builds ``Q = A^T A`` where that pays over a
+    solve; ``"products"`` never builds it, for a few iterations on an operator whose ``Q`` nothing
+    has built yet (the camera loop's first updates on a moved model).
     """
-    return _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate=True)
+    return _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate=True, form=form)
 
 
 def solve_target_sets(op: TransportOperator, rhs_sets: list[torch.Tensor], bounds=(0.0, 1.0), *, max_iter: int = 300,
@@ -157,15 +163,15 @@ _COARSE_TOL = 1e-4
 _COARSE_MAX_ITER = 100
 
 
-def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate):
+def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate, form="auto"):
     lo, hi = check_bounds(bounds)
     check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
     t0 = time.perf_counter()
-    ne = op.normal_equations("auto")
+    ne = op.normal_equations(form)
     history = []
     if x0 is None:
         p, coarse_iterations, coarse_columns = coarse_start(op, lo, hi, levels, tol, t0, history, precondition,
-                                                            accelerate)
+                                                            accelerate, form)
     else:
         p, coarse_iterations, coarse_columns = _start(op, x0, lo, hi), [], []
     bar = progress_bar(desc="fista" if accelerate else "pgd", enabled=progress, total=max_iter)
@@ -179,7 +185,8 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
 
 
 def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: float, t0: float, history: list,
-                 precondition: bool = True, accelerate: bool = True) -> tuple[torch.Tensor, list[int], list[int]]:
+                 precondition: bool = True, accelerate: bool = True,
+                 form: str = "auto") -> tuple[torch.Tensor, list[int], list[int]]:
     """A start for a full-resolution solve: the rig solved with cells tied in blocks, coarsest first.
 
     Each of ``levels`` tied problems (8x8, 4x4, 2x2 blocks for 3; see
@@ -191,7 +198,7 @@ def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: 
         :math:`(N_{cols}, C)` patterns within ``[lo, hi]``, and per level, coarsest first, its iterations
         and its number of columns.
     """
-    coarse = op.coarse_levels(levels, "auto")
+    coarse = op.coarse_levels(levels, form)
     p, iterations, columns = None, [], []
     for level in reversed(range(len(coarse))):
         level_ne, block = coarse[level]
