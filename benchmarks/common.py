@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import platform
+import warnings
 from pathlib import Path
 
 import torch
@@ -13,7 +14,7 @@ from torchproj.core import write_json
 from torchproj.core.sparse import csr_tensor
 from torchproj.transport import TransportOperator
 
-__all__ = ["machine", "median_time", "nonzero_rows", "row_sums", "with_matrix", "write_results"]
+__all__ = ["machine", "median_time", "nonzero_rows", "row_sums", "run_operators", "with_matrix", "write_results"]
 
 
 def median_time(fn, *args, repeats: int = 5) -> float:
@@ -64,3 +65,20 @@ def with_matrix(op: TransportOperator, crow: torch.Tensor, col: torch.Tensor, va
     return TransportOperator(csr_tensor(crow, col, val, op.shape), op.rhs, op.column_projector, op.column_cell,
                              op.projector_sizes, constant=op.constant, row_target=op.row_target, scale=op.scale,
                              row_pixel=op.row_pixel, camera_size=op.camera_size, target_count=op.target_count)
+
+
+def run_operators(name: str, scale: float | None = None):
+    """A shipped or suite scene, calibrated on the virtual rig (its warnings quiet), and its transport
+    under the ``nearest`` and the ``area`` footprint as ``torchproj run`` builds them (nearest merged,
+    area on camera pixels): ``(footprint, operator)`` pairs, one operator at a time."""
+    from torchproj.pipeline import calibrate_virtual, scene_targets
+    from torchproj.scene import load_scene
+    from torchproj.transport import build_transport
+
+    scene = load_scene(name, scale=scale)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = calibrate_virtual(scene, progress=False)
+    targets = scene_targets(scene, None, cal.rig)
+    for footprint in ("nearest", "area"):
+        yield footprint, build_transport(cal.states, targets, footprint=footprint, merge=footprint == "nearest")

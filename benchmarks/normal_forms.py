@@ -20,15 +20,12 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-import warnings
 from pathlib import Path
 
-from common import machine, write_results
+from common import machine, run_operators, write_results
 
-from torchproj.pipeline import calibrate_virtual, scene_targets
-from torchproj.scene import load_scene
 from torchproj.solve import solve_fista
-from torchproj.transport import build_transport, operator
+from torchproj.transport import operator
 
 DEFAULT_SCENES = ("paper_two_planes", "box_positions", "box_cylinders", "suite-1-0-full", "suite-1-1-full",
                   "suite-1-3-full")
@@ -38,24 +35,14 @@ def solve_cold(op, form: str) -> tuple[float, object]:
     """FISTA from an operator with no normal equations cached, on ``form``."""
     op.forget_normal_equations()
     op._blocks_device = None  # coarse levels rebuilt, as on a fresh operator
-    chosen, operator.normal_form = operator.normal_form, (lambda _op: form)
-    try:
-        t0 = time.perf_counter()
-        result = solve_fista(op, (0.0, 1.0), max_iter=300, progress=False)
-        return time.perf_counter() - t0, result
-    finally:
-        operator.normal_form = chosen
+    t0 = time.perf_counter()
+    result = solve_fista(op, (0.0, 1.0), max_iter=300, progress=False, form=form)
+    return time.perf_counter() - t0, result
 
 
 def measure(name: str, scale: float | None, repeats: int, log=print) -> list[dict]:
-    scene = load_scene(name, scale=scale)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        cal = calibrate_virtual(scene, progress=False)
-    targets = scene_targets(scene, None, cal.rig)
     rows = []
-    for footprint in ("nearest", "area"):
-        op = build_transport(cal.states, targets, footprint=footprint, merge=footprint == "nearest")
+    for footprint, op in run_operators(name, scale):
         q_nnz = op.normal_equations("matrix").Q.values().numel()
         row = {"scene": name, "footprint": footprint, "rows": op.shape[0], "columns": op.shape[1], "nnz_A": op.nnz,
                "nnz_Q": q_nnz, "chosen": operator.normal_form(op)}

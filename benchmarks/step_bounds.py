@@ -23,15 +23,11 @@ Writes ``results.json`` and ``results.md``.
 from __future__ import annotations
 
 import argparse
-import warnings
 from pathlib import Path
 
 import torch
-from common import machine, write_results
+from common import machine, run_operators, write_results
 
-from torchproj.pipeline import calibrate_virtual, scene_targets
-from torchproj.scene import load_scene
-from torchproj.transport import build_transport
 from torchproj.transport.operator import _to_scipy
 
 DEFAULT_SCENES = ("paper_two_planes", "box_positions", "box_cylinders", "sphere_three_projectors",
@@ -62,14 +58,8 @@ def power_bounds(ne, products: list[int]) -> dict:
 
 
 def measure(name: str, products: list[int], log=print) -> list[dict]:
-    scene = load_scene(name)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        cal = calibrate_virtual(scene, progress=False)
-    targets = scene_targets(scene, None, cal.rig)
     rows = []
-    for footprint in ("nearest", "area"):
-        op = build_transport(cal.states, targets, footprint=footprint, merge=footprint == "nearest")
+    for footprint, op in run_operators(name):
         levels = [("full", op.normal_equations("matrix"))]
         levels += [(f"coarse {k}", ne) for k, (ne, _) in enumerate(op.coarse_levels(3, "matrix"))]
         for level, ne in levels:
