@@ -147,7 +147,7 @@ def _within(op: TransportOperator, group: torch.Tensor, entries=None) -> torch.T
 
     Q = op.normal_equations().Q
     rows, col, _ = _q_entries(Q) if entries is None else entries
-    same = (group[rows] == group[col]).to(torch.int8).cpu().numpy()
+    same = (group.index_select(0, rows) == group.index_select(0, col)).to(torch.int8).cpu().numpy()
     # copy=True: eliminate_zeros works in place, and Q's own index arrays must stay as they are.
     graph = csr_matrix((same, Q.col_indices().cpu().numpy(), Q.crow_indices().cpu().numpy()), shape=Q.shape, copy=True)
     graph.eliminate_zeros()
@@ -164,13 +164,15 @@ _MODULO_COLOURS = 4
 def _colours(group: torch.Tensor, entries) -> torch.Tensor:
     """A colour for every group such that no row touches two groups of one colour: :math:`(G,)`."""
     rows, col, _ = entries
-    a, b = group[rows], group[col]
     n = int(group.max()) + 1
-    span = int((a - b).abs().max()) if a.numel() else 0
+    # Each entry's two groups in int32 where that holds them: every pass over the entries reads half the bytes.
+    small = group.int() if n <= torch.iinfo(torch.int32).max else group
+    a, b = small.index_select(0, rows), small.index_select(0, col)
+    span = int((a - b).abs_().max()) if a.numel() else 0
     if span < _MODULO_COLOURS:
         return torch.arange(n, device=group.device) % (span + 1)
     cross = a != b
-    pairs = torch.unique(a[cross] * n + b[cross]).cpu().numpy()
+    pairs = torch.unique(a[cross].long() * n + b[cross].long()).cpu().numpy()
     neighbours = [[] for _ in range(n)]
     for u, v in zip((pairs // n).tolist(), (pairs % n).tolist()):
         neighbours[u].append(v)
@@ -218,11 +220,15 @@ class _Colour:
         mine = entry_colours[0] == c
         inside = mine & (entry_colours[1] == c)
         # Q's entries are sorted by row, then column, and positions keep that order: both blocks are CSR as cut.
-        # Each mask becomes an index once, shared by the three arrays it selects from.
+        # Each mask becomes an index once, shared by the three arrays it selects from; index_select
+        # gathers (on this CPU several times faster than indexing by a tensor, the same values).
         keep = torch.nonzero(inside)[:, 0]
-        self.block = self._csr(position[rows[keep]], position[col[keep]], val[keep], (self.idx.shape[0],) * 2)
+        self.block = self._csr(position.index_select(0, rows.index_select(0, keep)),
+                               position.index_select(0, col.index_select(0, keep)), val.index_select(0, keep),
+                               (self.idx.shape[0],) * 2)
         keep = torch.nonzero(mine.logical_xor_(inside))[:, 0]
-        self.coupling = self._csr(position[rows[keep]], col[keep].long(), val[keep], (self.idx.shape[0], n))
+        self.coupling = self._csr(position.index_select(0, rows.index_select(0, keep)),
+                                  col.index_select(0, keep).long(), val.index_select(0, keep), (self.idx.shape[0], n))
         self.chain = torch.unique(chain[self.idx], return_inverse=True)[1]
         self.n = int(self.chain.max()) + 1
         self.q = ne.q[self.idx]
@@ -242,11 +248,11 @@ class _Colour:
         x = torch.ones(self.idx.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
         for _ in range(iterations):
             y = spmm(self.block, x)
-            x = y / _per_chain(y * y, self.chain, self.n).sqrt().clamp_min(1e-30)[self.chain][:, None]
+            x = y / _per_chain(y * y, self.chain, self.n).sqrt().clamp_min(1e-30).index_select(0, self.chain)[:, None]
         ratio = (spmm(self.block, x) / x.clamp_min(1e-30))[:, 0]
         lam = torch.zeros(self.n, dtype=self.q.dtype, device=self.q.device).scatter_reduce_(0, self.chain, ratio,
                                                                                              reduce="amax")
-        return (1.0 / lam.clamp_min(1e-30))[self.chain][:, None]
+        return (1.0 / lam.clamp_min(1e-30)).index_select(0, self.chain)[:, None]
 
     def solve(self, z: torch.Tensor, iterations: int) -> None:
         """Accelerated projected gradient on every block of this colour at once, the others held fixed;
@@ -261,7 +267,7 @@ class _Colour:
         def gradient_step(x, qx):
             return _clamp_(x - step * (qx - b), self.lo, self.hi)
 
-        x = z[self.idx]
+        x = z.index_select(0, self.idx)
         qx = spmm(self.block, x)
         y, qy, f = x, qx, objective(x, qx)
         t = torch.ones(n, dtype=x.dtype, device=x.device)
@@ -271,16 +277,16 @@ class _Colour:
             f_new = objective(x_new, qx_new)
             restart = (f_new > f) & (t > 1)
             if bool(restart.any()):
-                cols = restart[chain][:, None]
+                cols = restart.index_select(0, chain)[:, None]
                 x_new = torch.where(cols, gradient_step(x, qx), x_new)
                 qx_new = spmm(self.block, x_new)
                 f_new = objective(x_new, qx_new)
                 t = torch.where(restart, torch.ones_like(t), t)
             t_next = 0.5 * (1 + torch.sqrt(1 + 4 * t * t))
-            beta = ((t - 1) / t_next)[chain][:, None]
+            beta = ((t - 1) / t_next).index_select(0, chain)[:, None]
             y, qy = x_new + beta * (x_new - x), qx_new + beta * (qx_new - qx)
             x, qx, f, t = x_new, qx_new, f_new, t_next
-        z[self.idx] = x
+        z.index_copy_(0, self.idx, x)
 
 
 def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Tensor = "epipolar",
@@ -325,7 +331,7 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
     position = (torch.nn.functional.one_hot(colour, n_colours).cumsum(0) - 1).gather(1, colour[:, None])[:, 0]
     # Each entry's two colours, one byte each where that holds them: every colour's cut reads both.
     small = colour.to(torch.int8) if n_colours <= torch.iinfo(torch.int8).max else colour
-    entry_colours = (small[rows], small[col])
+    entry_colours = (small.index_select(0, rows), small.index_select(0, col))
     colours = [_Colour(ne, rows, col, val, colour, entry_colours, position, chain, c, ne.bound(lo), ne.bound(hi))
                for c in range(n_colours)]
     history = []
