@@ -273,10 +273,10 @@ def _update(ops, p: torch.Tensor, defect: torch.Tensor, bounds, image, solver_it
     ``form``: the normal equations' (:func:`~torchproj.solve.solve_fista`). The loop passes
     ``"products"`` once a remodel has given it new operators: their ``Q`` would be built inside the
     next update, which on the default rig (``torchproj run paper_bumped --refine 4``) took that
-    update to 0.93-1.05 s (``Q`` 0.45 s, its scaling and bound 0.3 s, before 30 iterations), over
-    the loop's 1 s an update. On ``A`` and ``A^T`` it takes 0.73-0.80 s, and each later update
-    0.45-0.53 s against 0.28-0.30 s: the loop's total stays within its run-to-run spread (11.3-11.7
-    against 11.0-11.7 s, three runs each), the same captured scores."""
+    update to 0.87-1.25 s (``Q`` 0.45 s, its scaling and bound 0.4 s, before 30 iterations), over
+    the loop's 1 s an update. On ``A`` and ``A^T`` it takes 0.68-0.82 s, and each later update
+    0.45-0.54 s against 0.26-0.31 s: the loop's total is 0.3-0.4 s longer (11.5-12.3 against
+    11.1-12.0 s, five runs alternating), the same captured scores (docs/camera-in-the-loop.md)."""
     for o in ops:  # built (or found) on the operator itself, so that every update's targets share it
         o.normal_equations(form)
     moved = [o.with_rhs(o.rhs - (defect if len(ops) == 1 else defect[:, c:c + 1])) for c, o in enumerate(ops)]
