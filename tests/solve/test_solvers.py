@@ -1,5 +1,7 @@
 """Solvers against scipy's bounded least squares and float64 dense algebra."""
 
+import contextlib
+import copy
 import dataclasses
 
 import numpy as np
@@ -331,3 +333,37 @@ def test_target_sets_solved_side_by_side_equal_each_solved_alone(quarter_rig):
         assert float(op.with_rhs(r).objective(v)) <= float(op.with_rhs(r).objective(alone)) * (1 + 1e-3) + 1e-9
     with pytest.raises(InputError, match="one image per target"):
         retarget_rhs(op, cal.states, frames[0][:1])
+
+
+@contextlib.contextmanager
+def _in_turn(device, fn, *args):
+    """The solvers' coarse start run first, in this thread: what the overlapped one must equal."""
+    value = fn(*args)
+    yield lambda: value
+
+
+@pytest.mark.parametrize("solver", [solve_fista, solve_pgd])
+def test_the_coarse_start_beside_the_full_level_gives_the_serial_result(tied_problem, solver, monkeypatch):
+    """The coarse start runs on a second thread while this one scales the full level and bounds its
+    step; both read the same Q, so the patterns are those of running one after the other, to the bit."""
+    op = tied_problem[0]
+    beside = [solver(_fresh(op), (0.0, 1.0), levels=3, max_iter=50).patterns for _ in range(2)]
+    monkeypatch.setattr(solvers, "_beside", _in_turn)
+    serial = solver(_fresh(op), (0.0, 1.0), levels=3, max_iter=50)
+    assert len(serial.info["coarse_iterations"]) == 2
+    assert torch.equal(beside[0], serial.patterns) and torch.equal(beside[1], serial.patterns)
+
+
+def _fresh(op):
+    """The same operator with nothing built on it yet (no Q, no coarse levels)."""
+    return copy.deepcopy(op)
+
+
+def test_an_error_in_the_coarse_start_beside_surfaces():
+    def fails():
+        raise InputError("the coarse start failed")
+
+    for device in ("cpu", "meta"):  # a second thread on the CPU; in turn elsewhere
+        with pytest.raises(InputError, match="coarse start failed"):
+            with solvers._beside(torch.device(device), fails) as start:
+                start()

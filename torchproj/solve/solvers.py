@@ -9,9 +9,11 @@ divided by 255 (``EO_0^255`` is ``(0, 1)``, ``EO_-100^255`` is ``(-100/255, 1)``
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import torch
@@ -170,18 +172,42 @@ def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, acc
     ne = op.normal_equations(form)
     history = []
     if x0 is None:
-        p, coarse_iterations, coarse_columns = coarse_start(op, lo, hi, levels, tol, t0, history, precondition,
-                                                            accelerate, form)
+        # The coarse start and the full level's own setup (its scaling and step bound, 17 products) read
+        # the same Q and write nothing the other reads: the start runs on a second thread meanwhile.
+        with _beside(op.val.device, coarse_start, op, lo, hi, levels, tol, t0, history, precondition, accelerate,
+                     form) as start:
+            ne = ne.jacobi() if precondition else ne
+            ne.lipschitz()
+            p, coarse_iterations, coarse_columns = start()
     else:
         p, coarse_iterations, coarse_columns = _start(op, x0, lo, hi), [], []
+        ne = ne.jacobi() if precondition else ne
     bar = progress_bar(desc="fista" if accelerate else "pgd", enabled=progress, total=max_iter)
-    ne = ne.jacobi() if precondition else ne
     p, f, it, converged = _iterate(ne, p, lo, hi, max_iter, tol, accelerate, t0, history, bar)
     bar.close()
     return SolveResult(patterns=p, iterations=it, objective=f, history=history, time_s=time.perf_counter() - t0,
                        converged=converged, method="fista" if accelerate else "pgd",
                        info={"lipschitz": ne.lipschitz(), "preconditioned": bool(precondition),
                              "coarse_iterations": coarse_iterations, "coarse_columns": coarse_columns})
+
+
+@contextlib.contextmanager
+def _beside(device: torch.device, fn, *args):
+    """``fn(*args)`` run on a second thread while the block runs, for a solve on the CPU; the block
+    gets a function that waits for its result (and raises what ``fn`` raised). On another device it
+    runs first, in this thread.
+
+    The solvers run their coarse start so (scipy's products ``P^T Q P`` hold one core, then small
+    solves) while the calling thread prepares the full level: the two read the same ``Q`` and write
+    apart, so the result is the one a single thread gives, to the bit. On a GPU the calling thread
+    only queues kernels, and nothing is gained.
+    """
+    if torch.device(device).type != "cpu":
+        value = fn(*args)
+        yield lambda: value
+        return
+    with ThreadPoolExecutor(1) as pool:
+        yield pool.submit(fn, *args).result
 
 
 def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: float, t0: float, history: list,
