@@ -367,3 +367,9 @@ def test_an_error_in_the_coarse_start_beside_surfaces():
         with pytest.raises(InputError, match="coarse start failed"):
             with solvers._beside(torch.device(device), fails) as start:
                 start()
+
+
+def test_the_thread_beside_keeps_the_callers_grad_mode():
+    for enabled in (False, True):
+        with torch.set_grad_enabled(enabled), solvers._beside(torch.device("cpu"), torch.is_grad_enabled) as mode:
+            assert mode() is enabled  # a new thread starts with grad enabled whatever the caller set

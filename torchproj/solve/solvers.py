@@ -200,14 +200,21 @@ def _beside(device: torch.device, fn, *args):
     The solvers run their coarse start so (scipy's products ``P^T Q P`` hold one core, then small
     solves) while the calling thread prepares the full level: the two read the same ``Q`` and write
     apart, so the result is the one a single thread gives, to the bit. On a GPU the calling thread
-    only queues kernels, and nothing is gained.
+    only queues kernels, and nothing is gained. Grad mode is per thread: the caller's holds in the
+    second one too (a solve under ``torch.no_grad()`` records no graph there either).
     """
     if torch.device(device).type != "cpu":
         value = fn(*args)
         yield lambda: value
         return
+    grad = torch.is_grad_enabled()
+
+    def run():
+        with torch.set_grad_enabled(grad):
+            return fn(*args)
+
     with ThreadPoolExecutor(1) as pool:
-        yield pool.submit(fn, *args).result
+        yield pool.submit(run).result
 
 
 def coarse_start(op: TransportOperator, lo: float, hi: float, levels: int, tol: float, t0: float, history: list,
