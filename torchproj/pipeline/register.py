@@ -19,6 +19,13 @@ footprint averages), gives ``d``. The moved model is then the one of two that pr
 (:class:`Reregister`): each row's entries moved by its ``d``, or the transport rebuilt from the
 moved maps.
 
+A moved camera is another move: every target's image slides across the camera pixels, and through
+each projector's map (curved on a sphere, steep on a cylinder) that is no affine move of the cells.
+:func:`register_camera` fits it in the camera's own terms, a shift per target (and a gain and an
+offset), ``m(r) ~ g_k (A p)(r + s_k) + c_k``, with the same blurs and weights, and carries each row's
+shifted pixel through the calibrated maps into a move per projector, ``u_j(r + s_k) - u_j(r)``. The
+transport rebuilt from those moves is a third candidate model.
+
 Measured in ``benchmarks/drift.py``. This is torchproj's construction; the paper calibrates once.
 """
 
@@ -33,7 +40,7 @@ from kornia.filters import gaussian_blur2d
 from ..core.checks import check
 from ..transport import Target
 
-__all__ = ["REGISTER_MIN_CELLS", "Reregister", "register_maps"]
+__all__ = ["REGISTER_MIN_CELLS", "Reregister", "register_camera", "register_maps"]
 
 # A median move below this (cells) is left to the loop's defect: rebuilding costs a transport build.
 REGISTER_MIN_CELLS = 0.1
@@ -42,6 +49,7 @@ _STEPS = 3
 _RIDGE = 1e-6
 _FIT_ROWS = 100_000  # rows per target the fit samples (evenly)
 _HUBER = 1.5  # robust scales (median absolute deviations) past which a pixel's residual counts linearly
+_MIN_SHIFT_ROWS = 32  # a target with fewer pixels inside its blurred image keeps the shift it has
 
 
 def _blurred(image: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -146,14 +154,19 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
         for j in range(n_proj):
             total[every, j, 0] += basis @ theta[j, :3]
             total[every, j, 1] += basis @ theta[j, 3:6]
-    change = (total - moved).norm(dim=-1)  # (rows, J)
-    reached = torch.zeros_like(change, dtype=torch.bool)  # rows with an entry in a column of projector j
-    reached[torch.repeat_interleave(torch.arange(first.shape[0]), first.crow.diff().cpu()),
-            first.column_projector[first.col].cpu()] = True
-    median = max((float(change[reached[:, j], j].median()) for j in range(n_proj) if bool(reached[:, j].any())),
-                 default=0.0)
     explained = 1 - energy["moved"] / energy["still"] if energy["still"] > 0 else 0.0
-    return total, median, explained
+    return total, _median_change(first, total - moved), explained
+
+
+def _median_change(op, change: torch.Tensor) -> float:
+    """The largest over projectors of the median length of ``change`` :math:`(N_{rows}, J, 2)` (cells) on
+    the rows that have an entry in one of the projector's columns."""
+    length = change.norm(dim=-1)  # (rows, J)
+    reached = torch.zeros_like(length, dtype=torch.bool)
+    reached[torch.repeat_interleave(torch.arange(op.shape[0]), op.crow.diff().cpu()),
+            op.column_projector[op.col].cpu()] = True
+    return max((float(length[reached[:, j], j].median()) for j in range(length.shape[1]) if bool(reached[:, j].any())),
+               default=0.0)
 
 
 def _photometric_residual(still: list[torch.Tensor], residual: torch.Tensor, robust: torch.Tensor) -> float:
@@ -163,6 +176,103 @@ def _photometric_residual(still: list[torch.Tensor], residual: torch.Tensor, rob
     root = robust.sqrt()[:, None]
     fit = torch.linalg.lstsq(jac * root, residual[:, None] * root).solution
     return float((robust * (residual - (jac @ fit)[:, 0]).pow(2)).sum())
+
+
+def register_camera(states: dict, targets: list[Target], op, p: torch.Tensor, measured: torch.Tensor):
+    """Where a capture of ``p`` says the camera moved (module docs): a shift of each target's image.
+
+    Args:
+        states, targets: as :func:`register_maps`.
+        op: the operator as calibrated (rows on camera pixels), or one per colour channel.
+        p: :math:`(N_{cols}, C)` the patterns captured, on ``op``'s columns.
+        measured: :math:`(N_{rows}, C)` their capture above black at the rows.
+
+    Returns:
+        ``(moves, shifts)``: :math:`(N_{rows}, J, 2)` each row's move per projector (cells, from the
+        calibrated maps: the cells its shifted pixel's light comes from, less its own; a pixel whose
+        shifted place the maps do not cover takes its target's median move), and per target the
+        fitted shift ``(dx, dy)`` in camera pixels.
+    """
+    ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    first = ops[0]
+    check(first.row_pixel is not None, "re-registering needs rows on camera pixels: build with merge=False")
+    w_cam, h_cam = first.camera_size
+    predicted = torch.cat([o.A(p[:, c:c + 1]) for c, o in enumerate(ops)], 1) if len(ops) > 1 else first.A(p)
+    predicted, measured = predicted.detach().double().mean(1).cpu(), measured.detach().double().mean(1).cpu()
+    moves = torch.zeros(first.shape[0], len(first.projector_sizes), 2, dtype=torch.float64)
+    shifts = []
+    row_target, row_pixel = first.row_target.cpu(), first.row_pixel.cpu()
+    for k, target in enumerate(targets):
+        every = torch.nonzero(row_target == k)[:, 0]
+        shift = _fit_shift(predicted, measured, every, row_pixel, w_cam, h_cam)
+        shifts.append(tuple(round(float(v), 4) for v in shift))
+        pixels = row_pixel[every]
+        at = torch.stack([(pixels % w_cam).double(), torch.div(pixels, w_cam, rounding_mode="floor").double()], 1) + shift
+        for j, xy in enumerate(states[target.state].prj_xy):
+            here = xy.reshape(-1, 2)[pixels.to(xy.device)].double().cpu()
+            there = _bilinear_map(xy.double().cpu(), at)
+            known = torch.isfinite(here).all(-1) & torch.isfinite(there).all(-1)
+            move = there - here
+            fallback = move[known].median(0).values if bool(known.any()) else torch.zeros(2, dtype=torch.float64)
+            moves[every, j] = torch.where(known[:, None], move, fallback)
+    return moves, shifts
+
+
+def _fit_shift(predicted: torch.Tensor, measured: torch.Tensor, rows: torch.Tensor, row_pixel: torch.Tensor,
+               width: int, height: int) -> torch.Tensor:
+    """``(dx, dy)`` camera pixels with ``measured(r) ~ g predicted(r + s) + c`` on one target's ``rows``:
+    Gauss-Newton on the predicted image, blurred among the target's own pixels (a normalised
+    convolution: no edge to the black around it) by 2, 1, then 0 pixels, with Huber weights. A shift
+    alone: an affine warp per target fitted shears and scales that no camera move makes on a target
+    of a few hundred pixels (suite-1-7), and a bumped camera moves a target's image nearly rigidly."""
+    image = torch.zeros(height * width, dtype=torch.float64)
+    mask = torch.zeros(height * width, dtype=torch.float64)
+    image[row_pixel[rows]] = predicted[rows]
+    mask[row_pixel[rows]] = 1.0
+    image, mask = image.view(height, width), mask.view(height, width)
+    sample = rows[::max(1, len(rows) // _FIT_ROWS)]
+    pixels = row_pixel[sample]
+    xy = torch.stack([(pixels % width).double(), torch.div(pixels, width, rounding_mode="floor").double()], 1)
+    value = measured[sample]
+    theta = torch.zeros(4, dtype=torch.float64)  # dx, dy, gain - 1, offset
+    for sigma in _BLURS:
+        weight = _blurred(mask, sigma)
+        light = torch.where(weight > 0.1, _blurred(image, sigma) / weight.clamp_min(1e-12), 0.0)
+        grad_y, grad_x = torch.gradient(light)
+        for _ in range(_STEPS):
+            at = xy + theta[:2]
+            inside = _sample(weight, at) > 0.5
+            if int(inside.sum()) < _MIN_SHIFT_ROWS:
+                return theta[:2]
+            seen = _sample(light, at)
+            gain = 1 + theta[2]
+            res = torch.where(inside, value - gain * seen - theta[3], 0.0)
+            jac = torch.stack([gain * _sample(grad_x, at), gain * _sample(grad_y, at), seen, torch.ones_like(seen)], 1)
+            jac = jac * inside[:, None]
+            spread = _HUBER * 1.4826 * float(res[inside].abs().median()) + 1e-12
+            robust = (spread / res.abs().clamp_min(1e-12)).clamp(max=1.0) * inside
+            normal = jac.T @ (robust[:, None] * jac)
+            normal += (_RIDGE * normal.diagonal().mean() + 1e-30) * torch.eye(4, dtype=torch.float64)
+            theta += torch.linalg.solve(normal, jac.T @ (robust * res))
+    return theta[:2]
+
+
+def _bilinear_map(xy: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
+    """An :math:`(H, W, 2)` map read between its pixels at :math:`(N, 2)` camera coordinates ``at``: the
+    mean of the four around, weighted bilinearly, over those mapped; NaN where they weigh under half."""
+    height, width = xy.shape[:2]
+    x0, y0 = at[:, 0].floor(), at[:, 1].floor()
+    fx, fy = (at[:, 0] - x0)[:, None], (at[:, 1] - y0)[:, None]
+    total = torch.zeros(len(at), 2, dtype=xy.dtype)
+    weight = torch.zeros(len(at), 1, dtype=xy.dtype)
+    for dx, dy, share in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        x, y = (x0 + dx).long(), (y0 + dy).long()
+        inside = ((x >= 0) & (x < width) & (y >= 0) & (y < height))[:, None]
+        value = xy[y.clamp(0, height - 1), x.clamp(0, width - 1)]
+        ok = inside & torch.isfinite(value).all(-1, keepdim=True)
+        total += torch.where(ok, value * share, 0.0)
+        weight += torch.where(ok, share, 0.0)
+    return torch.where(weight > 0.5, total / weight.clamp_min(1e-12), float("nan"))
 
 
 def _capture_miss(candidate: list, old, p: torch.Tensor, measured: torch.Tensor) -> float:
@@ -179,19 +289,20 @@ class Reregister:
     """The camera loop's ``remodel`` on the virtual rig (:func:`~torchproj.solve.refine_patterns`).
 
     After each capture, while the light keeps moving (a median move of at least
-    :data:`REGISTER_MIN_CELLS`): :func:`register_maps`, then the model that predicts that capture
-    best among three: the operator as it is, the calibrated operator with its rows moved
+    :data:`REGISTER_MIN_CELLS`, by the projectors' fit or the camera's): :func:`register_maps` and
+    :func:`register_camera`, then the model that predicts that capture best among four: the operator
+    as it is, the calibrated operator with its rows moved by the projectors' fit
     (:meth:`~torchproj.transport.TransportOperator.with_rows_moved`: each row's measured footprint,
     shares and defocus kept, translated, at the price of a bilinear split of each entry), and the
-    transport rebuilt from the moved maps (sharp footprints from the maps' geometry, the measured
-    shares dropped: they belong to the old maps). Neither moved model wins everywhere: given the
+    transport rebuilt from the maps moved by either fit (sharp footprints from the maps' geometry, the
+    measured shares dropped: they belong to the old maps). Neither moved model wins everywhere: given the
     simulator's exact moves (``python benchmarks/drift.py --moved-models``), box_cylinders at quarter
     size with its upper projector turned 0.2 degrees scored 22.3 / 21.2 dB with rows moved and
     28.0 / 28.8 rebuilt, suite-1-7 23.5 / 28.1 / 18.7 / 22.8 moved and 21.1 / 23.6 / 17.7 / 23.1
     rebuilt; which predicted the capture better was the better one in both. Once a capture shows
     less move, or the operator as it is predicts best, the loop is left to its defect. ``fits``
-    records each fit: its median move (cells), the share of the residual it explained, and the model
-    chosen.
+    records each fit: its median move (cells), the share of the residual it explained, the camera
+    shift per target (pixels) and the median move it makes (cells), and the model chosen.
     """
 
     def __init__(self, states: dict, targets: list[Target], *, footprint: str, colour_weights: str, device="cpu"):
@@ -207,32 +318,42 @@ class Reregister:
             return None
         if self.calibrated is None:
             self.calibrated = list(ops)
+        from ..solve.refine import carry_patterns
+
         moves, median, explained = register_maps(self.states, self.targets, ops, p, measured, self.moves)
-        fit = {"median_move_cells": round(median, 4), "explained": round(explained, 4), "model": "as it was"}
+        # The camera's move is fitted against the calibrated model, whatever model the loop runs on now.
+        camera, shifts = register_camera(self.states, self.targets, self.calibrated,
+                                         carry_patterns(p, ops[0], self.calibrated[0]), measured)
+        held = torch.zeros_like(camera) if self.moves is None else self.moves
+        camera_median = _median_change(self.calibrated[0], camera - held)
+        fit = {"median_move_cells": round(median, 4), "explained": round(explained, 4),
+               "camera_shift_px": [list(s) for s in shifts], "camera_move_cells": round(camera_median, 4),
+               "model": "as it was"}
         self.fits.append(fit)
-        if median < REGISTER_MIN_CELLS:
+        if max(median, camera_median) < REGISTER_MIN_CELLS:
             self.done = True
             return None
         # One candidate at a time, the better kept: each is an operator of the full rig (the paper's at full
         # size holds 9-12 M nonzeros and their transpose), and three at once doubled a run's peak memory.
-        makers = {"rows moved": lambda: [o.with_rows_moved(moves) for o in self.calibrated],
-                  "rebuilt": lambda: self._rebuilt(ops[0], moves)}
+        makers = {"rows moved": (moves, lambda: [o.with_rows_moved(moves) for o in self.calibrated]),
+                  "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves)),
+                  "camera shifted, rebuilt": (camera, lambda: self._rebuilt(ops[0], camera))}
         misses = {"as it was": _capture_miss(list(ops), ops[0], p, measured)}
-        best, best_ops = "as it was", None
-        for name, make in makers.items():
+        best, best_ops, best_moves = "as it was", None, None
+        for name, (candidate_moves, make) in makers.items():
             candidate = make()
             if candidate is None:
                 continue
             misses[name] = _capture_miss(candidate, ops[0], p, measured)
             if misses[name] < misses[best]:
-                best, best_ops = name, candidate
+                best, best_ops, best_moves = name, candidate, candidate_moves
             del candidate
         fit["model"] = best
         fit["capture_miss"] = {name: round(v, 4) for name, v in misses.items()}
         if best_ops is None:
             self.done = True
             return None
-        self.moves = moves
+        self.moves = best_moves
         return best_ops
 
     def _rebuilt(self, op, moves):
