@@ -312,6 +312,7 @@ class Reregister:
         self.moves = None
         self.fits: list[dict] = []
         self.done = False
+        self.camera_won = False  # whether the model the loop runs on is the camera's
 
     def __call__(self, ops, p, measured):
         if self.done:
@@ -330,14 +331,19 @@ class Reregister:
                "camera_shift_px": [list(s) for s in shifts], "camera_move_cells": round(camera_median, 4),
                "model": "as it was"}
         self.fits.append(fit)
-        if max(median, camera_median) < REGISTER_MIN_CELLS:
+        # The camera's fit stays in play after the first capture only where its model won: a projector's
+        # move it explains badly, and the shift it finds would otherwise keep every later capture
+        # building models.
+        camera_moving = camera_median >= REGISTER_MIN_CELLS and (len(self.fits) == 1 or self.camera_won)
+        if median < REGISTER_MIN_CELLS and not camera_moving:
             self.done = True
             return None
         # One candidate at a time, the better kept: each is an operator of the full rig (the paper's at full
         # size holds 9-12 M nonzeros and their transpose), and three at once doubled a run's peak memory.
         makers = {"rows moved": (moves, lambda: [o.with_rows_moved(moves) for o in self.calibrated]),
-                  "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves)),
-                  "camera shifted, rebuilt": (camera, lambda: self._rebuilt(ops[0], camera))}
+                  "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves))}
+        if camera_moving:
+            makers["camera shifted, rebuilt"] = (camera, lambda: self._rebuilt(ops[0], camera))
         misses = {"as it was": _capture_miss(list(ops), ops[0], p, measured)}
         best, best_ops, best_moves = "as it was", None, None
         for name, (candidate_moves, make) in makers.items():
@@ -353,7 +359,7 @@ class Reregister:
         if best_ops is None:
             self.done = True
             return None
-        self.moves = best_moves
+        self.moves, self.camera_won = best_moves, best == "camera shifted, rebuilt"
         return best_ops
 
     def _rebuilt(self, op, moves):
