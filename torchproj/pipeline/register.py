@@ -70,8 +70,8 @@ def _sample(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
 
 def _affine_basis(pixels: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """(N, 3): 1 and the camera pixel's coordinates scaled to about [-1, 1] (a well-conditioned fit)."""
-    u = (pixels % width).double() / max(width - 1, 1) * 2 - 1
-    v = torch.div(pixels, width, rounding_mode="floor").double() / max(height - 1, 1) * 2 - 1
+    x, y = _pixel_xy(pixels, width).unbind(1)
+    u, v = x / max(width - 1, 1) * 2 - 1, y / max(height - 1, 1) * 2 - 1
     return torch.stack([torch.ones_like(u), u, v], 1)
 
 
@@ -140,11 +140,7 @@ def register_maps(states: dict, targets: list[Target], op, p: torch.Tensor, meas
                 res = residual0 - model - offset
                 # Huber weights: outline pixels that see two surfaces, and what the point-sampled light
                 # misses of a wide footprint, must not pull every pixel's move.
-                spread = _HUBER * 1.4826 * float(res.abs().median()) + 1e-12
-                robust = (spread / res.abs().clamp_min(1e-12)).clamp(max=1.0)
-                normal = jac.T @ (robust[:, None] * jac)
-                normal += _RIDGE * normal.diagonal().mean() * torch.eye(normal.shape[0], dtype=torch.float64)
-                step = torch.linalg.solve(normal, jac.T @ (robust * res))
+                step, robust = _huber_step(jac, res)
                 theta += step[:-1].view(n_proj, 7)
                 offset = offset + step[-1]
         left = res - jac @ step
@@ -167,6 +163,24 @@ def _median_change(op, change: torch.Tensor) -> float:
             op.column_projector[op.col].cpu()] = True
     return max((float(length[reached[:, j], j].median()) for j in range(length.shape[1]) if bool(reached[:, j].any())),
                default=0.0)
+
+
+def _huber_step(jac: torch.Tensor, res: torch.Tensor, inside: torch.Tensor | None = None):
+    """One Gauss-Newton step of a robust fit, and its Huber weights: residuals past :data:`_HUBER`
+    robust scales (median absolute deviations, over the ``inside`` rows where given; the others weigh
+    nothing) count linearly, and the normal equations are damped by :data:`_RIDGE` of their mean
+    diagonal. Returns ``(step, robust)``."""
+    spread = _HUBER * 1.4826 * float((res if inside is None else res[inside]).abs().median()) + 1e-12
+    robust = (spread / res.abs().clamp_min(1e-12)).clamp(max=1.0)
+    robust = robust if inside is None else robust * inside
+    normal = jac.T @ (robust[:, None] * jac)
+    normal += _RIDGE * normal.diagonal().mean() * torch.eye(normal.shape[0], dtype=torch.float64)
+    return torch.linalg.solve(normal, jac.T @ (robust * res)), robust
+
+
+def _pixel_xy(pixels: torch.Tensor, width: int) -> torch.Tensor:
+    """(N, 2) float64 ``(x, y)`` of flat camera pixel indices (row-major, ``width`` pixels a row)."""
+    return torch.stack([(pixels % width).double(), torch.div(pixels, width, rounding_mode="floor").double()], 1)
 
 
 def _photometric_residual(still: list[torch.Tensor], residual: torch.Tensor, robust: torch.Tensor) -> float:
@@ -207,7 +221,7 @@ def register_camera(states: dict, targets: list[Target], op, p: torch.Tensor, me
         shift = _fit_shift(predicted, measured, every, row_pixel, w_cam, h_cam)
         shifts.append(tuple(round(float(v), 4) for v in shift))
         pixels = row_pixel[every]
-        at = torch.stack([(pixels % w_cam).double(), torch.div(pixels, w_cam, rounding_mode="floor").double()], 1) + shift
+        at = _pixel_xy(pixels, w_cam) + shift
         for j, xy in enumerate(states[target.state].prj_xy):
             here = xy.reshape(-1, 2)[pixels.to(xy.device)].double().cpu()
             there = _bilinear_map(xy.double().cpu(), at)
@@ -232,7 +246,7 @@ def _fit_shift(predicted: torch.Tensor, measured: torch.Tensor, rows: torch.Tens
     image, mask = image.view(height, width), mask.view(height, width)
     sample = rows[::max(1, len(rows) // _FIT_ROWS)]
     pixels = row_pixel[sample]
-    xy = torch.stack([(pixels % width).double(), torch.div(pixels, width, rounding_mode="floor").double()], 1)
+    xy = _pixel_xy(pixels, width)
     value = measured[sample]
     theta = torch.zeros(4, dtype=torch.float64)  # dx, dy, gain - 1, offset
     for sigma in _BLURS:
@@ -248,12 +262,7 @@ def _fit_shift(predicted: torch.Tensor, measured: torch.Tensor, rows: torch.Tens
             gain = 1 + theta[2]
             res = torch.where(inside, value - gain * seen - theta[3], 0.0)
             jac = torch.stack([gain * _sample(grad_x, at), gain * _sample(grad_y, at), seen, torch.ones_like(seen)], 1)
-            jac = jac * inside[:, None]
-            spread = _HUBER * 1.4826 * float(res[inside].abs().median()) + 1e-12
-            robust = (spread / res.abs().clamp_min(1e-12)).clamp(max=1.0) * inside
-            normal = jac.T @ (robust[:, None] * jac)
-            normal += (_RIDGE * normal.diagonal().mean() + 1e-30) * torch.eye(4, dtype=torch.float64)
-            theta += torch.linalg.solve(normal, jac.T @ (robust * res))
+            theta += _huber_step(jac * inside[:, None], res, inside)[0]
     return theta[:2]
 
 
