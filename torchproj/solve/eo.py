@@ -161,13 +161,18 @@ def _within(op: TransportOperator, group: torch.Tensor, entries=None) -> torch.T
 _MODULO_COLOURS = 4
 
 
+def _narrowest(values: torch.Tensor, count: int) -> torch.Tensor:
+    """``values`` (integers from 0 to ``count - 1``) in the narrowest integer type that holds them: a
+    pass over ``Q``'s millions of entries then reads 1, 2 or 4 bytes an entry instead of 8."""
+    return next((values.to(t) for t in (torch.int8, torch.int16, torch.int32) if count <= torch.iinfo(t).max), values)
+
+
 def _colours(group: torch.Tensor, entries) -> torch.Tensor:
     """A colour for every group such that no row touches two groups of one colour: :math:`(G,)`."""
     rows, col, _ = entries
     n = int(group.max()) + 1
-    # Each entry's two groups in the smallest type that holds them (int16 for the default scene's bands):
-    # every pass over the entries reads a quarter or half the bytes.
-    small = next((group.to(t) for t in (torch.int16, torch.int32) if n <= torch.iinfo(t).max), group)
+    # Each entry's two groups (int16 for the default scene's bands); their difference fits the same type.
+    small = _narrowest(group, n)
     a, b = small.index_select(0, rows), small.index_select(0, col)
     span = int((a - b).abs_().max()) if a.numel() else 0
     if span < _MODULO_COLOURS:
@@ -336,8 +341,8 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
         n_colours = int(colour.max()) + 1
         # Each column's place among the columns of its colour.
         position = (torch.nn.functional.one_hot(colour, n_colours).cumsum(0) - 1).gather(1, colour[:, None])[:, 0]
-        # Each entry's two colours, one byte each where that holds them: every colour's cut reads both.
-        small = colour.to(torch.int8) if n_colours <= torch.iinfo(torch.int8).max else colour
+        # Each entry's two colours, one byte each for a few colours: every colour's cut reads both.
+        small = _narrowest(colour, n_colours)
         entry_colours = (small.index_select(0, rows), small.index_select(0, col))
         colours = [_Colour(ne, rows, col, val, colour, entry_colours, position, chain, c, ne.bound(lo), ne.bound(hi))
                    for c in range(n_colours)]
