@@ -518,7 +518,7 @@ def _show_lines(report: dict) -> list[str]:
                   f"best at capture {refine['best_capture']}. PSNR (dB) of the solver's patterns as captured: {start}; "
                   f"per capture, on the model's rows: {trail}. The table scores the kept patterns.", ""]
         lines += _promise_lines(refine["history"])
-        lines += _registration_lines(refine.get("registration", []))
+        lines += _registration_lines(refine["registration"])
     return lines
 
 
@@ -528,10 +528,9 @@ def _registration_lines(fits: list[dict]) -> list[str]:
         return []
     parts = []
     for k, fit in enumerate(fits, start=1):
-        shifts = ", ".join(f"({dx:.2f}, {dy:.2f})" for dx, dy in fit.get("camera_shift_px", []))
+        shifts = ", ".join(f"({dx:.2f}, {dy:.2f})" for dx, dy in fit["camera_shift_px"])
         parts.append(f"{k}: {fit['model']} (the projectors' fit moves the light {fit['median_move_cells']:.2f} cells, "
-                     f"the camera's {fit.get('camera_move_cells', 0.0):.2f}" + (f", shifting each target's image by "
-                                                                             f"{shifts} px" if shifts else "") + ")")
+                     f"the camera's {fit['camera_move_cells']:.2f}, shifting each target's image by {shifts} px)")
     return ["Where the light moved, fitted after each capture, and the model the loop took (the one that "
             f"predicted that capture best): {'; '.join(parts)}.", ""]
 
