@@ -15,9 +15,20 @@ gain and ``c_k`` an offset that take what is photometric out of the fit. Gauss-N
 numbers per target and projector and one per target, on light images blurred by 2 cells, then 1,
 then sharp (a move of a few cells is found before the fine gradients take over), with Huber
 weights (a pixel on an outline sees two surfaces; the point-sampled light misses what a wide
-footprint averages), gives ``d``. The moved model is then the one of two that predicts the capture better
+footprint averages), gives ``d``. The moved model is then the one that predicts the capture best
 (:class:`Reregister`): each row's entries moved by its ``d``, or the transport rebuilt from the
-moved maps.
+moved maps, with the calibration's cell shares dropped or carried through the move.
+
+The cell shares (how each pixel's light splits across the edges of its cell, which the area rows are
+fitted to) belong to the maps as calibrated: a move of a fraction of a cell changes them. Dropped,
+the rows lose what they measured (built without them, ``box_cylinders`` at quarter size loses 2.4 /
+1.3 dB in the world it was calibrated in, suite-1-7 up to 6.9 dB). :func:`carry_shares` carries them
+instead, each pixel's light per axis an even interval that the shares and the map fix, moved with the
+map. Given the simulator's moves (``python benchmarks/drift.py --moved-models``), the model rebuilt
+with carried shares scores a 2 mm projector move on ``box_cylinders`` at quarter size 29.73 / 29.41
+dB, against 27.82 / 29.13 with the shares dropped and 29.76 / 25.79 with the rows moved (the ceiling
+30.25 / 31.10); on a 0.2 degree turn it scores below the model with the shares dropped (28.00 / 28.24
+against 28.08 / 28.83), so both stay candidates.
 
 A moved camera is another move: every target's image slides across the camera pixels, and through
 each projector's map (curved on a sphere, steep on a cylinder) that is no affine move of the cells.
@@ -37,10 +48,12 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d
 
+from ..calib import CellShares
 from ..core.checks import check
+from ..core.conventions import round_to_pixel
 from ..transport import Target
 
-__all__ = ["REGISTER_MIN_CELLS", "Reregister", "register_camera", "register_maps"]
+__all__ = ["REGISTER_MIN_CELLS", "Reregister", "carry_shares", "register_camera", "register_maps"]
 
 # A median move below this (cells) is left to the loop's defect: rebuilding costs a transport build.
 REGISTER_MIN_CELLS = 0.1
@@ -50,6 +63,10 @@ _RIDGE = 1e-6
 _FIT_ROWS = 100_000  # rows per target the fit samples (evenly)
 _HUBER = 1.5  # robust scales (median absolute deviations) past which a pixel's residual counts linearly
 _MIN_SHIFT_ROWS = 32  # a target with fewer pixels inside its blurred image keeps the shift it has
+# carry_shares: a share under this is no light across the edge; over this, clamped (the decoded cell holds the most)
+_CARRY_MIN_SHARE, _CARRY_MAX_SHARE = 0.005, 0.49
+_CARRY_MIN_REACH = 0.01  # cells: the least distance from u to an edge, and from a one-edge share to a half
+_CARRY_MIN_INSIDE = 0.1  # the least share left in the cell of light measured across both its edges
 
 
 def _blurred(image: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -284,6 +301,84 @@ def _bilinear_map(xy: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
     return torch.where(weight > 0.5, total / weight.clamp_min(1e-12), float("nan"))
 
 
+def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slope: torch.Tensor,
+                 projector_size: tuple[int, int]) -> CellShares:
+    """One projector's measured cell shares carried to maps moved from ``xy`` to ``moved`` (module docs).
+
+    The shares say how a pixel's light splits across the edges of its cell, which a move of a
+    fraction of a cell changes; the maps say where the light's centre is. Per axis, the light is
+    taken as spread evenly over an interval (a camera pixel's square seen through the map, a
+    parallelogram, projects onto one projector axis as a trapezoid: the interval is its simplest
+    stand-in), which the measured shares and the map's coordinate ``u`` in cell ``n`` fix:
+
+    - light across both edges: the interval covers the cell and reaches past each edge by its share,
+      ``w = 1 / (1 - f_lower - f_upper)``;
+    - across one edge: it reaches past that edge by its share and is centred on ``u``;
+    - across neither: it lies in the cell, centred on ``u``, as wide as the pixel's extent along the axis
+      (``|du/dx| + |du/dy|``, ``slope``) or the cell allows.
+
+    The interval moves with the map; the new cell is the one holding the moved coordinate, and the
+    shares across its edges are the interval's parts past them. The checkerboard's share (the light
+    on the other parity) moves by what the same intervals, taken as independent along the two axes,
+    predict before and after; light from beyond cells ``n +- 1`` (``outside``) is kept as measured.
+    With no move the shares are those measured (to the interval's fit). Our construction: the paper
+    calibrates once. Against a recalibration of the moved world (a projector moved 2 mm, half a cell),
+    carried shares are 0.09 from the measured ones rms, those moved by whole cells 0.15
+    (``tests/pipeline/test_shown.py``). Where a one-edge share is near a half and ``u`` near that edge
+    the width is barely fixed; the interval then keeps the narrow width the centre gives: in throwaway
+    variants measured as ``--moved-models`` measures, the pixel's extent or the widest interval the
+    share allows there scored ``box_cylinders``' 2 mm move 0.45 / 0.12 dB lower.
+
+    Args:
+        shares: the projector's :class:`~torchproj.calib.CellShares`, :math:`(H, W, ...)`.
+        xy: :math:`(H, W, 2)` the calibrated map (cells; NaN where undecoded).
+        moved: :math:`(H, W, 2)` the moved map.
+        slope: :math:`(H, W, 2, 2)` the calibrated map's :func:`~torchproj.calib.maps.map_slope`.
+        projector_size: ``(width, height)`` cells.
+    """
+    known = (shares.cell >= 0).all(-1) & torch.isfinite(xy).all(-1) & torch.isfinite(moved).all(-1)
+    u, v, across = xy.double(), moved.double(), shares.across.double()
+    extent = torch.nan_to_num(slope.double().abs().sum(-1), nan=1.0).clamp(0.05, 4.0)  # (H, W, 2) per axis
+    cell = round_to_pixel(torch.nan_to_num(v, nan=-10.0))
+    carried = torch.full_like(across, float("nan"))
+    parity = []  # per axis, the share across either edge before and after
+    for axis in (0, 1):
+        n, x = shares.cell[..., axis].double(), u[..., axis]
+        lower, upper = n - 0.5, n + 0.5
+        f_low = torch.nan_to_num(across[..., axis, 0]).clamp(0, _CARRY_MAX_SHARE)
+        f_up = torch.nan_to_num(across[..., axis, 1]).clamp(0, _CARRY_MAX_SHARE)
+        low, up = f_low > _CARRY_MIN_SHARE, f_up > _CARRY_MIN_SHARE
+        # Each case's width. Across one edge: centred on u (a coordinate at or past that edge counts as a
+        # hundredth of a cell inside, so the interval keeps a width), and never past the other edge.
+        def one_side(f, reach):
+            centred = reach.clamp(_CARRY_MIN_REACH, 1) / (0.5 - f).clamp_min(_CARRY_MIN_REACH)
+            return centred.clamp(max=1 / (1 - f))
+
+        width = torch.where(
+            low & up, 1 / (1 - f_low - f_up).clamp_min(_CARRY_MIN_INSIDE),
+            torch.where(low, one_side(f_low, x - lower),
+                        torch.where(up, one_side(f_up, upper - x),
+                                    torch.minimum(extent[..., axis], 2 * torch.minimum(x - lower, upper - x).clamp_min(0)))))
+        start = torch.where(low, lower - f_low * width, torch.where(up, upper + f_up * width - width, x - width / 2))
+        start = start + (v[..., axis] - x)
+        m = cell[..., axis].double()
+        span = width.clamp_min(1e-9)
+        below = torch.where(width > 1e-9, ((m - 0.5 - start) / span).clamp(0, 1), 0.0)
+        above = torch.where(width > 1e-9, ((start + width - m - 0.5) / span).clamp(0, 1), 0.0)
+        # No light from beyond the projector's border: NaN there, as measured.
+        carried[..., axis, 0] = torch.where(cell[..., axis] >= 1, below, float("nan"))
+        carried[..., axis, 1] = torch.where(cell[..., axis] < projector_size[axis] - 1, above, float("nan"))
+        parity.append((f_low + f_up, below + above))
+    carried = torch.where(known[..., None, None], carried, float("nan"))
+    checker = shares.checker
+    if checker is not None:
+        (x0, x1), (y0, y1) = parity
+        change = (x1 * (1 - y1) + (1 - x1) * y1) - (x0 * (1 - y0) + (1 - x0) * y0)
+        checker = torch.where(known, (checker.double() + change).clamp(0, 1), float("nan")).to(shares.checker.dtype)
+    cell = torch.where(known[..., None], cell, -1).to(shares.cell.dtype)
+    return CellShares(cell, carried.to(shares.across.dtype), shares.outside, checker)
+
+
 def _capture_miss(candidate: list, old, p: torch.Tensor, measured: torch.Tensor) -> float:
     """How far a model's prediction of a capture of ``p`` (on ``old``'s columns) is from the capture."""
     from ..solve.refine import carry_patterns
@@ -299,12 +394,15 @@ class Reregister:
 
     After each capture, while the light keeps moving (a median move of at least
     :data:`REGISTER_MIN_CELLS`, by the projectors' fit or the camera's): :func:`register_maps` and
-    :func:`register_camera`, then the model that predicts that capture best among four: the operator
+    :func:`register_camera`, then the model that predicts that capture best among five: the operator
     as it is, the calibrated operator with its rows moved by the projectors' fit
     (:meth:`~torchproj.transport.TransportOperator.with_rows_moved`: each row's measured footprint,
-    shares and defocus kept, translated, at the price of a bilinear split of each entry), and the
-    transport rebuilt from the maps moved by either fit (sharp footprints from the maps' geometry, the
-    measured shares dropped: they belong to the old maps). Neither moved model wins everywhere: given the
+    shares and defocus kept, translated, at the price of a bilinear split of each entry), the
+    transport rebuilt from the maps moved by the projectors' fit, its measured shares dropped (they
+    belong to the old maps: sharp footprints from the maps' geometry) or carried through the move
+    (:func:`carry_shares`), and the transport rebuilt from the maps the camera's fit moved, its shares
+    dropped (carried, they scored below it on both moved-camera cases of ``benchmarks/drift.py
+    --moved-models``). Neither moved model wins everywhere: given the
     simulator's exact moves (``python benchmarks/drift.py --moved-models``), box_cylinders at quarter
     size with its upper projector turned 0.2 degrees scored 22.3 / 21.2 dB with rows moved and
     28.0 / 28.8 rebuilt, suite-1-7 23.5 / 28.1 / 18.7 / 22.8 moved and 21.1 / 23.6 / 17.7 / 23.1
@@ -350,7 +448,8 @@ class Reregister:
         # One candidate at a time, the better kept: each is an operator of the full rig (the paper's at full
         # size holds 9-12 M nonzeros and their transpose), and three at once doubled a run's peak memory.
         makers = {"rows moved": (moves, lambda: [o.with_rows_moved(moves) for o in self.calibrated]),
-                  "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves))}
+                  "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves)),
+                  "rebuilt, shares carried": (moves, lambda: self._rebuilt(ops[0], moves, carry=True))}
         if camera_moving:
             makers["camera shifted, rebuilt"] = (camera, lambda: self._rebuilt(ops[0], camera))
         misses = {"as it was": _capture_miss(list(ops), ops[0], p, measured)}
@@ -371,9 +470,10 @@ class Reregister:
         self.moves, self.camera_won = best_moves, best == "camera shifted, rebuilt"
         return best_ops
 
-    def _rebuilt(self, op, moves):
-        """The transport built as calibrated from maps moved by ``moves`` (cell shares and edge pixels
-        dropped); a pixel of a state that is no row moves by the median of its state's rows."""
+    def _rebuilt(self, op, moves, carry: bool = False):
+        """The transport built as calibrated from maps moved by ``moves``, edge pixels dropped and the
+        cell shares dropped too or, with ``carry``, carried through the move (:func:`carry_shares`); a
+        pixel of a state that is no row moves by the median of its state's rows."""
         from .run import build_operators
 
         moved = {}
@@ -385,7 +485,7 @@ class Reregister:
                 moved[state] = cal
                 continue
             pixels = op.row_pixel.cpu()[mine]
-            maps = []
+            maps, carried = [], []
             for j, xy in enumerate(cal.prj_xy):
                 flat = xy.reshape(-1, 2).double() + moves[mine, j].median(0).values
                 flat[pixels] = xy.reshape(-1, 2)[pixels].double() + moves[mine, j]
@@ -393,7 +493,9 @@ class Reregister:
                 flat[:, 0].clamp_(0, w - 1)
                 flat[:, 1].clamp_(0, h - 1)
                 maps.append(flat.to(xy.dtype).view(xy.shape))
-            moved[state] = dataclasses.replace(cal, prj_xy=maps, shares=None, edges=None)
+                if carry and cal.shares is not None:
+                    carried.append(carry_shares(cal.shares[j], xy, maps[-1], cal._slope(j), (w, h)))
+            moved[state] = dataclasses.replace(cal, prj_xy=maps, shares=carried or None, edges=None)
         new = build_operators(moved, self.targets, footprint=self.footprint, merge=False,
                               colour_weights=self.colour_weights if len(self.calibrated) > 1 else "grey",
                               device=self.device)
