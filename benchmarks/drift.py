@@ -278,7 +278,8 @@ def _moved_model(name: str, ops, moves, remodel):
 
 def moved_models(specs, kinds) -> dict:
     """What the loop's moved models can reach at best: each given the simulator's exact moves, solved
-    once (FISTA) and scored in the shown world, beside the calibrated model and the ceiling."""
+    once (FISTA) and scored in the shown world, beside the calibrated model and the ceiling; first in
+    the world as calibrated (no move: what dropping or carrying the shares costs there)."""
     from torchproj.pipeline import evaluate_patterns, scene_targets, shown_world
     from torchproj.pipeline.register import Reregister
     from torchproj.pipeline.run import build_operators
@@ -288,10 +289,13 @@ def moved_models(specs, kinds) -> dict:
     for spec in specs:
         data = scene_data(spec)
         cal = calibrate_virtual(parse_scene(data, name=data["name"]))
-        for kind in kinds:
-            value = CHANGES[kind][1]
+        # First the world as calibrated: what each form costs where nothing moved.
+        for kind in ("none", *kinds):
+            value = CHANGES[kind][1] if kind in CHANGES else 0.0
             d = copy.deepcopy(data)
-            d["show"] = show_section(data, kind, value)
+            show = show_section(data, kind, value)
+            if show is not None:
+                d["show"] = show
             scene = parse_scene(d, name=d["name"])
             world = shown_world(cal, scene)
             targets = scene_targets(scene, None, cal.rig)
