@@ -353,16 +353,10 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
         f_low = torch.nan_to_num(across[..., axis, 0]).clamp(0, _CARRY_MAX_SHARE)
         f_up = torch.nan_to_num(across[..., axis, 1]).clamp(0, _CARRY_MAX_SHARE)
         low, up = f_low > _CARRY_MIN_SHARE, f_up > _CARRY_MIN_SHARE
-        # Each case's width. Across one edge: centred on u (a coordinate at or past that edge counts as a
-        # hundredth of a cell inside, so the interval keeps a width), and never past the other edge.
-        def one_side(f, reach):
-            centred = reach.clamp(_CARRY_MIN_REACH, 1) / (0.5 - f).clamp_min(_CARRY_MIN_REACH)
-            return centred.clamp(max=1 / (1 - f))
-
         width = torch.where(
             low & up, 1 / (1 - f_low - f_up).clamp_min(_CARRY_MIN_INSIDE),
-            torch.where(low, one_side(f_low, x - lower),
-                        torch.where(up, one_side(f_up, upper - x),
+            torch.where(low, _one_edge_width(f_low, x - lower),
+                        torch.where(up, _one_edge_width(f_up, upper - x),
                                     torch.minimum(extent[..., axis], 2 * torch.minimum(x - lower, upper - x).clamp_min(0)))))
         start = torch.where(low, lower - f_low * width, torch.where(up, upper + f_up * width - width, x - width / 2))
         start = start + (v[..., axis] - x)
@@ -382,6 +376,14 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
         checker = torch.where(known, (checker.double() + change).clamp(0, 1), float("nan")).to(shares.checker.dtype)
     cell = torch.where(known[..., None], cell, -1).to(shares.cell.dtype)
     return CellShares(cell, carried.to(shares.across.dtype), shares.outside, checker)
+
+
+def _one_edge_width(share: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
+    """:func:`carry_shares`' interval across one edge of the cell by ``share``, centred on a coordinate
+    ``reach`` cells inside that edge: its width (a coordinate at or past the edge counts as a hundredth
+    of a cell inside, so the interval keeps a width), never past the cell's other edge."""
+    centred = reach.clamp(_CARRY_MIN_REACH, 1) / (0.5 - share).clamp_min(_CARRY_MIN_REACH)
+    return centred.clamp(max=1 / (1 - share))
 
 
 def _capture_miss(candidate: list, old, p: torch.Tensor, measured: torch.Tensor) -> float:
