@@ -344,7 +344,12 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
     known = (shares.cell >= 0).all(-1) & torch.isfinite(xy).all(-1) & torch.isfinite(moved).all(-1)
     u, v, across = xy.double(), moved.double(), shares.across.double()
     extent = torch.nan_to_num(slope.double().abs().sum(-1), nan=1.0).clamp(0.05, 4.0)  # (H, W, 2) per axis
-    cell = round_to_pixel(torch.nan_to_num(v, nan=-10.0))
+    # The decoded cell moved by the cell edges the map's coordinate crosses: with no move the shares are
+    # re-read about the cell they were measured about (where the map's coordinate lies outside it, as on
+    # a limb, too), and come back as measured.
+    cell = shares.cell.long() + round_to_pixel(torch.nan_to_num(v, nan=0.0)) - round_to_pixel(torch.nan_to_num(u, nan=0.0))
+    for axis in (0, 1):
+        cell[..., axis].clamp_(0, projector_size[axis] - 1)
     carried = torch.full_like(across, float("nan"))
     parity = []  # per axis, the share across either edge before and after
     for axis in (0, 1):
@@ -496,7 +501,7 @@ class Reregister:
                 moved[state] = cal
                 continue
             pixels = op.row_pixel.cpu()[mine]
-            maps, carried = [], []
+            maps, carried, edges = [], [], []
             for j, xy in enumerate(cal.prj_xy):
                 flat = xy.reshape(-1, 2).double() + moves[mine, j].median(0).values
                 flat[pixels] = xy.reshape(-1, 2)[pixels].double() + moves[mine, j]
@@ -506,7 +511,13 @@ class Reregister:
                 maps.append(flat.to(xy.dtype).view(xy.shape))
                 if carry and cal.shares is not None:
                     carried.append(carry_shares(cal.shares[j], xy, maps[-1], cal._slope(j), (w, h)))
-            moved[state] = dataclasses.replace(cal, prj_xy=maps, shares=carried or None, edges=None)
+                if carry and cal.edges is not None:
+                    # A pixel on an outline sees two surfaces: both its places move with the pixel's move.
+                    edge = cal.edges[j]
+                    # (an edge pixel whose map is undecoded moves by nothing)
+                    move = torch.nan_to_num((flat - xy.reshape(-1, 2).double())[edge.pixel.to(flat.device)])
+                    edges.append(dataclasses.replace(edge, xy=(edge.xy.double() + move[:, None]).to(edge.xy.dtype)))
+            moved[state] = dataclasses.replace(cal, prj_xy=maps, shares=carried or None, edges=edges or None)
         new = build_operators(moved, self.targets, footprint=self.footprint, merge=False,
                               colour_weights=self.colour_weights if len(self.calibrated) > 1 else "grey",
                               device=self.device)
