@@ -25,10 +25,13 @@ the rows lose what they measured (rebuilt without them, ``box_cylinders`` at qua
 1.3 dB in the world it was calibrated in, suite-1-7 up to 7.0 dB). :func:`carry_shares` carries them
 instead, each pixel's light per axis an even interval that the shares and the map fix, moved with the
 map. Given the simulator's moves (``python benchmarks/drift.py --moved-models``), the model rebuilt
-with carried shares scores a 2 mm projector move on ``box_cylinders`` at quarter size 29.73 / 29.41
+with carried shares scores a 2 mm projector move on ``box_cylinders`` at quarter size 29.78 / 29.42
 dB, against 27.82 / 29.13 with the shares dropped and 29.76 / 25.79 with the rows moved (the ceiling
-30.25 / 31.10); on a 0.2 degree turn it scores below the model with the shares dropped (28.00 / 28.24
-against 28.08 / 28.83), so both stay candidates.
+30.25 / 31.10), and on the held-out sphere 30.54 / 35.48 against 28.91 / 34.75 and 26.38 / 34.15
+(33.00 / 37.14); on a 0.2 degree turn of ``box_cylinders`` it scores below the model with the shares
+dropped (28.06 / 28.29 against 28.08 / 28.83), so both stay candidates. The outline pixels that see
+two surfaces (:class:`~torchproj.calib.EdgePixels`) move with them: dropped, the sphere's ball loses
+1.6 dB where nothing moved.
 
 A moved camera is another move: every target's image slides across the camera pixels, and through
 each projector's map (curved on a sphere, steep on a cylinder) that is no affine move of the cells.
@@ -322,17 +325,18 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
     - across neither: it lies in the cell, centred on ``u``, as wide as the pixel's extent along the axis
       (``|du/dx| + |du/dy|``, ``slope``) or the cell allows.
 
-    The interval moves with the map; the new cell is the one holding the moved coordinate, and the
-    shares across its edges are the interval's parts past them. The checkerboard's share (the light
+    The interval moves with the map; the new cell is the decoded one moved by the cell edges the
+    map's coordinate crosses, and the shares across its edges are the interval's parts past them. The checkerboard's share (the light
     on the other parity) moves by what the same intervals, taken as independent along the two axes,
     predict before and after; light from beyond cells ``n +- 1`` (``outside``) is kept as measured.
-    With no move the shares are those measured (to the interval's fit). Our construction: the paper
+    With no move the shares come back as measured (to the clamps below). Our construction: the paper
     calibrates once. Against a recalibration of the moved world (a projector moved 2 mm, half a cell),
     carried shares are 0.09 from the measured ones rms, those moved by whole cells 0.15
     (``tests/pipeline/test_shown.py``). Where a one-edge share is near a half and ``u`` near that edge
     the width is barely fixed; the interval then keeps the narrow width the centre gives: in throwaway
-    variants measured as ``--moved-models`` measures, the pixel's extent or the widest interval the
-    share allows there scored ``box_cylinders``' 2 mm move 0.45 / 0.12 dB lower.
+    variants measured as ``--moved-models`` measures (with the cell holding the moved coordinate as the
+    new cell), the pixel's extent or the widest interval the share allows there scored
+    ``box_cylinders``' 2 mm move 0.45 / 0.12 dB lower.
 
     Args:
         shares: the projector's :class:`~torchproj.calib.CellShares`, :math:`(H, W, ...)`.
