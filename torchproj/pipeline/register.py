@@ -326,9 +326,10 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
       (``|du/dx| + |du/dy|``, ``slope``) or the cell allows.
 
     The interval moves with the map; the new cell is the decoded one moved by the cell edges the
-    map's coordinate crosses, and the shares across its edges are the interval's parts past them. The checkerboard's share (the light
-    on the other parity) moves by what the same intervals, taken as independent along the two axes,
-    predict before and after; light from beyond cells ``n +- 1`` (``outside``) is kept as measured.
+    map's coordinate crosses, and the shares across its edges are the interval's parts past them.
+    The checkerboard's share (the light on the other parity) moves by what the same intervals, taken
+    as independent along the two axes, predict before and after; light from beyond cells ``n +- 1``
+    (``outside``) is kept as measured.
     With no move the shares come back as measured (to the clamps below). Our construction: the paper
     calibrates once. Against a recalibration of the moved world (a projector moved 2 mm, half a cell),
     carried shares are 0.09 from the measured ones rms, those moved by whole cells 0.15
@@ -351,7 +352,8 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
     # The decoded cell moved by the cell edges the map's coordinate crosses: with no move the shares are
     # re-read about the cell they were measured about (where the map's coordinate lies outside it, as on
     # a limb, too), and come back as measured.
-    cell = shares.cell.long() + round_to_pixel(torch.nan_to_num(v, nan=0.0)) - round_to_pixel(torch.nan_to_num(u, nan=0.0))
+    crossed = round_to_pixel(torch.nan_to_num(v, nan=0.0)) - round_to_pixel(torch.nan_to_num(u, nan=0.0))
+    cell = shares.cell.long() + crossed
     for axis in (0, 1):
         cell[..., axis].clamp_(0, projector_size[axis] - 1)
     carried = torch.full_like(across, float("nan"))
