@@ -466,21 +466,20 @@ class Reregister:
             return None
         # One candidate at a time, the better kept: each is an operator of the full rig (the paper's at full
         # size holds 9-12 M nonzeros and their transpose), and three at once doubled a run's peak memory.
-        makers = {"rows moved": (moves, lambda: [o.with_rows_moved(moves) for o in self.calibrated]),
-                  "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves)),
-                  "rebuilt, shares carried": (moves, lambda: self._rebuilt(ops[0], moves, carry=True))}
+        # Each with the share of the best miss so far by which it must beat it: the carried shares rest on
+        # an assumption the others do not make (the interval), and are taken only where clearly better.
+        makers = {"rows moved": (moves, lambda: [o.with_rows_moved(moves) for o in self.calibrated], 0.0),
+                  "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves), 0.0),
+                  "rebuilt, shares carried": (moves, lambda: self._rebuilt(ops[0], moves, carry=True), _CARRY_MARGIN)}
         if camera_moving:
-            makers["camera shifted, rebuilt"] = (camera, lambda: self._rebuilt(ops[0], camera))
+            makers["camera shifted, rebuilt"] = (camera, lambda: self._rebuilt(ops[0], camera), 0.0)
         misses = {"as it was": _capture_miss(list(ops), ops[0], p, measured)}
         best, best_ops, best_moves = "as it was", None, None
-        for name, (candidate_moves, make) in makers.items():
+        for name, (candidate_moves, make, margin) in makers.items():
             candidate = make()
             if candidate is None:
                 continue
             misses[name] = _capture_miss(candidate, ops[0], p, measured)
-            # The carried shares rest on an assumption the others do not make (the interval): taken only
-            # where they predict the capture clearly better.
-            margin = _CARRY_MARGIN if name == "rebuilt, shares carried" else 0.0
             if misses[name] < (1 - margin) * misses[best]:
                 best, best_ops, best_moves = name, candidate, candidate_moves
             del candidate
@@ -493,9 +492,10 @@ class Reregister:
         return best_ops
 
     def _rebuilt(self, op, moves, carry: bool = False):
-        """The transport built as calibrated from maps moved by ``moves``, edge pixels dropped and the
-        cell shares dropped too or, with ``carry``, carried through the move (:func:`carry_shares`); a
-        pixel of a state that is no row moves by the median of its state's rows."""
+        """The transport built as calibrated from maps moved by ``moves``, its cell shares and edge pixels
+        dropped or, with ``carry``, carried through the move (:func:`carry_shares`; an edge pixel's two
+        places move with the pixel); a pixel of a state that is no row moves by the median of its
+        state's rows."""
         from .run import build_operators
 
         moved = {}
@@ -521,7 +521,8 @@ class Reregister:
                     # A pixel on an outline sees two surfaces: both its places move with the pixel's move.
                     edge = cal.edges[j]
                     # (an edge pixel whose map is undecoded moves by nothing)
-                    move = torch.nan_to_num((flat - xy.reshape(-1, 2).double())[edge.pixel.to(flat.device)])
+                    at = edge.pixel.to(flat.device)
+                    move = torch.nan_to_num(flat[at] - xy.reshape(-1, 2)[at].double())
                     edges.append(dataclasses.replace(edge, xy=(edge.xy.double() + move[:, None]).to(edge.xy.dtype)))
             moved[state] = dataclasses.replace(cal, prj_xy=maps, shares=carried or None, edges=edges or None)
         new = build_operators(moved, self.targets, footprint=self.footprint, merge=False,
