@@ -26,7 +26,6 @@ from unittest import mock
 
 import torch
 from torch.overrides import TorchFunctionMode
-from torch.utils._pytree import tree_flatten
 
 _MARK = "_fake_cuda"
 CUDA = torch.device("cuda")
@@ -40,10 +39,23 @@ def on_fake_cuda(t) -> bool:
     return isinstance(t, torch.Tensor) and getattr(t, _MARK, False)
 
 
+def _tensors(tree):
+    """The tensors in nested tuples (torch's named return types among them), lists and dicts: what
+    torch functions take and return. torch's own pytree walk did the same at a third of the tests'
+    time in this mode."""
+    if isinstance(tree, torch.Tensor):
+        yield tree
+    elif isinstance(tree, (tuple, list)):
+        for item in tree:
+            yield from _tensors(item)
+    elif isinstance(tree, dict):
+        for item in tree.values():
+            yield from _tensors(item)
+
+
 def _mark(out):
-    for t in tree_flatten(out)[0]:
-        if isinstance(t, torch.Tensor):
-            setattr(t, _MARK, True)
+    for t in _tensors(out):
+        setattr(t, _MARK, True)
     return out
 
 
@@ -96,7 +108,7 @@ class _FakeCudaMode(TorchFunctionMode):
         to_device = _is_cuda(kwargs.get("device"))
         if "device" in kwargs:
             kwargs["device"] = _host(kwargs["device"])
-        tensors = [t for t in tree_flatten((args, kwargs))[0] if isinstance(t, torch.Tensor)]
+        tensors = list(_tensors((args, kwargs)))
         marked = any(on_fake_cuda(t) for t in tensors)
         if marked and func not in _CROSSING:
             host = [tuple(t.shape) for t in tensors if not on_fake_cuda(t) and t.dim() > 0]
@@ -135,7 +147,7 @@ def _check_indexing(name: str, args) -> None:
     values (not 0-dim) into a device one."""
     self_, index = args[0], args[1]
     value = args[2] if len(args) > 2 else None
-    index_tensors = [t for t in tree_flatten(index)[0] if isinstance(t, torch.Tensor)]
+    index_tensors = list(_tensors(index))
     if not on_fake_cuda(self_) and any(map(on_fake_cuda, index_tensors)):
         raise FakeCudaError(f"{name}: a host tensor indexed through cuda:0 tensors")
     if isinstance(value, torch.Tensor) and value.dim() > 0 and index_tensors \
