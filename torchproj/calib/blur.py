@@ -80,10 +80,16 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
     disc = disc_points(_DISC, device)  # (K, 2)
     diameters = _DIAMETERS.to(device)
     error = torch.zeros(u.shape[0], diameters.numel(), device=device)
+    # What the finest bits show in each cell, a row per cell between two rows of zeros (off the
+    # projector): a point's prediction is one row read, and a sample's mean over its points one
+    # embedding_bag, instead of the Gray code worked out at each of the S x K points (5x faster).
+    signs = [F.pad(stripe_signs(torch.arange(size, device=device, dtype=torch.float32), finest, size), (0, 0, 1, 1))
+             for size in (width, height)]
     for i, diameter in enumerate(_DIAMETERS.tolist()):
         points = area[:, :, None, :] + diameter * disc  # (n, S, K, 2)
         for axis, size in enumerate((width, height)):
-            predicted = stripe_signs(points[..., axis], finest, size).mean((1, 2))
+            row = torch.floor(points[..., axis].flatten(1) + 1.5).clamp_(0, size + 1).long()
+            predicted = F.embedding_bag(row, signs[axis], mode="mean")
             error[:, i] += (predicted - observed[axis]).square().sum(-1)
     best = diameters[error.argmin(1)]
     grid = torch.full(gy.shape, float("nan"), device=device)
