@@ -54,7 +54,7 @@ RUNS = {
     "eo": ("paper_two_planes", ["--solver", "eo", "--bounds=-100,255"]),
     "homography maps": ("paper_two_planes", ["--maps", "homography", "--bits", "4"]),
 }
-SLOW = {"camera loop", "colour channels", "auto", "nearest, merged rows", "eo", "homography maps"}
+SLOW = {"ssim", "camera loop", "colour channels", "auto", "nearest, merged rows", "eo", "homography maps"}
 
 
 @pytest.mark.parametrize("case", [pytest.param(k, marks=pytest.mark.slow) if k in SLOW else k for k in RUNS])

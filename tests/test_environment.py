@@ -6,8 +6,9 @@ result or the complete new one (every entry listed in its manifest, the report r
 is left beside it (no staging or set-aside folder), nothing outside it changes, a refusal or an
 interruption is one line without a traceback, and the exit code says which (0, 2 or 130).
 
-The default run draws a few cases of each family; ``TORCHPROJ_FUZZ=all`` draws many (CI's slow pass
-runs them).
+The default run draws a few cases of each family (of the signals and the file size limits, whose
+cases each start a fresh process, the first ones; the slow pass the rest); ``TORCHPROJ_FUZZ=all``
+draws many.
 """
 
 from __future__ import annotations
@@ -37,6 +38,15 @@ ALL = os.environ.get("TORCHPROJ_FUZZ") == "all"
 CASES = {"signals": 30 if ALL else 4, "file_size": 10 if ALL else 2, "refused_writes": 24 if ALL else 4,
          "foreign": 60 if ALL else 12}
 RUN = ["--max-iter", "20"]
+# Of the families that start a whole command in a fresh process (2-3 s a case), the default suite
+# draws the first cases and the slow pass the rest.
+DEFAULT_SUITE = {"signals": 2, "file_size": 1}
+
+
+def seeds(family: str) -> list:
+    """The family's seeds, those past its default-suite share marked slow."""
+    return [pytest.param(seed, marks=pytest.mark.slow) if seed >= DEFAULT_SUITE[family] else seed
+            for seed in range(CASES[family])]
 
 
 def snapshot(folder: Path) -> dict[str, str]:
@@ -108,7 +118,7 @@ def _start(old: Path, folder: Path) -> Path:
     return out
 
 
-@pytest.mark.parametrize("seed", range(CASES["signals"]))
+@pytest.mark.parametrize("seed", seeds("signals"))
 def test_a_signal_at_any_moment_leaves_the_old_result_or_the_new(old_result, tmp_path, seed):
     """Ctrl-C or SIGTERM at a seeded moment of a run that replaces an earlier result. Moments start
     0.3 s in: before that the interpreter is still starting, and Python's own default (a traceback
@@ -143,7 +153,7 @@ def _limit_file_size(limit: int):
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="file size limits are a POSIX resource")
-@pytest.mark.parametrize("seed", range(CASES["file_size"]))
+@pytest.mark.parametrize("seed", seeds("file_size"))
 def test_a_write_the_disk_refuses_leaves_the_old_result(old_result, tmp_path, seed):
     config, old, _ = old_result
     limit = int(2 ** random.Random(seed).uniform(11, 18))  # 2 KB - 256 KB: under the run's largest file

@@ -285,6 +285,7 @@ def test_placement_gets_closer_than_it_started(box_scene):
         assert t["pose_error"]["distance_mm"] < t["start_pose_error"]["distance_mm"]
 
 
+@pytest.mark.slow  # three whole `position` commands; run's own cache is the default suite's (tests/pipeline/test_cache.py)
 def test_a_second_position_reads_its_calibration_and_transport_and_places_alike(tmp_path, monkeypatch):
     """`torchproj position` keeps its calibration and transport as `run` does: a second test of the same
     scene reads both, and (its noise state kept with the calibration) makes the same placements."""

@@ -48,6 +48,7 @@ def test_run_writes_a_complete_report(config, tmp_path):
     assert "the paper's prototype range (18.3-20.9 dB" in opening[0] and opening[1].startswith("Legend: PSNR in dB")
 
 
+@pytest.mark.slow  # the same run in Python is the default suite's (tests/transport/test_planar.py)
 def test_run_with_homography_maps_writes_the_fits(config, tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(config), "--out", str(out), "--maps", "homography", "--plane-tolerance", "0.8"]) == 0
@@ -198,15 +199,25 @@ def test_values_below_black_are_clipped_or_mapped_as_asked(config, tmp_path, cap
         run_virtual(scene, bounds_8bit=(-100, 255), outside="wrap")
 
 
-def test_eo_on_three_projectors_walks_the_components(tmp_path, capsys):
+def _three_projectors(folder):
     data = small_config()
     side = dict(data["projectors"][0], name="side", pose={"position": [0.12, 0.0, 0.0], "look_at": [0.0, 0.0, 0.9]})
     data["projectors"].append(side)
-    config = tmp_path / "three.yaml"
+    config = folder / "three.yaml"
     config.write_text(yaml.safe_dump(dict(data, name="three")))
+    return config
+
+
+def test_eo_on_three_projectors_is_refused_naming_the_components(tmp_path, capsys):
     # The paper's epipolar chains join two projectors: refused before any work, naming the way out.
+    config = _three_projectors(tmp_path)
     assert main(["run", str(config), "--solver", "eo", "--out", str(tmp_path / "refused")]) == 2
     assert "--chains components" in capsys.readouterr().err and not (tmp_path / "refused").exists()
+
+
+@pytest.mark.slow  # a three-projector calibration and two solves; the components' exactness is tests/solve/test_eo.py's
+def test_eo_on_three_projectors_walks_the_components(tmp_path):
+    config = _three_projectors(tmp_path)
     out = tmp_path / "run"
     assert main(["run", str(config), "--solver", "eo", "--chains", "components", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
