@@ -122,3 +122,37 @@ def test_the_image_loss_at_its_start_and_its_gradient():
     assert loss.report(start)["model_psnr_change_db"] == pytest.approx([0.0, 0.0], abs=1e-9)
     small = start.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda p: loss(p), (small,), atol=1e-6)
+
+
+def test_one_operator_per_colour_channel_predicts_each_channel_with_its_own_weights():
+    """ImageLoss and solve_ssim on build_channel_transports' operators: channel c's prediction is
+    channel c's dense matrix times channel c's patterns, each target's SSIM and squared error taken
+    over all channels; checked against dense float64 products and torchproj.metrics.ssim."""
+    from torchproj.metrics import ssim
+    from torchproj.transport import build_channel_transports
+
+    cals = synthetic_calibration(shape=(40, 50))
+    g = torch.Generator().manual_seed(7)
+    for cal in cals.values():  # a strong tint: the grey weight would mispredict every channel
+        cal.colour_weight = [w * torch.tensor([0.5, 1.0, 1.6])[:, None, None] * (0.8 + 0.4 * torch.rand(3, *w.shape, generator=g))
+                             for w in cal.weight]
+    ops = [op.double() for op in build_channel_transports(cals, targets(channels=3), scale=0.8)]
+    start = torch.rand(ops[0].shape[1], 3, generator=g, dtype=torch.float64)
+    p = (start + 0.2 * torch.rand(start.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    loss = ImageLoss(ops, start, l2_weight=0.3, psnr_drop=None)
+    dense = [op.dense() for op in ops]
+    rows = torch.cat([A @ p[:, c:c + 1] for c, A in enumerate(dense)], 1) / ops[0].scale
+    rows0 = torch.cat([A @ start[:, c:c + 1] for c, A in enumerate(dense)], 1) / ops[0].scale
+    want = torch.cat([op.rhs for op in ops], 1) / ops[0].scale
+    first = ops[0]
+    images, wanted = first.to_camera(rows), first.to_camera(want)
+    dissimilarity, ratio = loss.terms(p)
+    for k, mask in enumerate(first.camera_masks()):
+        assert float(dissimilarity[k]) == pytest.approx(1 - float(ssim(images[k], wanted[k], mask)), rel=1e-9)
+        mine = first.row_target == k
+        expected = ((rows[mine] - want[mine]) ** 2).sum() / ((rows0[mine] - want[mine]) ** 2).sum()
+        assert float(ratio[k]) == pytest.approx(float(expected), rel=1e-9)
+    # The solve runs on them and never returns worse than its start, in the channels' own model.
+    res = solve_ssim(ops, (0.0, 1.0), max_iter=15, psnr_drop=1.0)
+    assert res.patterns.shape == start.shape and 0 <= float(res.patterns.min()) and float(res.patterns.max()) <= 1
+    assert res.objective <= res.history[0][1] and min(res.info["model_psnr_change_db"]) >= -1.1

@@ -287,8 +287,8 @@ def test_pipeline_iteration_limits():
 @pytest.mark.filterwarnings("ignore:the patterns leave")  # random weights: no scene, nothing to show apart
 def test_channel_operators_reach_each_channels_bounded_optimum():
     """make_patterns on one operator per colour channel: channel c of the joined solution is scipy's
-    bounded least squares on channel c's own matrix; the joined objective is their sum. An image
-    objective, which couples the channels, and operators of different columns are refused."""
+    bounded least squares on channel c's own matrix; the joined objective is their sum. Operators of
+    different columns are refused."""
     from torchproj.solve import make_patterns
     from torchproj.transport import build_channel_transports
 
@@ -308,8 +308,9 @@ def test_channel_operators_reach_each_channels_bounded_optimum():
         np.testing.assert_allclose(result.patterns[:, c:c + 1].numpy(), ref, atol=2e-3)
     assert result.objective == pytest.approx(total, rel=1e-6) and result.info["channels_solved_apart"] == 3
     assert [p.shape[0] for p in patterns] == [3, 3] and result.converged
-    with pytest.raises(InputError, match="an image objective couples the colour channels"):
-        make_patterns(ops, "fista", (0.0, 1.0), linear, objective="ssim")
+    # An image objective refines the joined solution with the channels together (tests/solve/test_objectives.py).
+    refined = make_patterns(ops, "fista", (0.0, 1.0), linear, objective="ssim")[0]
+    assert refined.method == "ssim" and refined.patterns.shape == result.patterns.shape
     with pytest.raises(InputError, match="one single-channel operator per colour channel"):
         make_patterns([ops[0], build_transport(cals, targets(channels=3), merge=False)], "fista", (0.0, 1.0), linear)
 

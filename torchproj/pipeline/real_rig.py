@@ -96,8 +96,6 @@ def bundle_problem(bundle, targets: list, *, solver: str, bounds_8bit, objective
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
     states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
-    if image is not None:
-        colour_weights = "grey"  # an image objective couples the channels (run_virtual)
     choice = None
     if footprint == AUTO:
         choice = choose_footprint(states, wanted, (lo, hi), device=device)

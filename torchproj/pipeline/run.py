@@ -142,7 +142,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         colour_weights: with a colour camera and colour targets, ``"channel"`` (default) models
             each channel with its own white minus black and solves the channels apart
             (:func:`~torchproj.transport.build_channel_transports`); ``"grey"`` gives every
-            channel their mean. Image objectives and gain/offset couple the channels and use grey;
+            channel their mean. Gain/offset couples the channels and uses grey; an image objective
+            refines the channels' solution together, each channel with its own weights;
             report.json ``colour_weights`` says which was used.
         refine: camera-in-the-loop updates after the solve (:func:`~torchproj.solve.refine_patterns`):
             show, capture every state, correct, ``refine`` times; the best captured iterate is kept
@@ -196,7 +197,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             footprint, timings["footprint"] = choice.footprint, choice.seconds
 
         exact = oracle == "transport"
-        if image is not None or gain_offset is not None or exact:
+        if gain_offset is not None or exact:
             colour_weights = "grey"  # these couple the channels (the transport oracle has its own per-channel light)
         # The transport of a cached calibration is kept beside it: the same scene and targets again (another
         # solver, objective or bounds) read it instead of building it.

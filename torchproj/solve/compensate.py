@@ -129,7 +129,8 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         op: the transport operator (rows on camera pixels, ``merge=False``, for an image-space
             objective), or a list of one per colour channel with the same columns
             (:func:`~torchproj.transport.build_channel_transports`): least squares in a box
-            separates over channels, so each is solved alone and the solutions joined.
+            separates over channels, so each is solved alone and the solutions joined (an image
+            objective then refines them together, each channel predicted with its own weights).
         solver: a name of :data:`~torchproj.solve.SOLVERS`; ``eo`` needs ``calibrations``.
         bounds: the solver's box, linear light (the paper's 8-bit bounds over 255).
         responses: per projector, its response curve.
@@ -169,9 +170,6 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         check(len({o.shape[1] for o in ops}) == 1 and all(o.channels == 1 for o in ops),
               "give one operator, or one single-channel operator per colour channel with the same columns "
               "(build_channel_transports)")
-        check(image is None, "an image objective couples the colour channels (SSIM and the PSNR limit are over the "
-                             "whole image): solve it on one operator with one grey weight (build_transport), or use "
-                             "objective 'l2'")
         results = []
         for one in ops:
             results.append(solve(one))
@@ -194,7 +192,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         result = solve_through_mixing(ops, result, mixings, bounds)
     if image is not None:
         start = result
-        result = solve_ssim(ops[0], bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=start.patterns,
+        result = solve_ssim(ops, bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=start.patterns,
                             max_iter=image.iterations, progress=progress)
         result.info["start"] = start
         result.info["objective"] = image

@@ -188,8 +188,6 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
     check_shape(start, "start", [ops[0].shape[1], len(ops) if len(ops) > 1 else "C"])
     check_finite(start, "start")
     image = image_objective(objective)
-    check(image is None or len(ops) == 1, "an image objective couples the colour channels: refine it on one operator "
-                                          "with the grey weight (build_transport)")
     t0 = time.perf_counter()
     targets = _targets(ops)
     p = start.detach().clamp(lo, hi)
@@ -207,7 +205,7 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
         loss, psnr_db = captured_loss(ops, measured)
         if image is not None:
             if k == 0:  # the image loss of every capture, its squared error relative to the start's capture
-                image_loss = ImageLoss(ops[0], p, image.l2_weight, image.psnr_drop, offset=measured - ops[0].A(p))
+                image_loss = ImageLoss(ops, p, image.l2_weight, image.psnr_drop, offset=measured - _rows(ops, p))
             with torch.no_grad():
                 loss = float(image_loss.of_rows(measured))
         history.append({"capture": k, "loss": loss, "psnr_db": psnr_db, "ssim": _captured_ssim(ops[0], measured, targets),
@@ -285,6 +283,6 @@ def _update(ops, p: torch.Tensor, defect: torch.Tensor, bounds, image, solver_it
     p = solved[0] if len(ops) == 1 else torch.cat(solved, 1)
     if image is None:
         return p
-    return solve_ssim(ops[0], bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=p,
+    return solve_ssim(ops, bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=p,
                       max_iter=image.iterations, offset=defect, progress=False).patterns
 
