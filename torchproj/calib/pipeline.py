@@ -156,7 +156,8 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         t0 = time.perf_counter()
         # A lens focused elsewhere spreads each cell over a disc; the finest stripes show how wide.
         # Blur follows depth, smooth on a surface: about 1,500 samples per map are read, every 8th
-        # pixel each way at most (0.4-0.6 s of a full-size calibration).
+        # pixel each way at most (0.2 s a full-size map, most of it choosing each pixel's neighbours
+        # on its own surface).
         height, width = prj_xy.shape[:2]
         blur = measure_blur(capture.patterns, capture.white, capture.black, prj_xy, projector_size,
                             step=max(8, round((height * width / 1500) ** 0.5)),
