@@ -170,7 +170,7 @@ def solve_options(p) -> None:
                    f"says which and why); default {DEFAULT_FOOTPRINT}")
     p.add_argument("--colour-weights", default="channel", choices=list(COLOUR_WEIGHTS), help="colour camera and "
                    "targets: model each channel with its own white minus black and solve the channels apart (channel, "
-                   "default), or give every channel their mean (grey); image objectives use grey")
+                   "default; ssim/mixed then refine the channels together), or give every channel their mean (grey)")
     device_options(p)
 
 
