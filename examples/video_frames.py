@@ -83,7 +83,8 @@ def main(argv=None) -> int:
     calibration = torchproj.calibrate_virtual(scene)
     frames = [torchproj.scene_targets(scene, images, rig=calibration.rig)
               for images in frame_images(args.frames, scene.camera.channels)]
-    model = torchproj.ProjectionModel.from_calibration(calibration, frames[0], start=None)
+    # One operator for every channel: the frames' batched least squares (solve_target_sets) runs on it.
+    model = torchproj.ProjectionModel.from_calibration(calibration, frames[0], start=None, colour_weights="grey")
     op, states = model.operator, calibration.states
 
     # 1. Least squares for all frames at once: only the right-hand side differs between frames.

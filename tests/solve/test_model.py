@@ -311,3 +311,33 @@ def test_a_psnr_budget_holds_every_target_where_a_summed_loss_trades_one_away():
     assert float(held.min()) > -1.3  # within the budget (a soft hinge: a little past it)
     with pytest.raises(InputError, match="psnr_drop and weight must be >= 0"):
         PSNRBudget(torch.zeros(1, 1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool), torch.zeros(1, 1, 4, 4), -1)
+
+
+def test_one_operator_per_colour_channel_predicts_each_channel_with_its_own():
+    """A colour calibration's model: channel c of the images is channel c's dense matrix times channel c
+    of the patterns, one at a time or in a batch; from_calibration builds it where each channel's
+    white minus black was measured (run's default), the grey one where asked."""
+    from torchproj.transport import build_channel_transports
+
+    cals = synthetic_calibration(seed=3)
+    g = torch.Generator().manual_seed(4)
+    for cal in cals.values():
+        cal.colour_weight = [w * torch.tensor([0.5, 1.0, 1.6])[:, None, None] for w in cal.weight]
+    tgts = targets(channels=3)
+    ops = [op.double() for op in build_channel_transports(cals, tgts, scale=SCALE)]
+    model = ProjectionModel(ops)
+    p = torch.rand(ops[0].shape[1], 3, generator=g, dtype=torch.float64)
+    rows = torch.cat([op.dense() @ p[:, c:c + 1] for c, op in enumerate(ops)], 1) / SCALE
+    torch.testing.assert_close(model(p), ops[0].to_camera(rows))
+    batch = torch.rand(4, *p.shape, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(model(batch), torch.stack([model(member) for member in batch]))
+    assert model.targets.shape[1] == 3 and model.mask.shape[0] == len(tgts)
+    channel = ProjectionModel.from_calibration(cals, tgts, footprint="nearest", scale=SCALE, start=None)
+    grey = ProjectionModel.from_calibration(cals, tgts, footprint="nearest", scale=SCALE, start=None, colour_weights="grey")
+    centre = torch.full_like(p, 0.5)
+    torch.testing.assert_close(channel(centre.float()).double(), model(centre), rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(grey(centre.float()).double(), model(centre), rtol=1e-2)
+    with pytest.raises(InputError, match="colour_weights must be one of"):
+        ProjectionModel.from_calibration(cals, tgts, colour_weights="rgb")
+    with pytest.raises(InputError, match="one single-channel operator per colour channel"):
+        ProjectionModel([ops[0], build_transport(cals, tgts, merge=False)])

@@ -30,8 +30,8 @@ from ..core.checks import check, check_shape
 from ..core.progress import progress_bar
 from ..metrics import SSIMLoss
 from ..transport.operator import TransportOperator
-from .model import ProjectionModel
-from .solvers import ClampedAdam, SolveResult, check_bounds, solve_fista
+from .model import ProjectionModel, _least_squares, _one_operator
+from .solvers import ClampedAdam, SolveResult, check_bounds
 
 __all__ = ["ImageLoss", "ImageObjective", "OBJECTIVES", "PSNRBudget", "PSNR_DROP_DB", "image_objective", "psnr_hinge",
            "solve_ssim"]
@@ -81,59 +81,6 @@ def image_objective(name="l2", l2_weight: float | None = None, psnr_drop: float 
           f"psnr_drop must be a finite number of dB >= 0, got {psnr_drop}")
     check(iterations >= 1, f"the SSIM objective needs at least 1 iteration, got {iterations}")
     return ImageObjective(name, weight, psnr_drop, int(iterations))
-
-
-class _Channels(nn.Module):
-    """One operator per colour channel (:func:`~torchproj.transport.build_channel_transports`) as
-    one with ``C`` channels: column ``c`` of the patterns goes through operator ``c``. An image loss
-    needs the predicted rows, the targets and the rows' camera pixels, which the channels share.
-
-    A tinted surface is why: one grey weight mispredicts every channel of it, and on ``suite-777-3``
-    (albedo 0.54 / 0.82 / 0.50) an SSIM solve on the grey model lost 7.8 and 11.7 dB of PSNR on two
-    targets against the channels' least squares, the SSIM of one of them falling too."""
-
-    def __init__(self, ops: list[TransportOperator]):
-        super().__init__()
-        check(all(isinstance(o, TransportOperator) for o in ops), "give TransportOperators, one per colour channel")
-        check(len({(o.shape, o.target_count) for o in ops}) == 1 and all(o.channels == 1 for o in ops),
-              "give one single-channel operator per colour channel with the same rows and columns "
-              "(build_channel_transports)")
-        self.ops = nn.ModuleList(ops)
-        first = ops[0]
-        self.shape, self.scale, self.target_count = first.shape, first.scale, first.target_count
-        self.row_pixel, self.row_target, self.val = first.row_pixel, first.row_target, first.val
-        self.rhs = torch.cat([o.rhs for o in ops], 1)
-
-    @property
-    def channels(self) -> int:
-        return len(self.ops)
-
-    def A(self, p: torch.Tensor) -> torch.Tensor:
-        return torch.cat([o.A(p[:, c:c + 1]) for c, o in enumerate(self.ops)], 1)
-
-    def objective(self, p: torch.Tensor) -> torch.Tensor:
-        return sum(o.objective(p[:, c:c + 1]) for c, o in enumerate(self.ops))
-
-    def to_camera(self, values: torch.Tensor) -> torch.Tensor:
-        return self.ops[0].to_camera(values)
-
-    def camera_masks(self) -> torch.Tensor:
-        return self.ops[0].camera_masks()
-
-
-def _one_operator(op):
-    """``op``, or a list of one operator per colour channel as one (:class:`_Channels`)."""
-    if isinstance(op, (list, tuple)):
-        check(len(op) >= 1, "give an operator, or one per colour channel")
-        return op[0] if len(op) == 1 else _Channels(list(op))
-    return op
-
-
-def _least_squares(op, bounds) -> torch.Tensor:
-    """FISTA's bounded least squares, each colour channel's alone where ``op`` holds one per channel."""
-    if isinstance(op, _Channels):
-        return torch.cat([solve_fista(o, bounds, progress=False).patterns for o in op.ops], 1)
-    return solve_fista(op, bounds, progress=False).patterns
 
 
 def _squared_error(op: TransportOperator):
@@ -252,18 +199,12 @@ class ImageLoss(nn.Module):
         check(l2_weight >= 0, f"l2_weight must be >= 0, got {l2_weight}")
         check(psnr_drop is None or psnr_drop >= 0, f"psnr_drop must be >= 0 dB (or None), got {psnr_drop}")
         op = _one_operator(op)
-        if isinstance(op, _Channels):
-            check_shape(start, "start", [op.shape[1], op.channels])
-            starts = [(one, start[:, c:c + 1]) for c, one in enumerate(op.ops)]
-        else:
-            starts = [(op, start)]
-        for one, part in starts:  # checks the operator's pixel map and the start's shape
-            model = ProjectionModel(one, start=part.detach())
+        model = ProjectionModel(op, start=start.detach())  # checks the operator's pixel map and the start's shape
         self.op, self.l2_weight, self.psnr_drop = op, float(l2_weight), psnr_drop
         if offset is not None:
             check_shape(offset, "offset", list(op.rhs.shape))
         self.offset = offset
-        self.ssim_loss = SSIMLoss(op.to_camera(op.rhs / op.scale), model.mask)
+        self.ssim_loss = SSIMLoss(model.targets, model.mask)
         self.squared_error = _squared_error(op)
         with torch.no_grad():
             start_rows = self._predict(start.detach())
@@ -345,8 +286,8 @@ def solve_ssim(op: TransportOperator | list[TransportOperator], bounds=(0.0, 1.0
         x0 = _least_squares(op, (lo, hi))
     x0 = x0.clamp(lo, hi)
     loss_of = ImageLoss(op, x0, l2_weight, psnr_drop, offset=offset)
-    patterns = nn.Parameter(x0.detach().to(op.val).clone())
-    opt = ClampedAdam([patterns], lr=lr, bounds=(lo, hi))
+    model = ProjectionModel(op, (lo, hi), start=x0)
+    opt = ClampedAdam(model.parameters(), lr=lr, bounds=(lo, hi))
     history, start_l2 = [], float(op.objective(x0))
     bar = progress_bar(desc="ssim", enabled=progress, total=max_iter)
     # Adam's first steps move every cell by about lr whatever its gradient: where the start already
@@ -356,11 +297,11 @@ def solve_ssim(op: TransportOperator | list[TransportOperator], bounds=(0.0, 1.0
     converged, it = False, 0
     for it in range(1, max_iter + 1):
         opt.zero_grad(set_to_none=True)
-        loss = loss_of(patterns)
+        loss = loss_of(model.patterns)
         loss.backward()
         history.append((time.perf_counter() - t0, loss.item()))
         if history[-1][1] < best:
-            best, best_p = history[-1][1], patterns.detach().clone()
+            best, best_p = history[-1][1], model.patterns.detach().clone()
         opt.step()
         bar.update(1)
         if it > 5 and history[-6][1] - history[-1][1] <= tol * abs(history[-1][1]):
@@ -368,8 +309,8 @@ def solve_ssim(op: TransportOperator | list[TransportOperator], bounds=(0.0, 1.0
             break
     bar.close()
     with torch.no_grad():
-        last = float(loss_of(patterns))
-    p = patterns.detach() if last < best else best_p
+        last = float(loss_of(model.patterns))
+    p = model.patterns.detach() if last < best else best_p
     final = min(last, best)
     history.append((time.perf_counter() - t0, final))
     return SolveResult(patterns=p, iterations=it, objective=final, history=history, time_s=time.perf_counter() - t0,
