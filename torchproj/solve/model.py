@@ -67,8 +67,23 @@ class _Channels(nn.Module):
         first = ops[0]
         self.shape, self.scale, self.target_count = first.shape, first.scale, first.target_count
         self.projector_sizes = first.projector_sizes
-        self.row_pixel, self.row_target, self.val = first.row_pixel, first.row_target, first.val
-        self.rhs = torch.cat([o.rhs for o in ops], 1)
+
+    # Tensors read from the operators when asked, so that they follow the operators to a device.
+    @property
+    def rhs(self) -> torch.Tensor:
+        return torch.cat([o.rhs for o in self.ops], 1)
+
+    @property
+    def row_pixel(self) -> torch.Tensor | None:
+        return self.ops[0].row_pixel
+
+    @property
+    def row_target(self) -> torch.Tensor:
+        return self.ops[0].row_target
+
+    @property
+    def val(self) -> torch.Tensor:
+        return self.ops[0].val
 
     @property
     def channels(self) -> int:
