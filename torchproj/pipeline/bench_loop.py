@@ -36,7 +36,7 @@ from ..transport import DEFAULT_FOOTPRINT
 from .real_rig import bundle_problem
 from .register import Reregister
 from .shown import CapturedRows
-from .run import build_operators
+from ..transport.build import build_operators
 
 __all__ = ["refine_bundle"]
 

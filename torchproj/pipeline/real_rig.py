@@ -19,7 +19,8 @@ from ..core.checks import check
 from ..solve import SolveResult, check_solve_options, image_objective, make_patterns
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, StateCalibration, Target, select_maps, target_on_camera
 from .footprint import AUTO, check_footprint, choose_footprint
-from .run import build_operators, image_objective_report
+from ..transport.build import build_operators
+from .run import image_objective_report
 from .scoring import score_image
 from .targets import target_image
 

@@ -55,6 +55,7 @@ from ..calib import CellShares
 from ..core.checks import check
 from ..core.conventions import round_to_pixel
 from ..transport import Target
+from ..transport.build import build_operators
 
 __all__ = ["REGISTER_MIN_CELLS", "Reregister", "carry_shares", "register_camera", "register_maps"]
 
@@ -496,8 +497,6 @@ class Reregister:
         dropped or, with ``carry``, carried through the move (:func:`carry_shares`; an edge pixel's two
         places move with the pixel); a pixel of a state that is no row moves by the median of its
         state's rows."""
-        from .run import build_operators
-
         moved = {}
         row_target = op.row_target.cpu()
         for state, cal in self.states.items():

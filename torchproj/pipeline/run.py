@@ -20,8 +20,8 @@ from ..solve import (SolveResult, check_solve_options, image_objective, make_pat
                      solve_gain_offset)
 from ..solve.compensate import iteration_limit, unexplained
 from ..solve.refine import refine_patterns
-from ..transport import (COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, build_channel_transports, build_transport,
-                         Target, has_colour_weights, select_maps)
+from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, Target, build_transport, select_maps
+from ..transport.build import build_operators, used_colour_weights
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
 from .footprint import AUTO, check_footprint, choose_footprint
 from .register import Reregister
@@ -311,21 +311,6 @@ class _Solved:
     transport_cache: str | None = None  # how the cache served the transport (None: not asked)
 
 
-def build_operators(states, targets, *, footprint: str, merge: bool, colour_weights: str, device) -> list:
-    """The operator(s) a solve runs on: one per colour channel where ``colour_weights`` is ``"channel"``
-    and calibration measured each channel's weight
-    (:func:`~torchproj.transport.has_colour_weights`), else one with the grey weight."""
-    if _colour_weights(states, targets, colour_weights) == "channel":
-        return build_channel_transports(states, targets, footprint=footprint, device=device)
-    return [build_transport(states, targets, merge=merge, footprint=footprint, device=device)]
-
-
-def _colour_weights(states, targets, asked: str) -> str:
-    """The weights a build uses: ``"channel"`` only for colour targets calibrated per channel; elsewhere
-    "channel" builds what "grey" does."""
-    return "channel" if asked == "channel" and has_colour_weights(states, targets) else "grey"
-
-
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
                      progress, device, timings, outside, chains, solver_options=None,
                      colour_weights: str = "grey", start=None, rows_on_camera: bool = False,
@@ -340,7 +325,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     # whose rows almost never repeat (default scene: 2,067,273 -> 2,066,931 rows, for 17 s of merging);
     # merged otherwise (exact, smaller).
     # As the build uses them, so that "channel" and "grey" ask the cache for the same operator where they build it.
-    colour_weights = _colour_weights(states, targets, colour_weights)
+    colour_weights = used_colour_weights(states, targets, colour_weights)
     options = dict(merge=gain_offset is None and image is None and not exact and footprint == "nearest"
                    and not rows_on_camera, footprint=footprint, colour_weights=colour_weights, device=device)
     normal_read = None  # per operator the coarse levels read with its Q, where a Q was read

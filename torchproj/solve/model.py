@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from ..core.checks import check, check_finite
-from ..transport.build import DEFAULT_FOOTPRINT, StateCalibration, Target, build_transport
+from ..transport.build import DEFAULT_FOOTPRINT, StateCalibration, Target, build_operators
 from ..transport.operator import TransportOperator
 from .compensate import projectable_patterns
 from .solvers import check_bounds, solve_fista
@@ -218,17 +218,14 @@ class ProjectionModel(nn.Module):
                 default), ``"grey"`` gives every channel their mean.
         """
         from ..core.choices import COLOUR_WEIGHTS
-        from ..transport.build import build_channel_transports, has_colour_weights
 
         check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
         states, responses = calibration_parts(calibration)
-        if colour_weights == "channel" and has_colour_weights(states, targets):
-            op = build_channel_transports(states, targets, footprint=footprint, scale=scale, device=device)
-        else:
-            op = build_transport(states, targets, footprint=footprint, merge=False, scale=scale, device=device)
+        op = _one_operator(build_operators(states, targets, footprint=footprint, merge=False, colour_weights=colour_weights,
+                                           scale=scale, device=device))
         if isinstance(start, str):
             check(start == "l2", f"start must be 'l2', None or a tensor, got {start!r}")
-            start = _least_squares(_one_operator(op), bounds)
+            start = _least_squares(op, bounds)
         return cls(op, bounds, responses, start)
 
     @property

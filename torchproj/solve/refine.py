@@ -47,6 +47,7 @@ import torch
 from ..core.checks import check, check_finite, check_shape
 from ..core.progress import progress_bar
 from .compensate import projectable_patterns
+from .model import _one_operator
 from .objectives import ImageLoss, image_objective, solve_ssim
 from .solvers import check_bounds, solve_fista
 
@@ -100,13 +101,11 @@ def _operators(op) -> list:
 
 def _rows(ops, values: torch.Tensor) -> torch.Tensor:
     """``A p`` as :math:`(N_{rows}, C)`, one operator or one per channel (column c on operator c)."""
-    if len(ops) == 1:
-        return ops[0].A(values)
-    return torch.cat([o.A(values[:, c:c + 1]) for c, o in enumerate(ops)], 1)
+    return _one_operator(ops).A(values)
 
 
 def _targets(ops) -> torch.Tensor:
-    return ops[0].rhs if len(ops) == 1 else torch.cat([o.rhs for o in ops], 1)
+    return _one_operator(ops).rhs
 
 
 def _captured_ssim(op, measured: torch.Tensor, targets: torch.Tensor) -> list[float]:

@@ -998,6 +998,22 @@ def has_colour_weights(calibrations: dict[str, StateCalibration], targets: list[
         and all(c.shape[0] == n_ch for c in calibrations[t.state].colour_weight) for t in targets)
 
 
+def used_colour_weights(calibrations: dict[str, StateCalibration], targets: list[Target], asked: str) -> str:
+    """The weights a build uses: ``"channel"`` only for colour targets calibrated per channel
+    (:func:`has_colour_weights`); elsewhere "channel" builds what "grey" does."""
+    return "channel" if asked == "channel" and has_colour_weights(calibrations, targets) else "grey"
+
+
+def build_operators(calibrations: dict[str, StateCalibration], targets: list[Target], *, footprint: str, merge: bool,
+                    colour_weights: str, scale: float | None = None, device="cpu") -> list[TransportOperator]:
+    """The operator(s) a solve runs on: one per colour channel (:func:`build_channel_transports`) where
+    ``colour_weights`` is ``"channel"`` and calibration measured each channel's weight, else one with
+    the grey weight (:func:`build_transport`)."""
+    if used_colour_weights(calibrations, targets, colour_weights) == "channel":
+        return build_channel_transports(calibrations, targets, footprint=footprint, scale=scale, device=device)
+    return [build_transport(calibrations, targets, merge=merge, footprint=footprint, scale=scale, device=device)]
+
+
 def build_channel_transports(calibrations: dict[str, StateCalibration], targets: list[Target], *,
                              footprint: str = "nearest", scale: float | None = None,
                              device="cpu") -> list[TransportOperator]:
