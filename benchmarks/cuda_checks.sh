@@ -4,7 +4,8 @@
 #     bash benchmarks/cuda_checks.sh OUT [DEVICE]
 #
 # in the order that matters when time runs out: tests/solve/test_cuda.py, the everyday commands on
-# the GPU (the default scene cold, again from the cache, EO, SSIM, auto, the camera loop), then the
+# the GPU (the default scene cold, again from the cache, EO, SSIM, auto, the camera loop, the colour
+# scene by least squares and SSIM on one operator per channel), then the
 # CUDA sections of benchmarks/solvers.py (--cuda-only) and benchmarks/batch_solves.py. Writes
 # OUT/summary.txt (each step's exit status and wall seconds), OUT/log.txt (every step's output) and
 # the two benchmarks' results. DEVICE (default cuda) lets the script itself be tried on a CPU.
@@ -57,6 +58,9 @@ step run_eo 90 $run --solver eo --bounds=-100,255 --out "$runs/eo"
 step run_ssim 90 $run --objective ssim --out "$runs/ssim"
 step run_auto 90 $run --footprint auto --out "$runs/auto"
 step run_refine 120 $run --refine 2 --out "$runs/refine"
+# A colour scene: one operator per channel, least squares and the SSIM solve on the channel stack.
+step run_colour 120 $run colour_two_planes --out "$runs/colour"
+step run_colour_ssim 90 $run colour_two_planes --objective ssim --out "$runs/colour_ssim"
 if [ "$device" = cuda ]; then
     step solvers_cuda 200 python3 benchmarks/solvers.py --cuda-only --sizes quarter half full --out "$runs/solvers"
     cp "$runs/solvers/results.json" "$out/solvers_cuda.json" 2>/dev/null
@@ -64,4 +68,7 @@ fi
 step batch_solves 150 python3 benchmarks/batch_solves.py --device "$device" --out "$runs/batch"
 cp "$runs/batch/results.md" "$out/batch_solves.md" 2>/dev/null
 cp "$runs/batch/results.json" "$out/batch_solves.json" 2>/dev/null
+for r in "$runs"/*/report.json; do
+    python3 -c "import json, sys; r = json.load(open(sys.argv[1])); print(sys.argv[1].split('/')[-2], [(t['name'], round(t['psnr_db'], 2), round(t['ssim'], 3)) for t in r['targets']], {k: round(v, 2) for k, v in r.get('timings_s', {}).items()})" "$r"
+done | tee "$out/reports.txt"
 echo "total $(elapsed) s" | tee -a "$out/summary.txt"

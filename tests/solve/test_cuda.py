@@ -92,3 +92,36 @@ def test_ssim_solve_on_the_gpu_matches_the_cpu():
     assert gpu.patterns.device.type == "cuda" and gpu.iterations == cpu.iterations
     assert gpu.objective == pytest.approx(cpu.objective, rel=1e-3)
     assert gpu.info["model_ssim"] == pytest.approx(cpu.info["model_ssim"], abs=1e-3)
+
+
+def channel_rig():
+    """A colour rig with each channel's own white minus black (``build_channel_transports``)."""
+    from torchproj.transport import build_channel_transports
+
+    cals = synthetic_calibration(shape=(40, 50), sizes=LARGE)
+    for cal in cals.values():
+        cal.colour_weight = [w * torch.tensor([0.5, 1.0, 1.6])[:, None, None] for w in cal.weight]
+    return build_channel_transports(cals, targets(channels=3), scale=0.8)
+
+
+def test_one_operator_per_channel_moves_to_the_gpu_and_matches_the_cpu():
+    """The per-channel stack reads its rows and targets from its operators, so a model moved to the
+    GPU takes them along; its forward, gradient and SSIM solve are the CPU's."""
+    from torchproj.solve import ProjectionModel, solve_ssim
+
+    cpu, gpu = ProjectionModel(channel_rig()), ProjectionModel(channel_rig()).to("cuda")
+    p = torch.rand(cpu.patterns.shape, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        cpu.patterns.copy_(p)
+        gpu.patterns.copy_(p.cuda())
+    losses = [(m() - m.targets).pow(2).mean() for m in (cpu, gpu)]
+    for loss in losses:
+        loss.backward()
+    assert gpu.targets.device.type == "cuda" and gpu.patterns.grad.device.type == "cuda"
+    assert float(losses[1]) == pytest.approx(float(losses[0]), rel=1e-5)
+    torch.testing.assert_close(gpu.patterns.grad.cpu(), cpu.patterns.grad, rtol=1e-4, atol=1e-6)
+    solved_cpu = solve_ssim(channel_rig(), (0.0, 1.0), max_iter=10)
+    solved_gpu = solve_ssim([op.to("cuda") for op in channel_rig()], (0.0, 1.0), max_iter=10)
+    assert solved_gpu.patterns.device.type == "cuda" and solved_gpu.iterations == solved_cpu.iterations
+    assert solved_gpu.objective == pytest.approx(solved_cpu.objective, rel=1e-3)
+    assert solved_gpu.info["model_ssim"] == pytest.approx(solved_cpu.info["model_ssim"], abs=1e-3)
