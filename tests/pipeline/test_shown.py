@@ -215,6 +215,51 @@ def test_shares_carried_through_a_move_by_hand():
     assert edge.cell[0, 1, 0] == 0 and torch.isnan(edge.across[0, 1, 0, 0]) and not torch.isnan(edge.across[0, 1, 0, 1])
 
 
+def _two_sample_shares(phase: torch.Tensor, extent: float) -> torch.Tensor:
+    """Shares across the lower and upper edge of a cell of light from two point samples at ``phase
+    -+ extent / 4`` (a camera pixel of 2 x 2 samples, the virtual rig's): steps of a half as a sample
+    crosses an edge, which no even interval gives."""
+    samples = phase[..., None] + torch.tensor([-extent / 4, extent / 4])
+    return torch.stack([(samples < -0.5).double().mean(-1), (samples > 0.5).double().mean(-1)], -1)
+
+
+def test_shares_carried_by_what_the_other_pixels_measured_follow_sampled_light():
+    """A plane's pixels at every phase of their cells, 0.4 cells wide, each lit by two point samples:
+    moved by 0.3 cells, the shares the table of all pixels' measured shares carries are within 0.05 of the samples'
+    own at the moved phase (the reference, computed from the samples) but near the steps, and far
+    closer to them than the even interval's; with no move they come back as measured."""
+    from torchproj.calib import CellShares
+    from torchproj.pipeline import register
+    from torchproj.pipeline.register import carry_shares
+
+    width, extent, move = 4000, 0.4, 0.3
+    x = 5 + torch.linspace(-0.49, 0.49, width, dtype=torch.float64)  # one row of pixels along x, cell 5
+    xy = torch.stack([x, torch.full_like(x, 3.0)], -1)[None].float()
+    shares_x = _two_sample_shares(x - 5, extent)
+    across = torch.stack([shares_x, torch.zeros_like(shares_x)], -2)[None].float()  # (1, W, axis, edge)
+    shares = CellShares(cell=torch.tensor([5, 3], dtype=torch.int32).expand(1, width, 2).clone(), across=across,
+                        outside=torch.zeros(1, width, 2), checker=shares_x.sum(-1)[None].float())
+    slope = torch.tensor([[extent, 0.0], [0.0, 0.1]]).expand(1, width, 2, 2)
+    moved = xy + torch.tensor([move, 0.0])
+    carried = carry_shares(shares, xy, moved, slope, (20, 10))
+    new_phase = moved[0, :, 0].double() - carried.cell[0, :, 0].double()
+    truth = _two_sample_shares(new_phase, extent)
+    got = carried.across[0, :, 0].double()
+    steps = torch.tensor([-0.5 - extent / 4, -0.5 + extent / 4, 0.5 - extent / 4, 0.5 + extent / 4], dtype=torch.float64)
+    clear = ((new_phase[:, None] - steps).abs() > 0.03).all(-1)  # a bin and a half from a step
+    assert float((got - truth)[clear].abs().max()) < 0.05
+    table_rms = float((got - truth).pow(2).mean().sqrt())
+    try:
+        register._TABLE_MIN = 10**9  # no bin is read: the even interval alone
+        interval = carry_shares(shares, xy, moved, slope, (20, 10)).across[0, :, 0].double()
+    finally:
+        register._TABLE_MIN = 3
+    interval_rms = float((interval - truth).pow(2).mean().sqrt())
+    assert table_rms < 0.5 * interval_rms, (table_rms, interval_rms)
+    still = carry_shares(shares, xy, xy, slope, (20, 10))
+    torch.testing.assert_close(still.across, shares.across)
+
+
 def test_shares_carried_through_a_move_are_near_those_a_recalibration_measures(calibration):
     """The upper projector moved 2 mm (about half a cell): the measured shares carried through the
     simulator's move come closer to what a fresh calibration of the moved world measures than the

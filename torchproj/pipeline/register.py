@@ -23,13 +23,14 @@ The cell shares (how each pixel's light splits across the edges of its cell, whi
 fitted to) belong to the maps as calibrated: a move of a fraction of a cell changes them. Dropped,
 the rows lose what they measured (rebuilt without them, ``box_cylinders`` at quarter size loses 2.4 /
 1.3 dB in the world it was calibrated in, suite-1-7 up to 7.0 dB). :func:`carry_shares` carries them
-instead, each pixel's light per axis an even interval that the shares and the map fix, moved with the
-map. Given the simulator's moves (``python benchmarks/drift.py --moved-models``), the model rebuilt
-with carried shares scores a 2 mm projector move on ``box_cylinders`` at quarter size 29.78 / 29.42
-dB, against 27.82 / 29.13 with the shares dropped and 29.76 / 25.79 with the rows moved (the ceiling
-30.25 / 31.10), and on the held-out sphere 30.54 / 35.48 against 28.91 / 34.75 and 26.38 / 34.15
-(33.00 / 37.14); on a 0.2 degree turn of ``box_cylinders`` it scores below the model with the shares
-dropped (28.06 / 28.29 against 28.08 / 28.83), so both stay candidates. The outline pixels that see
+instead: per axis, the shares every pixel of the projector measured, tabled against where the map
+puts the pixel in its cell and how wide its light is, read at the pixel's moved place (an even
+interval of light where the table has too few pixels). Given the simulator's moves (``python
+benchmarks/drift.py --moved-models``), the model rebuilt with carried shares scores a 2 mm projector
+move on ``box_cylinders`` at quarter size 29.91 / 30.55 dB, against 27.82 / 29.13 with the shares
+dropped and 29.76 / 25.80 with the rows moved (the ceiling 30.25 / 31.11), and a 0.2 degree turn
+29.59 / 29.84 against 28.08 / 28.83 and 22.31 / 21.25 (30.99 / 31.02); where the rows moved score
+better (suite-1-7's near plane), the loop takes them, so all three stay candidates. The outline pixels that see
 two surfaces (:class:`~torchproj.calib.EdgePixels`) move with them: dropped, the sphere's ball loses
 1.6 dB where nothing moved.
 
@@ -71,6 +72,15 @@ _MIN_SHIFT_ROWS = 32  # a target with fewer pixels inside its blurred image keep
 _CARRY_MIN_SHARE, _CARRY_MAX_SHARE = 0.005, 0.49
 _CARRY_MIN_REACH = 0.01  # cells: the least distance from u to an edge, and from a one-edge share to a half
 _CARRY_MIN_INSIDE = 0.1  # the least share left in the cell of light measured across both its edges
+# carry_shares' table of the measured shares against the map's phase in its cell and the pixel's
+# extent (cells; our choices, measured in benchmarks/drift.py --moved-models): bins of phase over
+# [-1, 1] and of extent up to 3 cells; a bin averages at least _TABLE_MIN pixels or is not read.
+_TABLE_PHASE_BIN, _TABLE_EXTENT_BIN, _TABLE_EXTENT_MAX, _TABLE_MIN = 0.02, 0.05, 3.0, 3
+# Where a pixel's measured shares differ from the table's at its phase by over _PHASE_MISFIT, its
+# phase is corrected by one of _PHASE_STEPS offsets within +-_PHASE_SPAN cells (about three times a
+# decoded map's rms error), each penalised by _PHASE_PENALTY per square cell against the squared
+# misfit of its two shares.
+_PHASE_MISFIT, _PHASE_SPAN, _PHASE_STEPS, _PHASE_PENALTY = 0.05, 0.1, 21, 10.0
 # How much better than the best other model the carried shares must predict a capture (a share of its
 # miss). Near-ties gain nothing: paper_bumped at full size predicted its first capture at 436.03 with
 # them against 436.12 without and ended with SSIM 0.02 lower, PSNR the same; the paper's rig at
@@ -315,8 +325,27 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
     """One projector's measured cell shares carried to maps moved from ``xy`` to ``moved`` (module docs).
 
     The shares say how a pixel's light splits across the edges of its cell, which a move of a
-    fraction of a cell changes; the maps say where the light's centre is. Per axis, the light is
-    taken as spread evenly over an interval (a camera pixel's square seen through the map, a
+    fraction of a cell changes; the maps say where the light's centre is. Two models, the first
+    read wherever it has data:
+
+    **What the other pixels measured** (:func:`_table_shares`). Per axis and edge, a pixel's share
+    is a function of where its map puts it in its cell (the phase, ``u - n``) and how wide its light
+    is (the extent, ``|du/dx| + |du/dy|``), whatever the light's shape within the pixel: the
+    camera's own aperture, or the virtual rig's few samples per pixel, whose shares step from 0 to
+    a half as a sample crosses an edge. So the measured shares of every pixel of the projector and
+    state, averaged in bins of phase and extent, say what a pixel's shares are at its moved phase.
+    A pixel whose measured shares the table does not give at its phase is first placed, within a
+    decoded map's error, where the table gives them best; its share after the move is the table's
+    at the moved phase plus what the pixel measured beyond the table's value at its own (so that
+    with no move the shares come back as measured). Against a recalibration of the moved world, on
+    two unseen suite scenes whose camera pixels are about 0.4 cells wide seen through 2 x 2 samples
+    (suite-3131-1 and suite-606-0, a projector moved 0.5 or 2 mm or turned 0.2 degrees), the
+    shares carried this way are 0.035-0.064 rms from those measured, against 0.066-0.124 through the
+    interval alone, and the rebuilt model scores 0.45-4.0 dB higher on every target
+    (``docs/camera-in-the-loop.md``).
+
+    **An even interval**, where a bin holds too few pixels (and in the tests' hand-worked cases).
+    Per axis, the light is taken as spread evenly over an interval (a camera pixel's square seen through the map, a
     parallelogram, projects onto one projector axis as a trapezoid: the interval is its simplest
     stand-in), which the measured shares and the map's coordinate ``u`` in cell ``n`` fix:
 
@@ -376,6 +405,8 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
         span = width.clamp_min(1e-9)
         below = torch.where(width > 1e-9, ((m - 0.5 - start) / span).clamp(0, 1), 0.0)
         above = torch.where(width > 1e-9, ((start + width - m - 0.5) / span).clamp(0, 1), 0.0)
+        below, above = _table_shares(across[..., axis, :], x - n, v[..., axis] - m, extent[..., axis], known,
+                                     (below, above))
         # No light from beyond the projector's border: NaN there, as measured.
         carried[..., axis, 0] = torch.where(cell[..., axis] >= 1, below, float("nan"))
         carried[..., axis, 1] = torch.where(cell[..., axis] < projector_size[axis] - 1, above, float("nan"))
@@ -388,6 +419,72 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
         checker = torch.where(known, (checker.double() + change).clamp(0, 1), float("nan")).to(shares.checker.dtype)
     cell = torch.where(known[..., None], cell, -1).to(shares.cell.dtype)
     return CellShares(cell, carried.to(shares.across.dtype), shares.outside, checker)
+
+
+def _table_shares(measured: torch.Tensor, phase: torch.Tensor, moved_phase: torch.Tensor, extent: torch.Tensor,
+                  known: torch.Tensor, interval: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """One axis of :func:`carry_shares`: the shares across the lower and upper edge of each pixel's new
+    cell as the table of all pixels' measured shares gives them (its docstring), the ``interval``
+    model's where the table has too few pixels.
+
+    Args:
+        measured: :math:`(H, W, 2)` the measured shares across the lower and upper edge (NaN: none).
+        phase, moved_phase: :math:`(H, W)` the map's coordinate less the decoded cell's, before and after
+            the move (less the new cell's).
+        extent: :math:`(H, W)` the pixel's extent along the axis (cells).
+        known: :math:`(H, W)` the pixels carried.
+        interval: the interval model's shares, :math:`(H, W)` each.
+    """
+    flat = torch.nonzero(known.reshape(-1))[:, 0]
+    f = torch.nan_to_num(measured.reshape(-1, 2)[flat].float(), nan=0.0)
+    at, to = phase.reshape(-1)[flat].float(), moved_phase.reshape(-1)[flat].float()
+    n_phase = round(2 / _TABLE_PHASE_BIN)
+    n_extent = round(_TABLE_EXTENT_MAX / _TABLE_EXTENT_BIN)
+    # Each extent's row of bins has a NaN bin at either end, so that a phase past the table reads NaN.
+    row = (extent.reshape(-1)[flat] / _TABLE_EXTENT_BIN).floor().long().clamp(0, n_extent - 1) * (n_phase + 2)
+    column = ((at + 1) / _TABLE_PHASE_BIN).floor().long()
+    inside = (column >= 0) & (column < n_phase)
+    slot = (row + column + 1)[inside]
+    size = n_extent * (n_phase + 2)
+    count = torch.zeros(size).index_add_(0, slot, torch.ones(len(slot)))
+    table = torch.zeros(size, 2).index_add_(0, slot, f[inside])
+    table = torch.where((count >= _TABLE_MIN)[:, None], table / count.clamp_min(1)[:, None], float("nan"))
+
+    def read(where: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """The table at phases ``where`` of the pixels' extent rows ``rows`` (:math:`(P,)` or
+        :math:`(P, K)` phases, :math:`(P,)` rows), linear between bin centres; where one of the two
+        bins is too sparse, the nearer one (NaN where that is)."""
+        position = (where + 1) / _TABLE_PHASE_BIN + 0.5  # 1 at the first bin's centre
+        left = position.floor().clamp(0, n_phase)
+        share = (position - left).clamp(0, 1)[..., None]
+        index = rows.view(-1, *([1] * (where.dim() - 1))) + left.long()
+        a, b = table[index], table[index + 1]
+        both = a + (b - a) * share
+        return torch.where(torch.isfinite(both), both, torch.where(share < 0.5, a, b))
+
+    # Where a pixel measured other shares than the table gives at its phase, it may lie elsewhere in
+    # its cell than its map says (a decoded map errs by a few hundredths of a cell, and near an edge
+    # the sampled light's shares step): its phase is corrected within that error, to where the table
+    # gives its measured shares best.
+    offset = torch.zeros_like(at)
+    own = read(at, row)
+    misfit = (own - f).abs().amax(-1)
+    near = torch.nonzero(torch.nan_to_num(misfit, nan=0.0) > _PHASE_MISFIT)[:, 0]
+    if len(near):
+        steps = torch.linspace(-_PHASE_SPAN, _PHASE_SPAN, _PHASE_STEPS)
+        miss = (read(at[near, None] + steps, row[near]) - f[near, None, :]).pow(2).sum(-1)
+        cost = torch.nan_to_num(miss, nan=float("inf")) + _PHASE_PENALTY * steps.pow(2)
+        offset[near] = steps[cost.argmin(1)]
+        own[near] = read(at[near] + offset[near], row[near])
+    # The share of each edge at the moved phase, plus what the pixel measured beyond the table's value.
+    shares = (f + (read(to + offset, row) - own)).clamp(0, 1)
+    out = []
+    for side in (0, 1):
+        value = interval[side].reshape(-1).clone()
+        got = shares[:, side]
+        value[flat] = torch.where(torch.isfinite(got), got.to(value.dtype), value[flat])
+        out.append(value.view_as(interval[side]))
+    return out[0], out[1]
 
 
 def _one_edge_width(share: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
