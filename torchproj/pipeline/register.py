@@ -339,9 +339,9 @@ def carry_shares(shares: CellShares, xy: torch.Tensor, moved: torch.Tensor, slop
     at the moved phase plus what the pixel measured beyond the table's value at its own (so that
     with no move the shares come back as measured). Against a recalibration of the moved world, on
     two unseen suite scenes whose camera pixels are about 0.4 cells wide seen through 2 x 2 samples
-    (suite-3131-1 and suite-606-0, a projector moved 0.5 or 2 mm or turned 0.2 degrees), the
-    shares carried this way are 0.035-0.064 rms from those measured, against 0.066-0.124 through the
-    interval alone, and the rebuilt model scores 0.45-4.0 dB higher on every target
+    (suite-3131-1 and suite-606-0, a projector moved 2 mm or turned 0.2 degrees), the
+    shares carried this way are 0.035-0.062 rms from those measured, against 0.066-0.124 through the
+    interval alone, and the rebuilt model scores 0.42-4.47 dB higher on every target
     (``docs/camera-in-the-loop.md``).
 
     **An even interval**, where a bin holds too few pixels (and in the tests' hand-worked cases).
@@ -565,7 +565,8 @@ class Reregister:
         # One candidate at a time, the better kept: each is an operator of the full rig (the paper's at full
         # size holds 9-12 M nonzeros and their transpose), and three at once doubled a run's peak memory.
         # Each with the share of the best miss so far by which it must beat it: the carried shares rest on
-        # an assumption the others do not make (the interval), and are taken only where clearly better.
+        # a model of the light inside a pixel that the others do not need (the table of what the other
+        # pixels measured, or the even interval), and are taken only where clearly better.
         makers = {"rows moved": (moves, lambda: [o.with_rows_moved(moves) for o in self.calibrated], 0.0),
                   "rebuilt": (moves, lambda: self._rebuilt(ops[0], moves), 0.0),
                   "rebuilt, shares carried": (moves, lambda: self._rebuilt(ops[0], moves, carry=True), _CARRY_MARGIN)}
