@@ -36,7 +36,7 @@ def test_operator_products_on_cuda_match_the_cpu():
     torch.testing.assert_close(gpu.A_adjoint(r.cuda()).cpu(), cpu.A_adjoint(r), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(gpu.normal_equations().product(p.cuda()).cpu(), cpu.normal_equations().product(p),
                                rtol=1e-5, atol=1e-5)
-    for (ne_gpu, block_gpu), (ne_cpu, block_cpu) in zip(gpu.coarse_levels(3), cpu.coarse_levels(3)):
+    for (ne_gpu, block_gpu), (_, block_cpu) in zip(gpu.coarse_levels(3), cpu.coarse_levels(3)):
         assert ne_gpu.Q.device.type == "cuda" and block_gpu.device.type == "cuda"
         assert torch.equal(block_gpu.cpu(), block_cpu)
 
@@ -125,3 +125,27 @@ def test_one_operator_per_channel_moves_to_the_gpu_and_matches_the_cpu():
     assert solved_gpu.patterns.device.type == "cuda" and solved_gpu.iterations == solved_cpu.iterations
     assert solved_gpu.objective == pytest.approx(solved_cpu.objective, rel=1e-3)
     assert solved_gpu.info["model_ssim"] == pytest.approx(solved_cpu.info["model_ssim"], abs=1e-3)
+
+
+def test_shares_carried_on_the_gpu_are_the_cpus():
+    """The camera loop's carried cell shares (its table of what the other pixels measured, and the even
+    interval where that is sparse) computed on the GPU, against the CPU."""
+    from torchproj.calib import CellShares
+    from torchproj.pipeline.register import carry_shares
+
+    g = torch.Generator().manual_seed(6)
+    h, w = 40, 60
+    xy = torch.stack(torch.meshgrid(torch.arange(w) * 0.4 + 2, torch.arange(h) * 0.45 + 2, indexing="xy"), -1)
+    xy = xy + 0.02 * torch.randn(h, w, 2, generator=g)
+    cell = torch.round(xy).to(torch.int32)
+    across = (torch.rand(h, w, 2, 2, generator=g) * 0.6 - 0.2).clamp_min(0)
+    shares = CellShares(cell, across, torch.zeros(h, w, 2), torch.rand(h, w, generator=g) * 0.3)
+    slope = torch.tensor([[0.4, 0.0], [0.0, 0.45]]).expand(h, w, 2, 2)
+    moved = xy + torch.tensor([0.3, -0.2])
+    cpu = carry_shares(shares, xy, moved, slope, (40, 30))
+    on = CellShares(*(t.cuda() for t in (shares.cell, shares.across, shares.outside, shares.checker)))
+    gpu = carry_shares(on, xy.cuda(), moved.cuda(), slope.cuda(), (40, 30))
+    assert gpu.across.device.type == "cuda"
+    assert torch.equal(gpu.cell.cpu(), cpu.cell)
+    torch.testing.assert_close(gpu.across.cpu(), cpu.across, rtol=1e-4, atol=1e-5, equal_nan=True)
+    torch.testing.assert_close(gpu.checker.cpu(), cpu.checker, rtol=1e-4, atol=1e-5, equal_nan=True)

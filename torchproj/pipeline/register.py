@@ -446,8 +446,8 @@ def _table_shares(measured: torch.Tensor, phase: torch.Tensor, moved_phase: torc
     inside = (column >= 0) & (column < n_phase)
     slot = (row + column + 1)[inside]
     size = n_extent * (n_phase + 2)
-    count = torch.zeros(size).index_add_(0, slot, torch.ones(len(slot)))
-    table = torch.zeros(size, 2).index_add_(0, slot, f[inside])
+    count = f.new_zeros(size).index_add_(0, slot, f.new_ones(len(slot)))
+    table = f.new_zeros(size, 2).index_add_(0, slot, f[inside])
     table = torch.where((count >= _TABLE_MIN)[:, None], table / count.clamp_min(1)[:, None], float("nan"))
 
     def read(where: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -471,7 +471,7 @@ def _table_shares(measured: torch.Tensor, phase: torch.Tensor, moved_phase: torc
     misfit = (own - f).abs().amax(-1)
     near = torch.nonzero(torch.nan_to_num(misfit, nan=0.0) > _PHASE_MISFIT)[:, 0]
     if len(near):
-        steps = torch.linspace(-_PHASE_SPAN, _PHASE_SPAN, _PHASE_STEPS)
+        steps = torch.linspace(-_PHASE_SPAN, _PHASE_SPAN, _PHASE_STEPS, device=f.device)
         miss = (read(at[near, None] + steps, row[near]) - f[near, None, :]).pow(2).sum(-1)
         cost = torch.nan_to_num(miss, nan=float("inf")) + _PHASE_PENALTY * steps.pow(2)
         offset[near] = steps[cost.argmin(1)]
