@@ -291,7 +291,7 @@ def _moved_model(name: str, ops, moves, remodel):
     if name == "interval":
         with _interval_only():
             return remodel._rebuilt(ops[0], moves, carry=True)
-    return remodel._rebuilt(ops[0], moves, carry=name in ("shares carried", "interval"))
+    return remodel._rebuilt(ops[0], moves, carry=name == "shares carried")
 
 
 def _share_misses(cal, world, fresh) -> dict[str, list[float]]:
