@@ -166,6 +166,25 @@ def test_a_brighter_lamp_is_no_move(calibration):
     assert median < REGISTER_MIN_CELLS / 2 and explained < 0.1
 
 
+def test_a_move_under_the_later_threshold_rebuilds_only_from_the_calibrated_model(calibration, monkeypatch):
+    # A fitted move between the two thresholds: from the calibrated model it is a change of the world
+    # and the loop weighs its candidates; from a model the loop already moved, a rebuilt model's own
+    # errors fit as moves of that size (suite-1-7's moved camera), and the loop stops.
+    from torchproj.pipeline import register
+
+    _, targets, ops, p, measured = _stale_capture(calibration, {"projectors": {"upper": {"translation_mm": [0.5, 0, 0]}}})
+    middle = 0.5 * (register.REGISTER_MIN_CELLS + register.REREGISTER_MIN_CELLS)
+    still = torch.zeros(ops[0].shape[0], len(ops[0].projector_sizes), 2, dtype=torch.float64)
+    monkeypatch.setattr(register, "register_maps", lambda *args: (still, middle, 0.5))
+    monkeypatch.setattr(register, "register_camera", lambda *args: (still, [(0.0, 0.0)] * len(targets)))
+    first = register.Reregister(calibration.states, targets, footprint="area", colour_weights="grey")
+    first(ops, p, measured)
+    assert "capture_miss" in first.fits[0]  # every candidate built and scored against the capture
+    later = register.Reregister(calibration.states, targets, footprint="area", colour_weights="grey")
+    later.calibrated, later.moves = list(ops), still
+    assert later(ops, p, measured) is None and later.done and "capture_miss" not in later.fits[0]
+
+
 @pytest.mark.slow
 def test_the_loop_wins_back_a_bumped_projector():
     # The paper's rig at quarter size (a 400x300 camera, 256x192 projectors). On coarser rigs the moved
