@@ -67,7 +67,7 @@ __all__ = ["REGISTER_MIN_CELLS", "REREGISTER_MIN_CELLS", "Reregister", "carry_sh
 # the loop already moved, REREGISTER_MIN_CELLS: a rebuilt model's own errors (its decoded maps' and
 # carried shares') fit as moves too, and at 0.05 suite-1-7's moved camera measured 0.07-0.08 cells on
 # later captures, each rebuild predicting the capture better and scoring worse (3.69 dB below the
-# ceiling after 5 captures, against 1.83).
+# ceiling after 10 captures, against 1.83).
 REGISTER_MIN_CELLS = 0.05
 REREGISTER_MIN_CELLS = 0.1
 _BLURS = (2.0, 1.0, 0.0)  # cells; Gauss-Newton steps per blur below
