@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.core import (CaptureError, InputError, atomic_output, check_finite, check_image, check_shape,
+from torchproj.core import (CaptureError, InputError, all_finite, atomic_output, check_finite, check_image, check_shape,
                             pixel_grid, read_image, round_to_pixel, write_image)
 
 
@@ -38,9 +38,39 @@ def test_check_finite_counts_bad_values():
         check_finite(x, "x")
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+@pytest.mark.parametrize("shape", [(1,), (7,), (3, 97, 131), (2, 1000, 33)])
+def test_all_finite_agrees_with_isfinite_wherever_the_bad_value_lies(dtype, shape):
+    # aminmax works in vector lanes and a remainder: a NaN or an infinity in any lane, in the
+    # remainder, in a strided view, or several of them, must each be found
+    gen = torch.Generator().manual_seed(sum(shape))
+    x = torch.rand(shape, generator=gen).to(dtype) * 2 - 1
+    assert all_finite(x) and all_finite(x.transpose(0, -1)) and all_finite(x[..., ::3])
+    flat = x.reshape(-1)
+    spots = {0, flat.numel() - 1, *torch.randint(flat.numel(), (6,), generator=gen).tolist()}
+    for spot in spots:
+        for bad in (float("nan"), float("inf"), -float("inf")):
+            y = flat.clone()
+            y[spot] = bad
+            y = y.reshape(shape)
+            assert not all_finite(y), (spot, bad)
+            assert all_finite(y) == bool(torch.isfinite(y).all())
+            assert not all_finite(y.transpose(0, -1))
+    assert all_finite(torch.zeros(0))
+
+
 def test_check_image_range():
     with pytest.raises(InputError, match=r"must lie in \[0, 1\]"):
         check_image(torch.full((1, 2, 2), 1.5), "target")
+    with pytest.raises(InputError, match=r"must lie in \[0, 1\], got values in \[-0.5, 0\]"):
+        check_image(torch.tensor([[[0.0, -0.5]]]), "target")
+    for bad in (float("nan"), float("inf")):
+        image = torch.full((3, 4, 5), 0.5)
+        image[2, 3, 4] = bad
+        with pytest.raises(InputError, match="target holds 1 non-finite"):
+            check_image(image, "target")
+    with pytest.raises(InputError, match="target is empty"):
+        check_image(torch.zeros(1, 0, 4), "target")
     with pytest.raises(InputError, match="1 or 3 channels"):
         check_image(torch.zeros(2, 2, 2), "target")
     assert check_image(torch.zeros(3, 4, 5), "target") == {"C": 3, "H": 4, "W": 5}

