@@ -118,6 +118,41 @@ def test_corners_place_the_image():
     assert covered[2:12, 5:15].all() and not covered[:, :5].any()
 
 
+def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own():
+    from torchproj.transport.build import _warp_target
+
+    gen = torch.Generator().manual_seed(3)
+    target = Target("s", torch.rand(3, 9, 12, generator=gen))
+    mask = torch.ones(15, 20, dtype=torch.bool)
+    mask[:, :3] = False
+
+    def same_as_a_fresh_warp(m):
+        values, covered = target_on_camera(target, m)
+        fresh = _warp_target(Target(target.state, target.image.clone(), target.mask, target.corners), m)
+        assert torch.equal(values, fresh[0]) and torch.equal(covered, fresh[1])
+        return values, covered
+
+    first, _ = same_as_a_fresh_warp(mask)
+    first += 1  # a caller's change of what it was given is not the next caller's
+    same_as_a_fresh_warp(mask.clone())
+    smaller = mask.clone()
+    smaller[:4] = False  # another mask of the same shape: the image fitted to another box
+    assert not torch.equal(same_as_a_fresh_warp(smaller)[1], target_on_camera(target, mask)[1])
+    mask[5:, :] = False  # the mask changed in place
+    same_as_a_fresh_warp(mask)
+    target.image.mul_(0.5)  # the image changed in place
+    same_as_a_fresh_warp(mask)
+    target.image = torch.rand(1, 5, 5, generator=gen)  # another image
+    same_as_a_fresh_warp(mask)
+    target.corners = [[4.0, 1.0], [15.0, 2.0], [15.0, 12.0], [4.0, 11.0]]
+    same_as_a_fresh_warp(mask)
+    target.corners[0][0] = 6.0  # the corners changed in place
+    same_as_a_fresh_warp(mask)
+    target.image = torch.full((1, 5, 5), 2.0)  # a bad image is refused, not served from before
+    with pytest.raises(InputError, match="must lie in"):
+        target_on_camera(target, mask)
+
+
 class TestBadInput:
     def test_unknown_state(self):
         with pytest.raises(InputError, match="names state 'middle', which was not calibrated"):
