@@ -153,6 +153,33 @@ def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own(
         target_on_camera(target, mask)
 
 
+def test_the_kept_lit_pixels_follow_the_maps_and_dim_masks():
+    cal = synthetic_calibration()["near"]
+
+    def as_computed_anew():
+        lit = cal.lit()
+        mapped = torch.stack([torch.isfinite(m).all(-1) for m in cal.prj_xy])
+        if cal.dim is not None:
+            mapped &= ~torch.stack([d.bool() for d in cal.dim])
+        assert torch.equal(lit, mapped.any(0))
+        return lit
+
+    as_computed_anew()[:] = False  # a caller's change of what it was given is not the next caller's
+    as_computed_anew()
+    cal.prj_xy[0][2:5, 3:9] = float("nan")  # a map changed in place
+    cal.prj_xy[1][2:4, 3:6] = float("nan")
+    assert not as_computed_anew()[2:4, 3:6].any()
+    cal.prj_xy[1] = torch.zeros_like(cal.prj_xy[1])  # a map replaced
+    assert as_computed_anew().all()
+    cal.dim = [torch.zeros(15, 20, dtype=torch.bool), torch.ones(15, 20, dtype=torch.bool)]
+    assert not as_computed_anew()[2:5, 3:9].any()
+    cal.dim[0][0, 0] = True  # a dim mask changed in place
+    assert not as_computed_anew()[0, 0]
+    cal.dim = [torch.zeros(15, 20, dtype=torch.bool)]  # one mask for two projectors: refused, not kept
+    with pytest.raises(InputError, match="dim holds 1 masks for 2 projectors"):
+        cal.lit()
+
+
 class TestBadInput:
     def test_unknown_state(self):
         with pytest.raises(InputError, match="names state 'middle', which was not calibrated"):

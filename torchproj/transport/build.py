@@ -251,7 +251,20 @@ class StateCalibration:
         return kept[2]
 
     def lit(self) -> torch.Tensor:
-        """:math:`(H, W)` pixels lit (decoded, not only dimly: :attr:`dim`) by at least one projector."""
+        """:math:`(H, W)` pixels lit (decoded, not only dimly: :attr:`dim`) by at least one projector.
+
+        Kept while the maps and dim masks are the same tensors, unchanged: every target's rows ask
+        for it (a tenth of ``footprint="auto"``'s decision on a small scene of three projectors)."""
+        parts = [*self.prj_xy, *(self.dim or [])]
+        if not all(isinstance(t, torch.Tensor) for t in parts):
+            return self._lit()  # refused there, naming the part
+        kept = self.__dict__.get("_kept_lit")  # (the parts, their versions, lit)
+        if (kept is None or len(kept[0]) != len(parts)
+                or any(a is not b or v != b._version for a, v, b in zip(kept[0], kept[1], parts))):
+            kept = self.__dict__["_kept_lit"] = (parts, [t._version for t in parts], self._lit())
+        return kept[2].clone()
+
+    def _lit(self) -> torch.Tensor:
         mapped = [torch.isfinite(m).all(-1) for m in self.prj_xy]
         if self.dim is not None:
             check(len(self.dim) == len(mapped), f"dim holds {len(self.dim)} masks for {len(mapped)} projectors: give "
