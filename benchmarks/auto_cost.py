@@ -17,6 +17,10 @@ Per scene of the procedural suite (small size, calibrated once), as ``run`` buil
 - ``auto, no screen``: nearest always solved to the end before deciding (both screens off:
   ``SCREEN_ITERATIONS`` set to the pipeline's 300), area then solved as ``auto`` solves it.
 
+Each run starts as a fresh ``torchproj run`` does: new targets, and the states without what an
+earlier run kept on them (each target's warp onto the camera, the lit pixels, the maps' slopes),
+which within one run the decision and the chosen model's build share.
+
 Writes ``results.json`` and ``results.md``: seconds, auto's choice, the decision's share, the ratio
 to area's cost, the solve's objective against area's, whether auto showed area's very patterns,
 each target's PSNR on the rig's captures (in results.json: camera noise moves it), and nearest's
@@ -27,6 +31,7 @@ expected loss per target on the back-projection, after 5, 10 and 20 iterations a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 from pathlib import Path
@@ -80,20 +85,31 @@ def estimates(cal, targets) -> dict[str, list[float]]:
     return out
 
 
+def _fresh(cal, targets: list) -> list:
+    """The targets anew, and the states without what an earlier run kept on them (each target's warp
+    onto the camera, the lit pixels, the maps' slopes): each run starts as a fresh ``torchproj run``
+    does, where the decision and the chosen model's build share them."""
+    for state in cal.states.values():
+        for kept in ("_kept_lit", "_slopes"):
+            state.__dict__.pop(kept, None)
+    return [dataclasses.replace(t) for t in targets]
+
+
 def measure(name: str, repeats: int) -> dict:
     cal = calibrate_virtual(load_scene(name), progress=False)
     targets = scene_targets(cal.rig.scene, None, cal.rig)
-    runs = {"area": lambda: (_solve(cal, targets, "area"), None, 0.0),
-            "auto": lambda: _auto(cal, targets, SCREEN),
-            "auto, iterations": lambda: _auto(cal, targets, SCREEN, back_projection=False),
-            "auto, no screen": lambda: _auto(cal, targets, PIPELINE_ITERATIONS["fista"], back_projection=False)}
+    runs = {"area": lambda ts: (_solve(cal, ts, "area"), None, 0.0),
+            "auto": lambda ts: _auto(cal, ts, SCREEN),
+            "auto, iterations": lambda ts: _auto(cal, ts, SCREEN, back_projection=False),
+            "auto, no screen": lambda ts: _auto(cal, ts, PIPELINE_ITERATIONS["fista"], back_projection=False)}
     times = {label: [] for label in runs}
     decisions = {label: [] for label in runs}
     last = {}
     for _ in range(repeats):
         for label, run in runs.items():  # interleaved: this machine's speed drifts between runs
+            fresh = _fresh(cal, targets)
             t0 = time.perf_counter()
-            last[label] = run()
+            last[label] = run(fresh)
             times[label].append(time.perf_counter() - t0)
             decisions[label].append(last[label][2])
     row = {"scene": name, "nearest_estimates_db": estimates(cal, targets)}
