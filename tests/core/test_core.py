@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchproj.core import (CaptureError, InputError, all_finite, atomic_output, check_finite, check_image, check_shape,
+from torchproj.core import (CaptureError, InputError, atomic_output, check_finite, check_image, check_shape,
                             pixel_grid, read_image, round_to_pixel, write_image)
+from torchproj.core.checks import all_finite
 
 
 class TestCheckShape:

@@ -18,7 +18,7 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "all_finite", "check_shape", "check_finite", "check_image", "check", "check_device"]
+__all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_device"]
 
 
 def check(condition: bool, message: str) -> None:
