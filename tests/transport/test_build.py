@@ -119,7 +119,7 @@ def test_corners_place_the_image():
 
 
 def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own():
-    from torchproj.transport.build import _warp_target
+    from torchproj.transport.build import kept_target_on_camera
 
     gen = torch.Generator().manual_seed(3)
     target = Target("s", torch.rand(3, 9, 12, generator=gen))
@@ -127,8 +127,8 @@ def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own(
     mask[:, :3] = False
 
     def same_as_a_fresh_warp(m):
-        values, covered = target_on_camera(target, m)
-        fresh = _warp_target(Target(target.state, target.image.clone(), target.mask, target.corners), m)
+        values, covered = kept_target_on_camera(target, m)
+        fresh = target_on_camera(Target(target.state, target.image.clone(), target.mask, target.corners), m)
         assert torch.equal(values, fresh[0]) and torch.equal(covered, fresh[1])
         return values, covered
 
@@ -137,7 +137,7 @@ def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own(
     same_as_a_fresh_warp(mask.clone())
     smaller = mask.clone()
     smaller[:4] = False  # another mask of the same shape: the image fitted to another box
-    assert not torch.equal(same_as_a_fresh_warp(smaller)[1], target_on_camera(target, mask)[1])
+    assert not torch.equal(same_as_a_fresh_warp(smaller)[1], kept_target_on_camera(target, mask)[1])
     mask[5:, :] = False  # the mask changed in place
     same_as_a_fresh_warp(mask)
     target.image.mul_(0.5)  # the image changed in place
@@ -150,7 +150,10 @@ def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own(
     same_as_a_fresh_warp(mask)
     target.image = torch.full((1, 5, 5), 2.0)  # a bad image is refused, not served from before
     with pytest.raises(InputError, match="must lie in"):
-        target_on_camera(target, mask)
+        kept_target_on_camera(target, mask)
+    kept = Target("s", torch.rand(1, 5, 5, generator=gen))
+    target_on_camera(kept, mask)  # the public warp keeps nothing: a new image for a built model
+    assert "_on_camera" not in kept.__dict__
 
 
 def test_the_kept_lit_pixels_follow_the_maps_and_dim_masks():

@@ -17,6 +17,7 @@ from ..core.checks import check
 from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
+from ..transport.build import kept_target_on_camera  # the targets' warps, kept by the model's build
 
 __all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "affine_psnr", "evaluate_patterns", "ghost_images",
            "score_image"]
@@ -167,7 +168,7 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     for target in targets:
         lit = states[target.state].lit().cpu()
         regions.append(lit if target.mask is None else lit & target.mask.cpu())
-    on_camera = [target_on_camera(target, region) for target, region in zip(targets, regions)]
+    on_camera = [kept_target_on_camera(target, region) for target, region in zip(targets, regions)]
     cells = _cell_maps(states, targets)
     ghosts = ghost_images(states, targets, on_camera, cells)
     references = _paper_references(calibration, states, targets, on_camera, cells, scale, noise) if paper else None

@@ -315,36 +315,7 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     Returns:
         ``values`` :math:`(C, H, W)` and ``covered`` :math:`(H, W)`: mask pixels the warped image
         reaches.
-
-    The last warp is kept on the target and given again (a copy) while its image (the same tensor,
-    unchanged), its corners and the mask are: ``footprint="auto"`` decides on nearest's rows, then
-    builds the chosen model's rows of the same targets, and each asks for the warp (a quarter to
-    a half of the decision's time on the procedural suite's small scenes).
     """
-    values, covered = _kept_warp(target, mask)
-    if values is None:
-        values, covered = _warp_target(target, mask)
-        target.__dict__["_on_camera"] = (target.image, target.image._version, _corners_key(target), mask.clone(),
-                                         values, covered)
-    return values.clone(), covered.clone()
-
-
-def _corners_key(target: Target) -> tuple | None:
-    return None if target.corners is None else tuple(torch.as_tensor(target.corners).reshape(-1).tolist())
-
-
-def _kept_warp(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-    """The target's kept warp where its image, corners and ``mask`` are those it was made for."""
-    kept = target.__dict__.get("_on_camera")  # (image, its version, corners, mask, values, covered)
-    if (kept is None or kept[0] is not target.image or kept[1] != target.image._version
-            or not isinstance(mask, torch.Tensor) or (kept[3].device, kept[3].dtype, kept[3].shape) != (
-                mask.device, mask.dtype, mask.shape) or kept[2] != _corners_key(target) or not torch.equal(kept[3], mask)):
-        return None, None
-    return kept[4], kept[5]
-
-
-def _warp_target(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`target_on_camera`'s warp, done anew."""
     sizes = check_image(target.image, f"target {target.name!r} image")
     h_img, w_img = sizes["H"], sizes["W"]
     H, W = mask.shape
@@ -363,6 +334,45 @@ def _warp_target(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, torc
     warped = warp_perspective(image, dst_from_src, (H, W), mode="bilinear", align_corners=True)[0]
     covered = mask & (warped[-1] > 0.999)
     return warped[:-1].clamp(0, 1), covered
+
+
+def kept_target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`target_on_camera`, its last warp kept on the target and given again (a copy) while its
+    image (the same tensor, unchanged), its corners and the mask are.
+
+    For the targets a model is built for: ``footprint="auto"`` decides on nearest's rows, then builds
+    the chosen model's rows of the same targets, and the run scores them, and each asks for the warp
+    (with the lit pixels, a third to a half of the decision's time on the procedural suite's small
+    scenes). It holds the warp as long as the target lives (about 11 MB for a grey target of the
+    default camera), so a new image for a built model (:func:`retarget_rhs`: frames of a video)
+    is warped by :func:`target_on_camera`, keeping nothing."""
+    values, covered = _kept_warp(target, mask)
+    if values is None:
+        values, covered = target_on_camera(target, mask)
+        target.__dict__["_on_camera"] = (target.image, target.image._version, _corners_key(target), mask.clone(),
+                                         values, covered)
+    return values.clone(), covered.clone()
+
+
+def _corners_key(target: Target) -> tuple | None:
+    """The corners' values (a list the user may change in place); where they are no numbers, a key
+    equal to none kept, so that :func:`target_on_camera` warps anew and refuses them."""
+    if target.corners is None:
+        return None
+    try:
+        return tuple(torch.as_tensor(target.corners).reshape(-1).tolist())
+    except (TypeError, ValueError, RuntimeError):
+        return (object(),)  # equal to no kept key: warped anew, and refused there
+
+
+def _kept_warp(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The target's kept warp where its image, corners and ``mask`` are those it was made for."""
+    kept = target.__dict__.get("_on_camera")  # (image, its version, corners, mask, values, covered)
+    if (kept is None or kept[0] is not target.image or kept[1] != target.image._version
+            or not isinstance(mask, torch.Tensor) or (kept[3].device, kept[3].dtype, kept[3].shape) != (
+                mask.device, mask.dtype, mask.shape) or kept[2] != _corners_key(target) or not torch.equal(kept[3], mask)):
+        return None, None
+    return kept[4], kept[5]
 
 
 def group_rows(columns: torch.Tensor) -> tuple[torch.Tensor, int]:
@@ -911,7 +921,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         check_shape(mask, f"target {target.name!r} mask", list(lit.shape))
         check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
                                         f"{target.state!r}: no pixel of its mask is lit by any projector")
-        values, covered = target_on_camera(target, mask & lit)
+        values, covered = kept_target_on_camera(target, mask & lit)
         rows = torch.nonzero(covered.reshape(-1))[:, 0]
         cols, vals, ratio = [], [], []
         offset = 0
