@@ -61,8 +61,8 @@ def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None)
         out = torch.empty(matrix.shape[0], x.shape[1], dtype=x.dtype, device=x.device)
     if x.shape[1] == 1 and x.device.type == "cpu" and VECTOR_KERNEL:
         # One column (a grey image, one colour channel's operator): the CPU's sparse matrix-vector
-        # kernel, 1.2-2.6x faster than its matrix-matrix one on the same column (the default rig's
-        # A 11.6 against 15.9 ms, A^T 3.3 against 6.9, Q 7.3 against 11.5; benchmarks/spmv.py),
+        # kernel, 1.2-2.4x faster than its matrix-matrix one on the same column (the default rig's
+        # A 11.6 against 15.4 ms, A^T 5.8 against 10.4, Q 8.8 against 15.7; benchmarks/spmv.py),
         # while 3 columns cost the matrix-matrix kernel about what one does.
         torch.addmv(out[:, 0], matrix, x[:, 0], beta=0, out=out[:, 0])
         return out
