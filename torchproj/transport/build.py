@@ -96,6 +96,16 @@ _SHARE_OUTSIDE = WIDE_SHARE
 _SHARE_REACH = 0.05
 
 
+def _stamp(tensors: list[torch.Tensor]) -> list[tuple[torch.Tensor, int]]:
+    """Each tensor with its version: what a result computed from them is kept against."""
+    return [(t, t._version) for t in tensors]
+
+
+def _unchanged(stamped: list[tuple[torch.Tensor, int]], tensors: list) -> bool:
+    """Whether ``tensors`` are the very tensors :func:`_stamp` stamped, none changed in place since."""
+    return len(stamped) == len(tensors) and all(a is b and v == b._version for (a, v), b in zip(stamped, tensors))
+
+
 @dataclass
 class StateCalibration:
     """What calibration recovered for one scene state, per projector.
@@ -244,11 +254,11 @@ class StateCalibration:
         """:func:`map_slope` of projector ``j``'s map, kept while the map is unchanged: a state's
         targets each ask for it."""
         xy = self.prj_xy[j]
-        cache = self.__dict__.setdefault("_slopes", {})  # projector -> (its map, the map's version, slope)
+        cache = self.__dict__.setdefault("_slopes", {})  # projector -> (its map, stamped; slope)
         kept = cache.get(j)
-        if kept is None or kept[0] is not xy or kept[1] != xy._version:
-            cache[j] = kept = (xy, xy._version, map_slope(xy))
-        return kept[2]
+        if kept is None or not _unchanged(kept[0], [xy]):
+            cache[j] = kept = (_stamp([xy]), map_slope(xy))
+        return kept[1]
 
     def lit(self) -> torch.Tensor:
         """:math:`(H, W)` pixels lit (decoded, not only dimly: :attr:`dim`) by at least one projector.
@@ -258,11 +268,10 @@ class StateCalibration:
         parts = [*self.prj_xy, *(self.dim or [])]
         if not all(isinstance(t, torch.Tensor) for t in parts):
             return self._lit()  # refused there, naming the part
-        kept = self.__dict__.get("_kept_lit")  # (the parts, their versions, lit)
-        if (kept is None or len(kept[0]) != len(parts)
-                or any(a is not b or v != b._version for a, v, b in zip(kept[0], kept[1], parts))):
-            kept = self.__dict__["_kept_lit"] = (parts, [t._version for t in parts], self._lit())
-        return kept[2].clone()
+        kept = self.__dict__.get("_kept_lit")  # (the parts, stamped; lit)
+        if kept is None or not _unchanged(kept[0], parts):
+            kept = self.__dict__["_kept_lit"] = (_stamp(parts), self._lit())
+        return kept[1].clone()
 
     def _lit(self) -> torch.Tensor:
         mapped = [torch.isfinite(m).all(-1) for m in self.prj_xy]
@@ -349,8 +358,7 @@ def kept_target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Ten
     values, covered = _kept_warp(target, mask)
     if values is None:
         values, covered = target_on_camera(target, mask)
-        target.__dict__["_on_camera"] = (target.image, target.image._version, _corners_key(target), mask.clone(),
-                                         values, covered)
+        target.__dict__["_on_camera"] = (_stamp([target.image]), _corners_key(target), mask.clone(), values, covered)
     return values.clone(), covered.clone()
 
 
@@ -367,12 +375,12 @@ def _corners_key(target: Target) -> tuple | None:
 
 def _kept_warp(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
     """The target's kept warp where its image, corners and ``mask`` are those it was made for."""
-    kept = target.__dict__.get("_on_camera")  # (image, its version, corners, mask, values, covered)
-    if (kept is None or kept[0] is not target.image or kept[1] != target.image._version
-            or not isinstance(mask, torch.Tensor) or (kept[3].device, kept[3].dtype, kept[3].shape) != (
-                mask.device, mask.dtype, mask.shape) or kept[2] != _corners_key(target) or not torch.equal(kept[3], mask)):
+    kept = target.__dict__.get("_on_camera")  # (the image, stamped; corners, mask, values, covered)
+    if (kept is None or not _unchanged(kept[0], [target.image]) or not isinstance(mask, torch.Tensor)
+            or (kept[2].device, kept[2].dtype, kept[2].shape) != (mask.device, mask.dtype, mask.shape)
+            or kept[1] != _corners_key(target) or not torch.equal(kept[2], mask)):
         return None, None
-    return kept[4], kept[5]
+    return kept[3], kept[4]
 
 
 def group_rows(columns: torch.Tensor) -> tuple[torch.Tensor, int]:
