@@ -86,12 +86,10 @@ def estimates(cal, targets) -> dict[str, list[float]]:
 
 
 def _fresh(cal, targets: list) -> list:
-    """The targets anew, and the states without what an earlier run kept on them (each target's warp
-    onto the camera, the lit pixels, the maps' slopes): each run starts as a fresh ``torchproj run``
-    does, where the decision and the chosen model's build share them."""
-    for state in cal.states.values():
-        for kept in ("_kept_lit", "_slopes"):
-            state.__dict__.pop(kept, None)
+    """The targets and states anew (the same tensors, none of what an earlier run kept on them: each
+    target's warp onto the camera, the lit pixels, the maps' slopes): each run starts as a fresh
+    ``torchproj run`` does, where the decision and the chosen model's build share them."""
+    cal.states = {name: dataclasses.replace(state) for name, state in cal.states.items()}
     return [dataclasses.replace(t) for t in targets]
 
 
