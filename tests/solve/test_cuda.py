@@ -78,7 +78,7 @@ def test_model_forward_and_backward_run_on_the_gpu_without_host_copies():
     cpu_loss = (losses[0](cpu()) + (cpu() - cpu.targets).pow(2).mean()).sum()
     cpu_loss.backward()
     assert gpu.patterns.grad.device.type == "cuda"
-    assert float(gpu_loss) == pytest.approx(float(cpu_loss), rel=1e-5)
+    assert gpu_loss.item() == pytest.approx(cpu_loss.item(), rel=1e-5)
     torch.testing.assert_close(gpu.patterns.grad.cpu(), cpu.patterns.grad, rtol=1e-4, atol=1e-6)
 
 
