@@ -7,7 +7,10 @@ On the default scene (the paper's rig, full size unless ``--scale``): the calibr
 as frames of a video would differ), each set's right-hand side from ``retarget_rhs`` (no second
 build), and FISTA with the pipeline's limit (300 iterations, its default tolerance) on one set and
 on all of them side by side (``solve_target_sets``). Median of 3 runs each, the normal equations
-built beforehand (shared by every set). With ``--device cuda`` the calibration, the operator and the
+built beforehand (shared by every set). One iteration's two parts are timed alone: the product of ``Q``
+and the element-wise pass (eager, as the solver runs it; on the CPU also the same pass written as one
+expression that ``torch.compile`` fuses into one loop, and the floor of that loop: the seven blocks it
+reads and writes at this machine's copy bandwidth). With ``--device cuda`` the calibration, the operator and the
 solves run on the GPU (that is the throughput a GPU multiplies). Writes ``results.json`` and ``results.md``.
 """
 
@@ -20,7 +23,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import machine, write_results
+from common import bandwidth_gb_s, machine, write_results
 
 from torchproj.pipeline import default_images, scene_targets
 from torchproj.pipeline.cache import cached_calibration
@@ -28,6 +31,7 @@ from torchproj.scene import load_scene
 from torchproj.solve import solve_fista, solve_target_sets
 from torchproj.solve.solvers import _Sweep  # one iteration's element-wise pass, timed alone
 from torchproj.transport import build_transport, retarget_rhs
+from torchproj.transport.operator import SUM_RUN
 
 
 def timed(fn, repeats: int = 3) -> float:
@@ -41,10 +45,28 @@ def timed(fn, repeats: int = 3) -> float:
     return statistics.median(times)
 
 
-def iteration_parts(op) -> dict:
+def _pass_as_one_loop(z, qz, z_prev, qz_prev, two_q, hi, weight: float, step: float, half_step: float, out, runs):
+    """``_Sweep``'s pass (the objective by runs, the extrapolation, the step, the clamp to ``[0, hi]``)
+    as one expression, for ``torch.compile`` to fuse into one loop: what a fused kernel would take.
+    Writes ``out`` and ``runs``; returns the partial run's sum."""
+    w = (qz - two_q) * z
+    flat = w.reshape(-1)
+    n = runs.numel() * SUM_RUN
+    runs.copy_(flat[:n].view(-1, SUM_RUN).sum(1))
+    y = z_prev + weight * (z - z_prev)
+    q_y = qz_prev + weight * (qz - qz_prev)
+    stepped = (y - step * q_y + half_step * two_q).clamp_min(0.0)
+    out.copy_(torch.minimum(stepped, hi) if torch.is_tensor(hi) else stepped.clamp_max(hi))
+    return flat[n:].double().sum()
+
+
+def iteration_parts(op, bandwidth: float | None) -> dict:
     """One FISTA iteration's two parts on ``op``'s normal equations, scaled as the solver scales them
-    (ms): the product of ``Q`` and the element-wise pass (objective, extrapolation, step, clamp),
-    and the megabytes that pass reads and writes (six blocks of the patterns' size)."""
+    (ms): the product of ``Q`` and the element-wise pass (objective, extrapolation, step, clamp), and
+    the megabytes that pass reads and writes (six blocks of the patterns' size). Given the machine's
+    ``bandwidth`` (GB/s, a CPU's), also the pass fused into one loop by ``torch.compile``, its largest
+    difference from the eager pass's step, and its floor: the blocks it reads (five, and the upper
+    bound where it is a block) and the one it writes, at that bandwidth."""
     ne = op.normal_equations("auto").jacobi()
     sweep = _Sweep(ne, 1.0 / ne.lipschitz(), 0.0, 1.0)
     gen = torch.Generator(device=ne.q.device).manual_seed(0)
@@ -52,8 +74,25 @@ def iteration_parts(op) -> dict:
     qz, q_previous, out = sweep.block(ne.product(z[0])), sweep.block(ne.product(previous[0])), sweep.block()
     product = timed(lambda: ne.product(z[0], qz[0]), repeats=15)
     step = timed(lambda: sweep(z, qz, previous, q_previous, 1.3, out), repeats=15)
-    return {"product": round(product * 1e3, 2), "pass": round(step * 1e3, 2),
-            "megabytes": 6 * ne.q.numel() * ne.q.element_size() / 1e6}
+    block_mb = ne.q.numel() * ne.q.element_size() / 1e6
+    parts = {"product": round(product * 1e3, 2), "pass": round(step * 1e3, 2), "megabytes": 6 * block_mb}
+    if bandwidth is None:
+        return parts
+    hi = ne.bound(1.0)
+    fused_out, runs = torch.empty_like(ne.q), torch.empty(ne.q.numel() // SUM_RUN, dtype=ne.q.dtype)
+    args = (z[0], qz[0], previous[0], q_previous[0], ne.two_q, hi, 1.3, sweep.step, sweep.half_step, fused_out, runs)
+    try:
+        fused = torch.compile(_pass_as_one_loop, dynamic=True, fullgraph=True)
+        t0 = time.perf_counter()
+        fused(*args)
+        compile_s = time.perf_counter() - t0
+    except Exception as exc:  # noqa: BLE001 - no compiler here: the eager figures stand alone
+        return {**parts, "fused_error": f"{type(exc).__name__}: {str(exc)[:200]}"}
+    blocks = 6 + torch.is_tensor(hi)
+    parts.update(fused=round(timed(lambda: fused(*args), repeats=15) * 1e3, 2), fused_compile_s=round(compile_s, 1),
+                 fused_floor=round(blocks * block_mb / 1e3 / bandwidth * 1e3, 2), fused_blocks=blocks,
+                 fused_max_difference=float((fused_out - out[0]).abs().max()))
+    return parts
 
 
 def main() -> None:
@@ -78,11 +117,13 @@ def main() -> None:
     many = timed(lambda: solve_target_sets(op, rhs, progress=False))
     _, joint = solve_target_sets(op, rhs, progress=False)
     single = solve_fista(op.with_rhs(rhs[0]), progress=False)
-    parts = {"one set": iteration_parts(op.with_rhs(rhs[0])), "all sets": iteration_parts(op.with_rhs(torch.cat(rhs, 1)))}
+    bandwidth = bandwidth_gb_s() if args.device == "cpu" else None
+    parts = {"one set": iteration_parts(op.with_rhs(rhs[0]), bandwidth),
+             "all sets": iteration_parts(op.with_rhs(torch.cat(rhs, 1)), bandwidth)}
     result = {"machine": machine(), "device": args.device, "scale": args.scale or 1.0, "sets": args.sets, "variables": op.shape[1],
               "rows": op.shape[0], "one_set_s": round(one, 3), "all_sets_s": round(many, 3),
               "ratio": round(many / one, 2), "one_set_iterations": single.iterations,
-              "all_sets_iterations": joint.iterations, "iteration_ms": parts}
+              "all_sets_iterations": joint.iterations, "iteration_ms": parts, "bandwidth_gb_s": bandwidth}
     md = (f"# Target sets solved side by side ({result['machine']}, {args.device})\n\n"
           f"Command: `python benchmarks/batch_solves.py --device {args.device}`. "
           f"The paper's rig at scale {result['scale']:g}: {op.shape[1]:,} variables, {op.shape[0]:,} rows; FISTA, "
@@ -91,9 +132,25 @@ def main() -> None:
           f"{args.sets} sets take {many / one:.2f}x the time of one.\n\n"
           "One iteration's parts (ms, median of 15): " + "; ".join(
               f"{k}: the product of `Q` {v['product']:.1f}, the element-wise pass {v['pass']:.1f} over "
-              f"{v['megabytes']:.0f} MB" for k, v in parts.items()) + "\n")
+              f"{v['megabytes']:.0f} MB" for k, v in parts.items()) + "\n" + _fused_lines(parts, bandwidth))
     write_results(args.out, result, md)
     print(md)
+
+
+def _fused_lines(parts: dict, bandwidth: float | None) -> str:
+    one, many = parts["one set"], parts["all sets"]
+    if "fused" not in one or "fused" not in many:
+        return ""
+    per_iteration = {"eager": (many["product"] + many["pass"]) / (one["product"] + one["pass"]),
+                     "fused": (many["product"] + many["fused"]) / (one["product"] + one["fused"]),
+                     "at the fused floor": (many["product"] + many["fused_floor"]) / (one["product"] + one["pass"])}
+    return ("\nThe element-wise pass fused into one loop (`torch.compile`, the same arithmetic; largest difference "
+            f"from the eager step {max(one['fused_max_difference'], many['fused_max_difference']):.1e}): one set "
+            f"{one['fused']:.1f} ms, all sets {many['fused']:.1f} ms; that loop's floor, its {many['fused_blocks']} blocks at "
+            f"{bandwidth:.1f} GB/s (a 512 MB copy), {one['fused_floor']:.1f} and {many['fused_floor']:.1f} ms. "
+            f"Compiling took {one['fused_compile_s']:.1f} s. One iteration of all sets over one set's: "
+            + ", ".join(f"{k} {v:.2f}x" for k, v in per_iteration.items())
+            + " (the last with one set's eager pass).\n")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ from torchproj.core import write_json
 from torchproj.core.sparse import csr_tensor
 from torchproj.transport import TransportOperator
 
-__all__ = ["machine", "median_time", "nonzero_rows", "row_sums", "run_operators", "with_matrix", "write_results"]
+__all__ = ["bandwidth_gb_s", "machine", "median_time", "nonzero_rows", "row_sums", "run_operators", "with_matrix", "write_results"]
 
 
 def median_time(fn, *args, repeats: int = 5) -> float:
@@ -28,6 +28,15 @@ def median_time(fn, *args, repeats: int = 5) -> float:
 def _median(timer: Timer, repeats: int) -> float:
     times = sorted(timer.timeit(1).median for _ in range(repeats))
     return times[len(times) // 2] if repeats % 2 else 0.5 * (times[repeats // 2 - 1] + times[repeats // 2])
+
+
+def bandwidth_gb_s() -> float:
+    """Bytes read plus written per second by a copy of a 512 MB tensor: the yardstick of a pass's
+    floor (what its bytes cost at this machine's memory bandwidth)."""
+    source = torch.rand(128 * 1024 * 1024)
+    target = torch.empty_like(source)
+    seconds = median_time(target.copy_, source)
+    return 2 * source.numel() * 4 / seconds / 1e9
 
 
 def machine() -> str:

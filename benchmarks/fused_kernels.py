@@ -26,20 +26,12 @@ import time
 from pathlib import Path
 
 import torch
-from common import machine, median_time, write_results
+from common import bandwidth_gb_s, machine, median_time, write_results
 
 from torchproj.scene import load_scene
 from torchproj.sim.camera import _sensor, apply_camera
 
 IMAGES = 44
-
-
-def bandwidth_gb_s() -> float:
-    """Bytes read plus written per second by a copy of a 512 MB tensor (the floor's yardstick)."""
-    source = torch.rand(128 * 1024 * 1024)
-    target = torch.empty_like(source)
-    seconds = median_time(target.copy_, source)
-    return 2 * source.numel() * 4 / seconds / 1e9
 
 
 def camera_model(log=print) -> dict:
