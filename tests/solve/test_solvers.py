@@ -12,6 +12,8 @@ from scipy.sparse import csr_matrix, diags
 
 from torchproj.calib import ResponseCurve
 from torchproj.core import InputError
+from torchproj.core import fused as fused_module
+from torchproj.core.fused import COMPILE_ENV
 from torchproj.solve import (ClampedAdam, compensate, solve_adam, solve_fista, solve_lf, solve_patterns, solve_pgd,
                              to_projectable)
 from torchproj.solve import solvers
@@ -115,21 +117,45 @@ def textbook_iteration(A, b, constant, L, bounds, iterations, accelerate):
     return history, restarts
 
 
-@pytest.mark.parametrize("chunk", [None, SUM_RUN])
+# The compiled pass (TORCHPROJ_COMPILE=1) compiles for seconds on first use: with the slow tests.
+ONE_LOOP = pytest.param("one loop", marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize("chunk", [None, SUM_RUN, ONE_LOOP])
 @pytest.mark.parametrize("bounds", [(0.0, 1.0), (-100 / 255, 1.0)])
 @pytest.mark.parametrize("solver", [solve_pgd, solve_fista])
 def test_iterates_are_the_textbook_ones(tied_problem, monkeypatch, solver, bounds, chunk):
     """The fused, chunked iteration (speculative step, restarts) is the plain algorithm. With
     ``chunk`` the tied problem's 6471 entries per block run through seven chunks, the last one
-    with a partial summation run."""
+    with a partial summation run; with ``"one loop"`` the pass is compiled into one loop over whole
+    blocks (``TORCHPROJ_COMPILE=1``), a number or a block for the lower bound."""
     op, A, b = tied_problem
-    if chunk is not None:
+    if chunk == "one loop":
+        monkeypatch.setenv(COMPILE_ENV, "1")
+        if not solvers._pass_in_one_loop.active():
+            pytest.skip("torch.compile gave up earlier in this process (no C++ compiler?)")
+    elif chunk is not None:
         monkeypatch.setattr(solvers, "_CHUNK", chunk)
     res = solver(op, bounds, max_iter=150, tol=0, levels=0)
     ref, restarts = textbook_iteration(A, b, float(op.constant.sum()), op.normal_equations().jacobi().lipschitz(),
                                        bounds, 150, accelerate=solver is solve_fista)
     assert restarts > 0 or solver is solve_pgd  # FISTA's comparison covers restarts
     np.testing.assert_allclose([f for _, f in res.history], ref, rtol=1e-10)
+
+
+def test_where_the_pass_cannot_compile_it_warns_once_and_solves_as_eagerly(tied_problem, monkeypatch):
+    """``TORCHPROJ_COMPILE=1`` without a compiler: one warning, then the chunked eager pass, the
+    same iterates as with compiling off."""
+    op, _, _ = tied_problem
+    plain = solve_fista(op, max_iter=60, tol=0)
+    monkeypatch.setenv(COMPILE_ENV, "1")
+    monkeypatch.setattr(fused_module.shutil, "which", lambda name: None)
+    monkeypatch.setattr(solvers, "_pass_in_one_loop", fused_module.fused(solvers._pass_in_one_loop.eager))
+    with pytest.warns(UserWarning, match="no C.. compiler found for torch.compile: _pass_in_one_loop runs unfused") as seen:
+        res = solve_fista(op, max_iter=60, tol=0)
+    assert len([w for w in seen if "compiler" in str(w.message)]) == 1
+    np.testing.assert_allclose([f for _, f in res.history], [f for _, f in plain.history], rtol=1e-12)
+    torch.testing.assert_close(res.patterns, plain.patterns, rtol=0, atol=1e-12)
 
 
 def test_history_runs_through_the_levels_and_never_rises(tied_problem):

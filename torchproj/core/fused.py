@@ -10,6 +10,10 @@ camera model goes from 0.68 to 0.59 s, and importing and compiling costs each pr
 saves in a ``torchproj run`` (49-51 s against 42-46 s wall, inductor's cache warm; 55 s cold).
 ``TORCHPROJ_COMPILE=1`` turns it on (long simulations of many captures in one process); where no C++
 compiler exists, or compiling fails, the chain runs eagerly after one warning.
+
+The same switch compiles FISTA's element-wise pass (:mod:`torchproj.solve.solvers`) into one loop over
+whole blocks, for batches of target sets whose blocks do not fit in the cache
+(``python benchmarks/batch_solves.py`` measures it against the eager pass, in turn).
 """
 
 from __future__ import annotations
@@ -37,11 +41,13 @@ def _compiler() -> bool:
 
 
 def fused(fn):
-    """``fn`` (tensors and numbers in, one tensor out, element-wise), compiled on its first call when
-    :func:`compile_enabled`, else ``fn`` itself.
+    """``fn`` (tensors and numbers in, one tensor out, element-wise; it may also write into tensors it
+    is given), compiled on its first call when :func:`compile_enabled`, else ``fn`` itself.
 
     Where compiling is asked for but impossible (no compiler, a platform inductor does not support),
-    it warns once and runs ``fn`` eagerly from then on; results are the same either way.
+    it warns once and runs ``fn`` eagerly from then on; results are the same either way. The
+    wrapper's ``active()`` says whether its calls run compiled (asked for, and not given up), for a
+    caller whose own eager path is faster than ``fn`` run eagerly.
     """
     state = {"compiled": None, "failed": False}
 
@@ -66,4 +72,5 @@ def fused(fn):
             return fn(*args)
 
     call.eager = fn
+    call.active = lambda: compile_enabled() and not state["failed"]
     return call
