@@ -6,18 +6,22 @@ On the default scene (the paper's rig, full size unless ``--scale``): the calibr
 (rows on camera pixels), ``--sets`` sets of two target images (scikit-image's test images in turn,
 as frames of a video would differ), each set's right-hand side from ``retarget_rhs`` (no second
 build), and FISTA with the pipeline's limit (300 iterations, its default tolerance) on one set and
-on all of them side by side (``solve_target_sets``). Median of 3 runs each, in turn after a first, the normal equations
-built beforehand (shared by every set). One iteration's two parts are timed alone: the product of ``Q``
-and the element-wise pass (eager, as the solver runs it; on the CPU also the same pass written as one
-expression that ``torch.compile`` fuses into one loop, and the floor of that loop: the seven blocks it
-reads and writes at the rate a copy of one block moves them), each part timed in turn with the others. With ``--device cuda`` the calibration, the operator and the
-solves run on the GPU (that is the throughput a GPU multiplies). Writes ``results.json`` and ``results.md``.
+on all of them side by side (``solve_target_sets``). Median of 3 runs each, in turn after a first,
+the normal equations built beforehand (shared by every set); on the CPU the same solves with
+``TORCHPROJ_COMPILE=1`` in turn with them (FISTA's element-wise pass compiled into one loop), and
+the first compiled calls' time. One iteration's two parts are timed alone: the product of ``Q`` and
+the element-wise pass (eager; on the CPU also compiled, and the floor of that loop: the seven blocks
+it reads and writes at the rate a copy of one block moves them), each part timed in turn with the
+others. With ``--device cuda`` the calibration, the operator and the solves run on the GPU (that is
+the throughput a GPU multiplies). Writes ``results.json`` and ``results.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import os
 import statistics
 import time
 from pathlib import Path
@@ -25,28 +29,36 @@ from pathlib import Path
 import torch
 from common import machine, write_results
 
+from torchproj.core.fused import COMPILE_ENV
 from torchproj.pipeline import default_images, scene_targets
 from torchproj.pipeline.cache import cached_calibration
 from torchproj.scene import load_scene
 from torchproj.solve import solve_fista, solve_target_sets
-from torchproj.solve.solvers import _Sweep  # one iteration's element-wise pass, timed alone
+from torchproj.solve.solvers import (
+    _Sweep,  # one iteration's element-wise pass, timed alone
+)
 from torchproj.transport import build_transport, retarget_rhs
-from torchproj.transport.operator import SUM_RUN
 
 
-def _pass_as_one_loop(z, qz, z_prev, qz_prev, two_q, hi, weight: float, step: float, half_step: float, out, runs):
-    """``_Sweep``'s pass (the objective by runs, the extrapolation, the step, the clamp to ``[0, hi]``)
-    as one expression, for ``torch.compile`` to fuse into one loop: what a fused kernel would take.
-    Writes ``out`` and ``runs``; returns the partial run's sum."""
-    w = (qz - two_q) * z
-    flat = w.reshape(-1)
-    n = runs.numel() * SUM_RUN
-    runs.copy_(flat[:n].view(-1, SUM_RUN).sum(1))
-    y = z_prev + weight * (z - z_prev)
-    q_y = qz_prev + weight * (qz - qz_prev)
-    stepped = (y - step * q_y + half_step * two_q).clamp_min(0.0)
-    out.copy_(torch.minimum(stepped, hi) if torch.is_tensor(hi) else stepped.clamp_max(hi))
-    return flat[n:].double().sum()
+@contextlib.contextmanager
+def _compiling(on: bool):
+    """``TORCHPROJ_COMPILE`` set to ``on`` within the block (the solver reads it at each solve)."""
+    before = os.environ.get(COMPILE_ENV)
+    os.environ[COMPILE_ENV] = "1" if on else "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(COMPILE_ENV)
+        else:
+            os.environ[COMPILE_ENV] = before
+
+
+def _with(on: bool, fn):
+    def run():
+        with _compiling(on):
+            return fn()
+    return run
 
 
 def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
@@ -70,9 +82,10 @@ def iteration_parts(op, fuse: bool) -> dict:
     """One FISTA iteration's two parts on ``op``'s normal equations, scaled as the solver scales them
     (ms, interleaved): the product of ``Q`` and the element-wise pass (objective, extrapolation, step,
     clamp), and the megabytes that pass reads and writes (six blocks of the patterns' size). With
-    ``fuse`` (a CPU's), also the pass fused into one loop by ``torch.compile``, its largest difference
-    from the eager pass's step, and its floor: the blocks it reads (five, and the upper bound where it
-    is a block) and the one it writes, each at the time a copy of one block takes per block moved."""
+    ``fuse`` (a CPU's), also the pass as ``TORCHPROJ_COMPILE=1`` runs it (one compiled loop over
+    whole blocks), its largest difference from the eager pass's step, and its floor: the blocks it
+    reads (five, and the upper bound where it is a block) and the one it writes, each at the time a
+    copy of one block takes per block moved."""
     ne = op.normal_equations("auto").jacobi()
     sweep = _Sweep(ne, 1.0 / ne.lipschitz(), 0.0, 1.0)
     gen = torch.Generator(device=ne.q.device).manual_seed(0)
@@ -80,27 +93,25 @@ def iteration_parts(op, fuse: bool) -> dict:
     qz, q_previous, out = sweep.block(ne.product(z[0])), sweep.block(ne.product(previous[0])), sweep.block()
     runs = {"product": lambda: ne.product(z[0], qz[0]), "pass": lambda: sweep(z, qz, previous, q_previous, 1.3, out)}
     block_mb = ne.q.numel() * ne.q.element_size() / 1e6
-    extra = {}
+    parts = {"megabytes": 6 * block_mb}
     if fuse:
-        hi = ne.bound(1.0)
-        fused_out, sums = torch.empty_like(ne.q), torch.empty(ne.q.numel() // SUM_RUN, dtype=ne.q.dtype)
-        args = (z[0], qz[0], previous[0], q_previous[0], ne.two_q, hi, 1.3, sweep.step, sweep.half_step, fused_out, sums)
-        try:
-            fused = torch.compile(_pass_as_one_loop, dynamic=True, fullgraph=True)
+        with _compiling(True):
+            one_loop = _Sweep(ne, sweep.step, 0.0, 1.0)
+        if one_loop.one_loop:
+            fused_out = one_loop.block()
             t0 = time.perf_counter()
-            fused(*args)
-            extra["fused_compile_s"] = round(time.perf_counter() - t0, 1)
+            _with(True, lambda: one_loop(z, qz, previous, q_previous, 1.3, fused_out))()
+            parts["fused_first_call_s"] = round(time.perf_counter() - t0, 1)
             copy = torch.empty_like(ne.q)
-            runs.update(fused=lambda: fused(*args), copy=lambda: copy.copy_(qz[0]))
-        except Exception as exc:  # noqa: BLE001 - no compiler here: the eager figures stand alone
-            extra["fused_error"] = f"{type(exc).__name__}: {str(exc)[:200]}"
+            runs.update(fused=_with(True, lambda: one_loop(z, qz, previous, q_previous, 1.3, fused_out)),
+                        copy=lambda: copy.copy_(qz[0]))
     ms = {k: round(v * 1e3, 2) for k, v in _interleaved(runs, 15).items()}
-    parts = {"product": ms["product"], "pass": ms["pass"], "megabytes": 6 * block_mb, **extra}
+    parts.update(product=ms["product"], **{"pass": ms["pass"]})
     if "fused" in ms:
-        blocks = 6 + torch.is_tensor(hi)
+        blocks = 6 + torch.is_tensor(ne.bound(1.0))
         parts.update(fused=ms["fused"], fused_blocks=blocks, fused_floor=round(blocks * ms["copy"] / 2, 2),
                      bandwidth_gb_s=round(2 * block_mb / ms["copy"], 1),
-                     fused_max_difference=float((fused_out - out[0]).abs().max()))
+                     fused_max_difference=float((fused_out[0] - out[0]).abs().max()))
     return parts
 
 
@@ -122,29 +133,50 @@ def main() -> None:
             for k in range(args.sets)]
     rhs = [retarget_rhs(op, cal.states, s) for s in sets]
     op.normal_equations("auto")  # built once, shared by every set
-    solves = _interleaved({"one": lambda: solve_fista(op.with_rhs(rhs[0]), progress=False),
-                           "many": lambda: solve_target_sets(op, rhs, progress=False)}, 3)
-    one, many = solves["one"], solves["many"]
-    _, joint = solve_target_sets(op, rhs, progress=False)
-    single = solve_fista(op.with_rhs(rhs[0]), progress=False)
     fuse = args.device == "cpu"
+    first_compiled = None
+    if fuse:  # the compiled pass's first calls in this process (compiling, or reading inductor's cache)
+        t0 = time.perf_counter()
+        _with(True, lambda: (solve_fista(op.with_rhs(rhs[0]), progress=False), solve_target_sets(op, rhs, progress=False)))()
+        first_compiled = time.perf_counter() - t0
+    modes = (False, True) if fuse else (False,)
+    solves = _interleaved({(k, on): _with(on, fn) for on in modes for k, fn in (
+        ("one", lambda: solve_fista(op.with_rhs(rhs[0]), progress=False)),
+        ("many", lambda: solve_target_sets(op, rhs, progress=False)))}, 3)
+    one, many = solves[("one", False)], solves[("many", False)]
+    with _compiling(False):
+        _, joint = solve_target_sets(op, rhs, progress=False)
+        single = solve_fista(op.with_rhs(rhs[0]), progress=False)
     parts = {"one set": iteration_parts(op.with_rhs(rhs[0]), fuse),
              "all sets": iteration_parts(op.with_rhs(torch.cat(rhs, 1)), fuse)}
     result = {"machine": machine(), "device": args.device, "scale": args.scale or 1.0, "sets": args.sets, "variables": op.shape[1],
               "rows": op.shape[0], "one_set_s": round(one, 3), "all_sets_s": round(many, 3),
               "ratio": round(many / one, 2), "one_set_iterations": single.iterations,
               "all_sets_iterations": joint.iterations, "iteration_ms": parts}
+    if fuse:
+        result.update(compiled_one_set_s=round(solves[("one", True)], 3), compiled_all_sets_s=round(solves[("many", True)], 3),
+                      compiled_ratio=round(solves[("many", True)] / solves[("one", True)], 2),
+                      compiled_first_calls_s=round(first_compiled, 1))
     md = (f"# Target sets solved side by side ({result['machine']}, {args.device})\n\n"
           f"Command: `python benchmarks/batch_solves.py --device {args.device}`. "
           f"The paper's rig at scale {result['scale']:g}: {op.shape[1]:,} variables, {op.shape[0]:,} rows; FISTA, "
           "300 iterations at most, median of 3 in turn after a first.\n\n| sets | seconds | iterations |\n|---|---|---|\n"
           f"| 1 | {one:.2f} | {single.iterations} |\n| {args.sets} side by side | {many:.2f} | {joint.iterations} |\n\n"
-          f"{args.sets} sets take {many / one:.2f}x the time of one.\n\n"
+          f"{args.sets} sets take {many / one:.2f}x the time of one.\n\n" + _compiled_lines(result) +
           "One iteration's parts (ms, median of 15): " + "; ".join(
               f"{k}: the product of `Q` {v['product']:.1f}, the element-wise pass {v['pass']:.1f} over "
               f"{v['megabytes']:.0f} MB" for k, v in parts.items()) + "\n" + _fused_lines(parts))
     write_results(args.out, result, md)
     print(md)
+
+
+def _compiled_lines(result: dict) -> str:
+    if "compiled_ratio" not in result:
+        return ""
+    return (f"With `TORCHPROJ_COMPILE=1` (the element-wise pass compiled into one loop; the same runs, in turn with "
+            f"the above): one set {result['compiled_one_set_s']:.2f} s, {result['sets']} sets "
+            f"{result['compiled_all_sets_s']:.2f} s, {result['compiled_ratio']:.2f}x; the first calls of both in this "
+            f"process took {result['compiled_first_calls_s']:.1f} s (compiling, or reading inductor's cache).\n\n")
 
 
 def _fused_lines(parts: dict) -> str:
@@ -154,12 +186,12 @@ def _fused_lines(parts: dict) -> str:
     per_iteration = {"eager": (many["product"] + many["pass"]) / (one["product"] + one["pass"]),
                      "fused": (many["product"] + many["fused"]) / (one["product"] + one["fused"]),
                      "at the fused floor": (many["product"] + many["fused_floor"]) / (one["product"] + one["pass"])}
-    return ("\nThe element-wise pass fused into one loop (`torch.compile`, the same arithmetic; largest difference "
+    return ("\nThe element-wise pass as `TORCHPROJ_COMPILE=1` runs it, one compiled loop (largest difference "
             f"from the eager step {max(one['fused_max_difference'], many['fused_max_difference']):.1e}): one set "
             f"{one['fused']:.1f} ms, all sets {many['fused']:.1f} ms; that loop's floor, its {many['fused_blocks']} blocks at "
             f"what a copy of one block moves ({one['bandwidth_gb_s']:.1f} and {many['bandwidth_gb_s']:.1f} GB/s), "
             f"{one['fused_floor']:.1f} and {many['fused_floor']:.1f} ms. "
-            f"Compiling took {one['fused_compile_s']:.1f} s. One iteration of all sets over one set's: "
+            "One iteration of all sets over one set's: "
             + ", ".join(f"{k} {v:.2f}x" for k, v in per_iteration.items())
             + " (the last with one set's eager pass).\n")
 
