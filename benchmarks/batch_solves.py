@@ -13,7 +13,8 @@ the first compiled calls' time. One iteration's two parts are timed alone: the p
 the element-wise pass (eager; on the CPU also compiled, and the floor of that loop: the seven blocks
 it reads and writes at the rate a copy of one block moves them), each part timed in turn with the
 others. With ``--device cuda`` the calibration, the operator and the solves run on the GPU (that is
-the throughput a GPU multiplies). Writes ``results.json`` and ``results.md``.
+the throughput a GPU multiplies). Writes ``results.json``, ``results.md`` and ``chart.png`` (one
+iteration's parts, one set against all).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import json
 import os
 import statistics
 import time
@@ -28,6 +30,7 @@ from pathlib import Path
 
 import torch
 from common import machine, write_results
+from matplotlib.figure import Figure
 
 from torchproj.core.fused import COMPILE_ENV
 from torchproj.pipeline import default_images, scene_targets
@@ -121,7 +124,12 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=None)
     ap.add_argument("--sets", type=int, default=16)
     ap.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    ap.add_argument("--chart-from", type=Path, default=None,
+                    help="only draw chart.png beside this results.json (a run's figures, not measured again)")
     args = ap.parse_args()
+    if args.chart_from is not None:
+        chart(args.chart_from.parent / "chart.png", json.loads(args.chart_from.read_text()))
+        return
     if args.sets < 1:
         ap.error(f"--sets must be at least 1, got {args.sets}")
     scene = load_scene("paper_two_planes", scale=args.scale)
@@ -167,7 +175,44 @@ def main() -> None:
               f"{k}: the product of `Q` {v['product']:.1f}, the element-wise pass {v['pass']:.1f} over "
               f"{v['megabytes']:.0f} MB" for k, v in parts.items()) + "\n" + _fused_lines(parts))
     write_results(args.out, result, md)
+    chart(args.out / "chart.png", result)
     print(md)
+
+
+def chart(path: Path, result: dict) -> None:
+    """One iteration's time, one set against all sets side by side: the product of ``Q`` and the
+    element-wise pass eager, compiled (``TORCHPROJ_COMPILE=1``) and at the compiled loop's floor."""
+    parts = result["iteration_ms"]
+    names = [k for k in ("one set", "all sets") if k in parts]
+    passes = [("pass", "element-wise pass, eager")]
+    if all("fused" in parts[k] for k in names):
+        passes += [("fused", "element-wise pass, compiled"), ("fused_floor", "compiled pass's floor, bytes / bandwidth")]
+    fig = Figure(figsize=(7.5, 3.8), dpi=120)
+    ax = fig.subplots()
+    labels, y = [], 0
+    for name in names:
+        for key, label in passes:
+            product, rest = parts[name]["product"], parts[name][key]
+            ax.barh(y, product, color="#4c72b0", label="product of Q" if y == 0 else None)
+            ax.barh(y, rest, left=product, color={"pass": "#dd8452", "fused": "#55a868", "fused_floor": "#c4c4c4"}[key],
+                    label=label if name == names[0] else None)
+            ax.text(product + rest, y, f" {product + rest:.1f}", va="center", fontsize=8)
+            short = {"pass": "eager", "fused": "compiled", "fused_floor": "floor"}[key]
+            labels.append(f"{name if name == 'one set' else str(result['sets']) + ' sets'}: {short}")
+            y += 1
+        y += 0.5
+    ax.set_yticks([i + 0.5 * (i // len(passes)) for i in range(len(labels))], labels, fontsize=8)
+    ax.invert_yaxis()
+    longest = max(parts[k]["product"] + parts[k][key] for k in names for key, _ in passes)
+    ax.set_xlim(0, longest * 1.15)
+    ax.set(xlabel="ms per FISTA iteration",
+           title=f"{result['sets']} target sets side by side ({result['device']}): whole solve\n"
+                 f"{result['ratio']:.2f}x one set's eager"
+                 + (f", {result['compiled_ratio']:.2f}x with TORCHPROJ_COMPILE=1" if "compiled_ratio" in result else ""))
+    ax.title.set_fontsize(9)
+    ax.legend(loc="upper right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
 
 
 def _compiled_lines(result: dict) -> str:
