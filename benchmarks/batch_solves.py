@@ -24,12 +24,11 @@ import contextlib
 import dataclasses
 import json
 import os
-import statistics
 import time
 from pathlib import Path
 
 import torch
-from common import machine, write_results
+from common import interleaved, machine, write_results
 from matplotlib.figure import Figure
 
 from torchproj.core.fused import COMPILE_ENV
@@ -64,23 +63,6 @@ def _with(on: bool, fn):
     return run
 
 
-def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
-    """Median seconds of each of ``runs`` (after one warm-up call each), called in turn, so that a
-    machine whose speed drifts (a shared host's memory bandwidth moved 14-31 GB/s within an hour
-    here) weighs on each alike."""
-    times = {k: [] for k in runs}
-    for fn in runs.values():
-        fn()
-    for _ in range(repeats):
-        for k, fn in runs.items():
-            t0 = time.perf_counter()
-            fn()
-            if torch.cuda.is_available():
-                torch.cuda.synchronize()  # a GPU's kernels run after the call returns
-            times[k].append(time.perf_counter() - t0)
-    return {k: statistics.median(v) for k, v in times.items()}
-
-
 def iteration_parts(op, fuse: bool) -> dict:
     """One FISTA iteration's two parts on ``op``'s normal equations, scaled as the solver scales them
     (ms, interleaved): the product of ``Q`` and the element-wise pass (objective, extrapolation, step,
@@ -108,7 +90,7 @@ def iteration_parts(op, fuse: bool) -> dict:
             copy = torch.empty_like(ne.q)
             runs.update(fused=_with(True, lambda: one_loop(z, qz, previous, q_previous, 1.3, fused_out)),
                         copy=lambda: copy.copy_(qz[0]))
-    ms = {k: round(v * 1e3, 2) for k, v in _interleaved(runs, 15).items()}
+    ms = {k: round(v * 1e3, 2) for k, v in interleaved(runs, 15, warm_up=True).items()}
     parts.update(product=ms["product"], **{"pass": ms["pass"]})
     if "fused" in ms:
         blocks = 6 + torch.is_tensor(ne.bound(1.0))
@@ -148,9 +130,9 @@ def main() -> None:
         _with(True, lambda: (solve_fista(op.with_rhs(rhs[0]), progress=False), solve_target_sets(op, rhs, progress=False)))()
         first_compiled = time.perf_counter() - t0
     modes = (False, True) if fuse else (False,)
-    solves = _interleaved({(k, on): _with(on, fn) for on in modes for k, fn in (
+    solves = interleaved({(k, on): _with(on, fn) for on in modes for k, fn in (
         ("one", lambda: solve_fista(op.with_rhs(rhs[0]), progress=False)),
-        ("many", lambda: solve_target_sets(op, rhs, progress=False)))}, 3)
+        ("many", lambda: solve_target_sets(op, rhs, progress=False)))}, 3, warm_up=True)
     one, many = solves[("one", False)], solves[("many", False)]
     with _compiling(False):
         _, joint = solve_target_sets(op, rhs, progress=False)

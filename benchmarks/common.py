@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import platform
+import statistics
+import time
 import warnings
 from pathlib import Path
 
@@ -14,7 +16,7 @@ from torchproj.core import write_json
 from torchproj.core.sparse import csr_tensor
 from torchproj.transport import TransportOperator
 
-__all__ = ["bandwidth_gb_s", "machine", "median_time", "nonzero_rows", "row_sums", "run_operators", "with_matrix", "write_results"]
+__all__ = ["bandwidth_gb_s", "interleaved", "machine", "median_time", "nonzero_rows", "row_sums", "run_operators", "with_matrix", "write_results"]
 
 
 def median_time(fn, *args, repeats: int = 5) -> float:
@@ -28,6 +30,24 @@ def median_time(fn, *args, repeats: int = 5) -> float:
 def _median(timer: Timer, repeats: int) -> float:
     times = sorted(timer.timeit(1).median for _ in range(repeats))
     return times[len(times) // 2] if repeats % 2 else 0.5 * (times[repeats // 2 - 1] + times[repeats // 2])
+
+
+def interleaved(runs: dict, repeats: int, warm_up: bool = False) -> dict:
+    """Median seconds of each of ``runs`` (name -> function), called in turn ``repeats`` times, so that
+    a machine whose speed drifts (a shared host's memory bandwidth moved 14-31 GB/s within an hour
+    here) weighs on each alike; ``warm_up`` calls each once first. A GPU's kernels are waited for."""
+    times = {k: [] for k in runs}
+    if warm_up:
+        for fn in runs.values():
+            fn()
+    for _ in range(repeats):
+        for k, fn in runs.items():
+            t0 = time.perf_counter()
+            fn()
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()  # a GPU's kernels run after the call returns
+            times[k].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) for k, v in times.items()}
 
 
 def bandwidth_gb_s() -> float:

@@ -21,13 +21,11 @@ Writes ``results.json`` and ``results.md``.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 import warnings
 from pathlib import Path
 
 import torch
-from common import machine, write_results
+from common import interleaved, machine, write_results
 
 import torchproj.core.sparse as sparse
 from torchproj.pipeline import scene_targets
@@ -38,16 +36,6 @@ from torchproj.solve import REFINE_SOLVER_ITERATIONS, solve_fista
 
 SCENES = ("paper_two_planes", "colour_two_planes", "suite-1-8")
 BOUNDS = (0.0, 1.0)
-
-
-def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
-    times = {k: [] for k in runs}
-    for _ in range(repeats):
-        for k, fn in runs.items():
-            t0 = time.perf_counter()
-            fn()
-            times[k].append(time.perf_counter() - t0)
-    return {k: statistics.median(v) for k, v in times.items()}
 
 
 def _kernel(on: bool, fn):
@@ -66,7 +54,7 @@ def _products(matrix: torch.Tensor, gen: torch.Generator, repeats: int) -> dict:
     x = torch.rand(matrix.shape[1], 1, generator=gen)
     three = torch.rand(matrix.shape[1], 3, generator=gen)
     out, out3 = torch.empty(matrix.shape[0], 1), torch.empty(matrix.shape[0], 3)
-    t = _interleaved({"mv": _kernel(True, lambda: sparse.spmm(matrix, x, out)),
+    t = interleaved({"mv": _kernel(True, lambda: sparse.spmm(matrix, x, out)),
                       "mm": _kernel(False, lambda: sparse.spmm(matrix, x, out)),
                       "mm, 3 columns": lambda: sparse.spmm(matrix, three, out3)}, repeats)
     vector = _kernel(True, lambda: sparse.spmm(matrix, x))()
@@ -91,7 +79,7 @@ def measure(name: str, repeats: int) -> dict:
     start = solve_fista(op, BOUNDS, progress=False).patterns
     moved = op.with_rhs(op.rhs * 1.05)
     moved.normal_equations("products")
-    t = _interleaved({"solve, mv": _kernel(True, lambda: solve_fista(op, BOUNDS, progress=False)),
+    t = interleaved({"solve, mv": _kernel(True, lambda: solve_fista(op, BOUNDS, progress=False)),
                       "solve, mm": _kernel(False, lambda: solve_fista(op, BOUNDS, progress=False)),
                       "update, mv": _kernel(True, lambda: solve_fista(moved, BOUNDS, x0=start, progress=False,
                                                                       max_iter=REFINE_SOLVER_ITERATIONS, form="products")),
