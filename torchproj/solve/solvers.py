@@ -262,16 +262,17 @@ _CHUNK = 256 * SUM_RUN
 
 @fused
 def _pass_in_one_loop(z, qz, z_prev, qz_prev, two_q, lo, hi, weight, step, out, runs):
-    """:class:`_Sweep`'s pass over whole flat blocks as one expression, which ``torch.compile`` makes
-    one loop (``TORCHPROJ_COMPILE=1``, :mod:`torchproj.core.fused`): each block is read once and
-    ``out`` written once, where the eager pass goes over each chunk nine times. On sixteen target
-    sets of the default rig it took 25.3 ms against 46.4 ms eager, at the floor of its seven blocks
-    (26.5 ms at the bandwidth a copy reached beside it; ``python benchmarks/batch_solves.py``). Flat, so that one compiled loop serves one column and
-    many: over :math:`(N, C)` blocks inductor's loop was no faster than the eager pass, and a width
-    of 1 is another compile. ``weight`` and ``step`` are 0-d tensors, so that a new value is not a
-    new compile; ``lo`` and ``hi`` are numbers or flat blocks. Writes ``runs`` (the objective's terms
-    summed per run, as :meth:`NormalEquations.objective` sums them) and ``out``; returns the
-    partial run's sum in float64.
+    """:class:`_Sweep`'s pass over whole flat blocks as one expression, which ``torch.compile``
+    makes one loop (``TORCHPROJ_COMPILE=1``, :mod:`torchproj.core.fused`): each block is read
+    once and ``out`` written once, where the eager pass goes over each chunk nine times. On
+    sixteen target sets of the default rig it took 25.3 ms against 46.4 ms eager, at the floor
+    of its seven blocks (26.5 ms at the bandwidth a copy reached beside it;
+    ``python benchmarks/batch_solves.py``). Flat, so that one compiled loop serves one column and many:
+    over :math:`(N, C)` blocks inductor's loop was no faster than the eager pass, and a width of
+    1 is another compile. ``weight`` and ``step`` are 0-d tensors, so that a new value is not a
+    new compile; ``lo`` and ``hi`` are numbers or flat blocks. Writes ``runs`` (the objective's
+    terms summed per run, as :meth:`NormalEquations.objective` sums them) and ``out``; returns
+    the partial run's sum in float64.
     """
     w = (qz - two_q) * z
     n = runs.numel() * SUM_RUN
