@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchproj.calib import EdgePixels, GraycodeCapture, calibrate_projector, find_edge_pixels, graycode_patterns
-from torchproj.calib.maps import pixel_square
+from torchproj.calib.maps import map_slope, pixel_square
 from torchproj.core.errors import InputError
 from torchproj.transport import StateCalibration, Target, build_transport
 
@@ -22,17 +22,20 @@ def _surface(x, y):
     return torch.where((x < EDGE_X)[..., None], front, back)
 
 
-def _captures(samples: int = 8) -> tuple[GraycodeCapture, torch.Tensor]:
+def _captures(samples: int = 8, shadow=None) -> tuple[GraycodeCapture, torch.Tensor]:
     """Each camera pixel the mean of ``samples`` x ``samples`` points of its square, each lit by the
-    cell it falls in; black 0.05, white minus black 0.8 (0.12 from DIM_FROM on). Returns the capture
-    and the true coordinates at the pixel centres."""
+    cell it falls in; black 0.05, white minus black 0.8 (0.12 from DIM_FROM on). ``shadow(x, y)``:
+    where True, a camera point gets no light. Returns the capture and the true coordinates at the
+    pixel centres."""
     h, w = CAMERA
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
     offset = pixel_square(samples)
-    points = _surface(xs[..., None] + offset[:, 0], ys[..., None] + offset[:, 1])  # (H, W, S, 2)
+    px, py = xs[..., None] + offset[:, 0], ys[..., None] + offset[:, 1]
+    points = _surface(px, py)  # (H, W, S, 2)
     cell = torch.floor(points + 0.5).long()
     shown = graycode_patterns(*PROJECTOR)[:, 0]  # (N + 2, h_p, w_p): pairs, then white, black
-    seen = shown[:, cell[..., 1].clamp(0, PROJECTOR[1] - 1), cell[..., 0].clamp(0, PROJECTOR[0] - 1)].mean(-1)
+    seen = shown[:, cell[..., 1].clamp(0, PROJECTOR[1] - 1), cell[..., 0].clamp(0, PROJECTOR[0] - 1)]
+    seen = (seen if shadow is None else seen * ~shadow(px, py)).mean(-1)
     contrast = torch.where(xs >= DIM_FROM, 0.12, 0.8)
     images = (0.05 + contrast * seen)[:, None]  # (N + 2, 1, H, W)
     return GraycodeCapture(patterns=images[:-2], white=images[-2], black=images[-1], ramp=None), _surface(xs, ys)
@@ -67,6 +70,24 @@ def test_edge_pixels_recover_two_surfaces_and_the_dim_fringe():
             assert float(edges.share[k].max()) == 1.0
             torch.testing.assert_close(edges.xy[k, int(edges.share[k].argmax())], truth[y, x], atol=0.5, rtol=0)
         assert y * w + DIM_FROM + 3 not in found  # no mapped surface within two pixels
+
+
+def test_a_surface_seen_as_a_one_pixel_strip_is_a_candidate():
+    """The back surface seen through one column of pixels (20.5 to 21.5) between the outline and a
+    shadow, from row 12 down (above it, wide): the strip's slope across it is unknown (map_slope), and
+    lent along the strip from where the surface is seen wide (fill_slope), so the outline pixels
+    beside it find both surfaces, as they do beside the wide part."""
+    strip_from = 12
+    capture, _ = _captures(shadow=lambda x, y: (x > 21.5) & (y > strip_from - 0.5) & (x < DIM_FROM - 0.5))
+    cal = calibrate_projector(capture, PROJECTOR, dim_threshold=40)
+    assert torch.isnan(map_slope(cal.prj_xy)[strip_from + 1:CAMERA[0] - 3, 21, :, 0]).all()  # the strip's d/dx
+    found = {int(p): k for k, p in enumerate(cal.edges.pixel)}
+    w = CAMERA[1]
+    for y in range(strip_from, strip_from + 8):  # fill_slope's reach: 8 pixels along the strip
+        k = found[y * w + 20]
+        back = int(cal.edges.share[k].argmin())
+        assert float(cal.edges.share[k, back]) == pytest.approx(0.2, abs=0.1), y
+        torch.testing.assert_close(cal.edges.xy[k, back], torch.tensor([0.7 * 20 + 20, 0.75 * y + 5]), atol=0.5, rtol=0)
 
 
 def test_dim_light_is_read_into_its_own_map_and_is_then_no_edge():

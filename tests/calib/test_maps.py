@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from torchproj.calib import fill_holes, inverse_map
-from torchproj.calib.maps import _tiles_within, depth_edges, map_slope
+from torchproj.calib.maps import _tiles_within, depth_edges, fill_slope, map_slope
 
 
 def test_inverse_map_matches_a_plain_loop():
@@ -115,3 +115,26 @@ def test_a_slope_taken_like_another_maps_is_the_slope_computed_whole():
     taken, whole = map_slope(b, like=(a, map_slope(a))), map_slope(b)
     assert not torch.equal(torch.nan_to_num(map_slope(a)[:, 127]), torch.nan_to_num(whole[:, 127]))
     assert torch.equal(torch.isnan(taken), torch.isnan(whole)) and torch.equal(torch.nan_to_num(taken), torch.nan_to_num(whole))
+
+
+def test_a_strip_of_a_surface_borrows_its_unknown_slope_along_the_strip():
+    """Surface A seen three rows tall over columns 0-5 and one row tall (row 2) from column 6 on,
+    surface B far from it below: the strip's d/dy is unknown to map_slope and fill_slope lends A's,
+    one pixel further each pass up to its reach, never B's across the depth edge."""
+    h, w = 8, 20
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    a = torch.stack([1.1 * x + 0.3 * y + 2, -0.2 * x + 0.9 * y + 1], -1)
+    b = torch.stack([0.7 * x + 40, 0.75 * y + 30], -1)
+    xy = torch.where((y >= 3)[..., None], b, a)
+    xy[:2, 6:] = float("nan")
+    slope = map_slope(xy)
+    strip = slope[2, 6:]
+    assert torch.isnan(strip[..., 1]).all() and torch.isfinite(strip[..., 0]).all()
+    filled = fill_slope(xy, slope, reach=8)
+    torch.testing.assert_close(filled[2, 6:14, :, 1], torch.tensor([0.3, 0.9], dtype=torch.float64).expand(8, 2))
+    assert torch.isnan(filled[2, 14:, :, 1]).all()  # beyond the reach
+    known = ~torch.isnan(slope)
+    assert torch.equal(filled[known], slope[known])  # what map_slope knew stays
+    assert torch.isnan(filled[:2, 6:]).all()  # unmapped pixels stay unknown
+    whole = map_slope(xy[3:])  # B alone: every slope known, nothing to lend
+    assert torch.equal(fill_slope(xy[3:], whole), whole)

@@ -12,7 +12,9 @@ Two kinds of pixel get no faithful light model from the decoded map alone:
   sends it nothing; on ``box_cylinders`` such pixels fringe the cylinders' outlines.
 
 Both are read from the captures: the mapped pixels within two pixels carry their surfaces'
-coordinates to the pixel through their own slopes (:func:`~torchproj.calib.maps.map_slope`). Each
+coordinates to the pixel through their own slopes (:func:`~torchproj.calib.maps.map_slope`; a
+surface seen as a strip one pixel wide, between an outline and a shadow, borrows the slope across
+the strip from along it, :func:`~torchproj.calib.maps.fill_slope`). Each
 candidate predicts every Gray-code bit's normalised difference ``d = (pattern - inverse) / (white -
 black)`` as the mean of the stripes over the pixel's square carried through its slope, ``s``; a pair
 of candidates on two surfaces predicts ``a s_A + (1 - a) s_B``, with the share ``a`` in closed form
@@ -32,7 +34,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
 from .graycode import check_full_sequence, stripe_signs
-from .maps import EDGE_JUMP, depth_edges, map_slope, pixel_square
+from .maps import EDGE_JUMP, depth_edges, fill_slope, map_slope, pixel_square
 
 __all__ = ["EdgePixels", "find_edge_pixels"]
 
@@ -119,6 +121,7 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
     lit = contrast > _MIN_CONTRAST
     slope = map_slope(prj_xy) if slope is None else slope
     check_shape(slope, "slope", [H, W, 2, 2])
+    slope = fill_slope(prj_xy, slope)
     known = torch.isfinite(prj_xy).all(-1)
     source = known & torch.isfinite(slope).all(-1).all(-1)  # pixels whose surface can be carried over
     # A pixel with no mapped pixel within reach has no candidate: left out before the candidates'

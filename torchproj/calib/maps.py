@@ -174,6 +174,50 @@ def map_slope(prj_xy: torch.Tensor, like: tuple[torch.Tensor, torch.Tensor] | No
     return slope
 
 
+def fill_slope(prj_xy: torch.Tensor, slope: torch.Tensor, reach: int = 8) -> torch.Tensor:
+    """``slope`` :math:`(H, W, 2, 2)` of the map ``prj_xy`` with each mapped pixel's unknown camera
+    axis taken from its 4-neighbours on the same surface, up to ``reach`` pixels away.
+
+    :func:`map_slope` reads a pixel's slope along an axis from its mapped neighbours along that axis.
+    A strip of a surface one pixel wide across that axis (the surface behind an object's outline
+    seen between the outline and a shadow) has none there: its slope along the strip is known, the
+    one across it not. On a surface the slope varies slowly, so the neighbours along the strip lend
+    theirs, from where the surface is seen wider, one pixel further each pass (their mean). Two
+    neighbours are on the same surface where their coordinates are within :data:`EDGE_JUMP` cells.
+    Our choice (the paper has no slope): measured in docs/accuracy.md on a suite scene's outline.
+    """
+    check_shape(slope, "slope", [*prj_xy.shape[:2], 2, 2])
+    height, width = prj_xy.shape[:2]
+    # Only the pixels that want an axis are visited: a handful along outlines, none on most maps.
+    # (A sum of the four entries is NaN where any is: on a 1600 x 1200 map a fifth of the time of
+    # reducing the (H, W, 2, 2) mask.)
+    some = torch.isnan(slope[..., 0, 0] + slope[..., 1, 0] + slope[..., 0, 1] + slope[..., 1, 1])
+    some &= ~torch.isnan(prj_xy[..., 0] + prj_xy[..., 1])
+    ys, xs = torch.nonzero(some, as_tuple=True)
+    if not ys.numel():
+        return slope
+    wanted = torch.isnan(slope[ys, xs]).any(-2)  # (M, 2): per camera axis
+    pick, axis = torch.nonzero(wanted, as_tuple=True)
+    ys, xs = ys[pick], xs[pick]
+    out = slope.clone()
+    flat_xy, flat = prj_xy.reshape(-1, 2), out.reshape(-1, 2, 2)
+    moves = torch.tensor([[0, 1], [0, -1], [1, 0], [-1, 0]], device=prj_xy.device)
+    ny, nx = ys[:, None] + moves[:, 0], xs[:, None] + moves[:, 1]  # (M, 4) the 4-neighbours
+    inside = (ny >= 0) & (ny < height) & (nx >= 0) & (nx < width)
+    here, there = ys * width + xs, (ny.clamp(0, height - 1) * width + nx.clamp(0, width - 1))
+    same = inside & ((flat_xy[there] - flat_xy[here][:, None]).abs().amax(-1) <= EDGE_JUMP)  # NaN: False
+    column = axis[:, None].expand_as(there)
+    for _ in range(reach):
+        lent = flat[there, :, column]  # (M, 4, 2): each neighbour's slope along the wanted axis
+        lend = same & ~torch.isnan(lent).any(-1)
+        fill = lend.any(-1) & torch.isnan(flat[here, :, axis]).any(-1)
+        if not bool(fill.any()):
+            break
+        mean = torch.where(lend[..., None], lent, 0.0).sum(1) / lend.sum(1, keepdim=True).clamp_min(1)
+        flat[here[fill], :, axis[fill]] = mean[fill].to(flat.dtype)
+    return out
+
+
 # Camera pixels a side of the tiles in which a slope is computed again near a changed pixel.
 _SLOPE_TILE = 64
 
