@@ -15,7 +15,10 @@ For each scene of a suite run (``benchmarks/suite.py``'s ``results.json``) with 
   again with every decoded pixel's map coordinate replaced by the simulator's (``exact maps``; the
   shares, blur and edge pixels as measured). What the measured weight costs is the first's gain;
   what the model of a pixel's footprint costs, the second's; what of that is the map's error, the
-  third's.
+  third's;
+- **which rows**: the exact shapes swapped in on some rows only: those of the pixels
+  :func:`~torchproj.calib.find_edge_pixels` modelled (``exact shapes, edge pixels``: one or two
+  surfaces carried from the neighbours) and those of the outline band (``exact shapes, band``).
 
 Grey scenes only (a tinted surface gives the exact light one operator per channel). Writes
 ``results.json`` and ``results.md``.
@@ -38,7 +41,7 @@ from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, evaluate_
                                 scene_targets, solve_on_light_transport, true_responses)
 from torchproj.scene import load_scene
 from torchproj.solve import make_patterns
-from torchproj.transport import TransportOperator, build_transport
+from torchproj.transport import TransportOperator, build_transport, csr_from_coo
 
 BOUNDS = (0.0, 1.0)
 BAND = 2  # camera pixels from a target region's outline that count as its outline band
@@ -47,6 +50,62 @@ BAND = 2  # camera pixels from a target region's outline that count as its outli
 def rescaled(op: TransportOperator, factor: torch.Tensor) -> TransportOperator:
     """``op`` with each row multiplied by ``factor``."""
     return with_matrix(op, op.crow, op.col, op.val * factor[nonzero_rows(op)])
+
+
+def _entries(op: TransportOperator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``op``'s nonzeros as (row, global column, value), a global column numbering every projector's
+    cells in turn."""
+    offsets = torch.tensor([0] + [w * h for w, h in op.projector_sizes]).cumsum(0)
+    column = offsets[op.column_projector.long()] + op.column_cell.long()
+    return nonzero_rows(op), column[op.col.long()], op.val
+
+
+def mixed(model: TransportOperator, other: TransportOperator, rows: torch.Tensor) -> TransportOperator:
+    """``model`` with the ``rows`` (a mask over its rows) taken from ``other`` (the same rows, any
+    columns), each such row scaled to ``model``'s row sum."""
+    r, c, v = _entries(model)
+    ro, co, vo = _entries(other)
+    vo = vo * (row_sums(model) / row_sums(other).clamp_min(1e-12))[ro]
+    keep, take = ~rows[r], rows[ro]
+    r, c, v = torch.cat([r[keep], ro[take]]), torch.cat([c[keep], co[take]]), torch.cat([v[keep], vo[take]])
+    used = torch.unique(c)
+    offsets = torch.tensor([0] + [w * h for w, h in model.projector_sizes]).cumsum(0)
+    projector = torch.searchsorted(offsets, used, right=True) - 1
+    matrix = csr_from_coo(r, torch.searchsorted(used, c), v, (model.shape[0], len(used)))
+    return TransportOperator(matrix, model.rhs, projector, used - offsets[projector], model.projector_sizes,
+                             row_target=model.row_target, scale=model.scale, row_pixel=model.row_pixel,
+                             camera_size=model.camera_size, target_count=model.target_count)
+
+
+def edge_rows(cal, targets, model: TransportOperator) -> torch.Tensor:
+    """A mask over ``model``'s rows: the pixels some projector's edge pixels (one surface or two) hold."""
+    width, height = model.camera_size
+    out = torch.zeros(model.shape[0], dtype=torch.bool)
+    for k, target in enumerate(targets):
+        edges = torch.zeros(width * height, dtype=torch.bool)
+        for found in cal.states[target.state].edges or []:
+            if found is not None:
+                edges[found.pixel.long().cpu()] = True
+        out |= (model.row_target == k) & edges[model.row_pixel.long()]
+    return out
+
+
+def band_rows(targets, model: TransportOperator) -> torch.Tensor:
+    """A mask over ``model``'s rows: those within ``BAND`` pixels of their target's outline."""
+    width, height = model.camera_size
+    out = torch.zeros(model.shape[0], dtype=torch.bool)
+    for k in range(len(targets)):
+        mine = model.row_target == k
+        region = torch.zeros(width * height, dtype=torch.bool)
+        region[model.row_pixel[mine].long()] = True
+        band = region & ~inside(region.reshape(height, width)).reshape(-1)
+        out |= mine & band[model.row_pixel.long()]
+    return out
+
+
+def inside(region: torch.Tensor) -> torch.Tensor:
+    """The pixels of ``region`` :math:`(H, W)` ``BAND`` or more pixels from its edge."""
+    return -F.max_pool2d(-region.float()[None, None], 2 * BAND + 1, 1, BAND)[0, 0] > 0.5
 
 
 def exact_maps(cal) -> dict:
@@ -82,6 +141,8 @@ def measure(name: str, log=print) -> dict | None:
                 "area, exact shapes": rescaled(exact, measured / true.clamp_min(1e-12)),
                 "area, exact maps": build_transport(exact_maps(cal), targets, footprint="area", merge=False,
                                                     scale=model.scale),
+                "area, exact shapes, edge pixels": mixed(model, exact, edge_rows(cal, targets, model)),
+                "area, exact shapes, band": mixed(model, exact, band_rows(targets, model)),
                 "ceiling": exact}
         scores = {}
         for label, op in runs.items():
@@ -95,8 +156,9 @@ def measure(name: str, log=print) -> dict | None:
            "targets": []}
     for k, target in enumerate(targets):
         covered = scores["area"][k].covered
-        inner = -F.max_pool2d(-covered.float()[None, None], 2 * BAND + 1, 1, BAND)[0, 0] > 0.5
-        row = {"name": target.name, "pixels": int(covered.sum()), "outline_pixels": int((covered & ~inner).sum())}
+        inner = inside(covered)
+        row = {"name": target.name, "pixels": int(covered.sum()), "outline_pixels": int((covered & ~inner).sum()),
+               "edge_rows": int((edge_rows(cal, targets, model) & (model.row_target == k)).sum())}
         for label in runs:
             s = scores[label][k]
             row[label] = {"all": round(s.psnr_db, 3), "interior": round(psnr(s, inner), 3),
@@ -107,19 +169,26 @@ def measure(name: str, log=print) -> dict | None:
     return out
 
 
+COLUMNS = ("area", "area, exact weights", "area, exact shapes", "area, exact maps", "area, exact shapes, edge pixels",
+           "area, exact shapes, band", "ceiling")
+
+
 def markdown(results: list[dict]) -> str:
     lines = [f"# Where the default model misses the ceiling ({machine()})", "",
              f"PSNR (dB) over all of a target's pixels / its interior / the band within {BAND} pixels of its outline. "
              "`exact weights`: each row's measured white minus black replaced by the exact light's; `exact shapes`: each "
              "row's split among cells replaced by the exact light's, at the measured weight; `exact maps`: built again "
-             "with each decoded pixel's map coordinate the simulator's (shares, blur and edge pixels as measured).", "",
-             "| scene | target | pixels (outline) | area | area, exact weights | area, exact shapes | area, exact maps "
-             "| ceiling |", "|---|---|---|---|---|---|---|---|"]
+             "with each decoded pixel's map coordinate the simulator's (shares, blur and edge pixels as measured); "
+             "`exact shapes, edge pixels` and `, band`: the exact shapes on the rows of the pixels find_edge_pixels "
+             "modelled, or of the outline band, only.", "",
+             "| scene | target | pixels (outline, edge) | " + " | ".join(COLUMNS) + " |",
+             "|---|---|---|" + "---|" * len(COLUMNS)]
     for r in results:
         for t in r["targets"]:
-            cells = [f"{t[k]['all']:.2f} / {t[k]['interior']:.2f} / {t[k]['outline']:.2f}"
-                     for k in ("area", "area, exact weights", "area, exact shapes", "area, exact maps", "ceiling")]
-            lines.append(f"| {r['scene']} | {t['name']} | {t['pixels']} ({t['outline_pixels']}) | " + " | ".join(cells) + " |")
+            cells = [f"{t[k]['all']:.2f} / {t[k]['interior']:.2f} / {t[k]['outline']:.2f}" if k in t else ""
+                     for k in COLUMNS]
+            lines.append(f"| {r['scene']} | {t['name']} | {t['pixels']} ({t['outline_pixels']}, {t.get('edge_rows', '')}) | "
+                         + " | ".join(cells) + " |")
     lines += ["", "Measured weight against the exact row sum, rms relative error per scene: "
               + ", ".join(f"{r['scene']} {r['weight_error_rms']:.4f}" for r in results) + "."]
     return "\n".join(lines) + "\n"
