@@ -33,10 +33,10 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
-from .graycode import check_full_sequence, stripe_signs
+from .graycode import check_full_sequence, graycode_bits, stripe_signs
 from .maps import EDGE_JUMP, depth_edges, fill_slope, map_slope, pixel_square
 
-__all__ = ["EdgePixels", "find_edge_pixels"]
+__all__ = ["EdgePixels", "find_edge_pixels", "sees_one_surface"]
 
 _REACH = 2  # pixels either side whose surfaces are candidates: a 5 x 5 window
 _SAMPLES = 4  # points per axis across the pixel's square, as the area footprint
@@ -44,6 +44,11 @@ _SAMPLES = 4  # points per axis across the pixel's square, as the area footprint
 # surfaces fit any pixel a little better than one (one more unknown), a pixel that sees two far better.
 _BETTER = 0.5
 _MIN_SHARE = 0.05  # a surface with less of the pixel than this is left out (the pixel is one surface)
+# The most squared miss, summed over the bits, of a lent-slope pixel's own prediction for it to count
+# as seeing one surface: the strips of suite-2718-17 missed by 0.005-0.06 (the camera's noise), the
+# mixed pixels along suite-8080-8's and suite-314-12's outlines by 0.6-3 (a bit flipped by a tenth of
+# another surface's light alone adds 0.04).
+_PURE = 0.25
 # White minus black ([0, 1] units) over which a pixel counts as lit: lower than the decoder's shadow
 # threshold (40/255), since a pixel here needs no reliable bit of its own. On the shipped scenes 0.05
 # gave the same scores; under it a pixel's bits are mostly the camera's noise.
@@ -92,6 +97,28 @@ class EdgePixels:
               f"{where}: edge pixels need finite coordinates and slopes, and shares of at least 0")
 
 
+def sees_one_surface(patterns: torch.Tensor, contrast: torch.Tensor, prj_xy: torch.Tensor, slope: torch.Tensor,
+                     projector_size: tuple[int, int], y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """:math:`(n,)` bool: whether the camera pixels ``(y, x)`` see one surface at their mapped
+    coordinate, their captured bits within :data:`_PURE` of the stripes their square covers through
+    their ``slope``; ``patterns``, ``contrast`` (white minus black), ``prj_xy`` and ``slope`` as in
+    :func:`find_edge_pixels`."""
+    width, height = projector_size
+    nx, ny = graycode_bits(width, height)
+    if not y.numel():
+        return torch.zeros(0, dtype=torch.bool, device=prj_xy.device)
+    points = prj_xy[y, x][:, None, :] + torch.einsum("nij,sj->nsi", slope[y, x], pixel_square(_SAMPLES, device=y.device))
+    predicted = torch.cat([stripe_signs(points[..., 0], nx, width).mean(1), stripe_signs(points[..., 1], ny, height).mean(1)], -1)
+    observed = torch.stack([_difference(patterns, k, y, x) for k in range(nx + ny)], -1) / contrast[y, x, None].clamp_min(1e-3)
+    return (predicted - observed).square().sum(-1) <= _PURE
+
+
+def _difference(patterns: torch.Tensor, k: int, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Pattern pair ``k``'s pattern minus inverse at pixels ``(y, x)``, colour averaged."""
+    pair = patterns[2 * k:2 * k + 2][..., y, x].float()  # (2, n) or (2, C, n)
+    return (pair if pair.dim() == 2 else pair.mean(1)).diff(dim=0).neg()[0]
+
+
 def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
                      projector_size: tuple[int, int], slope: torch.Tensor | None = None) -> EdgePixels:
     """The pixels beside depth edges and the lit ones the map misses, each on one or two surfaces
@@ -114,16 +141,17 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
     H, W = contrast.shape
     device = prj_xy.device
 
-    def difference(k, y, x):  # pattern pair k's pattern minus inverse at pixels (y, x), colour averaged
-        pair = patterns[2 * k:2 * k + 2][..., y, x].float()  # (2, n) or (2, C, n)
-        return (pair if pair.dim() == 2 else pair.mean(1)).diff(dim=0).neg()[0]
-
     lit = contrast > _MIN_CONTRAST
     slope = map_slope(prj_xy) if slope is None else slope
     check_shape(slope, "slope", [H, W, 2, 2])
-    slope = fill_slope(prj_xy, slope)
     known = torch.isfinite(prj_xy).all(-1)
+    had = known & torch.isfinite(slope).all(-1).all(-1)
+    slope = fill_slope(prj_xy, slope)
     source = known & torch.isfinite(slope).all(-1).all(-1)  # pixels whose surface can be carried over
+    # A pixel whose slope was lent along a strip is a candidate only where its own bits show it sees
+    # one surface: a row of mixed pixels along an outline decodes to a strip too, at a wrong place.
+    ly, lx = torch.nonzero(source & ~had, as_tuple=True)
+    source[ly, lx] = sees_one_surface(patterns, contrast, prj_xy, slope, projector_size, ly, lx)
     # A pixel with no mapped pixel within reach has no candidate: left out before the candidates'
     # work (a capture that decodes nothing would otherwise send every lit pixel through it).
     reach = F.max_pool2d(source.float()[None, None], 2 * _REACH + 1, stride=1, padding=_REACH)[0, 0] > 0
@@ -148,7 +176,7 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         points = xy[:, :, None, :] + torch.einsum("nkij,sj->nksi", g, square)
         predicted = torch.cat([stripe_signs(points[..., 0], nx, width).mean(2),
                                stripe_signs(points[..., 1], ny, height).mean(2)], -1)
-        observed = torch.stack([difference(k, y, x) for k in range(nx + ny)], -1) / contrast[y, x, None].clamp_min(1e-3)
+        observed = torch.stack([_difference(patterns, k, y, x) for k in range(nx + ny)], -1) / contrast[y, x, None].clamp_min(1e-3)
         single = (predicted - observed[:, None]).square().sum(-1).masked_fill(~ok, float("inf"))  # (n, K)
         a, b = predicted[:, pairs[0]], predicted[:, pairs[1]]  # (n, P, bits)
         apart = a - b
