@@ -4,7 +4,6 @@ import pytest
 import torch
 
 from torchproj.calib import EdgePixels, GraycodeCapture, calibrate_projector, find_edge_pixels, graycode_patterns
-from torchproj.calib.edges import sees_one_surface
 from torchproj.calib.maps import map_slope, pixel_square
 from torchproj.core.errors import InputError
 from torchproj.transport import StateCalibration, Target, build_transport
@@ -89,22 +88,6 @@ def test_a_surface_seen_as_a_one_pixel_strip_is_a_candidate():
         back = int(cal.edges.share[k].argmin())
         assert float(cal.edges.share[k, back]) == pytest.approx(0.2, abs=0.1), y
         torch.testing.assert_close(cal.edges.xy[k, back], torch.tensor([0.7 * 20 + 20, 0.75 * y + 5]), atol=0.5, rtol=0)
-
-
-def test_a_pixel_sees_one_surface_where_its_bits_fit_its_coordinate():
-    """sees_one_surface, the test a lent-slope pixel passes to be a candidate: the front surface's
-    inner pixels at their true coordinates do, the same 2 cells off do not, nor the outline's pixels
-    (80% front, 20% back) at their front coordinate."""
-    capture, truth = _captures()
-    slope = map_slope(truth)
-    contrast = capture.white[0] - capture.black[0]
-    y, x = (t.reshape(-1) for t in torch.meshgrid(torch.arange(3, CAMERA[0] - 3), torch.arange(3, 17), indexing="ij"))
-    seen = sees_one_surface(capture.patterns, contrast, truth, slope, PROJECTOR, y, x)
-    assert bool(seen.all())
-    off = truth + torch.tensor([2.0, 0.0])
-    assert not sees_one_surface(capture.patterns, contrast, off, slope, PROJECTOR, y, x).any()
-    rows = torch.arange(3, CAMERA[0] - 3)  # truth at column 20's centres is the front surface's
-    assert not sees_one_surface(capture.patterns, contrast, truth, slope, PROJECTOR, rows, torch.full_like(rows, 20)).any()
 
 
 def test_dim_light_is_read_into_its_own_map_and_is_then_no_edge():

@@ -33,10 +33,10 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check, check_shape
-from .graycode import check_full_sequence, graycode_bits, stripe_signs
+from .graycode import check_full_sequence, stripe_signs
 from .maps import EDGE_JUMP, depth_edges, fill_slope, map_slope, pixel_square
 
-__all__ = ["EdgePixels", "find_edge_pixels", "sees_one_surface"]
+__all__ = ["EdgePixels", "find_edge_pixels"]
 
 _REACH = 2  # pixels either side whose surfaces are candidates: a 5 x 5 window
 _SAMPLES = 4  # points per axis across the pixel's square, as the area footprint
@@ -44,11 +44,6 @@ _SAMPLES = 4  # points per axis across the pixel's square, as the area footprint
 # surfaces fit any pixel a little better than one (one more unknown), a pixel that sees two far better.
 _BETTER = 0.5
 _MIN_SHARE = 0.05  # a surface with less of the pixel than this is left out (the pixel is one surface)
-# The most squared miss, summed over the bits, of a lent-slope pixel's own prediction for it to count
-# as seeing one surface: the strips of suite-2718-17 missed by 0.005-0.06 (the camera's noise), the
-# mixed pixels along suite-8080-8's and suite-314-12's outlines by 0.6-3 (a bit flipped by a tenth of
-# another surface's light alone adds 0.04).
-_PURE = 0.25
 # White minus black ([0, 1] units) over which a pixel counts as lit: lower than the decoder's shadow
 # threshold (40/255), since a pixel here needs no reliable bit of its own. On the shipped scenes 0.05
 # gave the same scores; under it a pixel's bits are mostly the camera's noise.
@@ -97,22 +92,6 @@ class EdgePixels:
               f"{where}: edge pixels need finite coordinates and slopes, and shares of at least 0")
 
 
-def sees_one_surface(patterns: torch.Tensor, contrast: torch.Tensor, prj_xy: torch.Tensor, slope: torch.Tensor,
-                     projector_size: tuple[int, int], y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """:math:`(n,)` bool: whether the camera pixels ``(y, x)`` see one surface at their mapped
-    coordinate, their captured bits within :data:`_PURE` of the stripes their square covers through
-    their ``slope``; ``patterns``, ``contrast`` (white minus black), ``prj_xy`` and ``slope`` as in
-    :func:`find_edge_pixels`."""
-    width, height = projector_size
-    nx, ny = graycode_bits(width, height)
-    if not y.numel():
-        return torch.zeros(0, dtype=torch.bool, device=prj_xy.device)
-    points = prj_xy[y, x][:, None, :] + torch.einsum("nij,sj->nsi", slope[y, x], pixel_square(_SAMPLES, device=y.device))
-    predicted = torch.cat([stripe_signs(points[..., 0], nx, width).mean(1), stripe_signs(points[..., 1], ny, height).mean(1)], -1)
-    observed = torch.stack([_difference(patterns, k, y, x) for k in range(nx + ny)], -1) / contrast[y, x, None].clamp_min(1e-3)
-    return (predicted - observed).square().sum(-1) <= _PURE
-
-
 def _difference(patterns: torch.Tensor, k: int, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Pattern pair ``k``'s pattern minus inverse at pixels ``(y, x)``, colour averaged."""
     pair = patterns[2 * k:2 * k + 2][..., y, x].float()  # (2, n) or (2, C, n)
@@ -148,22 +127,14 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
     had = known & torch.isfinite(slope).all(-1).all(-1)
     slope = fill_slope(prj_xy, slope)
     source = known & torch.isfinite(slope).all(-1).all(-1)  # pixels whose surface can be carried over
-    # A pixel whose slope was lent along a strip is a candidate only where its own bits show it sees
-    # one surface: a row of mixed pixels along an outline decodes to a strip too, at a wrong place.
-    ly, lx = torch.nonzero(source & ~had, as_tuple=True)
-    source[ly, lx] = sees_one_surface(patterns, contrast, prj_xy, slope, projector_size, ly, lx)
-    # A pixel with no mapped pixel within reach has no candidate: left out before the candidates'
-    # work (a capture that decodes nothing would otherwise send every lit pixel through it).
-    reach = F.max_pool2d(source.float()[None, None], 2 * _REACH + 1, stride=1, padding=_REACH)[0, 0] > 0
-    examine = lit & (depth_edges(prj_xy) | ~known) & reach
-    ys, xs = torch.nonzero(examine, as_tuple=True)
     step = torch.arange(-_REACH, _REACH + 1, device=device)
     window_y, window_x = (t.reshape(-1) for t in torch.meshgrid(step, step, indexing="ij"))  # the 5 x 5 window
     square = pixel_square(_SAMPLES, device=device)
     pairs = torch.triu_indices(window_y.numel(), window_y.numel(), 1, device=device)
-    found = []
-    for start in range(0, ys.numel(), _CHUNK):
-        y, x = ys[start:start + _CHUNK], xs[start:start + _CHUNK]
+
+    def fit(y, x):
+        """Each pixel's best surface or pair: (the pixels modelled, whether on two surfaces, the two
+        candidates, the first's share, every candidate's coordinate and slope)."""
         # Candidates: each window pixel's coordinate carried to this pixel through its slope.
         cy, cx = y[:, None] + window_y, x[:, None] + window_x
         inside = (cy >= 0) & (cy < H) & (cx >= 0) & (cx < W)
@@ -196,7 +167,27 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         two = two[n]
         ia = torch.where(two, pairs[0][which[n]], pick[n])
         ib = torch.where(two, pairs[1][which[n]], pick[n])
-        alpha = torch.where(two, share[n, which[n]], 1.0)
+        return n, two, ia, ib, torch.where(two, share[n, which[n]], 1.0), xy, g
+
+    # A pixel whose slope was lent along a strip is a candidate only where it sees one surface itself
+    # (its own fit, as below, takes no pair): a row of mixed pixels along an outline decodes to a
+    # strip too, at a wrong place (suite-8080-8's sphere lost 0.34 dB to it). A threshold on its own
+    # bits' miss did not tell them apart: lent pixels that won 2.5 dB on suite-97-8's box missed by
+    # 0.17-0.97, those that lost on suite-8080-8 by 0.56-1.95.
+    ly, lx = torch.nonzero(source & ~had, as_tuple=True)
+    for start in range(0, ly.numel(), _CHUNK):
+        y, x = ly[start:start + _CHUNK], lx[start:start + _CHUNK]
+        n, two = fit(y, x)[:2]
+        source[y[n[two]], x[n[two]]] = False
+    # A pixel with no mapped pixel within reach has no candidate: left out before the candidates'
+    # work (a capture that decodes nothing would otherwise send every lit pixel through it).
+    reach = F.max_pool2d(source.float()[None, None], 2 * _REACH + 1, stride=1, padding=_REACH)[0, 0] > 0
+    examine = lit & (depth_edges(prj_xy) | ~known) & reach
+    ys, xs = torch.nonzero(examine, as_tuple=True)
+    found = []
+    for start in range(0, ys.numel(), _CHUNK):
+        y, x = ys[start:start + _CHUNK], xs[start:start + _CHUNK]
+        n, two, ia, ib, alpha, xy, g = fit(y, x)
         found.append((y[n] * W + x[n], torch.stack([xy[n, ia], xy[n, ib]], 1), torch.stack([g[n, ia], g[n, ib]], 1),
                       torch.stack([alpha, 1 - alpha], -1)))
     if not found:
