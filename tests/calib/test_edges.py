@@ -141,6 +141,51 @@ def test_an_edge_pixel_row_is_each_surface_square_by_its_share():
     assert checked >= 20
 
 
+def test_each_surface_of_an_edge_pixel_is_spread_by_its_own_blur():
+    """A lens focused on the front surface, the back one blurred over a 6-cell disc: the outline
+    pixels' measured blur says the back's (as their sample might), yet the front part of each of
+    their rows stays in the cells its square covers, and only the back part spreads. On a projector
+    measured sharp (most discs under a cell) each row keeps its pixel's own blur."""
+    capture, _ = _captures()
+    cal = calibrate_projector(capture, PROJECTOR)
+    blur = torch.where(torch.arange(CAMERA[1]) >= 20, 6.0, 0.0).expand(*CAMERA).contiguous()
+    blur[:, :8] = float("nan")  # not judged there: most of what was judged is blurred, the projector defocused
+    state = StateCalibration([cal.prj_xy], [cal.decoding.contrast.clamp_min(0)], [PROJECTOR], edges=[cal.edges],
+                             blur=[blur])
+    op = build_transport({"s": state}, [Target("s", torch.full((1, 8, 8), 0.5), name="t")], footprint="area",
+                         merge=False)
+    rows = op.dense().double()
+    cell_xy = torch.stack([op.column_cell % PROJECTOR[0], op.column_cell // PROJECTOR[0]], -1).double()
+    checked = 0
+    for y in range(3, CAMERA[0] - 3):
+        pixel = y * CAMERA[1] + 20
+        k = int(torch.nonzero(cal.edges.pixel == pixel)[0])
+        row = rows[int(torch.nonzero(op.row_pixel == pixel)[0])]
+        front = int(cal.edges.share[k].argmax())
+        light = float(cal.edges.share[k].double()[front]) * float(cal.decoding.contrast.reshape(-1)[pixel])
+        near_front = (cell_xy - cal.edges.xy[k, front].double()).abs().amax(-1) <= 1.0
+        assert float(row[near_front].sum()) == pytest.approx(light, rel=0.02), y  # the front part, sharp
+        near_back = (cell_xy - cal.edges.xy[k, 1 - front].double()).abs().amax(-1) <= 1.0
+        assert float(row[near_back].sum()) < 0.6 * (float(row.sum()) - light), y  # the back part, spread
+        checked += 1
+    assert checked >= 15
+    sharp = torch.where(torch.arange(CAMERA[1]) >= 36, 6.0, 0.0).expand(*CAMERA).contiguous()
+    sharp[:, 20] = 6.0  # the outline pixels' own measured blur, on a projector measured sharp
+    state = StateCalibration([cal.prj_xy], [cal.decoding.contrast.clamp_min(0)], [PROJECTOR], edges=[cal.edges],
+                             blur=[sharp])
+    op = build_transport({"s": state}, [Target("s", torch.full((1, 8, 8), 0.5), name="t")], footprint="area",
+                         merge=False)
+    rows = op.dense().double()
+    cell_xy = torch.stack([op.column_cell % PROJECTOR[0], op.column_cell // PROJECTOR[0]], -1).double()
+    pixel = 8 * CAMERA[1] + 20
+    k = int(torch.nonzero(cal.edges.pixel == pixel)[0])
+    row = rows[int(torch.nonzero(op.row_pixel == pixel)[0])]
+    front = int(cal.edges.share[k].argmax())
+    near_front = (cell_xy - cal.edges.xy[k, front].double()).abs().amax(-1) <= 1.0
+    light = float(cal.edges.share[k].double()[front]) * float(cal.decoding.contrast.reshape(-1)[pixel])
+    assert float(row[near_front].sum()) < 0.6 * light  # both parts spread by the pixel's own disc
+
+
 def test_bad_inputs_name_what_is_wrong():
     capture, _ = _captures(samples=2)
     xy = torch.zeros(*CAMERA, 2)

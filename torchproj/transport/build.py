@@ -244,7 +244,11 @@ class StateCalibration:
         fine = self.shares is not None and self.shares[j].checker is not None
         cells, values = _footprint(xy, weight, size, footprint, slope, blur, fine)
         if self.edges is not None:
-            cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur, fine)
+            # Only a projector measured defocused (most of its pixels' discs a cell or wider) reads each
+            # surface's own blur: on a sharp one the blur measured beside outlines is noise of 1-1.5 cells.
+            defocused = self.blur is not None and float(torch.nanmedian(self.blur[j])) >= BLUR_MIN
+            maps = (self.prj_xy[j], self.blur[j]) if defocused else None
+            cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur, fine, maps)
         if self.shares is not None:
             cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
             values = _fit_shares(cells, values, self.shares[j], pixels, size)
@@ -544,11 +548,42 @@ def _combine(cells: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, t
     return out, total
 
 
+def _surface_blur(prj_xy: torch.Tensor, blur: torch.Tensor, edge: torch.Tensor, pixels: torch.Tensor,
+                  xy: torch.Tensor) -> torch.Tensor:
+    """:math:`(n, 2)` each surface's defocus disc (cells) at the edge ``pixels`` :math:`(n,)`: the
+    ``blur`` :math:`(H, W)` of the pixel within two whose map coordinate (``prj_xy`` :math:`(H, W, 2)`)
+    is nearest the surface's ``xy`` :math:`(n, 2, 2)`, among those that are no ``edge`` pixel
+    :math:`(H, W)` (whose blur mixes both surfaces): a pixel that sees that surface alone. NaN where
+    no such pixel is mapped nearer that surface than the other (the surface was seen only dimly).
+
+    An outline pixel sees an object and what lies behind it, at two depths, so through two discs: a
+    lens focused on the object blurs the surface behind. The pixel's own measured blur is one of the
+    two (or neither), so each surface takes its own from a pixel that sees it alone. Our choice (the
+    paper has no defocus), taken on projectors measured defocused only (:meth:`StateCalibration._rows`):
+    suite-2718-12's and suite-2718-4's spheres 0.24 and 0.25 dB nearer their ceiling
+    (docs/accuracy.md)."""
+    height, width = blur.shape
+    step = torch.arange(-2, 3, device=pixels.device)
+    dy, dx = (t.reshape(-1) for t in torch.meshgrid(step, step, indexing="ij"))
+    y, x = pixels // width, pixels % width
+    cy, cx = (y[:, None] + dy).clamp(0, height - 1), (x[:, None] + dx).clamp(0, width - 1)
+    there = prj_xy[cy, cx].to(xy.dtype)  # (n, 25, 2)
+    far = (there[:, None] - xy[:, :, None]).abs().amax(-1)  # (n, 2, 25)
+    far = torch.nan_to_num(far, nan=float("inf")).masked_fill(edge[cy, cx][:, None], float("inf"))
+    best, near = far.min(-1)  # (n, 2)
+    other = far.flip(1).gather(2, near[..., None])[..., 0]  # the chosen pixel's distance to the other surface
+    seen = torch.nan_to_num(blur[cy, cx].to(xy.dtype), nan=0.0).clamp_min(0)  # (n, 25); NaN: in focus
+    return torch.where(torch.isfinite(best) & (best <= other), seen.gather(1, near), float("nan"))
+
+
 def _edge_rows(cells: torch.Tensor, values: torch.Tensor, edges: EdgePixels, pixels: torch.Tensor,
-               weight: torch.Tensor, size: tuple[int, int], blur: torch.Tensor | None = None, fine: bool = False):
+               weight: torch.Tensor, size: tuple[int, int], blur: torch.Tensor | None = None, fine: bool = False,
+               maps: tuple[torch.Tensor, torch.Tensor] | None = None):
     """The ``area`` rows of those camera ``pixels`` :math:`(N,)` that are ``edges``: each surface's
-    cells, the pixel's square carried through that surface's slope, by its share of the pixel's
-    ``weight``. Other rows stay as they are."""
+    cells, the pixel's square carried through that surface's slope and spread by its blur, by its
+    share of the pixel's ``weight``. Other rows stay as they are. ``maps``: the projector's map and
+    blur map :math:`(H, W, 2)`, :math:`(H, W)`, from which each surface's blur is read
+    (:func:`_surface_blur`); None: the pixels' ``blur`` for both."""
     if not len(edges) or not pixels.numel():
         return cells, values
     order = torch.argsort(edges.pixel)
@@ -559,8 +594,17 @@ def _edge_rows(cells: torch.Tensor, values: torch.Tensor, edges: EdgePixels, pix
         return cells, values
     entry = order[at[hit]]
     lit = weight[hit] > 0
+    own = None
+    if blur is not None:
+        own = blur[hit][:, None].expand(-1, 2)
+        if maps is not None:
+            edge = torch.zeros(maps[1].numel(), dtype=torch.bool, device=pixels.device)
+            edge[edges.pixel] = True
+            found = _surface_blur(maps[0], maps[1], edge.reshape(maps[1].shape), pixels[hit],
+                                  edges.xy[entry].to(values.dtype))
+            own = torch.where(torch.isnan(found), own, found)
     parts = [_area_cells(edges.xy[entry, k].to(values.dtype), edges.slope[entry, k].to(values.dtype), lit, size,
-                         None if blur is None else blur[hit], fine) for k in (0, 1)]
+                         None if own is None else own[:, k].contiguous(), fine) for k in (0, 1)]
     share = edges.share[entry].to(values.dtype) * torch.where(lit, weight[hit], 0.0)[:, None]
     two_cells, two_values = _combine(torch.cat([parts[0][0], parts[1][0]], 1),
                                      torch.cat([parts[0][1] * share[:, :1], parts[1][1] * share[:, 1:]], 1))
