@@ -559,7 +559,7 @@ def _surface_blur(prj_xy: torch.Tensor, blur: torch.Tensor, edge: torch.Tensor, 
     An outline pixel sees an object and what lies behind it, at two depths, so through two discs: a
     lens focused on the object blurs the surface behind. The pixel's own measured blur is one of the
     two (or neither), so each surface takes its own from a pixel that sees it alone. Our choice (the
-    paper has no defocus), taken on projectors measured defocused only (:meth:`StateCalibration._rows`):
+    paper has no defocus), taken on projectors measured defocused only (``StateCalibration._rows``):
     suite-2718-12's and suite-2718-4's spheres 0.24 and 0.25 dB nearer their ceiling
     (docs/accuracy.md)."""
     height, width = blur.shape
