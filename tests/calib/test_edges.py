@@ -141,6 +141,16 @@ def test_an_edge_pixel_row_is_each_surface_square_by_its_share():
     assert checked >= 20
 
 
+def _rows_with_blur(cal, blur):
+    """The area operator of ``cal`` with the blur map ``blur``, its dense rows and each column's cell (x, y)."""
+    state = StateCalibration([cal.prj_xy], [cal.decoding.contrast.clamp_min(0)], [PROJECTOR], edges=[cal.edges],
+                             blur=[blur])
+    op = build_transport({"s": state}, [Target("s", torch.full((1, 8, 8), 0.5), name="t")], footprint="area",
+                         merge=False)
+    cell_xy = torch.stack([op.column_cell % PROJECTOR[0], op.column_cell // PROJECTOR[0]], -1).double()
+    return op, op.dense().double(), cell_xy
+
+
 def test_each_surface_of_an_edge_pixel_is_spread_by_its_own_blur():
     """A lens focused on the front surface, the back one blurred over a 6-cell disc: the outline
     pixels' measured blur says the back's (as their sample might), yet the front part of each of
@@ -150,12 +160,7 @@ def test_each_surface_of_an_edge_pixel_is_spread_by_its_own_blur():
     cal = calibrate_projector(capture, PROJECTOR)
     blur = torch.where(torch.arange(CAMERA[1]) >= 20, 6.0, 0.0).expand(*CAMERA).contiguous()
     blur[:, :8] = float("nan")  # not judged there: most of what was judged is blurred, the projector defocused
-    state = StateCalibration([cal.prj_xy], [cal.decoding.contrast.clamp_min(0)], [PROJECTOR], edges=[cal.edges],
-                             blur=[blur])
-    op = build_transport({"s": state}, [Target("s", torch.full((1, 8, 8), 0.5), name="t")], footprint="area",
-                         merge=False)
-    rows = op.dense().double()
-    cell_xy = torch.stack([op.column_cell % PROJECTOR[0], op.column_cell // PROJECTOR[0]], -1).double()
+    op, rows, cell_xy = _rows_with_blur(cal, blur)
     checked = 0
     for y in range(3, CAMERA[0] - 3):
         pixel = y * CAMERA[1] + 20
@@ -171,12 +176,7 @@ def test_each_surface_of_an_edge_pixel_is_spread_by_its_own_blur():
     assert checked >= 15
     sharp = torch.where(torch.arange(CAMERA[1]) >= 36, 6.0, 0.0).expand(*CAMERA).contiguous()
     sharp[:, 20] = 6.0  # the outline pixels' own measured blur, on a projector measured sharp
-    state = StateCalibration([cal.prj_xy], [cal.decoding.contrast.clamp_min(0)], [PROJECTOR], edges=[cal.edges],
-                             blur=[sharp])
-    op = build_transport({"s": state}, [Target("s", torch.full((1, 8, 8), 0.5), name="t")], footprint="area",
-                         merge=False)
-    rows = op.dense().double()
-    cell_xy = torch.stack([op.column_cell % PROJECTOR[0], op.column_cell // PROJECTOR[0]], -1).double()
+    op, rows, cell_xy = _rows_with_blur(cal, sharp)
     pixel = 8 * CAMERA[1] + 20
     k = int(torch.nonzero(cal.edges.pixel == pixel)[0])
     row = rows[int(torch.nonzero(op.row_pixel == pixel)[0])]
