@@ -118,6 +118,24 @@ def test_corners_place_the_image():
     assert covered[2:12, 5:15].all() and not covered[:, :5].any()
 
 
+def test_a_target_the_camera_sees_on_a_sliver_is_refused_naming_it():
+    """A back surface hidden behind a front one but for a row of pixels cannot hold an image, and
+    SSIM could not score it after the solve: the warp refuses it, naming the target and its span."""
+    image = torch.rand(1, 8, 8, generator=torch.Generator().manual_seed(0))
+    sliver = torch.zeros(15, 60, dtype=torch.bool)
+    sliver[9, 4:55] = True
+    with pytest.raises(InputError, match=r"target 'back'.* 51 lit pixels spanning 51x1 in state 's'"):
+        target_on_camera(Target("s", image, name="back"), sliver)
+    column = sliver.T.clone()
+    column[20, 8] = True  # long enough one way, not the other
+    with pytest.raises(InputError, match="spanning 2x51"):
+        target_on_camera(Target("s", image, name="back"), column)
+    square = torch.zeros(15, 60, dtype=torch.bool)
+    square[4:11, 20:27] = True  # the SSIM window itself is enough
+    values, covered = target_on_camera(Target("s", image, name="back"), square)
+    assert torch.equal(covered, square) and values.shape == (1, 15, 60)
+
+
 def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own():
     from torchproj.transport.build import kept_target_on_camera
 
@@ -138,7 +156,7 @@ def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own(
     smaller = mask.clone()
     smaller[:4] = False  # another mask of the same shape: the image fitted to another box
     assert not torch.equal(same_as_a_fresh_warp(smaller)[1], kept_target_on_camera(target, mask)[1])
-    mask[5:, :] = False  # the mask changed in place
+    mask[8:, :] = False  # the mask changed in place
     same_as_a_fresh_warp(mask)
     target.image.mul_(0.5)  # the image changed in place
     same_as_a_fresh_warp(mask)

@@ -60,6 +60,10 @@ _NAME = re.compile(r"^suite-(\d+)-(\d+)(-full)?$")
 _SHADOW, _MARGIN = BLACK_THRESHOLD / 255, 1.25
 _RAYS = {"small": 1.5e6, "full": 1.7e7}  # camera sample rays per state, at most
 _DRAWS = 100  # draws of one scene before the last is kept, dim or not
+# The least share of a target's surfaces (as the camera would see them alone) that nothing in front
+# of them may hide. Over 480 scenes of seeds 100-159 the least share a drawn target kept was 0.35;
+# suite-55-1 drew a plane 96% behind another, a 51 x 1 pixel strip, on which no image can be shown.
+_SEEN = 0.25
 
 
 def parse_suite_name(name: str) -> tuple[int, int, str] | None:
@@ -115,9 +119,9 @@ def procedural_config(seed: int, index: int = 0, size: str = "small") -> dict:
     _check_seed(index, "index")
     _check_size(size)
     rng = np.random.default_rng([int(seed), int(index)])
-    for _ in range(_DRAWS):  # a draw too dim for the decoder is drawn again, from the same stream
+    for _ in range(_DRAWS):  # a draw too dim for the decoder, or hiding a target, is drawn again
         data = _draw(rng, KINDS[index % len(KINDS)], size)
-        if _dimmest(data) >= _MARGIN * _SHADOW:
+        if _dimmest(data) >= _MARGIN * _SHADOW and min(_seen_shares(data).values()) >= _SEEN:
             break
     data["name"] = _name(seed, index, size)
     return _plain(data)
@@ -464,6 +468,40 @@ def _dimmest(data: dict) -> float:
             unit = p["power"] * p["response"]["a"] / math.pi / _distance(p, s) ** 2
             dim = min(dim, unit * float(np.mean(s["albedo"])) * (1 - p["vignetting"]) * _cos_towards(p, s))
     return camera["exposure"] * dim
+
+
+def _seen_shares(data: dict, across: int = 96) -> dict[str, float]:
+    """Per target, the share of its surfaces' camera rays that reach them first: 1 where nothing
+    stands in front of them, 0 where the state's other surfaces hide them.
+
+    Cast on an ``across x 3/4 across`` grid of pinhole rays over the camera's image (the simulator's
+    casters; lens distortion moves where a surface is seen, not whether), so it costs milliseconds.
+    """
+    import torch  # the scene layer stays free of torch until a scene is cast
+
+    from ..sim.primitives import make_caster
+    scene = parse_scene(data, name=data.get("name") or "draw")
+    cam = scene.camera
+    down = max(1, across * 3 // 4)
+    ys, xs = torch.meshgrid((torch.arange(down) + 0.5) * (cam.height / down),
+                            (torch.arange(across) + 0.5) * (cam.width / across), indexing="ij")
+    pixels = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.ones(xs.numel())], 1).double()
+    pose = torch.as_tensor(cam.world_from_cam, dtype=torch.float64)
+    directions = pixels @ torch.linalg.inv(torch.as_tensor(cam.K, dtype=torch.float64)).T @ pose[:3, :3].T
+    directions = (directions / directions.norm(dim=1, keepdim=True)).float()
+    origin = pose[None, :3, 3].float()
+    shares = {}
+    for state in scene.states:
+        names = list(state.surfaces)
+        t = torch.stack([make_caster(scene.surfaces[n]).hit(origin, directions)[0] for n in names], 1)
+        first = torch.where(torch.isfinite(t.min(1).values), t.argmin(1), -1)
+        for spec in scene.target_specs():
+            if spec.state != state.name:
+                continue
+            mine = torch.tensor([names.index(n) for n in spec.surfaces or names])
+            alone = int(torch.isfinite(t[:, mine]).any(1).sum())
+            shares[spec.name] = int(torch.isin(first, mine).sum()) / max(alone, 1)
+    return shares
 
 
 def _plain(value):

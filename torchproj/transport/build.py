@@ -39,6 +39,7 @@ from ..calib.edges import EdgePixels
 from ..calib.graycode import WIDE_SHARE, CellShares
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor, index_dtype
+from ..metrics.ssim import WINDOW
 from .operator import TransportOperator
 
 __all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
@@ -338,6 +339,7 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     else:
         ys, xs = torch.nonzero(mask, as_tuple=True)
         check(len(xs) > 0, f"target {target.name!r}: its region holds no lit camera pixel in state {target.state!r}")
+        _check_room(target, mask)  # before a warp onto a box that may have no height
         x0, x1, y0, y1 = float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max())
         corners = torch.tensor([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
     src = torch.tensor([[0.0, 0.0], [w_img - 1, 0.0], [w_img - 1, h_img - 1], [0.0, h_img - 1]])
@@ -346,7 +348,21 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     image = torch.cat([target.image.float().cpu(), torch.ones(1, h_img, w_img)])[None].to(mask.device)
     warped = warp_perspective(image, dst_from_src, (H, W), mode="bilinear", align_corners=True)[0]
     covered = mask & (warped[-1] > 0.999)
+    _check_room(target, covered)
     return warped[:-1].clamp(0, 1), covered
+
+
+def _check_room(target: Target, covered: torch.Tensor) -> None:
+    """Refuse a target the camera sees on too few pixels to hold an image: its pixels (``covered``
+    :math:`(H, W)` bool) must span at least SSIM's window (7 x 7) each way, or every score of it
+    would fail after the solve."""
+    rows, cols = torch.nonzero(covered.any(1))[:, 0], torch.nonzero(covered.any(0))[:, 0]
+    wide = int(cols[-1] - cols[0]) + 1 if len(cols) else 0
+    high = int(rows[-1] - rows[0]) + 1 if len(rows) else 0
+    check(min(wide, high) >= WINDOW,
+          f"target {target.name!r}: the camera sees it on {int(covered.sum())} lit pixels spanning {wide}x{high} "
+          f"in state {target.state!r}, too few to show an image (at least {WINDOW}x{WINDOW}); bring its surfaces "
+          "into the camera's view, clear of the surfaces in front of them, or leave the target out")
 
 
 def kept_target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
