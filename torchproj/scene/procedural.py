@@ -15,10 +15,12 @@ names (``torchproj run suite-7-3``). The index also picks the scene's *kind* in 
 
 Valid by construction: every device looks at the scene's centre, every object lies inside the
 field of view of the camera and of every projector (checked on its bounding sphere, with the
-region shrunk until it does), objects do not intersect each other or the wall, and the exposure
-puts each projector's white minus black on the dimmest target above the decoder's shadow threshold
-(40/255) with a margin, from the rig's own light model (no capture). ``tests/scene/test_procedural.py``
-checks the result on the virtual rig.
+region shrunk until it does), objects do not intersect each other or the wall, nothing in front of
+a target hides more than three quarters of it from the camera (a coarse cast of camera rays), and
+the exposure puts each projector's white minus black on the dimmest target above the decoder's
+shadow threshold (40/255) with a margin, from the rig's own light model (no capture). A draw that
+fails either is drawn again from the same stream. ``tests/scene/test_procedural.py`` checks the
+result on the virtual rig.
 
 Sizes: ``small`` scenes (projectors 160-320 cells wide, cameras of at most about 1.5 M sample
 rays) calibrate and solve in seconds; ``full`` scenes have 640-1024 cell projectors and cameras of
