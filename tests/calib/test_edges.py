@@ -90,6 +90,27 @@ def test_a_surface_seen_as_a_one_pixel_strip_is_a_candidate():
         torch.testing.assert_close(cal.edges.xy[k, back], torch.tensor([0.7 * 20 + 20, 0.75 * y + 5]), atol=0.5, rtol=0)
 
 
+def test_a_surface_seen_only_as_a_one_pixel_strip_completes_its_slope():
+    """The back surface seen through one column of pixels all the way down: no part of it is seen
+    wide to lend the strip its slope across, so fill_slope turns the slope along it as the map's
+    other pixels turn theirs, and the outline pixels beside it find both surfaces all down the
+    column, the strip's pixels their own coordinates."""
+    capture, truth = _captures(shadow=lambda x, y: (x > 21.5) & (x < DIM_FROM - 0.5))
+    cal = calibrate_projector(capture, PROJECTOR, dim_threshold=40)
+    assert torch.isnan(map_slope(cal.prj_xy)[:, 21, :, 0]).all()
+    found = {int(p): k for k, p in enumerate(cal.edges.pixel)}
+    w = CAMERA[1]
+    for y in range(3, CAMERA[0] - 3):
+        k = found[y * w + 20]
+        back = int(cal.edges.share[k].argmin())
+        assert float(cal.edges.share[k, back]) == pytest.approx(0.2, abs=0.1), y
+        torch.testing.assert_close(cal.edges.xy[k, back], torch.tensor([0.7 * 20 + 20, 0.75 * y + 5]), atol=0.5, rtol=0)
+        if y * w + 21 in found:  # a strip pixel modelled again keeps its own surface
+            k = found[y * w + 21]
+            own = int(cal.edges.share[k].argmax())
+            torch.testing.assert_close(cal.edges.xy[k, own], truth[y, 21], atol=0.5, rtol=0)
+
+
 def test_dim_light_is_read_into_its_own_map_and_is_then_no_edge():
     """Light under the shadow threshold (0.12 of white, 31/255) whose code reads: its coordinates go to
     ``dim_xy``, against the surface they were rendered from, and the lit map stays as it was."""

@@ -120,7 +120,8 @@ def test_a_slope_taken_like_another_maps_is_the_slope_computed_whole():
 def test_a_strip_of_a_surface_borrows_its_unknown_slope_along_the_strip():
     """Surface A seen three rows tall over columns 0-5 and one row tall (row 2) from column 6 on,
     surface B far from it below: the strip's d/dy is unknown to map_slope and fill_slope lends A's,
-    one pixel further each pass up to its reach, never B's across the depth edge."""
+    one pixel further each pass up to its reach, never B's across the depth edge; past the reach it
+    completes the strip's d/dy from its d/dx as the map's pixels relate theirs."""
     h, w = 8, 20
     y, x = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     a = torch.stack([1.1 * x + 0.3 * y + 2, -0.2 * x + 0.9 * y + 1], -1)
@@ -132,7 +133,11 @@ def test_a_strip_of_a_surface_borrows_its_unknown_slope_along_the_strip():
     assert torch.isnan(strip[..., 1]).all() and torch.isfinite(strip[..., 0]).all()
     filled = fill_slope(xy, slope, reach=8)
     torch.testing.assert_close(filled[2, 6:14, :, 1], torch.tensor([0.3, 0.9], dtype=torch.float64).expand(8, 2))
-    assert torch.isnan(filled[2, 14:, :, 1]).all()  # beyond the reach
+    # Beyond the reach no neighbour lends: the slope along the strip, turned and scaled as the map's
+    # median pixel's (B's: most of the map) turns its own, d/dy = z d/dx with z = 0.75i / 0.7.
+    z = complex(0, 0.75 / 0.7)
+    along = z * complex(1.1, -0.2)
+    torch.testing.assert_close(filled[2, 14:, :, 1], torch.tensor([along.real, along.imag], dtype=torch.float64).expand(6, 2))
     known = ~torch.isnan(slope)
     assert torch.equal(filled[known], slope[known])  # what map_slope knew stays
     assert torch.isnan(filled[:2, 6:]).all()  # unmapped pixels stay unknown

@@ -184,7 +184,9 @@ def fill_slope(prj_xy: torch.Tensor, slope: torch.Tensor, reach: int = 8) -> tor
     one across it not. On a surface the slope varies slowly, so the neighbours along the strip lend
     theirs, from where the surface is seen wider, one pixel further each pass (their mean). Two
     neighbours are on the same surface where their coordinates are within :data:`EDGE_JUMP` cells.
-    Our choice (the paper has no slope): measured in docs/accuracy.md on a suite scene's outline.
+    A pixel no neighbour lends to within ``reach`` (a strip seen one pixel wide all along) takes the
+    slope along it, turned and scaled as the map's median pixel turns its own (:func:`_complete`).
+    Our choice (the paper has no slope): measured in docs/accuracy.md on suite scenes' outlines.
     """
     check_shape(slope, "slope", [*prj_xy.shape[:2], 2, 2])
     height, width = prj_xy.shape[:2]
@@ -215,7 +217,36 @@ def fill_slope(prj_xy: torch.Tensor, slope: torch.Tensor, reach: int = 8) -> tor
             break
         mean = torch.where(lend[..., None], lent, 0.0).sum(1) / lend.sum(1, keepdim=True).clamp_min(1)
         flat[here[fill], :, axis[fill]] = mean[fill].to(flat.dtype)
+    left = torch.isnan(flat[here, :, axis]).any(-1) & ~torch.isnan(flat[here, :, 1 - axis]).any(-1)
+    if bool(left.any()):
+        _complete(flat, here[left], axis[left])
     return out
+
+
+def _complete(flat: torch.Tensor, here: torch.Tensor, axis: torch.Tensor) -> None:
+    """Each pixel ``here`` of ``flat`` :math:`(H W, 2, 2)` given the slope along camera ``axis`` from
+    the one along the other, in place: what no neighbour lends (a strip seen one pixel high all along
+    it, suite-56-5's far plane between its outline and the sky).
+
+    Locally the map is near a similarity (the projector sees the camera's two axes turned by about a
+    right angle and scaled alike), so the unknown axis is the known one turned and scaled as the
+    map's median over its pixels with both: as complex numbers, ``d/dy = z d/dx`` with ``z`` the
+    median of that ratio. Our choice: a surface's own tilt is not known from one row of it.
+    """
+    both = ~torch.isnan(flat.reshape(-1, 4)).any(-1)
+    full = flat[both].double()
+    across, along = torch.complex(full[:, 0, 0], full[:, 1, 0]), torch.complex(full[:, 0, 1], full[:, 1, 1])
+    keep = across.abs() > 0
+    if not bool(keep.any()):
+        return
+    ratio = along[keep] / across[keep]
+    z = torch.complex(ratio.real.median(), ratio.imag.median())
+    if not bool(z.abs() > 0):
+        return
+    known = flat[here, :, 1 - axis].double()
+    known = torch.complex(known[:, 0], known[:, 1])
+    given = torch.where(axis == 1, known * z, known / z)
+    flat[here, :, axis] = torch.stack([given.real, given.imag], -1).to(flat.dtype)
 
 
 # Camera pixels a side of the tiles in which a slope is computed again near a changed pixel.
