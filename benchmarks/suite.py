@@ -11,7 +11,11 @@ of ``run``; ``auto``, the least costly model whose expected loss is within a tol
 richest, :func:`torchproj.pipeline.choose_footprint`) is built and solved as ``run`` builds and
 solves it (FISTA, least squares, bounds 0..255; colour scenes one operator per channel), and the
 patterns are scored on the rig's captures. ``ceiling`` is the same rows solved on the simulator's
-own light transport (``torchproj run --ceiling``), the best any calibration could reach.
+own light transport (``torchproj run --ceiling``), the best any calibration could reach. Every
+model's captures and the ceiling's meet the same camera noise (drawn from the scene's seed:
+``evaluate_patterns(..., seed=)``), so a gap is the models' difference, not two noise draws': one
+draw moves a target of a few hundred pixels by up to a decibel, and before, what else a run
+measured first changed which draw each model met.
 
 Writes ``results.json``, ``results.md`` (per scene and model: each target's PSNR / SSIM, its gap to
 the ceiling, build and solve time; a summary per model), ``suite.png`` (each target's gap to the
@@ -97,7 +101,7 @@ def measure(name: str, models: tuple[str, ...], log=print) -> list[dict]:
     rows = []
     for model in (*models, "ceiling"):
         ops, result, built, solved, patterns, choice = solve_model(cal, targets, model)
-        scores = evaluate_patterns(cal, patterns, targets, scale=ops[0].scale, paper=False).targets
+        scores = evaluate_patterns(cal, patterns, targets, scale=ops[0].scale, paper=False, seed=scene.seed).targets
         rows.append({"scene": name, **about, "model": model, "calibrate_s": round(calibrated, 2),
                      "variables": ops[0].shape[1], "rows": ops[0].shape[0], "nnz": sum(o.nnz for o in ops),
                      "build_s": round(built, 3), "solve_s": round(solved, 3), "iterations": result.iterations,

@@ -151,7 +151,7 @@ def measure(name: str, log=print) -> dict | None:
                 _, _, patterns = solve_on_light_transport([op], BOUNDS, true_responses(cal.rig.scene), max_iter=iterations)
             else:
                 _, _, patterns = make_patterns([op], "fista", BOUNDS, cal.responses, progress=False)
-            scores[label] = evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False).targets
+            scores[label] = evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False, seed=scene.seed).targets
     out = {"scene": name, "weight_error_rms": round(float(((measured / true) - 1).pow(2).mean().sqrt()), 4),
            "targets": []}
     for k, target in enumerate(targets):

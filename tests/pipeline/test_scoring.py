@@ -33,6 +33,28 @@ def test_scores_are_psnr_and_scikit_image_ssim_of_the_capture(quarter_rig):
         assert score.pixels == int(covered.sum()) and 0 <= score.crosstalk <= 1
 
 
+def test_a_seed_gives_every_set_of_patterns_the_same_noise(quarter_rig):
+    """Scored with a seed, the same patterns get the same captures whatever was captured before, the
+    noise of the rig's own capture with that seed (state k: seed + k); another seed draws other
+    noise; without one, the rig's generator draws on."""
+    scene, cal = quarter_rig
+    targets = scene_targets(scene, rig=cal.rig)
+    model = ProjectionModel.from_calibration(cal, targets)
+    patterns = model.to_patterns()
+    first = evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False, seed=11)
+    evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False)  # draws from the generator
+    again = evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False, seed=11)
+    other = evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False, seed=12)
+    shown = {j: (p.float() / 255)[None] for j, p in enumerate(patterns)}
+    for k, state in enumerate(dict.fromkeys(t.state for t in targets)):
+        assert torch.equal(first.captures[state], again.captures[state])
+        torch.testing.assert_close(first.captures[state], cal.rig.capture(state, shown, seed=11 + k)[0])
+        assert not torch.equal(first.captures[state], other.captures[state])
+    assert [s.psnr_db for s in first.targets] == [s.psnr_db for s in again.targets]
+    unseeded = [evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False) for _ in range(2)]
+    assert not torch.equal(*(e.captures[targets[0].state] for e in unseeded))
+
+
 def test_other_images_score_worse_on_the_same_patterns(quarter_rig):
     scene, cal = quarter_rig
     targets = scene_targets(scene, rig=cal.rig)

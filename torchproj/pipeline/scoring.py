@@ -134,7 +134,7 @@ class PatternEvaluation:
 
 
 def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[Target], *, scale: float,
-                      states=None, noise: bool = True, paper: bool = True) -> PatternEvaluation:
+                      states=None, noise: bool = True, paper: bool = True, seed: int | None = None) -> PatternEvaluation:
     """Project patterns on the virtual rig, capture each target's state and score every target.
 
     Args:
@@ -148,6 +148,11 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
         states: per state the :class:`~torchproj.transport.StateCalibration` whose lit pixels are
             scored (default: the calibration's own; a run on homography maps passes those).
         noise: camera noise in the captures, as on a bench.
+        seed: the captures' noise drawn from this seed (state ``k`` of the targets' states from
+            ``seed + k``), so that every set of patterns scored with it meets the same noise and two
+            sets compare by their light alone. None: the rig's own generator, whose draws go on
+            from the calibration's (what ``torchproj run`` scores with). One capture's noise moves a
+            target of a few hundred pixels by up to a decibel (suite-55-8, docs/accuracy.md).
         paper: also score against the paper's baseline: for each target, the target image carried onto
             the cells of the one projector that lights most of its pixels (each cell the mean of the
             target over the camera pixels decoded to it), response-compensated, projected alone onto
@@ -162,8 +167,8 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     device = calibration.rig.device
     shown = {j: (p.float() / 255 if p.dtype == torch.uint8 else p.float())[None].to(device)
              for j, p in enumerate(patterns)}
-    captures = {state: calibration.rig.capture(state, shown, noise=noise)[0].cpu()
-                for state in dict.fromkeys(t.state for t in targets)}
+    captures = {state: calibration.rig.capture(state, shown, noise=noise, seed=None if seed is None else seed + k)[0].cpu()
+                for k, state in enumerate(dict.fromkeys(t.state for t in targets))}
     regions = []  # scored on the host, beside the captures
     for target in targets:
         lit = states[target.state].lit().cpu()
