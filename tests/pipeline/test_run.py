@@ -8,7 +8,7 @@ import torch
 import yaml
 
 from torchproj.cli import main
-from torchproj.core import InputError
+from torchproj.core import CaptureError, InputError
 from torchproj.pipeline import DEFAULT_IMAGES, calibrate_virtual, run_markdown, run_virtual, target_image
 from torchproj.experiments import depth_sweep
 from torchproj.scene import parse_scene
@@ -296,6 +296,9 @@ def test_target_images_by_name_or_file(tmp_path):
     assert target_image(str(tmp_path / "t.png"), 1).shape == (1, 10, 12)
     with pytest.raises(InputError, match="unknown image"):
         target_image("lena", 1)
+    (tmp_path / "broken.png").write_bytes(b"not a png")  # a target is saved again, not captured
+    with pytest.raises(CaptureError, match=r"broken.png: cannot be read as an image .*save the target image again"):
+        target_image(str(tmp_path / "broken.png"), 1)
 
 
 @pytest.mark.parametrize("name", DEFAULT_IMAGES)

@@ -17,11 +17,13 @@ from .errors import CaptureError
 __all__ = ["read_image", "write_image", "to_uint"]
 
 
-def read_image(path: str | os.PathLike) -> torch.Tensor:
+def read_image(path: str | os.PathLike, remedy: str = "capture it again") -> torch.Tensor:
     """Read an 8- or 16-bit PNG/TIFF/JPEG as a float image.
 
     Args:
         path: the file.
+        remedy: what the message of an unreadable file tells a person to do (a capture: take it
+            again; a target image: save it again).
 
     Returns:
         :math:`(C, H, W)` float32 tensor in [0, 1], C = 1 (grey) or 3 (RGB order).
@@ -34,7 +36,7 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
         raise CaptureError(f"{path}: file not found")
     data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if data is None:
-        raise CaptureError(f"{path}: cannot be read as an image (corrupt or truncated?); capture it again")
+        raise CaptureError(f"{path}: cannot be read as an image (corrupt or truncated?); {remedy}")
     if data.dtype == np.uint8:
         scale = 255.0
     elif data.dtype == np.uint16:

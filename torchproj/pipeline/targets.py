@@ -35,7 +35,7 @@ def target_image(name: str, channels: int) -> torch.Tensor:
     from skimage import data  # a lazy package: its loaders import on first use
 
     if Path(name).suffix:
-        img = read_image(name).permute(1, 2, 0).numpy()
+        img = read_image(name, "save the target image again as PNG, TIFF or JPEG").permute(1, 2, 0).numpy()
     elif (shipped := _shipped_file(name)) is not None:
         img = read_image(shipped).permute(1, 2, 0).numpy()
     else:
