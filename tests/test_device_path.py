@@ -46,7 +46,10 @@ def _same_scores(cpu, gpu):
 # Each with --no-cache: calibrated and built on the device, not read from what a CPU run kept.
 RUNS = {
     "default": ("paper_two_planes", []),
-    "ssim": ("paper_two_planes", ["--objective", "ssim", "--ssim-iter", "5"]),
+    # The SSIM stage's start capped under where FISTA's stopping test fires: that test reads the last
+    # step, which the devices' sums order round apart (51 against 58 iterations), and from starts
+    # that close the flat SSIM objective reaches the same value with targets 0.14 dB apart.
+    "ssim": ("paper_two_planes", ["--objective", "ssim", "--ssim-iter", "5", "--max-iter", "40"]),
     "camera loop": ("paper_two_planes", ["--refine", "1"]),
     "colour channels": ("colour_two_planes", []),
     "auto": ("paper_two_planes", ["--footprint", "auto"]),
