@@ -98,8 +98,9 @@ def _rig_shares(data: dict) -> dict[str, float]:
     shares = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
+        whole = VirtualRig(parse_scene(data))
         for target in data["targets"]:
-            seen = VirtualRig(parse_scene(data)).surface_mask(target["state"], target["surfaces"])
+            seen = whole.surface_mask(target["state"], target["surfaces"])
             alone = {**data, "states": [{"name": target["state"], "surfaces": target["surfaces"]}],
                      "targets": [target]}
             every = VirtualRig(parse_scene(alone)).surface_mask(target["state"])
@@ -109,8 +110,8 @@ def _rig_shares(data: dict) -> dict[str, float]:
 
 def test_a_draw_that_hides_a_target_is_drawn_again(monkeypatch):
     """The share of a target nothing hides, measured on a coarse grid of rays (2.4 pixels apart on
-    suite-55-1's camera), is the rig's own to 0.05; the draw of suite-55-1 that hid plane1 (a share of 0.04) is refused, and the
-    scene drawn instead shows every target."""
+    suite-55-1's camera), is the rig's own to 0.05; the draw of suite-55-1 that hid plane1 (a share
+    of 0.04) is refused, and the scene drawn instead shows every target."""
     monkeypatch.setattr(procedural, "_SEEN", 0.0)
     hidden = procedural_config(55, 1)
     monkeypatch.undo()

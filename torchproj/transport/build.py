@@ -245,10 +245,7 @@ class StateCalibration:
         fine = self.shares is not None and self.shares[j].checker is not None
         cells, values = _footprint(xy, weight, size, footprint, slope, blur, fine)
         if self.edges is not None:
-            # Only a projector measured defocused (most of its pixels' discs a cell or wider) reads each
-            # surface's own blur: on a sharp one the blur measured beside outlines is noise of 1-1.5 cells.
-            defocused = self.blur is not None and float(torch.nanmedian(self.blur[j])) >= BLUR_MIN
-            maps = (self.prj_xy[j], self.blur[j]) if defocused else None
+            maps = (self.prj_xy[j], self.blur[j]) if self._defocused(j) else None
             cells, values = _edge_rows(cells, values, self.edges[j], pixels, weight, size, blur, fine, maps)
         if self.shares is not None:
             cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
@@ -263,6 +260,20 @@ class StateCalibration:
         kept = cache.get(j)
         if kept is None or not _unchanged(kept[0], [xy]):
             cache[j] = kept = (_stamp([xy]), map_slope(xy))
+        return kept[1]
+
+    def _defocused(self, j: int) -> bool:
+        """Whether projector ``j`` was measured defocused, most of its pixels' discs a cell or wider
+        (:data:`BLUR_MIN`), kept while its blur map is unchanged: a state's targets each ask. Only such
+        a projector's edge rows read each surface's own blur: on a sharp one the blur measured beside
+        outlines is noise of 1-1.5 cells."""
+        if self.blur is None:
+            return False
+        blur = self.blur[j]
+        cache = self.__dict__.setdefault("_defocus", {})  # projector -> (its blur map, stamped; defocused)
+        kept = cache.get(j)
+        if kept is None or not _unchanged(kept[0], [blur]):
+            cache[j] = kept = (_stamp([blur]), float(torch.nanmedian(blur)) >= BLUR_MIN)
         return kept[1]
 
     def lit(self) -> torch.Tensor:
