@@ -53,6 +53,9 @@ def test_a_seed_gives_every_set_of_patterns_the_same_noise(quarter_rig):
     assert [s.psnr_db for s in first.targets] == [s.psnr_db for s in again.targets]
     unseeded = [evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False) for _ in range(2)]
     assert not torch.equal(*(e.captures[targets[0].state] for e in unseeded))
+    for bad in (-1, 1.5, True, "7", 2 ** 70):
+        with pytest.raises(InputError, match="seed must be a whole number"):
+            evaluate_patterns(cal, patterns, targets, scale=model.scale, paper=False, seed=bad)
 
 
 def test_other_images_score_worse_on_the_same_patterns(quarter_rig):

@@ -164,6 +164,8 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     check(len(patterns) == len(calibration.rig.scene.projectors),
           f"give one pattern per projector ({len(calibration.rig.scene.projectors)}), got {len(patterns)}")
     check(scale > 0, f"scale must be positive, got {scale}")
+    check(seed is None or (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
+          f"seed must be a whole number from 0 to 2**62 (or None: the rig's own noise draws), got {seed!r}")
     device = calibration.rig.device
     shown = {j: (p.float() / 255 if p.dtype == torch.uint8 else p.float())[None].to(device)
              for j, p in enumerate(patterns)}
