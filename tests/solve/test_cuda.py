@@ -118,7 +118,7 @@ def test_one_operator_per_channel_moves_to_the_gpu_and_matches_the_cpu():
     for loss in losses:
         loss.backward()
     assert gpu.targets.device.type == "cuda" and gpu.patterns.grad.device.type == "cuda"
-    assert float(losses[1]) == pytest.approx(float(losses[0]), rel=1e-5)
+    assert losses[1].item() == pytest.approx(losses[0].item(), rel=1e-5)
     torch.testing.assert_close(gpu.patterns.grad.cpu(), cpu.patterns.grad, rtol=1e-4, atol=1e-6)
     solved_cpu = solve_ssim(channel_rig(), (0.0, 1.0), max_iter=10)
     solved_gpu = solve_ssim([op.to("cuda") for op in channel_rig()], (0.0, 1.0), max_iter=10)
