@@ -9,7 +9,7 @@ import torch
 from torchproj.core.errors import InputError
 from torchproj.transport import StateCalibration, TransportOperator, build_transport, cell_blocks
 from torchproj.core.sparse import csr_tensor
-from torchproj.transport.operator import _blockwise_sum
+from torchproj.transport.operator import _blockwise_sum, _transpose
 
 from ..helpers import LARGE, synthetic_calibration, targets
 
@@ -432,3 +432,88 @@ def test_the_step_bound_tightens_with_products_on_a_rig():
         bound = ne.jacobi().lipschitz(iterations)
         assert bound >= top * (1 - 1e-12)
     assert bound <= top * 1.01
+
+
+def test_smoothness_rows_add_the_neighbour_differences_of_every_projector_image():
+    """||A' p||^2 - ||A p||^2 is lam times the squared differences of neighbouring lit cells, read off
+    each projector's image (cells that are no variable do not count); lam scales with A's columns."""
+    op = build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3), scale=0.8).double()
+    weight = 0.01
+    smooth = op.with_smoothness(weight)
+    g = torch.Generator().manual_seed(11)
+    p = torch.rand(op.shape[1], 2, generator=g, dtype=torch.float64)
+    lam = weight * op.dense().pow(2).sum(0).mean()
+    penalty = torch.zeros(2, dtype=torch.float64)
+    for img in op.to_images(p, fill=float("nan")):
+        for d in (img[:, :, 1:] - img[:, :, :-1], img[:, 1:, :] - img[:, :-1, :]):
+            penalty += torch.nan_to_num(d, nan=0.0).pow(2).sum((1, 2))
+    gained = smooth.A(p).pow(2).sum(0) - op.A(p).pow(2).sum(0)
+    torch.testing.assert_close(gained, lam * penalty, rtol=1e-10, atol=1e-10)
+    assert torch.equal(smooth.dense()[: op.shape[0]], op.dense())
+    # A^T of the stack, placed by counting, is the one a transpose of the whole stack gives, to the bit.
+    whole = _transpose(smooth._csr())
+    for mine, theirs in zip((smooth.t_crow, smooth.t_col, smooth.t_val),
+                            (whole.crow_indices(), whole.col_indices(), whole.values())):
+        assert torch.equal(mine.long() if mine.dtype != torch.float64 else mine,
+                           theirs.long() if theirs.dtype != torch.float64 else theirs)
+    assert torch.equal(smooth.rhs[op.shape[0]:], torch.zeros(smooth.shape[0] - op.shape[0], op.rhs.shape[1],
+                                                             dtype=op.rhs.dtype))
+    assert op.with_smoothness(0) is op and smooth.row_pixel is None
+    for bad in (-1.0, float("nan"), "0.1", True):
+        with pytest.raises(InputError, match="smoothness weight"):
+            op.with_smoothness(bad)
+
+
+def test_a_smoothed_solve_is_scipys_penalised_box_least_squares():
+    """FISTA on the smoothed operator reaches the minimiser of ||A p - i||^2 + lam ||D p||^2 in the
+    box, as scipy's lsq_linear finds it on the dense stacked system in float64."""
+    from scipy.optimize import lsq_linear
+
+    from torchproj.solve import solve_patterns
+
+    small = build_transport(synthetic_calibration(shape=(16, 20), sizes=[(12, 10), (10, 8)]), targets(channels=1),
+                            scale=0.8).double()
+    smooth = small.with_smoothness(0.05)
+    found = solve_patterns(smooth, "fista", (0.0, 1.0), max_iter=5000, tol=1e-13).patterns[:, 0]
+    stacked = smooth.dense().numpy()
+    want = lsq_linear(stacked, smooth.rhs[:, 0].numpy(), bounds=(0.0, 1.0), tol=1e-13, method="bvls").x
+    np.testing.assert_allclose(found.numpy(), want, atol=2e-4)
+    plain = lsq_linear(small.dense().numpy(), small.rhs[:, 0].numpy(), bounds=(0.0, 1.0), method="bvls").x
+    assert np.abs(plain - want).max() > 1e-2  # the penalty moved the answer
+
+
+def test_a_smoothed_operator_takes_its_q_from_the_one_it_was_made_from_and_iterates_in_its_form():
+    """Where A^T A and its coarse levels are built already (or read from a cache), the smoothed
+    operator's are they plus lam D^T D, tied alike: the stacked matrix's own; its normal form is its
+    origin's."""
+    from torchproj.transport.operator import normal_form
+
+    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
+                         scale=0.8).double()
+    op.coarse_levels(3, "matrix")
+    smooth = op.with_smoothness(0.02)
+    stacked = smooth.dense()
+    assert smooth.normal_matrix() is not None
+    torch.testing.assert_close(smooth.normal_matrix().to_dense(), stacked.T @ stacked, rtol=1e-12, atol=1e-12)
+    # Each coarse level is the stacked matrix's own P^T Q P: its tied columns' Gram matrix.
+    assert len(smooth.coarse_matrices()) == len(op.coarse_matrices()) > 0
+    tied = stacked
+    for block, Qc in zip(smooth._level_blocks(3), smooth.coarse_matrices()):
+        tied = tied @ torch.nn.functional.one_hot(block, int(block.max()) + 1).double()
+        torch.testing.assert_close(Qc.to_dense(), tied.T @ tied, rtol=1e-12, atol=1e-12)
+    op.form = "products"
+    assert normal_form(op.with_smoothness(0.02)) == "products"
+    assert op.with_smoothness(0.02).normal_matrix() is not None  # the Q at hand is still taken
+
+
+@pytest.mark.parametrize("form", ["matrix", "products"])
+def test_the_step_bound_holds_where_a_smoothness_penalty_puts_negative_entries_in_q(form):
+    """The penalty's -lam between neighbours makes Q's entries mixed in sign; the Collatz-Wielandt
+    bound, taken on |Q|, still bounds Q's largest eigenvalue (float64 dense eigvalsh), and closely."""
+    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
+                         scale=0.8).double().with_smoothness(0.5)
+    for ne in (op.normal_equations(form), op.normal_equations(form).jacobi()):
+        dense = ne.product(torch.eye(op.shape[1], dtype=torch.float64))
+        top = float(torch.linalg.eigvalsh((dense + dense.T) / 2)[-1])
+        assert not ne._nonnegative()
+        assert top <= ne.lipschitz() <= 1.1 * top

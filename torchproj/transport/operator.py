@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -198,6 +199,7 @@ class TransportOperator(nn.Module):
         self.camera_size = None if camera_size is None else tuple(int(v) for v in camera_size)
         self.target_count = int(self.row_target.max()) + 1 if target_count is None and n_rows else int(target_count or 0)
         self.projector_sizes = [tuple(s) for s in projector_sizes]
+        self.form = None  # the normal equations' form its solvers use (normal_form); None: by its shape
         self.shape = (n_rows, n_cols)
         self.scale = float(scale)
 
@@ -484,6 +486,111 @@ class TransportOperator(nn.Module):
             else:
                 setattr(new, key, None)
         return new
+
+    def with_smoothness(self, weight: float) -> "TransportOperator":
+        """The same rows, and below them a penalty on the difference of each pair of neighbouring cells.
+
+        For every two variables that are side by side in one projector (left-right or up-down), one
+        row ``sqrt(lam) (p_c - p_d)`` with target 0, so that a least-squares solve on this operator
+        minimises ``||A p - i||^2 + lam ||D p||^2``. ``lam`` is ``weight`` times the mean squared
+        column norm of ``A``: the weight is free of the camera's units and of how many pixels see a
+        cell.
+
+        Why: where cells are finer than the camera's pixels, or projectors overlap, many patterns
+        give nearly the same light under the model, and the solve picks among them by the model's
+        least reliable part (a pixel's exact share of each cell, an outline's position). What the
+        world then shows departs from what the model promised, most on small targets. Among nearly
+        equal patterns the penalty picks the smoother, whose light depends least on those details.
+        The paper solves with box constraints alone (Sec. 3.3); this is our choice, measured on the
+        procedural suite in ``docs/accuracy.md``.
+
+        The new rows are no camera pixels: the operator has no ``row_pixel``, and is for solving
+        (scores and images come from the operator it was made from).
+
+        Args:
+            weight: ``lam`` over the mean squared column norm, >= 0; 0 returns this operator.
+        """
+        check(isinstance(weight, (int, float)) and not isinstance(weight, bool) and math.isfinite(weight)
+              and weight >= 0, f"smoothness weight must be a number >= 0 (0: none), got {weight!r}")
+        if weight == 0:
+            return self
+        device = self.val.device
+        norms = torch.zeros(self.shape[1], dtype=torch.float64, device=device)
+        norms.index_add_(0, self.col.long(), self.val.double().pow(2))
+        root = math.sqrt(weight * float(norms.mean()))
+        first, second = self._neighbour_pairs()
+        pairs = first.numel()
+        if pairs == 0:  # no two variables side by side: nothing to smooth
+            return self
+        # Two entries per new row, columns in order: the rows go below A's as they are, unsorted.
+        cols = torch.stack([torch.minimum(first, second), torch.maximum(first, second)], 1).reshape(-1)
+        ends = self.crow[-1] + 2 * torch.arange(1, pairs + 1, device=device, dtype=self.crow.dtype)
+        matrix = csr_tensor(torch.cat([self.crow, ends]), torch.cat([self.col, cols.to(self.col.dtype)]),
+                            torch.cat([self.val, torch.tensor([root, -root], dtype=self.val.dtype,
+                                                              device=device).repeat(pairs)]),
+                            (self.shape[0] + pairs, self.shape[1]))
+        rhs = torch.cat([self.rhs, self.rhs.new_zeros(pairs, self.rhs.shape[1])])
+        # The penalty's rows serve no target; they are counted with target 0 so that every row has one.
+        row_target = torch.cat([self.row_target, self.row_target.new_zeros(pairs)])
+        smoothed = TransportOperator(matrix, rhs, self.column_projector, self.column_cell, self.projector_sizes,
+                                     constant=self.constant, row_target=row_target, scale=self.scale,
+                                     target_count=self.target_count, transpose=self._stacked_transpose(cols, root))
+        # Solved in this operator's form: the penalty's rows, two cells each, would otherwise tip a coarse
+        # camera's wide rows (iterated on products) over to building Q.
+        smoothed.form = normal_form(self)
+        Q = self.normal_matrix()
+        if Q is not None:
+            # A^T A and its coarse levels P^T Q P built (or read from a cache) already: the penalty adds
+            # lam D^T D to each, tied as they are, which costs a fraction of building them again.
+            lam, differences = root * root, _difference_gram(first, second, self.shape[1])
+            smoothed.adopt_normal_matrix(_plus(Q, differences, lam))
+            coarse = self.coarse_matrices()
+            if coarse:
+                levels = []
+                for block, Qc in zip(smoothed._level_blocks(len(coarse)), coarse):
+                    differences = _tied(differences, block)
+                    levels.append(_plus(Qc, differences, lam))
+                smoothed.adopt_coarse_matrices(levels)
+        return smoothed
+
+    def _stacked_transpose(self, cols: torch.Tensor, root: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The CSR arrays of ``[A; D]^T`` for ``D``'s rows ``root (p_a - p_b)`` (``cols``: a, b per row, in
+        order) below A's: each of A^T's rows followed by D^T's, placed by counting, so no entry is
+        sorted (a transpose of the whole stack took 0.7 s on the default scene)."""
+        from scipy.sparse import csr_matrix
+
+        pairs, device = cols.numel() // 2, self.val.device
+        values = torch.tensor([root, -root], dtype=self.t_val.dtype).repeat(pairs)  # as the stacked matrix holds them
+        D = csr_matrix((values.numpy(), cols.cpu().numpy(),
+                        np.arange(0, 2 * pairs + 1, 2)), shape=(pairs, self.shape[1])).tocsc()  # D^T's CSR arrays
+        d_crow, d_col, d_val = (torch.from_numpy(a).to(device) for a in (D.indptr.astype(np.int64), D.indices, D.data))
+        a_crow = self.t_crow.long()
+        crow = a_crow + d_crow
+        # An entry of A^T's row c moves down by D^T's entries in the rows before c; one of D^T's comes
+        # after all of A^T's row c.
+        a_at = torch.arange(self.t_val.numel(), device=device) + torch.repeat_interleave(d_crow[:-1], a_crow.diff())
+        d_at = torch.arange(d_val.numel(), device=device) + torch.repeat_interleave(a_crow[1:], d_crow.diff())
+        index = index_dtype(self.shape[0] + pairs, int(crow[-1]))
+        col = torch.empty(int(crow[-1]), dtype=index, device=device)
+        val = torch.empty(int(crow[-1]), dtype=self.t_val.dtype, device=device)
+        col[a_at], val[a_at] = self.t_col.to(index), self.t_val
+        col[d_at], val[d_at] = (d_col.long() + self.shape[0]).to(index), d_val.to(self.t_val.dtype)
+        return crow.to(index), col, val
+
+    def _neighbour_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The columns of every two variables side by side in one projector, left-right then up-down."""
+        device = self.val.device
+        firsts, seconds = [], []
+        for j, (w, h) in enumerate(self.projector_sizes):
+            mine = torch.nonzero(self.column_projector == j)[:, 0]
+            grid = torch.full((h * w,), -1, dtype=torch.int64, device=device)  # a cell's column, or -1
+            grid[self.column_cell[mine].long()] = mine
+            grid = grid.view(h, w)
+            for a, b in ((grid[:, :-1], grid[:, 1:]), (grid[:-1, :], grid[1:, :])):
+                both = (a >= 0) & (b >= 0)
+                firsts.append(a[both])
+                seconds.append(b[both])
+        return torch.cat(firsts), torch.cat(seconds)
 
     def with_rows_moved(self, moves: torch.Tensor) -> "TransportOperator":
         """The same rows with each row's light moved across the projectors' cells (its footprint's shape kept).
@@ -814,7 +921,10 @@ class NormalEquations:
         products, and tightens as x converges. A column without one (a projector cell no row sees)
         is a zero row of the Gram matrix ``Q``, eigenvalue 0, and stays 0 in x: the bound holds on
         the rest, which the first product (Q's row sums, positive exactly on its nonzero rows) marks.
-        Otherwise (a negative entry, or a seen column's entry of x rounded to 0) the power
+        Where Q has negative entries (a smoothness penalty's ``-lam`` between neighbouring cells,
+        :meth:`TransportOperator.with_smoothness`), the iteration runs on ``|Q|``, entry by entry,
+        whose largest eigenvalue is no smaller than Q's (Perron-Frobenius: ``rho(Q) <= rho(|Q|)``),
+        so that bound holds for Q too. Otherwise (a seen column's entry of x rounded to 0) the power
         iteration's estimate gets a 5% margin, which is no bound where the products fall short of
         the top eigenvalue by more: with 30 it was 1.9% below it on the default scene's coarsest level
         (``python benchmarks/step_bounds.py``).
@@ -822,15 +932,15 @@ class NormalEquations:
         if self._lipschitz is None and self._origin is not None:
             self._lipschitz = self._origin.lipschitz(iterations)
         if self._lipschitz is None:
-            nonnegative = self._nonnegative()
-            wanted = iterations if iterations is not None else STEP_BOUND_PRODUCTS if nonnegative else MARGIN_PRODUCTS
+            product = self.product if self._nonnegative() else self._absolute_product()
+            wanted = iterations if iterations is not None else STEP_BOUND_PRODUCTS
             x = torch.ones(self.q.shape[0], 1, dtype=self.q.dtype, device=self.q.device)
             rows, done = None, 0
             while True:
-                y = self.product(x)
+                y = product(x)
                 rows = y[:, 0] > 0 if rows is None else rows
                 if done >= wanted:
-                    if nonnegative and bool((x[rows] > 0).all()):
+                    if bool((x[rows] > 0).all()):
                         self._lipschitz = float((y[rows] / x[rows]).max()) if bool(rows.any()) else 0.0
                         break
                     if iterations is not None or done >= MARGIN_PRODUCTS:
@@ -845,6 +955,44 @@ class NormalEquations:
         """Whether ``Q`` has no negative entry (then the Collatz-Wielandt bound holds)."""
         values = self.Q.values()
         return values.numel() == 0 or float(values.min()) >= 0
+
+    def _absolute_product(self):
+        """``x -> |Q| x``, Q's entries taken by their size (:meth:`lipschitz`)."""
+        absolute = csr_tensor(self.Q.crow_indices(), self.Q.col_indices(), self.Q.values().abs(), self.Q.shape)
+        return lambda x: spmm(absolute, x)
+
+
+def _difference_gram(first: torch.Tensor, second: torch.Tensor, n: int):
+    """``D^T D`` (scipy CSR, float64, :math:`(n, n)`) for ``D`` the rows ``p_first - p_second``: each
+    pair's count on the diagonal and -1 off it. scipy's product of D's two entries per row, which
+    has no duplicates to sum: 0.12 s for the default scene's 1.8 M pairs, against 0.9 s from
+    coordinates."""
+    from scipy.sparse import csr_matrix
+
+    a, b = first.cpu().numpy(), second.cpu().numpy()
+    pairs = len(a)
+    D = csr_matrix((np.tile([1.0, -1.0], pairs), np.stack([np.minimum(a, b), np.maximum(a, b)], 1).ravel(),
+                    np.arange(0, 2 * pairs + 1, 2)), shape=(pairs, n))
+    return (D.T.tocsr() @ D).tocsr()
+
+
+def _tied(matrix, block: torch.Tensor):
+    """``P^T M P`` of a scipy matrix, ``P`` tying columns in ``block`` (:meth:`TransportOperator.coarse_levels`)."""
+    from scipy.sparse import csr_matrix
+
+    index = block.cpu().numpy()
+    tie = csr_matrix((np.ones(len(index)), (np.arange(len(index)), index)), shape=(len(index), int(index.max()) + 1))
+    return (tie.T @ matrix @ tie).tocsr()
+
+
+def _plus(Q: torch.Tensor, matrix, lam: float) -> torch.Tensor:
+    """``Q + lam M`` for a scipy ``M``, added on the CPU in Q's dtype (float32: a rounding of 1e-7 of
+    each entry, as Q is kept; float64 took twice as long on the default scene's Q), as a CSR tensor on
+    Q's device, each row's columns in order."""
+    q = _to_scipy(Q)
+    total = q + (lam * matrix).astype(q.dtype)
+    total.sort_indices()
+    return _from_scipy(total.tocsr()).to(Q.device)
 
 
 def gram_matrix(A: torch.Tensor, At: torch.Tensor | None = None, parts: int | None = None) -> torch.Tensor:
@@ -913,6 +1061,8 @@ def normal_form(op: "TransportOperator") -> str:
     0.35 M cells, Q 5.5 times A's nonzeros) 2.5 s against 1.5 s. Rows of one or two cells (the nearest
     footprint) keep ``Q`` sparse: there it wins everywhere (``python benchmarks/normal_forms.py``).
     """
+    if getattr(op, "form", None) is not None:  # an operator made from another iterates as that one
+        return op.form
     width = op.crow.diff().double()
     wide = float((width * width).sum()) > 3 * float(width.sum())
     return "products" if op.shape[0] < op.shape[1] and wide else "matrix"
@@ -988,6 +1138,12 @@ class ProductNormalEquations(NormalEquations):
         """Whether ``A^T A`` has no negative entry: where A has none (:meth:`NormalEquations.lipschitz`)."""
         values = self.A.values()
         return values.numel() == 0 or float(values.min()) >= 0
+
+    def _absolute_product(self):
+        """``x -> |A|^T |A| x``: entry by entry no smaller than ``|A^T A|``, so its largest eigenvalue
+        bounds A^T A's (:meth:`NormalEquations.lipschitz`)."""
+        A, At = (csr_tensor(m.crow_indices(), m.col_indices(), m.values().abs(), m.shape) for m in (self.A, self.At))
+        return lambda x: spmm(At, spmm(A, x))
 
 
 def entry_rows(matrix: torch.Tensor, dtype: torch.dtype = torch.int64) -> torch.Tensor:
