@@ -83,7 +83,7 @@ def cmd_run(args) -> int:
                          plane_tolerance=args.plane_tolerance, bits=args.bits, objective=_objective(args),
                          footprint=args.footprint, ceiling=args.ceiling, colour_weights=args.colour_weights,
                          refine=args.refine, refine_frames=args.refine_frames, refine_relax=args.refine_relax,
-                         cache=not args.no_cache)
+                         cache=not args.no_cache, smoothness=args.smoothness)
     _publish(args.out, result.write, "report.json, report.md, overview.png, patterns/, captures/")
     return 0
 
@@ -154,7 +154,8 @@ def cmd_solve(args) -> int:
 
     solution = solve_bundle(args.bundle, args.targets, **_solver_args(args), objective=_objective(args),
                             footprint=args.footprint, colour_weights=args.colour_weights, maps=args.maps,
-                            plane_tolerance=args.plane_tolerance, max_iter=args.max_iter, device=args.device)
+                            plane_tolerance=args.plane_tolerance, max_iter=args.max_iter, device=args.device,
+                            smoothness=args.smoothness)
     solution.report["bundle"] = str(args.bundle)
     print(f"solved {len(solution.predicted)} target(s) with {args.solver} ({args.objective}): "
           f"{solution.report['model']['variables']} variables, least-squares objective "
@@ -170,7 +171,8 @@ def cmd_refine(args) -> int:
         report = refine_bundle(args.bundle, args.targets, args.out, iterations=args.iterations, **_solver_args(args),
                                objective=_objective(args), footprint=args.footprint, colour_weights=args.colour_weights,
                                maps=args.maps, plane_tolerance=args.plane_tolerance, max_iter=args.max_iter,
-                               register=not args.no_register, device=args.device, live=live)
+                               register=not args.no_register, device=args.device, live=live,
+                               smoothness=args.smoothness)
     for s in report["steps"]:
         print(f"step {s['step']}: PSNR " + " / ".join(f"{v:.2f}" for v in s["psnr_db"]) + " dB")
     if "waiting" in report:

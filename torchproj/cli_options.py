@@ -152,7 +152,7 @@ def solver_options(p) -> None:
 
 def solve_options(p) -> None:
     """The options of every command that solves patterns (``run``, ``solve``)."""
-    from .core.choices import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, FOOTPRINTS, OBJECTIVES, PSNR_DROP_DB
+    from .core.choices import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, DEFAULT_SMOOTHNESS, FOOTPRINTS, OBJECTIVES, PSNR_DROP_DB
 
     solver_options(p)
     p.add_argument("--objective", default="l2", choices=list(OBJECTIVES),
@@ -168,6 +168,10 @@ def solve_options(p) -> None:
                    "around its sub-pixel coordinate), area (those its area covers) or auto (nearest where the measured "
                    "cell shares put its expected loss within 0.2 dB of a model that holds them, else area; the report "
                    f"says which and why); default {DEFAULT_FOOTPRINT}")
+    p.add_argument("--smoothness", type=float, metavar="W", help="weight of a penalty on neighbouring projector "
+                   "cells' differences in the least-squares solve: among patterns that the model finds nearly equal "
+                   "it picks the smoother, whose light depends least on the model's sub-cell detail (default "
+                   f"{DEFAULT_SMOOTHNESS:g} for fista, pgd and adam; 0: none; lf and eo take none)")
     p.add_argument("--colour-weights", default="channel", choices=list(COLOUR_WEIGHTS), help="colour camera and "
                    "targets: model each channel with its own white minus black and solve the channels apart (channel, "
                    "default; ssim/mixed then refine the channels together), or give every channel their mean (grey)")

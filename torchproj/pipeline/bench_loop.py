@@ -31,6 +31,7 @@ from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..core.output import write_json
 from ..solve import make_patterns
+from ..solve.compensate import resolve_smoothness
 from ..solve.refine import captured_loss, refine_patterns
 from ..transport import DEFAULT_FOOTPRINT
 from .real_rig import bundle_problem
@@ -54,7 +55,8 @@ class _Waiting(Exception):
 def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver: str = "fista", bounds_8bit=(0, 255),
                   objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT, plane_tolerance: float = 1.0,
                   colour_weights: str = "channel", outside: str = "clip", chains: str = "epipolar",
-                  max_iter: int | None = None, register: bool = True, device="cpu", live=None) -> dict:
+                  max_iter: int | None = None, register: bool = True, device="cpu", live=None,
+                  smoothness: float | None = None) -> dict:
     """One turn of the camera loop over files (module docstring).
 
     Args:
@@ -67,7 +69,7 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
         live: None, or a :class:`~torchproj.pipeline.acquire.LiveBench` that shows each step's
             patterns and takes its photos itself: the whole loop then runs in one turn.
         solver, bounds_8bit, objective, maps, footprint, plane_tolerance, colour_weights, outside,
-            chains, max_iter, device: as :func:`~torchproj.pipeline.solve_bundle` (the start's solve).
+            chains, max_iter, device, smoothness: as :func:`~torchproj.pipeline.solve_bundle` (the start's solve).
 
     Returns:
         the report: ``waiting`` (the step whose photos are wanted, and which) or ``done``, and per
@@ -79,7 +81,8 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
     options = {"bundle": str(Path(bundle).resolve()), "targets": [str(t) for t in targets], "iterations": iterations,
                "solver": solver, "bounds_8bit": list(bounds_8bit), "objective": str(objective), "maps": maps,
                "footprint": footprint, "plane_tolerance": plane_tolerance, "colour_weights": colour_weights,
-               "outside": outside, "chains": chains, "max_iter": max_iter, "register": register}
+               "outside": outside, "chains": chains, "max_iter": max_iter, "register": register,
+               "smoothness": resolve_smoothness(solver, smoothness)}
     _check_options(folder, options)
     problem = bundle_problem(bundle, targets, solver=solver, bounds_8bit=bounds_8bit, objective=objective, maps=maps,
                              footprint=footprint, plane_tolerance=plane_tolerance, colour_weights=colour_weights,
@@ -90,7 +93,8 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
                           device=device)
     responses = bundle.response_curves()
     start, _, _ = make_patterns(ops, solver, (lo, hi), responses, calibrations=states, objective=image,
-                                outside=outside, chains=chains, max_iter=max_iter, progress=False)
+                                outside=outside, chains=chains, max_iter=max_iter, progress=False,
+                                smoothness=options["smoothness"])
     names = [name for name, _, _ in bundle.projectors]
     shape = (bundle.channels, bundle.camera_size[1], bundle.camera_size[0])
     steps = []

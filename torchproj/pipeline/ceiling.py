@@ -212,8 +212,9 @@ def solve_on_light_transport(ops: list[TransportOperator], bounds: tuple[float, 
     from ..solve.mixing import solve_through_mixing
 
     check(solver != "eo", "the exact light transport has no epipolar chains for eo to walk: choose another solver")
+    # The exact light is the world itself: nothing in it is uncertain for a smoothness penalty to guard.
     result, light, patterns = make_patterns(ops, solver, bounds, responses, max_iter=max_iter, progress=progress,
-                                            objective=objective, outside=outside)
+                                            objective=objective, outside=outside, smoothness=0)
     bounce = None if world is None or objective not in (None, "l2") else bounce_terms(world.rig, targets, ops)
     if bounce is not None:
         check(0 <= bounds[0] and bounds[1] <= 1, "the exact light with interreflection is solved within [0, 1]: "

@@ -17,6 +17,7 @@ import torch
 from ..calib import CalibrationBundle, load_bundle
 from ..core.checks import check
 from ..solve import SolveResult, check_solve_options, image_objective, make_patterns
+from ..solve.compensate import resolve_smoothness
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, StateCalibration, Target, select_maps, target_on_camera
 from .footprint import AUTO, check_footprint, choose_footprint
 from ..transport.build import build_operators
@@ -107,7 +108,8 @@ def bundle_problem(bundle, targets: list, *, solver: str, bounds_8bit, objective
 def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0, 255),
                  objective="l2", maps: str = "decoded", footprint: str = DEFAULT_FOOTPRINT,
                  plane_tolerance: float = 1.0, max_iter: int | None = None, device="cpu", progress=None,
-                 outside: str = "clip", chains: str = "epipolar", colour_weights: str = "channel") -> BundleSolution:
+                 outside: str = "clip", chains: str = "epipolar", colour_weights: str = "channel",
+                 smoothness: float | None = None) -> BundleSolution:
     """Solve the patterns that show each image in its state, from a bench's calibration.
 
     Args:
@@ -115,10 +117,11 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
         targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
             scikit-image test-image name per state.
         solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
-        device, outside, chains, colour_weights: as :func:`~torchproj.pipeline.run_virtual`; the
+        device, outside, chains, colour_weights, smoothness: as :func:`~torchproj.pipeline.run_virtual`; the
         predicted views use the weights the solve used.
     """
     t0 = time.perf_counter()
+    smoothness = resolve_smoothness(solver, smoothness)
     problem = bundle_problem(bundle, targets, solver=solver, bounds_8bit=bounds_8bit, objective=objective, maps=maps,
                              footprint=footprint, plane_tolerance=plane_tolerance, colour_weights=colour_weights,
                              outside=outside, chains=chains, device=device)
@@ -133,7 +136,8 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     op = ops[0]
     result, light, patterns = make_patterns(ops, solver, (lo, hi), bundle.response_curves(), calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
-                                            chains=chains, solver_options=choice and choice.solver_options(ops, solver))
+                                            chains=chains, solver_options=choice and choice.solver_options(ops, solver),
+                                            smoothness=smoothness)
     rows, predicted = [], {}
     for t in wanted:
         view = states[t.state].predict(light, bundle.black[t.state], footprint)
@@ -142,7 +146,7 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
         scores = score_image(((view - bundle.black[t.state]) / op.scale).clamp(0, 1), values, covered)
         rows.append({"name": t.name, "state": t.state, "pixels": int(covered.sum()),
                      "predicted_psnr_db": scores["psnr_db"], "predicted_ssim": scores["ssim"]})
-    report = {"solver": solver, "bounds_8bit": list(bounds_8bit), "outside": outside,
+    report = {"solver": solver, "bounds_8bit": list(bounds_8bit), "outside": outside, "smoothness": smoothness,
               **({"chains": chains} if solver == "eo" else {}),
               "model": op.size_report(), "objective": result.info.get("l2_objective", result.objective),
               "iterations": result.iterations, "scale": op.scale,

@@ -18,7 +18,7 @@ from ..core.checks import check
 from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
-from ..solve.compensate import iteration_limit, unexplained
+from ..solve.compensate import iteration_limit, resolve_smoothness, unexplained
 from ..solve.refine import refine_patterns
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, Target, build_transport, select_maps
 from ..transport.build import build_operators, used_colour_weights
@@ -84,7 +84,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                 objective="l2", footprint: str = DEFAULT_FOOTPRINT, ceiling: bool = False, outside: str = "clip",
                 chains: str = "epipolar", solver_options: dict | None = None,
                 colour_weights: str = "channel", refine: int = 0, refine_frames: int = 1,
-                refine_relax: float = 1.0, cache: bool = False) -> RunResult:
+                refine_relax: float = 1.0, cache: bool = False, smoothness: float | None = None) -> RunResult:
     """Run the whole workflow on the virtual rig for the scene's targets (:meth:`Scene.target_specs`).
 
     Args:
@@ -151,6 +151,10 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             start's scores. 0: none.
         refine_frames: captures averaged per state and update (camera noise).
         refine_relax: the share of each capture's defect the loop takes (1: all).
+        smoothness: weight of the penalty on neighbouring cells' differences in the model's
+            least-squares solve (:meth:`~torchproj.transport.TransportOperator.with_smoothness`);
+            None: :data:`~torchproj.core.choices.DEFAULT_SMOOTHNESS` for fista, pgd and adam, 0 for
+            lf and eo; report.json's ``smoothness`` says which was used.
         cache: read the simulated calibration from the cache where the same scene was calibrated
             before, else keep it there (:mod:`.cache`; ``torchproj run`` does unless ``--no-cache``);
             report.json ``calibration_cache`` says ``read``, ``stored``, ``recomputed``, ``not kept`` or ``off``; the
@@ -159,6 +163,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     """
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains, (refine, refine_frames, refine_relax))
+    smoothness = _check_smoothness(solver, smoothness, oracle, gain_offset)
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     check_footprint(footprint)
     images = scene_images(scene) if images is None else images  # a missing image file is refused before the work
@@ -206,7 +211,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                                   gain_offset=gain_offset, footprint=footprint, max_iter=max_iter, progress=progress,
                                   device=device, timings=timings, outside=outside, chains=chains,
                                   solver_options=solver_options, colour_weights=colour_weights, start=choice,
-                                  rows_on_camera=refine > 0, cache_key=keyed)
+                                  rows_on_camera=refine > 0, cache_key=keyed, smoothness=smoothness)
         refined = None
         if refine:
             t0 = time.perf_counter()
@@ -249,6 +254,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     report["transport_cache"] = NOT_KEPT if "transport" in behind.refused else solved.transport_cache or "off"
     report["cast_cache"] = NOT_KEPT if "cast geometry" in behind.refused else cast.get("how", "off")
     report["outside"] = outside
+    report["smoothness"] = smoothness
     if solver == "eo":
         report["chains"] = chains
     if solver_options:
@@ -269,6 +275,16 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
 def _cast_all(rig) -> bool:
     """Whether ``rig`` has cast every state of its scene (so that nothing later casts more)."""
     return set(rig.cast_geometry()) == {st.name for st in rig.scene.states}
+
+
+def _check_smoothness(solver, smoothness, oracle, gain_offset) -> float:
+    """The model solve's smoothness weight (:func:`~torchproj.solve.compensate.resolve_smoothness`): 0 where
+    the exact light or a gain and offset are solved, which take none."""
+    if oracle == "transport" or gain_offset is not None:
+        check(not smoothness, "the exact light and --gain/--offset are solved without a smoothness penalty: "
+                              "leave --smoothness out")
+        return 0.0
+    return resolve_smoothness(solver, smoothness)
 
 
 def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling, outside, chains,
@@ -314,7 +330,7 @@ class _Solved:
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
                      progress, device, timings, outside, chains, solver_options=None,
                      colour_weights: str = "grey", start=None, rows_on_camera: bool = False,
-                     cache_key: str | None = None) -> _Solved:
+                     cache_key: str | None = None, smoothness: float = 0.0) -> _Solved:
     """Build the transport from the calibrated states and solve it; ``timings`` gets transport and solve.
     ``start``: a :class:`~torchproj.pipeline.FootprintChoice` whose patterns start a FISTA solve on one
     operator (``footprint="auto"``). ``rows_on_camera``: keep rows camera pixels (a camera loop compares them).
@@ -355,7 +371,7 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
         options = solver_options if start is None else start.solver_options(ops, solver, solver_options)
         result, _, patterns = make_patterns(ops, solver, bounds, cal.responses, calibrations=states,
                                             max_iter=max_iter, progress=progress, objective=image, outside=outside,
-                                            chains=chains, solver_options=options)
+                                            chains=chains, solver_options=options, smoothness=smoothness)
     timings["solve"] = time.perf_counter() - t0
     if cache_key is not None and how != NOT_KEPT and (normal_read is None or any(
             len(o.coarse_matrices()) > n for o, n in zip(kept, normal_read))):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 
 import torch
@@ -68,6 +69,24 @@ def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WAR
     return share
 
 
+def resolve_smoothness(solver: str, smoothness: float | None) -> float:
+    """The smoothness weight a solve with ``solver`` uses, checked before any work: None gives
+    :data:`~torchproj.core.choices.DEFAULT_SMOOTHNESS` for the least-squares solvers (fista, pgd,
+    adam) and 0 for the paper's ``lf`` and ``eo``, which take none
+    (:meth:`~torchproj.transport.TransportOperator.with_smoothness`)."""
+    from ..core.choices import DEFAULT_SMOOTHNESS
+
+    paper = solver in ("lf", "eo")
+    if smoothness is None:
+        return 0.0 if paper else DEFAULT_SMOOTHNESS
+    check(isinstance(smoothness, (int, float)) and not isinstance(smoothness, bool) and math.isfinite(smoothness)
+          and smoothness >= 0, f"smoothness must be a number >= 0 (0: none), got {smoothness!r}")
+    check(smoothness == 0 or not paper,
+          f"smoothness is for the least-squares solvers (fista, pgd, adam); {solver}, the paper's method, takes none: "
+          "leave smoothness out (or 0), or choose fista")
+    return float(smoothness)
+
+
 def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str = "clip",
                         chains: str = "epipolar") -> tuple[float, float]:
     """What :func:`make_patterns` will be asked, checked before any work: the solver's name, that
@@ -122,7 +141,7 @@ def iteration_limit(max_iter: int | None, solver: str = "fista") -> dict:
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
                   max_iter: int | None = None, progress: bool | None = None, objective="l2", outside: str = "clip",
-                  chains: str = "epipolar", solver_options: dict | None = None):
+                  chains: str = "epipolar", solver_options: dict | None = None, smoothness: float | None = None):
     """Solve, bring the solution into what projectors can show, and compensate their responses.
 
     Args:
@@ -143,6 +162,10 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         chains: ``eo``'s independent problems (:func:`~torchproj.solve.solve_eo`): ``epipolar`` (the
             paper's, two projectors) or ``components`` (connected components of the transport).
         solver_options: further keywords for the solver (e.g. ``{"normalise": "clip"}`` for ``lf``).
+        smoothness: weight of a penalty on neighbouring cells' differences in the least-squares solve
+            (:meth:`~torchproj.transport.TransportOperator.with_smoothness`; 0: none; None: the
+            default, :func:`resolve_smoothness`). It steers the least-squares solution, which an image
+            objective then starts from; ``lf`` and ``eo``, the paper's methods, take none.
 
     Where ``responses`` hold a colour camera's mixing of the primaries, an ``l2`` solve with bounds
     within [0, 1] is refined with the channels coupled through it (:mod:`torchproj.solve.mixing`).
@@ -156,6 +179,8 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     from .eo import solve_eo
     from .mixing import solve_through_mixing
     from .objectives import image_objective, solve_ssim
+    from ..transport.operator import normal_form
+    from .solvers import COARSE_LEVELS
 
     image = image_objective(objective)
     limit = {**iteration_limit(max_iter, solver), **(solver_options or {})}
@@ -166,17 +191,35 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         return solve_patterns(one, solver, bounds, progress=progress, **limit)
 
     ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    smoothness = resolve_smoothness(solver, smoothness)
+
+    def smoothed(one):
+        if smoothness and normal_form(one) == "matrix":
+            # A^T A and the coarse start's levels, which a cache keeps beside the operator; the penalty's
+            # operator adds its own part to them (with_smoothness).
+            one.coarse_levels(limit.get("levels", COARSE_LEVELS if solver == "fista" else 0), "matrix")
+        return one.with_smoothness(smoothness)
+
     if len(ops) > 1:
         check(len({o.shape[1] for o in ops}) == 1 and all(o.channels == 1 for o in ops),
               "give one operator, or one single-channel operator per colour channel with the same columns "
               "(build_channel_transports)")
-        results = []
+        results, solved = [], []
         for one in ops:
-            results.append(solve(one))
-            one.forget_normal_equations()  # one channel's Q at a time
+            solved.append(smoothed(one))
+            results.append(solve(solved[-1]))
+            for o in (one, solved[-1]):
+                o.forget_normal_equations()  # one channel's Q at a time
         result = _join_channels(results)
     else:
-        result = solve(ops[0])
+        solved = [smoothed(ops[0])]
+        result = solve(solved[0])
+    if smoothness:  # the objective a result reports is the light's error alone, as without the penalty
+        with torch.no_grad():
+            plain = (float(ops[0].objective(result.patterns)) if len(ops) == 1 else
+                     sum(float(o.objective(result.patterns[:, c:c + 1])) for c, o in enumerate(ops)))
+        result = dataclasses.replace(result, objective=plain,
+                                     info={**result.info, "smoothness": smoothness, "penalised_objective": result.objective})
     # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
     # threshold is calibrated on it); an image objective departs from it on purpose.
     warn_if_ill_posed(ops, result.patterns)
@@ -189,7 +232,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     if image is None and result.patterns.shape[1] == 3 and mixed and 0 <= bounds[0] and bounds[1] <= 1:
         # A colour camera sees the primaries mixed: the channels' answer, brought into what the
         # primaries can give, is refined with the channels coupled (torchproj.solve.mixing).
-        result = solve_through_mixing(ops, result, mixings, bounds)
+        result = solve_through_mixing(solved, result, mixings, bounds)
     if image is not None:
         start = result
         result = solve_ssim(ops, bounds, l2_weight=image.l2_weight, psnr_drop=image.psnr_drop, x0=start.patterns,
