@@ -116,8 +116,29 @@ def test_coarse_levels_a_later_solve_builds_are_kept_beside_a_q_read(cache):
         return read_normal_matrices(key, [op])
 
     assert levels_kept() == [0]
-    fista = run_virtual(scene, cache=True, progress=False)
+    fista = run_virtual(scene, cache=True, progress=False, smoothness=0)
     assert levels_kept() == [len(fista.solution.info["coarse_iterations"])] != [0]
+
+
+def test_a_smoothed_solve_keeps_its_own_normal_equations_and_a_later_one_reads_them(cache, monkeypatch):
+    """The default solve runs on the operator with the smoothness rows: its Q, coarse levels and setup are
+    kept under their own key, and the next run solves from them without building Q, to the same patterns."""
+    import torchproj.transport.operator as operator_module
+    from torchproj.core.choices import DEFAULT_SMOOTHNESS
+    from torchproj.pipeline.cache import smoothed_key
+
+    scene = _scene()
+    first = run_virtual(scene, cache=True, progress=False)
+    assert first.report["smoothness"] == DEFAULT_SMOOTHNESS
+    (transport,) = [p.name[len("transport-"):-3] for p in cache.glob("transport-*.pt")]
+    (entry,) = cache.glob("normal-*.pt")
+    assert entry.name == f"normal-{smoothed_key(transport, DEFAULT_SMOOTHNESS)}.pt"
+    monkeypatch.setattr(operator_module, "gram_matrix", lambda *a, **k: pytest.fail("Q built again instead of read"))
+    again = run_virtual(scene, cache=True, progress=False)
+    monkeypatch.undo()
+    plain = run_virtual(scene, progress=False)
+    assert again.solution.objective == first.solution.objective == plain.solution.objective
+    assert [t.psnr_db for t in again.targets] == [t.psnr_db for t in plain.targets]
 
 
 def test_a_normal_entry_whose_coarse_level_does_not_fit_is_not_half_adopted(cache, monkeypatch):

@@ -501,9 +501,11 @@ def test_a_smoothed_operator_takes_its_q_from_the_one_it_was_made_from_and_itera
     for block, Qc in zip(smooth._level_blocks(3), smooth.coarse_matrices()):
         tied = tied @ torch.nn.functional.one_hot(block, int(block.max()) + 1).double()
         torch.testing.assert_close(Qc.to_dense(), tied.T @ tied, rtol=1e-12, atol=1e-12)
+    assert op.with_smoothness(0.02) is smooth  # kept, with what was computed on it
     op.form = "products"
-    assert normal_form(op.with_smoothness(0.02)) == "products"
-    assert op.with_smoothness(0.02).normal_matrix() is not None  # the Q at hand is still taken
+    assert normal_form(op.with_smoothness(0.03)) == "products"
+    assert op.with_smoothness(0.03).normal_matrix() is not None  # the Q at hand is still taken
+    assert op.with_rhs(op.rhs * 2).with_smoothness(0.03) is not op.with_smoothness(0.03)  # other targets
 
 
 @pytest.mark.parametrize("form", ["matrix", "products"])

@@ -138,6 +138,13 @@ def transport_key(calibration: str, targets: list[Target], **options) -> str:
     return h.hexdigest()
 
 
+def smoothed_key(transport: str, weight: float) -> str:
+    """The cache key of the normal equations of the operator kept under key ``transport`` with the
+    smoothness penalty ``weight`` below it (:meth:`~torchproj.transport.TransportOperator.with_smoothness`),
+    whose ``Q``, coarse levels and solver setup a smoothed solve builds and a later one reads."""
+    return hashlib.sha256(json.dumps({"transport": transport, "smoothness": float(weight)}).encode()).hexdigest()
+
+
 def cached_transport(key: str, build, device="cpu") -> tuple[list[TransportOperator], str]:
     """``build()`` (a list of :class:`~torchproj.transport.TransportOperator`) through the cache under ``key``.
 

@@ -28,7 +28,7 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
-from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry,
+from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, smoothed_key,
                     keep_normal_matrices, read_geometry, read_normal_matrices, transport_key, writing_behind)
 from .virtual import VirtualCalibration, calibrate_virtual, true_responses
 
@@ -350,10 +350,16 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
     else:
         cache_key = transport_key(cache_key, targets, **options)
         ops, how = cached_transport(cache_key, lambda: build_operators(states, targets, **options), device)
-        # Q = A^T A, which the solvers build from the matrix, is kept beside it by the first solve (a solve
-        # on the exact light uses another matrix).
-        normal_read = read_normal_matrices(cache_key, ops) if how == "read" and not exact else None
-    kept, op = list(ops), ops[0]
+    # The operators the solve runs on, whose Q = A^T A (built from the matrix), coarse levels and solver
+    # setup the first solve keeps beside the transport: with the smoothness penalty, its stacked operator
+    # (make_patterns takes the same one from with_smoothness); a colour run keeps none (make_patterns
+    # forgets each channel's); a solve on the exact light uses another matrix.
+    solving, normal_key = list(ops), cache_key
+    if smoothness and len(ops) == 1 and cache_key is not None:
+        solving, normal_key = [ops[0].with_smoothness(smoothness)], smoothed_key(cache_key, smoothness)
+    if cache_key is not None and how == "read" and not exact:
+        normal_read = read_normal_matrices(normal_key, solving)
+    op = ops[0]
     if exact:
         ops = light_transport(cal.rig, targets, op)
     model = ops[0].size_report()
@@ -374,9 +380,9 @@ def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain
                                             chains=chains, solver_options=options, smoothness=smoothness)
     timings["solve"] = time.perf_counter() - t0
     if cache_key is not None and how != NOT_KEPT and (normal_read is None or any(
-            len(o.coarse_matrices()) > n for o, n in zip(kept, normal_read))):
+            len(o.coarse_matrices()) > n for o, n in zip(solving, normal_read))):
         t0 = time.perf_counter()
-        if keep_normal_matrices(cache_key, kept):  # nothing to keep where the solve iterated on products
+        if keep_normal_matrices(normal_key, solving):  # nothing to keep where the solve iterated on products
             timings["keep"] = timings.get("keep", 0.0) + time.perf_counter() - t0
     return _Solved(result, ops, patterns, model, how)
 

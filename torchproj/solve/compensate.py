@@ -179,8 +179,6 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     from .eo import solve_eo
     from .mixing import solve_through_mixing
     from .objectives import image_objective, solve_ssim
-    from ..transport.operator import normal_form
-    from .solvers import COARSE_LEVELS
 
     image = image_objective(objective)
     limit = {**iteration_limit(max_iter, solver), **(solver_options or {})}
@@ -193,26 +191,20 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     ops = list(op) if isinstance(op, (list, tuple)) else [op]
     smoothness = resolve_smoothness(solver, smoothness)
 
-    def smoothed(one):
-        if smoothness and normal_form(one) == "matrix":
-            # A^T A and the coarse start's levels, which a cache keeps beside the operator; the penalty's
-            # operator adds its own part to them (with_smoothness).
-            one.coarse_levels(limit.get("levels", COARSE_LEVELS if solver == "fista" else 0), "matrix")
-        return one.with_smoothness(smoothness)
-
     if len(ops) > 1:
         check(len({o.shape[1] for o in ops}) == 1 and all(o.channels == 1 for o in ops),
               "give one operator, or one single-channel operator per colour channel with the same columns "
               "(build_channel_transports)")
         results, solved = [], []
         for one in ops:
-            solved.append(smoothed(one))
+            solved.append(one.with_smoothness(smoothness))
             results.append(solve(solved[-1]))
             for o in (one, solved[-1]):
                 o.forget_normal_equations()  # one channel's Q at a time
+            one._smoothed = None  # and one channel's stacked matrix
         result = _join_channels(results)
     else:
-        solved = [smoothed(ops[0])]
+        solved = [ops[0].with_smoothness(smoothness)]
         result = solve(solved[0])
     if smoothness:  # the objective a result reports is the light's error alone, as without the penalty
         with torch.no_grad():

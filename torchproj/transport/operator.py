@@ -354,7 +354,7 @@ class TransportOperator(nn.Module):
         new = type(self).__new__(type(self))
         memo[id(self)] = new
         for key, value in self.__dict__.items():
-            new.__dict__[key] = None if key in ("_normal", "_products") else copy.deepcopy(value, memo)
+            new.__dict__[key] = None if key in ("_normal", "_products", "_smoothed") else copy.deepcopy(value, memo)
         return new
 
     def normal_matrix(self) -> torch.Tensor | None:
@@ -476,6 +476,7 @@ class TransportOperator(nn.Module):
         new = copy.copy(self)
         new._buffers = dict(self._buffers)
         new._buffers["rhs"] = rhs
+        new._smoothed = None  # made with the old targets
         new._buffers["constant"] = (torch.zeros(rhs.shape[1], dtype=rhs.dtype, device=rhs.device)
                                     if constant is None else constant.to(rhs))
         for key in ("_normal", "_products"):
@@ -507,6 +508,9 @@ class TransportOperator(nn.Module):
         The new rows are no camera pixels: the operator has no ``row_pixel``, and is for solving
         (scores and images come from the operator it was made from).
 
+        The operator made is kept, so that a second call with the same weight returns it with what was
+        computed on it (its ``Q``, read from a cache or built by a solve).
+
         Args:
             weight: ``lam`` over the mean squared column norm, >= 0; 0 returns this operator.
         """
@@ -514,6 +518,9 @@ class TransportOperator(nn.Module):
               and weight >= 0, f"smoothness weight must be a number >= 0 (0: none), got {weight!r}")
         if weight == 0:
             return self
+        kept = getattr(self, "_smoothed", None)
+        if kept is not None and kept[0] == weight:
+            return kept[1]
         device = self.val.device
         norms = torch.zeros(self.shape[1], dtype=torch.float64, device=device)
         norms.index_add_(0, self.col.long(), self.val.double().pow(2))
@@ -551,6 +558,7 @@ class TransportOperator(nn.Module):
                     differences = _tied(differences, block)
                     levels.append(_plus(Qc, differences, lam))
                 smoothed.adopt_coarse_matrices(levels)
+        self._smoothed = (weight, smoothed)
         return smoothed
 
     def _stacked_transpose(self, cols: torch.Tensor, root: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
