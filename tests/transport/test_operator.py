@@ -506,6 +506,9 @@ def test_a_smoothed_operator_takes_its_q_from_the_one_it_was_made_from_and_itera
     assert normal_form(op.with_smoothness(0.03)) == "products"
     assert op.with_smoothness(0.03).normal_matrix() is not None  # the Q at hand is still taken
     assert op.with_rhs(op.rhs * 2).with_smoothness(0.03) is not op.with_smoothness(0.03)  # other targets
+    kept = op.with_smoothness(0.03)
+    op.float()  # converted in place: the kept operator holds float64 and is made again
+    assert op.with_smoothness(0.03) is not kept and op.with_smoothness(0.03).val.dtype == torch.float32
 
 
 @pytest.mark.parametrize("form", ["matrix", "products"])

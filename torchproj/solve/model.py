@@ -119,11 +119,11 @@ def _one_operator(op):
     return op
 
 
-def _least_squares(op, bounds) -> torch.Tensor:
-    """FISTA's bounded least squares, each colour channel's alone where ``op`` holds one per channel."""
-    if isinstance(op, _Channels):
-        return torch.cat([solve_fista(o, bounds, progress=False).patterns for o in op.ops], 1)
-    return solve_fista(op, bounds, progress=False).patterns
+def _least_squares(op, bounds, smoothness: float) -> torch.Tensor:
+    """FISTA's bounded least squares with the smoothness penalty (as ``torchproj run`` solves it), each
+    colour channel's alone where ``op`` holds one per channel."""
+    ops = op.ops if isinstance(op, _Channels) else [op]
+    return torch.cat([solve_fista(o.with_smoothness(smoothness), bounds, progress=False).patterns for o in ops], 1)
 
 
 class ProjectionModel(nn.Module):
@@ -202,7 +202,8 @@ class ProjectionModel(nn.Module):
     @classmethod
     def from_calibration(cls, calibration, targets: list[Target], *, bounds=(0.0, 1.0), footprint: str = DEFAULT_FOOTPRINT,
                          scale: float | None = None, start: str | torch.Tensor | None = "l2",
-                         colour_weights: str = "channel", device="cpu") -> "ProjectionModel":
+                         colour_weights: str = "channel", device="cpu",
+                         smoothness: float | None = None) -> "ProjectionModel":
         """Build the operator (rows on camera pixels) and the model from a calibration and targets.
 
         Args:
@@ -216,16 +217,21 @@ class ProjectionModel(nn.Module):
             colour_weights: colour targets on a calibration that measured each channel's white
                 minus black: ``"channel"`` models each channel with its own (``torchproj run``'s
                 default), ``"grey"`` gives every channel their mean.
+            smoothness: the least-squares start's penalty on neighbouring cells' differences
+                (:meth:`~torchproj.transport.TransportOperator.with_smoothness`; None: ``torchproj
+                run``'s default, 0: none). The model's own loss has none: add one in a script.
         """
         from ..core.choices import COLOUR_WEIGHTS
+        from .compensate import resolve_smoothness
 
         check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
+        smoothness = resolve_smoothness("fista", smoothness)
         states, responses = calibration_parts(calibration)
         op = _one_operator(build_operators(states, targets, footprint=footprint, merge=False, colour_weights=colour_weights,
                                            scale=scale, device=device))
         if isinstance(start, str):
             check(start == "l2", f"start must be 'l2', None or a tensor, got {start!r}")
-            start = _least_squares(op, bounds)
+            start = _least_squares(op, bounds, smoothness)
         return cls(op, bounds, responses, start)
 
     @property

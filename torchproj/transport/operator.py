@@ -518,8 +518,11 @@ class TransportOperator(nn.Module):
               and weight >= 0, f"smoothness weight must be a number >= 0 (0: none), got {weight!r}")
         if weight == 0:
             return self
+        # What the kept operator was made from: moved, converted or given other targets since, it is stale.
+        made_from = (weight, self.val.device, self.val.dtype, self.rhs.data_ptr(), self.rhs._version,
+                     self.val.data_ptr(), self.val._version)
         kept = getattr(self, "_smoothed", None)
-        if kept is not None and kept[0] == weight:
+        if kept is not None and kept[0] == made_from:
             return kept[1]
         device = self.val.device
         norms = torch.zeros(self.shape[1], dtype=torch.float64, device=device)
@@ -546,7 +549,7 @@ class TransportOperator(nn.Module):
         # camera's wide rows (iterated on products) over to building Q.
         smoothed.form = normal_form(self)
         Q = self.normal_matrix()
-        if Q is not None:
+        if Q is not None and Q.dtype == self.val.dtype and Q.device == self.val.device:
             # A^T A and its coarse levels P^T Q P built (or read from a cache) already: the penalty adds
             # lam D^T D to each, tied as they are, which costs a fraction of building them again.
             lam, differences = root * root, _difference_gram(first, second, self.shape[1])
@@ -558,7 +561,7 @@ class TransportOperator(nn.Module):
                     differences = _tied(differences, block)
                     levels.append(_plus(Qc, differences, lam))
                 smoothed.adopt_coarse_matrices(levels)
-        self._smoothed = (weight, smoothed)
+        self._smoothed = (made_from, smoothed)
         return smoothed
 
     def _stacked_transpose(self, cols: torch.Tensor, root: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
