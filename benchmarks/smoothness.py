@@ -75,7 +75,7 @@ def summary(rows: list[dict], seeds: list[int], weights: list[float]) -> list[di
 
 
 def markdown(totals: list[dict]) -> str:
-    lines = ["# The smoothness penalty's weight on the procedural suite (area model, FISTA)", "",
+    lines = ["# The smoothness penalty's weight (area model, FISTA)", "",
              "Gap: the ceiling's PSNR minus the weight's, per target, under one noise draw for both.", "",
              "| seed | weight | targets | median gap (dB) | mean | worst | within 0.5 dB | solve s (summed) |",
              "|---|---|---|---|---|---|---|---|"]
