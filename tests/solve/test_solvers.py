@@ -311,11 +311,9 @@ def test_pipeline_iteration_limits():
 
 
 @pytest.mark.filterwarnings("ignore:the patterns leave")  # random weights: no scene, nothing to show apart
-def test_channel_operators_reach_each_channels_bounded_optimum():
-    """make_patterns on one operator per colour channel: channel c of the joined solution is scipy's
-    bounded least squares on channel c's own matrix; the joined objective is their sum. Operators of
-    different columns are refused."""
-    from torchproj.solve import make_patterns
+def _channel_rig():
+    """A synthetic colour rig whose channels see their own random weights: calibrations, one float64
+    operator per channel and linear responses."""
     from torchproj.transport import build_channel_transports
 
     cals = synthetic_calibration(shape=(30, 40))
@@ -323,7 +321,16 @@ def test_channel_operators_reach_each_channels_bounded_optimum():
     for cal in cals.values():
         cal.colour_weight = [w * (0.5 + torch.rand(3, *w.shape, generator=g)) for w in cal.weight]
     ops = [op.double() for op in build_channel_transports(cals, targets(channels=3), scale=0.9)]
-    linear = [ResponseCurve(torch.ones(3), torch.ones(3), torch.zeros(3))] * 2
+    return cals, ops, [ResponseCurve(torch.ones(3), torch.ones(3), torch.zeros(3))] * 2
+
+
+def test_channel_operators_reach_each_channels_bounded_optimum():
+    """make_patterns on one operator per colour channel: channel c of the joined solution is scipy's
+    bounded least squares on channel c's own matrix; the joined objective is their sum. Operators of
+    different columns are refused."""
+    from torchproj.solve import make_patterns
+
+    cals, ops, linear = _channel_rig()
     result, light, patterns = make_patterns(ops, "fista", (0.0, 1.0), linear, max_iter=20000,
                                             solver_options={"tol": 1e-14}, smoothness=0)
     total = 0.0
@@ -349,14 +356,8 @@ def test_make_patterns_smooths_the_least_squares_solve_and_reports_the_lights_ow
     from torchproj.core.choices import DEFAULT_SMOOTHNESS
     from torchproj.solve import make_patterns
     from torchproj.solve.compensate import resolve_smoothness
-    from torchproj.transport import build_channel_transports
 
-    cals = synthetic_calibration(shape=(30, 40))
-    g = torch.Generator().manual_seed(5)
-    for cal in cals.values():
-        cal.colour_weight = [w * (0.5 + torch.rand(3, *w.shape, generator=g)) for w in cal.weight]
-    ops = [op.double() for op in build_channel_transports(cals, targets(channels=3), scale=0.9)]
-    linear = [ResponseCurve(torch.ones(3), torch.ones(3), torch.zeros(3))] * 2
+    _, ops, linear = _channel_rig()
     result = make_patterns(ops, "fista", (0.0, 1.0), linear, max_iter=400)[0]
     for c, op in enumerate(ops):
         alone = solve_patterns(op.with_smoothness(DEFAULT_SMOOTHNESS), "fista", (0.0, 1.0), max_iter=400)
