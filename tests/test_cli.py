@@ -175,3 +175,15 @@ def test_out_never_takes_a_persons_files_and_an_interrupt_exits_130(tmp_path, ca
 def test_a_projector_too_small_for_the_sequence_is_named(tmp_path, capsys, size, message):
     assert main(["sequence", "--projector", size, "--out", str(tmp_path / "seq")]) == 2
     assert message in capsys.readouterr().err and not (tmp_path / "seq").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--solver", "eo", "--smoothness", "0.01"], "smoothness is for the least-squares solvers"),
+    (["--smoothness", "-1"], "smoothness must be a number >= 0"),
+    (["--smoothness", "nan"], "smoothness must be a number >= 0"),
+    (["--oracle", "transport", "--smoothness", "0.01"], "solved without a smoothness penalty"),
+])
+def test_a_smoothness_the_run_cannot_use_is_refused_before_any_work(tmp_path, capsys, args, message):
+    out = tmp_path / "out"
+    assert main(["run", *args, "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err and not out.exists()

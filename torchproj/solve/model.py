@@ -119,9 +119,12 @@ def _one_operator(op):
     return op
 
 
-def _least_squares(op, bounds, smoothness: float) -> torch.Tensor:
-    """FISTA's bounded least squares with the smoothness penalty (as ``torchproj run`` solves it), each
-    colour channel's alone where ``op`` holds one per channel."""
+def _least_squares(op, bounds, smoothness: float | None = None) -> torch.Tensor:
+    """FISTA's bounded least squares with the smoothness penalty (None: ``torchproj run``'s default),
+    each colour channel's alone where ``op`` holds one per channel."""
+    from .compensate import resolve_smoothness
+
+    smoothness = resolve_smoothness("fista", smoothness)
     ops = op.ops if isinstance(op, _Channels) else [op]
     return torch.cat([solve_fista(o.with_smoothness(smoothness), bounds, progress=False).patterns for o in ops], 1)
 

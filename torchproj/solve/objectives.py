@@ -265,7 +265,7 @@ def solve_ssim(op: TransportOperator | list[TransportOperator], bounds=(0.0, 1.0
         bounds: the box, linear light.
         l2_weight: ``w``: 0.1 is :data:`OBJECTIVES` ``ssim``, 1.0 ``mixed``.
         psnr_drop: ``d``, the dB of PSNR each target may lose against ``x0`` in the model; None: no limit.
-        x0: start inside the box; None: FISTA's solution.
+        x0: start inside the box; None: FISTA's solution, with ``torchproj run``'s smoothness penalty.
         max_iter: Adam iterations.
         lr: Adam's learning rate (linear light per step).
         tol: stop when the loss fell by less than this (relative) over the last 5 iterations.
