@@ -190,7 +190,6 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
 
     ops = list(op) if isinstance(op, (list, tuple)) else [op]
     smoothness = resolve_smoothness(solver, smoothness)
-
     if len(ops) > 1:
         check(len({o.shape[1] for o in ops}) == 1 and all(o.channels == 1 for o in ops),
               "give one operator, or one single-channel operator per colour channel with the same columns "
@@ -200,8 +199,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
             solved.append(one.with_smoothness(smoothness))
             results.append(solve(solved[-1]))
             for o in (one, solved[-1]):
-                o.forget_normal_equations()  # one channel's Q at a time
-            one._smoothed = None  # and one channel's stacked matrix
+                o.forget_normal_equations()  # one channel's Q and stacked matrix at a time
         result = _join_channels(results)
     else:
         solved = [ops[0].with_smoothness(smoothness)]

@@ -52,10 +52,6 @@ class SolveResult:
     info: dict = field(default_factory=dict)
 
 
-# FISTA's coarse start: levels of cells tied in 8x8, 4x4 and 2x2 blocks (solve_fista's ``levels``).
-COARSE_LEVELS = 3
-
-
 def check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
     lo, hi = (float(b) for b in bounds)
     check(math.isfinite(lo) and math.isfinite(hi), f"bounds must be finite numbers, got {bounds}")
@@ -114,7 +110,7 @@ def solve_pgd(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, 
 
 
 def solve_fista(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 500, tol: float = 1e-6,
-                x0: torch.Tensor | None = None, precondition: bool = True, levels: int = COARSE_LEVELS,
+                x0: torch.Tensor | None = None, precondition: bool = True, levels: int = 3,
                 progress: bool | None = None, form: str = "auto") -> SolveResult:
     """FISTA (accelerated projected gradient, step 1/L) with adaptive restart, started coarse to fine.
 

@@ -373,8 +373,8 @@ class TransportOperator(nn.Module):
     def forget_normal_equations(self) -> None:
         """Drop the cached ``Q`` (:meth:`normal_equations` builds it again when asked): a solve over one
         operator per colour channel then holds one ``Q`` at a time (0.2 GB each on the full-size RGB rig
-        with the area footprint)."""
-        self._normal = self._products = None
+        with the area footprint). The operator :meth:`with_smoothness` kept goes too (a copy of A's arrays)."""
+        self._normal = self._products = self._smoothed = None
 
     def coarse_levels(self, levels: int, form: str = "matrix") -> list[tuple["NormalEquations", torch.Tensor]]:
         """The normal equations of the same rig with projector cells tied in 2x2, 4x4, ... blocks.
@@ -542,9 +542,11 @@ class TransportOperator(nn.Module):
         rhs = torch.cat([self.rhs, self.rhs.new_zeros(pairs, self.rhs.shape[1])])
         # The penalty's rows serve no target; they are counted with target 0 so that every row has one.
         row_target = torch.cat([self.row_target, self.row_target.new_zeros(pairs)])
+        differences = _difference_rows(cols, self.shape[1])
         smoothed = TransportOperator(matrix, rhs, self.column_projector, self.column_cell, self.projector_sizes,
                                      constant=self.constant, row_target=row_target, scale=self.scale,
-                                     target_count=self.target_count, transpose=self._stacked_transpose(cols, root))
+                                     target_count=self.target_count,
+                                     transpose=self._stacked_transpose(differences, root))
         # Solved in this operator's form: the penalty's rows, two cells each, would otherwise tip a coarse
         # camera's wide rows (iterated on products) over to building Q.
         smoothed.form = normal_form(self)
@@ -552,7 +554,7 @@ class TransportOperator(nn.Module):
         if Q is not None and Q.dtype == self.val.dtype and Q.device == self.val.device:
             # A^T A and its coarse levels P^T Q P built (or read from a cache) already: the penalty adds
             # lam D^T D to each, tied as they are, which costs a fraction of building them again.
-            lam, differences = root * root, _difference_gram(first, second, self.shape[1])
+            lam, differences = root * root, (differences.T @ differences).tocsr()  # D^T D
             smoothed.adopt_normal_matrix(_plus(Q, differences, lam))
             coarse = self.coarse_matrices()
             if coarse:
@@ -564,16 +566,12 @@ class TransportOperator(nn.Module):
         self._smoothed = (made_from, smoothed)
         return smoothed
 
-    def _stacked_transpose(self, cols: torch.Tensor, root: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The CSR arrays of ``[A; D]^T`` for ``D``'s rows ``root (p_a - p_b)`` (``cols``: a, b per row, in
-        order) below A's: each of A^T's rows followed by D^T's, placed by counting, so no entry is
-        sorted (a transpose of the whole stack took 0.7 s on the default scene)."""
-        from scipy.sparse import csr_matrix
-
-        pairs, device = cols.numel() // 2, self.val.device
-        values = torch.tensor([root, -root], dtype=self.t_val.dtype).repeat(pairs)  # as the stacked matrix holds them
-        D = csr_matrix((values.numpy(), cols.cpu().numpy(),
-                        np.arange(0, 2 * pairs + 1, 2)), shape=(pairs, self.shape[1])).tocsc()  # D^T's CSR arrays
+    def _stacked_transpose(self, differences, root: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The CSR arrays of ``[A; root D]^T`` for ``D`` the scipy rows of :func:`_difference_rows` below
+        A's: each of A^T's rows followed by D^T's, placed by counting, so no entry is sorted (a transpose
+        of the whole stack took 0.7 s on the default scene)."""
+        device = self.val.device
+        D = (differences * root).tocsc()  # D^T's CSR arrays; +-root rounded to A's dtype below, as the stack holds them
         d_crow, d_col, d_val = (torch.from_numpy(a).to(device) for a in (D.indptr.astype(np.int64), D.indices, D.data))
         a_crow = self.t_crow.long()
         crow = a_crow + d_crow
@@ -581,7 +579,7 @@ class TransportOperator(nn.Module):
         # after all of A^T's row c.
         a_at = torch.arange(self.t_val.numel(), device=device) + torch.repeat_interleave(d_crow[:-1], a_crow.diff())
         d_at = torch.arange(d_val.numel(), device=device) + torch.repeat_interleave(a_crow[1:], d_crow.diff())
-        index = index_dtype(self.shape[0] + pairs, int(crow[-1]))
+        index = index_dtype(self.shape[0] + D.shape[0], int(crow[-1]))
         col = torch.empty(int(crow[-1]), dtype=index, device=device)
         val = torch.empty(int(crow[-1]), dtype=self.t_val.dtype, device=device)
         col[a_at], val[a_at] = self.t_col.to(index), self.t_val
@@ -973,18 +971,16 @@ class NormalEquations:
         return lambda x: spmm(absolute, x)
 
 
-def _difference_gram(first: torch.Tensor, second: torch.Tensor, n: int):
-    """``D^T D`` (scipy CSR, float64, :math:`(n, n)`) for ``D`` the rows ``p_first - p_second``: each
-    pair's count on the diagonal and -1 off it. scipy's product of D's two entries per row, which
-    has no duplicates to sum: 0.12 s for the default scene's 1.8 M pairs, against 0.9 s from
-    coordinates."""
+def _difference_rows(cols: torch.Tensor, n: int):
+    """``D`` (scipy CSR, float64, one row per pair, :math:`(pairs, n)`) of rows ``p_a - p_b`` for ``cols``
+    holding ``a, b`` per row in order (:meth:`TransportOperator.with_smoothness`). ``D^T D`` from it is
+    scipy's product of two entries per row, with no duplicates to sum: 0.12 s for the default scene's
+    1.8 M pairs, against 0.9 s from coordinates."""
     from scipy.sparse import csr_matrix
 
-    a, b = first.cpu().numpy(), second.cpu().numpy()
-    pairs = len(a)
-    D = csr_matrix((np.tile([1.0, -1.0], pairs), np.stack([np.minimum(a, b), np.maximum(a, b)], 1).ravel(),
-                    np.arange(0, 2 * pairs + 1, 2)), shape=(pairs, n))
-    return (D.T.tocsr() @ D).tocsr()
+    pairs = cols.numel() // 2
+    return csr_matrix((np.tile([1.0, -1.0], pairs), cols.cpu().numpy(), np.arange(0, 2 * pairs + 1, 2)),
+                      shape=(pairs, n))
 
 
 def _tied(matrix, block: torch.Tensor):
