@@ -97,6 +97,23 @@ def test_bounded_solver_beats_the_baseline_on_the_captures(config):
         assert a["psnr_db"] > c["psnr_db"]
 
 
+def test_the_report_reads_the_model_the_patterns_were_solved_on(config):
+    """The run lets go of its operators before it simulates the captures; what the report says of the
+    model (its share of the targets unexplained, its scale) is the model's, built again here."""
+    from torchproj.pipeline.targets import scene_images, scene_targets
+    from torchproj.solve.compensate import unexplained
+    from torchproj.transport import build_transport
+
+    scene = parse_scene(yaml.safe_load(config.read_text()))
+    cal = calibrate_virtual(scene)
+    result = run_virtual(scene, calibration=cal)
+    op = build_transport(cal.states, scene_targets(scene, scene_images(scene), cal.rig), merge=False,
+                         footprint="area")
+    assert result.report["scale"] == op.scale
+    assert result.report["unexplained_fraction"] == round(unexplained(op, result.solution.patterns), 5)
+    assert 0 < result.report["unexplained_fraction"] < 1
+
+
 def test_bad_bounds_are_refused_before_any_work(config, tmp_path, capsys):
     out = tmp_path / "run"
     with pytest.raises(SystemExit):

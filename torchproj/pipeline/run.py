@@ -222,11 +222,12 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
                                       iterations=refine, objective=image or "l2", relax=refine_relax, outside=outside,
                                       progress=progress, remodel=remodel)
             timings["refine"] = time.perf_counter() - t0
-            start_scores = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states,
+            start_scores = evaluate_patterns(world, solved.patterns, targets, scale=solved.scale, states=states,
                                              paper=False).targets
             solved.patterns = refined.images
+        solved.release_operators()
         t0 = time.perf_counter()
-        evaluation = evaluate_patterns(world, solved.patterns, targets, scale=solved.ops[0].scale, states=states)
+        evaluation = evaluate_patterns(world, solved.patterns, targets, scale=solved.scale, states=states)
         scores, rows = _target_rows(scene, evaluation.targets, solved.result.info if gain_offset is not None else None)
         timings["evaluate"] = time.perf_counter() - t0
         if ceiling:
@@ -249,7 +250,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     report["footprint"] = footprint
     if choice is not None:
         report["footprint_choice"] = choice.as_dict()
-    report["colour_weights"] = "channel" if len(solved.ops) > 1 and not exact else "grey"
+    report["colour_weights"] = "channel" if solved.channels > 1 and not exact else "grey"
     report["calibration_cache"] = NOT_KEPT if "calibration" in behind.refused else cached or "off"
     report["transport_cache"] = NOT_KEPT if "transport" in behind.refused else solved.transport_cache or "off"
     report["cast_cache"] = NOT_KEPT if "cast geometry" in behind.refused else cast.get("how", "off")
@@ -325,6 +326,20 @@ class _Solved:
     patterns: list[torch.Tensor]  # per projector, 8-bit
     model: dict  # the size report of the operator solved (before gain/offset's extra variables)
     transport_cache: str | None = None  # how the cache served the transport (None: not asked)
+    scale: float = 1.0  # the operators' target scale
+    channels: int = 1  # how many operators: one per colour channel, or one
+    unexplained_fraction: float | None = None  # the share of the targets the model's light leaves unexplained
+
+    def __post_init__(self):
+        self.scale, self.channels = self.ops[0].scale, len(self.ops)
+
+    def release_operators(self) -> None:
+        """Drop the operators, keeping what the report reads from them. Scoring simulates the world, not
+        the model: without them (A, its transpose, Q and the smoothed stack; 0.5-1 GB on the default
+        scene) the captures' simulation starts from a smaller heap, and the run's peak is the larger of
+        the two stages, not their sum."""
+        self.unexplained_fraction = round(unexplained(self.ops, self.result.patterns), 5)
+        self.ops = []
 
 
 def _build_and_solve(cal, states, targets, bounds, *, solver, image, exact, gain_offset, footprint, max_iter,
@@ -438,9 +453,8 @@ _CALIBRATION = {None: "Gray code on the virtual rig", "geometry": "oracle (the s
 def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solved, timings, rows,
             gain_offset, oracle) -> dict:
     """What ``report.json`` holds (``objective`` is always the least-squares value of the patterns)."""
-    result, ops, model = solved.result, solved.ops, solved.model
+    result, model = solved.result, solved.model
     least_squares = result.info["l2_objective"] if image is not None else result.objective
-    op = ops[0]
     report = {
         "scene": scene.name, "solver": solver if gain_offset is None else "fista+gain/offset",
         "bounds_8bit": list(bounds_8bit), "device": str(device),
@@ -448,8 +462,8 @@ def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solve
         "maps": maps, "graycode": _graycode_report(scene, cal), "decoded_fraction": cal.decoded,
         "decode": cal.decode,
         "model": model, "objective": least_squares,
-        "unexplained_fraction": round(unexplained(ops, result.patterns), 5),
-        "iterations": result.iterations, "scale": op.scale,
+        "unexplained_fraction": solved.unexplained_fraction,
+        "iterations": result.iterations, "scale": solved.scale,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "evaluation": EVALUATION + ("; with gain/offset, psnr_db and ssim compare with the adjusted image g t + o, "
                                     "psnr_db_original and ssim_original with t" if gain_offset is not None else ""),
