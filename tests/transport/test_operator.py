@@ -511,6 +511,35 @@ def test_a_smoothed_operator_takes_its_q_from_the_one_it_was_made_from_and_itera
     assert op.with_smoothness(0.03) is not kept and op.with_smoothness(0.03).val.dtype == torch.float32
 
 
+def test_a_smoothed_operator_solved_from_a_kept_q_never_makes_its_transpose():
+    """With Q and its coarse levels at hand (a cache's), a FISTA solve on the smoothed operator reads no
+    A^T of the stack: its q is the plain operator's A^T i, as the penalty's targets are 0. Made later
+    (read, moved to another dtype, saved), the transpose is the whole stack's, in the operator's dtype."""
+    from torchproj.solve import solve_fista
+
+    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=3),
+                         scale=0.8)
+    op.coarse_levels(3, "matrix")
+    smooth = op.with_smoothness(0.02)
+    reference = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]),
+                                targets(channels=3), scale=0.8).with_smoothness(0.02)  # Q from the stack itself
+    result = solve_fista(smooth, (0.0, 1.0), max_iter=60, tol=0.0)
+    assert smooth._buffers["t_val"] is None  # never made
+    torch.testing.assert_close(smooth.normal_equations().q, reference.A_adjoint(reference.rhs), rtol=1e-6, atol=1e-6)
+    expected = solve_fista(reference, (0.0, 1.0), max_iter=60, tol=0.0)
+    torch.testing.assert_close(result.patterns, expected.patterns, rtol=1e-4, atol=1e-4)
+    # Made on demand after a conversion, in the new dtype, as a transpose of the whole stack gives it.
+    wide = op.with_smoothness(0.03).double()
+    assert wide._buffers["t_val"] is None
+    whole = _transpose(wide._csr())
+    assert wide.t_val.dtype == torch.float64 and torch.equal(wide.t_val, whole.values())
+    assert torch.equal(wide.t_col.long(), whole.col_indices().long())
+    # Another rhs: A^T i is the product again, not the kept one.
+    other = smooth.with_rhs(smooth.rhs * 2)
+    torch.testing.assert_close(other.targets_adjoint(), 2 * smooth.targets_adjoint(), rtol=1e-6, atol=1e-6)
+    assert {"t_crow", "t_col", "t_val"} <= set(op.with_smoothness(0.04).state_dict())
+
+
 @pytest.mark.parametrize("form", ["matrix", "products"])
 def test_the_step_bound_holds_where_a_smoothness_penalty_puts_negative_entries_in_q(form):
     """The penalty's -lam between neighbours makes Q's entries mixed in sign; the Collatz-Wielandt

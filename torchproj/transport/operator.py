@@ -26,6 +26,7 @@ __all__ = ["TransportOperator", "normal_form", "gram_matrix", "NormalEquations",
 
 # Below this many columns a coarser level saves nothing worth its setup.
 _MIN_COARSE_COLUMNS = 64
+_TRANSPOSE = ("t_crow", "t_col", "t_val")  # the buffers of A^T's CSR arrays
 
 
 def cell_blocks(column_projector: torch.Tensor, column_cell: torch.Tensor, projector_sizes: list[tuple[int, int]]):
@@ -172,17 +173,20 @@ class TransportOperator(nn.Module):
         # (torch.compile) can carry the one and not the other.
         for name, array in zip(("crow", "col", "val"), (matrix.crow_indices(), matrix.col_indices(), matrix.values())):
             self.register_buffer(name, array.clone())
+        self.shape = (n_rows, n_cols)
+        # A function that makes the transpose is called when the transpose is first read (_make_transpose):
+        # an operator solved from a Q read from a cache never reads it.
+        pending = transpose if callable(transpose) else None
         if transpose is None:
             transposed = _transpose(matrix)  # A^T in CSR, for an adjoint as fast as the forward product
             transpose = (transposed.crow_indices().clone(), transposed.col_indices().clone(), transposed.values().clone())
+        elif callable(transpose):
+            transpose = (None, None, None)
         else:
-            t_crow, t_col, t_val = transpose
-            check(t_crow.shape == (n_cols + 1,) and t_col.shape == t_val.shape == self.val.shape
-                  and t_val.dtype == self.val.dtype and int(t_crow[-1]) == self.val.numel(),
-                  f"transpose must be the CSR arrays of a {n_cols} x {n_rows} matrix with {self.val.numel()} "
-                  "nonzeros (the transpose this operator's own matrix gives)")
-        for name, array in zip(("t_crow", "t_col", "t_val"), transpose):
+            self._check_transpose(transpose)
+        for name, array in zip(_TRANSPOSE, transpose):
             self.register_buffer(name, array)
+        self._pending_transpose = pending
         self.register_buffer("rhs", rhs)
         self.register_buffer("column_projector", column_projector)
         self.register_buffer("column_cell", column_cell)
@@ -200,8 +204,34 @@ class TransportOperator(nn.Module):
         self.target_count = int(self.row_target.max()) + 1 if target_count is None and n_rows else int(target_count or 0)
         self.projector_sizes = [tuple(s) for s in projector_sizes]
         self.form = None  # the normal equations' form its solvers use (normal_form); None: by its shape
-        self.shape = (n_rows, n_cols)
         self.scale = float(scale)
+
+    def _check_transpose(self, transpose) -> None:
+        t_crow, t_col, t_val = transpose
+        n_rows, n_cols = self.shape
+        check(t_crow.shape == (n_cols + 1,) and t_col.shape == t_val.shape == self.val.shape
+              and t_val.dtype == self.val.dtype and int(t_crow[-1]) == self.val.numel(),
+              f"transpose must be the CSR arrays of a {n_cols} x {n_rows} matrix with {self.val.numel()} "
+              "nonzeros (the transpose this operator's own matrix gives)")
+
+    def __getattr__(self, name: str):
+        if name in _TRANSPOSE and self.__dict__.get("_pending_transpose") is not None:
+            self._make_transpose()
+        return super().__getattr__(name)
+
+    def _make_transpose(self) -> None:
+        """The transpose from the function given for it, on this operator's device and in its dtype."""
+        make, self._pending_transpose = self._pending_transpose, None
+        device, dtype = self._buffers["val"].device, self._buffers["val"].dtype
+        t_crow, t_col, t_val = make()
+        transpose = (t_crow.to(device), t_col.to(device), t_val.to(device, dtype))
+        self._check_transpose(transpose)
+        self._buffers.update(zip(_TRANSPOSE, transpose))
+
+    def _save_to_state_dict(self, destination, prefix, keep_vars):
+        if self.__dict__.get("_pending_transpose") is not None:
+            self._make_transpose()  # the state holds every array
+        super()._save_to_state_dict(destination, prefix, keep_vars)
 
     # ----------------------------------------------------------------------------- state dict
     def get_extra_state(self) -> dict:
@@ -542,11 +572,15 @@ class TransportOperator(nn.Module):
         rhs = torch.cat([self.rhs, self.rhs.new_zeros(pairs, self.rhs.shape[1])])
         # The penalty's rows serve no target; they are counted with target 0 so that every row has one.
         row_target = torch.cat([self.row_target, self.row_target.new_zeros(pairs)])
-        differences = _difference_rows(cols, self.shape[1])
+        # The stack's transpose is made when first read: a solve from a Q read from a cache reads none of
+        # it (0.3 s, and scipy's import, on the default scene). It holds these arrays, not this operator,
+        # so that nothing refers back to an operator that keeps the stack.
+        transposed = (self.t_crow, self.t_col, self.t_val, self.shape[0], cols, root)
         smoothed = TransportOperator(matrix, rhs, self.column_projector, self.column_cell, self.projector_sizes,
                                      constant=self.constant, row_target=row_target, scale=self.scale,
-                                     target_count=self.target_count,
-                                     transpose=self._stacked_transpose(differences, root))
+                                     target_count=self.target_count, transpose=lambda: _stacked_transpose(*transposed))
+        # The penalty's targets are 0: the stack's A^T i is this operator's (the normal equations' q).
+        smoothed._keep_targets_adjoint(self.A_adjoint(self.rhs))
         # Solved in this operator's form: the penalty's rows, two cells each, would otherwise tip a coarse
         # camera's wide rows (iterated on products) over to building Q.
         smoothed.form = normal_form(self)
@@ -554,6 +588,7 @@ class TransportOperator(nn.Module):
         if Q is not None and Q.dtype == self.val.dtype and Q.device == self.val.device:
             # A^T A and its coarse levels P^T Q P built (or read from a cache) already: the penalty adds
             # lam D^T D to each, tied as they are, which costs a fraction of building them again.
+            differences = _difference_rows(cols, self.shape[1])
             lam, differences = root * root, (differences.T @ differences).tocsr()  # D^T D
             smoothed.adopt_normal_matrix(_plus(Q, differences, lam))
             coarse = self.coarse_matrices()
@@ -566,25 +601,17 @@ class TransportOperator(nn.Module):
         self._smoothed = (made_from, smoothed)
         return smoothed
 
-    def _stacked_transpose(self, differences, root: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The CSR arrays of ``[A; root D]^T`` for ``D`` the scipy rows of :func:`_difference_rows` below
-        A's: each of A^T's rows followed by D^T's, placed by counting, so no entry is sorted (a transpose
-        of the whole stack took 0.7 s on the default scene)."""
-        device = self.val.device
-        D = (differences * root).tocsc()  # D^T's CSR arrays; +-root rounded to A's dtype below, as the stack holds them
-        d_crow, d_col, d_val = (torch.from_numpy(a).to(device) for a in (D.indptr.astype(np.int64), D.indices, D.data))
-        a_crow = self.t_crow.long()
-        crow = a_crow + d_crow
-        # An entry of A^T's row c moves down by D^T's entries in the rows before c; one of D^T's comes
-        # after all of A^T's row c.
-        a_at = torch.arange(self.t_val.numel(), device=device) + torch.repeat_interleave(d_crow[:-1], a_crow.diff())
-        d_at = torch.arange(d_val.numel(), device=device) + torch.repeat_interleave(a_crow[1:], d_crow.diff())
-        index = index_dtype(self.shape[0] + D.shape[0], int(crow[-1]))
-        col = torch.empty(int(crow[-1]), dtype=index, device=device)
-        val = torch.empty(int(crow[-1]), dtype=self.t_val.dtype, device=device)
-        col[a_at], val[a_at] = self.t_col.to(index), self.t_val
-        col[d_at], val[d_at] = (d_col.long() + self.shape[0]).to(index), d_val.to(self.t_val.dtype)
-        return crow.to(index), col, val
+    def _keep_targets_adjoint(self, q: torch.Tensor) -> None:
+        """Keep ``A^T i`` (known without a product) for :meth:`targets_adjoint`, while ``rhs`` is unchanged."""
+        self._targets_adjoint = (self.rhs.data_ptr(), self.rhs._version, q)
+
+    def targets_adjoint(self) -> torch.Tensor:
+        """``A^T i``: :math:`(N_{cols}, C)`, the normal equations' ``q``."""
+        kept = self.__dict__.get("_targets_adjoint")
+        if (kept is not None and kept[:2] == (self.rhs.data_ptr(), self.rhs._version)
+                and kept[2].device == self.rhs.device and kept[2].dtype == self.rhs.dtype):
+            return kept[2]
+        return self.A_adjoint(self.rhs)
 
     def _neighbour_pairs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The columns of every two variables side by side in one projector, left-right then up-down."""
@@ -775,7 +802,7 @@ class NormalEquations:
         """The normal equations of ``op``; ``Q``: its ``A^T A`` built earlier (a cache's), else built here."""
         if Q is None:
             Q = gram_matrix(op._csr(), op._csr(transpose=True))
-        return cls(Q.to(op.val.device), op.A_adjoint(op.rhs), op.rhs.double().pow(2).sum(0) + op.constant.double())
+        return cls(Q.to(op.val.device), op.targets_adjoint(), op.rhs.double().pow(2).sum(0) + op.constant.double())
 
     def with_targets(self, q: torch.Tensor, c: torch.Tensor) -> "NormalEquations":
         """The same ``Q`` with new ``q`` and ``c``. What depends on ``Q`` alone (the Jacobi scaling, the
@@ -983,6 +1010,30 @@ def _difference_rows(cols: torch.Tensor, n: int):
                       shape=(pairs, n))
 
 
+def _stacked_transpose(t_crow: torch.Tensor, t_col: torch.Tensor, t_val: torch.Tensor, rows: int, cols: torch.Tensor,
+                       root: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The CSR arrays of ``[A; root D]^T``, for ``A^T`` in ``t_crow, t_col, t_val`` (``A`` with ``rows``
+    rows) and ``D``'s rows ``p_a - p_b`` with ``a, b`` in ``cols`` (:func:`_difference_rows`) below A's:
+    each of A^T's rows followed by D^T's, placed by counting, so no entry is sorted (a transpose of the
+    whole stack took 0.7 s on the default scene)."""
+    device = t_val.device
+    # D^T's CSR arrays; +-root rounded to A's dtype below, as the stack holds them.
+    D = (_difference_rows(cols, t_crow.numel() - 1) * root).tocsc()
+    d_crow, d_col, d_val = (torch.from_numpy(a).to(device) for a in (D.indptr.astype(np.int64), D.indices, D.data))
+    a_crow = t_crow.long()
+    crow = a_crow + d_crow
+    # An entry of A^T's row c moves down by D^T's entries in the rows before c; one of D^T's comes
+    # after all of A^T's row c.
+    a_at = torch.arange(t_val.numel(), device=device) + torch.repeat_interleave(d_crow[:-1], a_crow.diff())
+    d_at = torch.arange(d_val.numel(), device=device) + torch.repeat_interleave(a_crow[1:], d_crow.diff())
+    index = index_dtype(rows + D.shape[0], int(crow[-1]))
+    col = torch.empty(int(crow[-1]), dtype=index, device=device)
+    val = torch.empty(int(crow[-1]), dtype=t_val.dtype, device=device)
+    col[a_at], val[a_at] = t_col.to(index), t_val
+    col[d_at], val[d_at] = (d_col.long() + rows).to(index), d_val.to(t_val.dtype)
+    return crow.to(index), col, val
+
+
 def _tied(matrix, block: torch.Tensor):
     """``P^T M P`` of a scipy matrix, ``P`` tying columns in ``block`` (:meth:`TransportOperator.coarse_levels`)."""
     from scipy.sparse import csr_matrix
@@ -1096,7 +1147,7 @@ class ProductNormalEquations(NormalEquations):
     @classmethod
     def from_operator(cls, op: TransportOperator) -> "ProductNormalEquations":
         with torch.no_grad():
-            return cls(op._csr(), op._csr(transpose=True), op.A_adjoint(op.rhs),
+            return cls(op._csr(), op._csr(transpose=True), op.targets_adjoint(),
                        op.rhs.double().pow(2).sum(0) + op.constant.double())
 
     def _with(self, q: torch.Tensor, c: torch.Tensor, scale: torch.Tensor | None = None) -> "ProductNormalEquations":
