@@ -1,5 +1,6 @@
 """The operator's coarse levels (cells tied in blocks) against dense float64 algebra."""
 
+import io
 import math
 
 import numpy as np
@@ -538,6 +539,13 @@ def test_a_smoothed_operator_solved_from_a_kept_q_never_makes_its_transpose():
     other = smooth.with_rhs(smooth.rhs * 2)
     torch.testing.assert_close(other.targets_adjoint(), 2 * smooth.targets_adjoint(), rtol=1e-6, atol=1e-6)
     assert {"t_crow", "t_col", "t_val"} <= set(op.with_smoothness(0.04).state_dict())
+    # An operator keeping a stack whose transpose is not made yet pickles (torch.save of a model), and
+    # the loaded stack makes the same transpose.
+    pending = op.with_smoothness(0.05)
+    saved = io.BytesIO()
+    torch.save(op, saved)
+    loaded = torch.load(io.BytesIO(saved.getvalue()), weights_only=False)._smoothed[1]  # the kept stack
+    assert loaded._buffers["t_val"] is None and torch.equal(loaded.t_val, pending.t_val)
 
 
 @pytest.mark.parametrize("form", ["matrix", "products"])

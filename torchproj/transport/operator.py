@@ -13,6 +13,7 @@ adjoint is a product as fast as the forward one. Autograd flows through :meth:`A
 from __future__ import annotations
 
 import copy
+import functools
 import math
 
 import numpy as np
@@ -575,10 +576,11 @@ class TransportOperator(nn.Module):
         # The stack's transpose is made when first read: a solve from a Q read from a cache reads none of
         # it (0.3 s, and scipy's import, on the default scene). It holds these arrays, not this operator,
         # so that nothing refers back to an operator that keeps the stack.
-        transposed = (self.t_crow, self.t_col, self.t_val, self.shape[0], cols, root)
+        # A partial of a module function, not a closure: an operator that keeps its stack still pickles.
+        transposed = functools.partial(_stacked_transpose, self.t_crow, self.t_col, self.t_val, self.shape[0], cols, root)
         smoothed = TransportOperator(matrix, rhs, self.column_projector, self.column_cell, self.projector_sizes,
                                      constant=self.constant, row_target=row_target, scale=self.scale,
-                                     target_count=self.target_count, transpose=lambda: _stacked_transpose(*transposed))
+                                     target_count=self.target_count, transpose=transposed)
         # The penalty's targets are 0: the stack's A^T i is this operator's (the normal equations' q).
         smoothed._keep_targets_adjoint(self.A_adjoint(self.rhs))
         # Solved in this operator's form: the penalty's rows, two cells each, would otherwise tip a coarse
