@@ -437,13 +437,14 @@ def test_the_step_bound_tightens_with_products_on_a_rig():
 
 def test_smoothness_rows_add_the_neighbour_differences_of_every_projector_image():
     """||A' p||^2 - ||A p||^2 is lam times the squared differences of neighbouring lit cells, read off
-    each projector's image (cells that are no variable do not count); lam scales with A's columns."""
+    each projector's image (cells that are no variable do not count); lam is the weight times the
+    target scale squared, whatever A's columns hold."""
     op = build_transport(synthetic_calibration(shape=(40, 50), sizes=LARGE), targets(channels=3), scale=0.8).double()
     weight = 0.01
     smooth = op.with_smoothness(weight)
     g = torch.Generator().manual_seed(11)
     p = torch.rand(op.shape[1], 2, generator=g, dtype=torch.float64)
-    lam = weight * op.dense().pow(2).sum(0).mean()
+    lam = weight * 0.8 ** 2
     penalty = torch.zeros(2, dtype=torch.float64)
     for img in op.to_images(p, fill=float("nan")):
         for d in (img[:, :, 1:] - img[:, :, :-1], img[:, 1:, :] - img[:, :-1, :]):
@@ -553,7 +554,7 @@ def test_the_step_bound_holds_where_a_smoothness_penalty_puts_negative_entries_i
     """The penalty's -lam between neighbours makes Q's entries mixed in sign; the Collatz-Wielandt
     bound, taken on |Q|, still bounds Q's largest eigenvalue (float64 dense eigvalsh), and closely."""
     op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
-                         scale=0.8).double().with_smoothness(0.5)
+                         scale=0.8).double().with_smoothness(2.5)
     for ne in (op.normal_equations(form), op.normal_equations(form).jacobi()):
         dense = ne.product(torch.eye(op.shape[1], dtype=torch.float64))
         top = float(torch.linalg.eigvalsh((dense + dense.T) / 2)[-1])
