@@ -169,8 +169,9 @@ def solve_options(p) -> None:
                    "cell shares put its expected loss within 0.2 dB of a model that holds them, else area; the report "
                    f"says which and why); default {DEFAULT_FOOTPRINT}")
     p.add_argument("--smoothness", type=float, metavar="W", help="weight of a penalty on neighbouring projector "
-                   "cells' differences in the least-squares solve: among patterns that the model finds nearly equal "
-                   "it picks the smoother, whose light depends least on the model's sub-cell detail (default "
+                   "cells' differences in the least-squares solve, over the target scale squared: among patterns that "
+                   "the model finds nearly equal it picks the smoother, whose light depends least on the model's "
+                   "sub-cell detail; it holds where few camera pixels see a cell (default "
                    f"{DEFAULT_SMOOTHNESS:g} for fista, pgd and adam; 0: none; lf and eo take none)")
     p.add_argument("--colour-weights", default="channel", choices=list(COLOUR_WEIGHTS), help="colour camera and "
                    "targets: model each channel with its own white minus black and solve the channels apart (channel, "
