@@ -326,9 +326,9 @@ class _Solved:
     patterns: list[torch.Tensor]  # per projector, 8-bit
     model: dict  # the size report of the operator solved (before gain/offset's extra variables)
     transport_cache: str | None = None  # how the cache served the transport (None: not asked)
-    scale: float = 1.0  # the operators' target scale
-    channels: int = 1  # how many operators: one per colour channel, or one
-    unexplained_fraction: float | None = None  # the share of the targets the model's light leaves unexplained
+    scale: float = field(init=False)  # the operators' target scale
+    channels: int = field(init=False)  # how many operators: one per colour channel, or one
+    unexplained_fraction: float | None = field(default=None, init=False)  # set as the operators go
 
     def __post_init__(self):
         self.scale, self.channels = self.ops[0].scale, len(self.ops)

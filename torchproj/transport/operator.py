@@ -578,9 +578,9 @@ class TransportOperator(nn.Module):
         # The penalty's rows serve no target; they are counted with target 0 so that every row has one.
         row_target = torch.cat([self.row_target, self.row_target.new_zeros(pairs)])
         # The stack's transpose is made when first read: a solve from a Q read from a cache reads none of
-        # it (0.3 s, and scipy's import, on the default scene). It holds these arrays, not this operator,
-        # so that nothing refers back to an operator that keeps the stack.
-        # A partial of a module function, not a closure: an operator that keeps its stack still pickles.
+        # it (0.3 s, and scipy's import, on the default scene). What makes it holds A^T's arrays, not this
+        # operator, so that nothing refers back to an operator that keeps the stack; and it is a partial
+        # of a module function, not a closure, so that such an operator still pickles.
         transposed = functools.partial(_stacked_transpose, self.t_crow, self.t_col, self.t_val, self.shape[0], cols, root)
         smoothed = TransportOperator(matrix, rhs, self.column_projector, self.column_cell, self.projector_sizes,
                                      constant=self.constant, row_target=row_target, scale=self.scale,
