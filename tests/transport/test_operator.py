@@ -464,6 +464,9 @@ def test_smoothness_rows_add_the_neighbour_differences_of_every_projector_image(
     for bad in (-1.0, float("nan"), "0.1", True):
         with pytest.raises(InputError, match="smoothness weight"):
             op.with_smoothness(bad)
+    # A weight whose lam overflows the operator's dtype is refused, naming the weight, not the matrix.
+    with pytest.raises(InputError, match=r"smoothness weight 1e\+308 is too large for this torch.float32"):
+        op.float().with_smoothness(1e308)
 
 
 def test_a_smoothed_solve_is_scipys_penalised_box_least_squares():

@@ -563,6 +563,11 @@ class TransportOperator(nn.Module):
             return kept[1]
         device = self.val.device
         root = math.sqrt(weight) * self.scale
+        # lam is added to Q's entries in A's dtype: past its largest value the stack would hold inf.
+        largest = torch.finfo(self.val.dtype).max
+        check(root * root < largest, f"smoothness weight {weight:g} is too large for this {self.val.dtype} operator: "
+                                     f"lam = weight x scale^2 = {root * root:.3g} passes its largest value; use a "
+                                     f"weight below {largest / self.scale ** 2:.3g}")
         first, second = self._neighbour_pairs()
         pairs = first.numel()
         if pairs == 0:  # no two variables side by side: nothing to smooth
