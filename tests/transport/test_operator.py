@@ -516,6 +516,29 @@ def test_a_smoothed_operator_takes_its_q_from_the_one_it_was_made_from_and_itera
     assert op.with_smoothness(0.03) is not kept and op.with_smoothness(0.03).val.dtype == torch.float32
 
 
+def test_a_smoothed_operators_own_q_is_the_stacks_gram_matrix_made_without_the_stacks_transpose():
+    """With no Q at hand (a cold run), the smoothed operator builds A^T A + lam D^T D from A's rows and
+    A^T: the dense stack's own S^T S (float64), and in float32 within its rounding; the stack's
+    transpose is never made. After a conversion it is built in the new dtype."""
+    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
+                         scale=0.8)
+    wide = op.double().with_smoothness(0.02)
+    Q = wide.normal_equations("matrix").Q
+    assert wide._buffers["t_val"] is None
+    stacked = wide.dense()
+    torch.testing.assert_close(Q.to_dense(), stacked.T @ stacked, rtol=1e-12, atol=1e-12)
+    narrow = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
+                             scale=0.8).with_smoothness(0.02)
+    Q32 = narrow.normal_equations("matrix").Q
+    assert Q32.dtype == torch.float32 and narrow._buffers["t_val"] is None
+    torch.testing.assert_close(Q32.to_dense().double(), stacked.T @ stacked, rtol=1e-6, atol=1e-6 * float(Q.values().abs().max()))
+    converted = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]),
+                                targets(channels=1), scale=0.8).with_smoothness(0.02).double()
+    assert converted.normal_equations("matrix").Q.dtype == torch.float64
+    torch.testing.assert_close(converted.normal_equations("matrix").Q.to_dense(), stacked.T @ stacked,
+                               rtol=1e-6, atol=1e-6 * float(Q.values().abs().max()))
+
+
 def test_a_smoothed_operator_solved_from_a_kept_q_never_makes_its_transpose():
     """With Q and its coarse levels at hand (a cache's), a FISTA solve on the smoothed operator reads no
     A^T of the stack: its q is the plain operator's A^T i, as the penalty's targets are 0. Made later
@@ -527,7 +550,7 @@ def test_a_smoothed_operator_solved_from_a_kept_q_never_makes_its_transpose():
     op.coarse_levels(3, "matrix")
     smooth = op.with_smoothness(0.02)
     reference = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]),
-                                targets(channels=3), scale=0.8).with_smoothness(0.02)  # Q from the stack itself
+                                targets(channels=3), scale=0.8).with_smoothness(0.02)  # Q built anew
     result = solve_fista(smooth, (0.0, 1.0), max_iter=60, tol=0.0)
     assert smooth._buffers["t_val"] is None  # never made
     torch.testing.assert_close(smooth.normal_equations().q, reference.A_adjoint(reference.rhs), rtol=1e-6, atol=1e-6)
