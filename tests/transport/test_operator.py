@@ -539,6 +539,37 @@ def test_a_smoothed_operators_own_q_is_the_stacks_gram_matrix_made_without_the_s
                                rtol=1e-6, atol=1e-6 * float(Q.values().abs().max()))
 
 
+def test_the_products_form_applies_the_penalty_beside_a_and_ties_and_scales_it_as_q():
+    """On products, Q p is A^T (A p) + lam D^T D p: the dense stack's S^T S p (float64), on every
+    coarse level P^T S^T S P and Jacobi-scaled alike, with the stack's transpose never made; FISTA on
+    it reaches the matrix form's patterns."""
+    from torchproj.solve import solve_fista
+
+    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=3),
+                         scale=0.8).double()
+    smooth = op.with_smoothness(0.02)
+    ne = smooth.normal_equations("products")
+    assert ne.penalty is not None and smooth._buffers["t_val"] is None
+    stacked = smooth.dense()
+    Q = stacked.T @ stacked
+    tied, level = stacked, ne
+    for block in [None, *smooth._level_blocks(3)]:
+        if block is not None:
+            tied = tied @ torch.nn.functional.one_hot(block, int(block.max()) + 1).double()
+            level = level.coarsened(block)
+        Q = tied.T @ tied
+        eye = torch.eye(Q.shape[0], dtype=torch.float64)
+        torch.testing.assert_close(level.product(eye), Q, rtol=1e-12, atol=1e-12)
+        s = Q.diagonal().clamp_min(1e-30).rsqrt()
+        torch.testing.assert_close(level.jacobi().product(eye), s[:, None] * Q * s[None, :], rtol=1e-12, atol=1e-12)
+        assert not level._nonnegative()
+        assert level.jacobi().lipschitz() >= float(torch.linalg.eigvalsh(s[:, None] * Q * s[None, :])[-1]) * (1 - 1e-12)
+    assert len(smooth._level_blocks(3)) > 0
+    on_products = solve_fista(smooth, (0.0, 1.0), max_iter=3000, tol=1e-12, form="products")
+    on_matrix = solve_fista(op.with_smoothness(0.02), (0.0, 1.0), max_iter=3000, tol=1e-12, form="matrix")
+    torch.testing.assert_close(on_products.patterns, on_matrix.patterns, rtol=1e-5, atol=1e-5)
+
+
 def test_a_smoothed_operator_solved_from_a_kept_q_never_makes_its_transpose():
     """With Q and its coarse levels at hand (a cache's), a FISTA solve on the smoothed operator reads no
     A^T of the stack: its q is the plain operator's A^T i, as the penalty's targets are 0. Made later

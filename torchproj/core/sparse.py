@@ -42,21 +42,22 @@ def csr_tensor(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape: 
 VECTOR_KERNEL = True
 
 
-def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None, add: bool = False) -> torch.Tensor:
     """``matrix @ x`` for a CSR matrix and a dense :math:`(N, K)` block, written into ``out``.
 
     ``addmm`` with ``beta=0`` into a given output is torch's direct path to the sparse kernel:
     ``matrix @ x`` first fills a zero result and copies it, which doubles the time of a product.
     ``out`` (:math:`(M, K)`, same dtype and device) lets iterative solvers reuse one buffer; its
-    contents are ignored.
+    contents are ignored, or with ``add`` (and ``out`` given) the product is added to them.
     """
+    beta = 1 if add and out is not None else 0
     if x.device.type == "meta":  # shapes only (a model moved to the meta device): no values to multiply
         return torch.empty(matrix.shape[0], x.shape[1], dtype=x.dtype, device=x.device)
     if x.dtype in _WIDENED:
         # The sparse kernels take no 16-bit floats (MKL: "not implemented for 'Half'"): the values are
         # stored in 16 bits and the product accumulates in float32, rounded once at the end.
         wide = spmm(matrix.to(torch.float32), x.to(torch.float32))
-        return wide.to(x.dtype) if out is None else out.copy_(wide)
+        return wide.to(x.dtype) if out is None else out.add_(wide) if beta else out.copy_(wide)
     if out is None:
         out = torch.empty(matrix.shape[0], x.shape[1], dtype=x.dtype, device=x.device)
     if x.shape[1] == 1 and x.device.type == "cpu" and VECTOR_KERNEL:
@@ -64,9 +65,9 @@ def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None)
         # kernel, 1.2-2.4x faster than its matrix-matrix one on the same column (the default rig's
         # A 11.6 against 15.4 ms, A^T 5.8 against 10.4, Q 8.8 against 15.7; benchmarks/spmv.py),
         # while 3 columns cost the matrix-matrix kernel about what one does.
-        torch.addmv(out[:, 0], matrix, x[:, 0], beta=0, out=out[:, 0])
+        torch.addmv(out[:, 0], matrix, x[:, 0], beta=beta, out=out[:, 0])
         return out
-    return torch.addmm(out, matrix, x, beta=0, out=out)
+    return torch.addmm(out, matrix, x, beta=beta, out=out)
 
 
 def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:

@@ -622,15 +622,31 @@ class TransportOperator(nn.Module):
         2.1-2.2 s against 2.9-3.0 s from the stack, its peak 2.73-2.86 against 2.91-2.97 GB (``torchproj
         run --no-cache``, two pairs alternating). The sum of ``lam D^T D`` is rounded to A's dtype, as
         where a Q read from a cache is given the penalty (:func:`_plus`)."""
-        penalty = self.__dict__.get("_penalty")
-        if penalty is None:
+        if self.__dict__.get("_penalty") is None:
             return gram_matrix(self._csr(), self._csr(transpose=True))
-        rows, cols, root, (t_crow, t_col, t_val) = penalty
+        A, At, differences, lam = self._penalty_parts()
+        return _plus(gram_matrix(A, At), differences, lam)
+
+    def _product_factors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``A``, ``A^T`` and the penalty ``lam D^T D`` (CSR, or None) that the products form applies
+        (:class:`ProductNormalEquations`). For an operator made by :meth:`with_smoothness`, A's rows
+        and A^T with ``lam D^T D`` beside them, not the stack and its transpose: a product reads
+        ``D^T D``'s entries (a cell and its up to four neighbours) once, where the stack read D's
+        twice, and the stack's transpose is never made."""
+        if self.__dict__.get("_penalty") is None:
+            return self._csr(), self._csr(transpose=True), None
+        A, At, differences, lam = self._penalty_parts()
+        return A, At, _from_scipy(differences * lam, self.val.dtype).to(self.val.device)
+
+    def _penalty_parts(self):
+        """For an operator made by :meth:`with_smoothness`: A (the stack's first rows, no copy), A^T
+        (kept from the operator it was made from), ``D^T D`` (scipy, float64) and ``lam``."""
+        rows, cols, root, (t_crow, t_col, t_val) = self._penalty
         device, dtype = self.val.device, self.val.dtype
         end = int(self.crow[rows])
         A = csr_tensor(self.crow[:rows + 1], self.col[:end], self.val[:end], (rows, self.shape[1]))
         At = csr_tensor(t_crow.to(device), t_col.to(device), t_val.to(device, dtype), (self.shape[1], rows))
-        return _plus(gram_matrix(A, At), _penalty_gram(cols, self.shape[1]), root * root)
+        return A, At, _penalty_gram(cols, self.shape[1]), root * root
 
     def _keep_targets_adjoint(self, q: torch.Tensor) -> None:
         """Keep ``A^T i`` (known without a product) for :meth:`targets_adjoint`, while ``rhs`` is unchanged."""
@@ -905,18 +921,10 @@ class NormalEquations:
             j = self._origin.jacobi(rows)
             self._jacobi = self._sharing(j, self.q * j.scale)
         if self._jacobi is None:
-            crow, col, val = self.Q.crow_indices(), self.Q.col_indices(), self.Q.values()
-            # Each entry's row in the indices' own type (int32 as scipy's product gives them); a CSR row
-            # holds its diagonal once, so it is written, not summed. Both scales are gathered by
-            # index_select, which on the default scene's 16 M entries takes 30 ms a gather against
-            # 55 ms for indexing and 53 ms for repeating each row's scale along its row.
-            rows = entry_rows(self.Q, col.dtype) if rows is None else rows
-            on = rows == col
-            diag = torch.zeros(self.Q.shape[0], dtype=val.dtype, device=val.device)
-            diag[col[on].long()] = val[on]
-            s = diag.clamp_min(1e-30).rsqrt()
-            Q = csr_tensor(crow, col, s.index_select(0, rows).mul_(val).mul_(s.index_select(0, col)), self.Q.shape)
-            self._jacobi = NormalEquations(Q, self.q * s[:, None], self.c, s[:, None])
+            # Each entry's row in the indices' own type (int32 as scipy's product gives them).
+            rows = entry_rows(self.Q, self.Q.col_indices().dtype) if rows is None else rows
+            s = _diagonal(self.Q, rows).clamp_min(1e-30).rsqrt()
+            self._jacobi = NormalEquations(_scaled_both(self.Q, s, rows), self.q * s[:, None], self.c, s[:, None])
         return self._jacobi
 
     def setup(self) -> dict:
@@ -1025,7 +1033,7 @@ class NormalEquations:
 
     def _absolute_product(self):
         """``x -> |Q| x``, Q's entries taken by their size (:meth:`lipschitz`)."""
-        absolute = csr_tensor(self.Q.crow_indices(), self.Q.col_indices(), self.Q.values().abs(), self.Q.shape)
+        absolute = _absolute(self.Q)
         return lambda x: spmm(absolute, x)
 
 
@@ -1044,7 +1052,9 @@ def _difference_rows(cols: torch.Tensor, n: int):
 def _penalty_gram(cols: torch.Tensor, n: int):
     """``D^T D`` (scipy CSR, float64, :math:`(n, n)`) of the difference rows ``cols`` (:func:`_difference_rows`)."""
     differences = _difference_rows(cols, n)
-    return (differences.T @ differences).tocsr()
+    gram = (differences.T @ differences).tocsr()
+    gram.sort_indices()
+    return gram
 
 
 def _stacked_transpose(t_crow: torch.Tensor, t_col: torch.Tensor, t_val: torch.Tensor, rows: int, cols: torch.Tensor,
@@ -1171,32 +1181,41 @@ class ProductNormalEquations(NormalEquations):
     only apply ``Q`` run on either. The Jacobi scaling multiplies A's columns (``A S``), and tying
     columns into blocks sums them (``A P``): each level is again a pair of sparse factors.
 
+    Where a smoothness penalty is solved (:meth:`TransportOperator.with_smoothness`), ``Q p`` is
+    ``A^T (A p) + R p`` with ``R = lam D^T D`` applied as it is (a cell and its neighbours), not as
+    two more factors: ties and scalings act on it as on ``Q``.
+
     Attributes:
         A, At: CSR :math:`(N_{rows}, N_{cols})` and its transpose.
+        penalty: CSR :math:`(N_{cols}, N_{cols})` ``R``, or None.
     """
 
     def __init__(self, A: torch.Tensor, At: torch.Tensor, q: torch.Tensor, c: torch.Tensor,
-                 scale: torch.Tensor | None = None):
+                 scale: torch.Tensor | None = None, penalty: torch.Tensor | None = None):
         super().__init__(None, q, c, scale)
-        self.A, self.At = A, At
+        self.A, self.At, self.penalty = A, At, penalty
         self._rows_buffer = None
 
     @classmethod
     def from_operator(cls, op: TransportOperator) -> "ProductNormalEquations":
         with torch.no_grad():
-            return cls(op._csr(), op._csr(transpose=True), op.targets_adjoint(),
-                       op.rhs.double().pow(2).sum(0) + op.constant.double())
+            A, At, penalty = op._product_factors()
+            return cls(A, At, op.targets_adjoint(), op.rhs.double().pow(2).sum(0) + op.constant.double(),
+                       penalty=penalty)
 
     def _with(self, q: torch.Tensor, c: torch.Tensor, scale: torch.Tensor | None = None) -> "ProductNormalEquations":
         """The same ``A`` with other ``q``, ``c`` and scale, nothing cached (:meth:`NormalEquations.with_targets`)."""
-        return ProductNormalEquations(self.A, self.At, q, c, scale)
+        return ProductNormalEquations(self.A, self.At, q, c, scale, self.penalty)
 
     def product(self, p: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-        """``A^T (A p)`` for :math:`(N_{cols}, C)` p, into ``out`` when given."""
+        """``A^T (A p)`` (plus ``R p``) for :math:`(N_{cols}, C)` p, into ``out`` when given."""
         rows = self._rows_buffer
         if rows is None or rows.shape[1] != p.shape[1] or rows.dtype != p.dtype or rows.device != p.device:
             rows = self._rows_buffer = torch.empty(self.A.shape[0], p.shape[1], dtype=p.dtype, device=p.device)
-        return spmm(self.At, spmm(self.A, p, rows), out)
+        rows = spmm(self.A, p, rows)
+        if self.penalty is None:
+            return spmm(self.At, rows, out)
+        return spmm(self.At, rows, spmm(self.penalty, p, out), add=True)
 
     def coarsened(self, block: torch.Tensor) -> "ProductNormalEquations":
         """``A P`` (columns summed per ``block``), ``P^T q`` and ``c``; cached for that tensor."""
@@ -1206,8 +1225,10 @@ class ProductNormalEquations(NormalEquations):
         if self._coarse is None or self._coarse[0] is not block:
             n = int(block.max()) + 1
             tied = _tie_columns(self.A, block, n)
-            self._coarse = (block, ProductNormalEquations(tied, _transpose(tied),
-                                                          _sum_blocks(self.q, block, n), self.c))
+            penalty = None if self.penalty is None else _from_scipy(
+                _tied(_to_scipy(self.penalty, torch.float64), block), self.penalty.dtype).to(self.penalty.device)
+            self._coarse = (block, ProductNormalEquations(tied, _transpose(tied), _sum_blocks(self.q, block, n),
+                                                          self.c, penalty=penalty))
         return self._coarse[1]
 
     def jacobi(self) -> "ProductNormalEquations":
@@ -1222,23 +1243,54 @@ class ProductNormalEquations(NormalEquations):
             # int64 indices (the same values).
             crow, col, val = self.A.crow_indices(), self.A.col_indices(), self.A.values()
             norm = torch.zeros(self.A.shape[1], dtype=val.dtype, device=val.device).index_add_(0, col, val * val)
+            rows = None if self.penalty is None else entry_rows(self.penalty, self.penalty.col_indices().dtype)
+            if self.penalty is not None:
+                norm += _diagonal(self.penalty, rows)
             s = norm.clamp_min(1e-30).rsqrt()
             A = csr_tensor(crow, col, s.index_select(0, col).mul_(val), self.A.shape)
             t_crow, t_col, t_val = self.At.crow_indices(), self.At.col_indices(), self.At.values()
             At = csr_tensor(t_crow, t_col, torch.repeat_interleave(s, t_crow.diff()).mul_(t_val), self.At.shape)
-            self._jacobi = ProductNormalEquations(A, At, self.q * s[:, None], self.c, s[:, None])
+            penalty = None if self.penalty is None else _scaled_both(self.penalty, s, rows)
+            self._jacobi = ProductNormalEquations(A, At, self.q * s[:, None], self.c, s[:, None], penalty)
         return self._jacobi
 
     def _nonnegative(self) -> bool:
-        """Whether ``A^T A`` has no negative entry: where A has none (:meth:`NormalEquations.lipschitz`)."""
+        """Whether ``Q`` has no negative entry: where A has none and there is no penalty, whose ``-lam``
+        between neighbours is negative (:meth:`NormalEquations.lipschitz`)."""
         values = self.A.values()
-        return values.numel() == 0 or float(values.min()) >= 0
+        return self.penalty is None and (values.numel() == 0 or float(values.min()) >= 0)
 
     def _absolute_product(self):
-        """``x -> |A|^T |A| x``: entry by entry no smaller than ``|A^T A|``, so its largest eigenvalue
-        bounds A^T A's (:meth:`NormalEquations.lipschitz`)."""
-        A, At = (csr_tensor(m.crow_indices(), m.col_indices(), m.values().abs(), m.shape) for m in (self.A, self.At))
-        return lambda x: spmm(At, spmm(A, x))
+        """``x -> |A|^T |A| x + |R| x``: entry by entry no smaller than ``|Q|``, so its largest eigenvalue
+        bounds Q's (:meth:`NormalEquations.lipschitz`)."""
+        A, At = (_absolute(m) for m in (self.A, self.At))
+        if self.penalty is None:
+            return lambda x: spmm(At, spmm(A, x))
+        R = _absolute(self.penalty)
+        return lambda x: spmm(At, spmm(A, x), spmm(R, x), add=True)
+
+
+def _absolute(matrix: torch.Tensor) -> torch.Tensor:
+    """A CSR matrix's entries taken by their size."""
+    return csr_tensor(matrix.crow_indices(), matrix.col_indices(), matrix.values().abs(), matrix.shape)
+
+
+def _diagonal(Q: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """The diagonal of a square CSR ``Q`` whose entries' rows are ``rows`` (:func:`entry_rows`); a CSR
+    row holds its diagonal once, so it is written, not summed."""
+    col, val = Q.col_indices(), Q.values()
+    on = rows == col
+    diag = torch.zeros(Q.shape[0], dtype=val.dtype, device=val.device)
+    diag[col[on].long()] = val[on]
+    return diag
+
+
+def _scaled_both(Q: torch.Tensor, s: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """``S Q S`` for ``S = diag(s)``, ``rows`` as :func:`_diagonal`'s. Both scales are gathered by
+    index_select, which on the default scene's 16 M entries takes 30 ms a gather against 55 ms for
+    indexing and 53 ms for repeating each row's scale along its row."""
+    col, val = Q.col_indices(), Q.values()
+    return csr_tensor(Q.crow_indices(), col, s.index_select(0, rows).mul_(val).mul_(s.index_select(0, col)), Q.shape)
 
 
 def entry_rows(matrix: torch.Tensor, dtype: torch.dtype = torch.int64) -> torch.Tensor:
