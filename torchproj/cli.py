@@ -260,7 +260,8 @@ def _virtual_rig_commands(sub) -> None:
                         "model; transport solves on the simulator's own light transport (the best any calibration "
                         "can reach)")
     p.add_argument("--ceiling", action="store_true", help="also score the transport oracle on the same targets and "
-                   "rows, beside each target in the report")
+                   "rows, solved with the same objective (least squares, or --objective's), beside each target in "
+                   "the report")
     p.add_argument("--refine", type=int, default=0, metavar="N", help="camera in the loop: N times show the patterns, "
                    "capture every state and correct them from what the camera saw; the best captured patterns are "
                    "kept (default 0: none). A scene's show: section changes the world after calibration")
