@@ -585,8 +585,10 @@ class TransportOperator(nn.Module):
         # The stack's transpose is made when first read: a solve from a Q read from a cache reads none of
         # it (0.3 s, and scipy's import, on the default scene). What makes it holds A^T's arrays, not this
         # operator, so that nothing refers back to an operator that keeps the stack; and it is a partial
-        # of a module function, not a closure, so that such an operator still pickles.
-        transposed = functools.partial(_stacked_transpose, self.t_crow, self.t_col, self.t_val, self.shape[0], cols, root)
+        # of a module function, not a closure, so that such an operator still pickles. The same arrays
+        # build its Q and its products (_penalty_parts).
+        penalty = (self.t_crow, self.t_col, self.t_val, self.shape[0], cols, root)
+        transposed = functools.partial(_stacked_transpose, *penalty)
         smoothed = TransportOperator(matrix, rhs, self.column_projector, self.column_cell, self.projector_sizes,
                                      constant=self.constant, row_target=row_target, scale=self.scale,
                                      target_count=self.target_count, transpose=transposed)
@@ -594,7 +596,7 @@ class TransportOperator(nn.Module):
         smoothed._keep_targets_adjoint(self.A_adjoint(self.rhs))
         # Its Q is A^T A + lam D^T D, built from A's rows and A^T (:meth:`_gram_matrix`), not from the
         # stack and the stack's transpose, which a solve on Q then never makes.
-        smoothed._penalty = (self.shape[0], cols, root, (self.t_crow, self.t_col, self.t_val))
+        smoothed._penalty = penalty
         # Solved in this operator's form: the penalty's rows, two cells each, would otherwise tip a coarse
         # camera's wide rows (iterated on products) over to building Q.
         smoothed.form = normal_form(self)
@@ -641,7 +643,7 @@ class TransportOperator(nn.Module):
     def _penalty_parts(self):
         """For an operator made by :meth:`with_smoothness`: A (the stack's first rows, no copy), A^T
         (kept from the operator it was made from), ``D^T D`` (scipy, float64) and ``lam``."""
-        rows, cols, root, (t_crow, t_col, t_val) = self._penalty
+        t_crow, t_col, t_val, rows, cols, root = self._penalty
         device, dtype = self.val.device, self.val.dtype
         end = int(self.crow[rows])
         A = csr_tensor(self.crow[:rows + 1], self.col[:end], self.val[:end], (rows, self.shape[1]))
@@ -1243,14 +1245,16 @@ class ProductNormalEquations(NormalEquations):
             # int64 indices (the same values).
             crow, col, val = self.A.crow_indices(), self.A.col_indices(), self.A.values()
             norm = torch.zeros(self.A.shape[1], dtype=val.dtype, device=val.device).index_add_(0, col, val * val)
-            rows = None if self.penalty is None else entry_rows(self.penalty, self.penalty.col_indices().dtype)
-            if self.penalty is not None:
-                norm += _diagonal(self.penalty, rows)
+            penalty = self.penalty
+            if penalty is not None:  # its diagonal joins the column norms, and it is scaled as Q is
+                rows = entry_rows(penalty, penalty.col_indices().dtype)
+                norm += _diagonal(penalty, rows)
             s = norm.clamp_min(1e-30).rsqrt()
             A = csr_tensor(crow, col, s.index_select(0, col).mul_(val), self.A.shape)
             t_crow, t_col, t_val = self.At.crow_indices(), self.At.col_indices(), self.At.values()
             At = csr_tensor(t_crow, t_col, torch.repeat_interleave(s, t_crow.diff()).mul_(t_val), self.At.shape)
-            penalty = None if self.penalty is None else _scaled_both(self.penalty, s, rows)
+            if penalty is not None:
+                penalty = _scaled_both(penalty, s, rows)
             self._jacobi = ProductNormalEquations(A, At, self.q * s[:, None], self.c, s[:, None], penalty)
         return self._jacobi
 
