@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
-import pytest
-import torch
+import os
+
+# Under pytest-xdist (`-n 2`) two workers share this machine's 2 cores. numpy's and scipy's OpenBLAS read
+# their thread count once, when loaded (torch loads numpy), so it is set before that: two workers with 2
+# BLAS threads each spin against each other (a scipy reference solve took 4.6x as long).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 from .helpers import CHESSBOARD
 
 
 @pytest.fixture(autouse=True)
 def _threads():
-    torch.set_num_threads(2)
+    # This machine has 2 cores. Under pytest-xdist two workers share them, and a worker that also asked
+    # torch for 2 threads would oversubscribe them: its OpenMP threads spin while waiting.
+    torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 
 
 @pytest.fixture(autouse=True, scope="session")
