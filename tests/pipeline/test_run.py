@@ -24,6 +24,14 @@ def config(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def calibrated(config):
+    """The small scene and one calibration of it, shared by the tests that solve on it: each run here
+    takes the calibration as given (``calibration=``), which leaves it as it was."""
+    scene = parse_scene(yaml.safe_load(config.read_text()))
+    return scene, calibrate_virtual(scene)
+
+
 def test_run_writes_a_complete_report(config, tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(config), "--out", str(out)]) == 0
@@ -83,9 +91,8 @@ def test_run_from_three_gray_code_bits_matches_the_full_sequence(config, tmp_pat
         assert short["psnr_db"] == pytest.approx(whole["psnr_db"], abs=0.3)
 
 
-def test_bounded_solver_beats_the_baseline_on_the_captures(config):
-    scene = parse_scene(yaml.safe_load(config.read_text()))
-    cal = calibrate_virtual(scene)  # one calibration, three solvers
+def test_bounded_solver_beats_the_baseline_on_the_captures(calibrated):
+    scene, cal = calibrated  # one calibration, three solvers
     fista = run_virtual(scene, solver="fista", calibration=cal).report["targets"]
     lf = run_virtual(scene, solver="lf", calibration=cal).report["targets"]
     eo_neg = run_virtual(scene, solver="eo", bounds_8bit=(-100, 255), calibration=cal).report["targets"]
@@ -97,15 +104,14 @@ def test_bounded_solver_beats_the_baseline_on_the_captures(config):
         assert a["psnr_db"] > c["psnr_db"]
 
 
-def test_the_report_reads_the_model_the_patterns_were_solved_on(config):
+def test_the_report_reads_the_model_the_patterns_were_solved_on(calibrated):
     """The run lets go of its operators before it simulates the captures; what the report says of the
     model (its share of the targets unexplained, its scale) is the model's, built again here."""
     from torchproj.pipeline.targets import scene_images, scene_targets
     from torchproj.solve.compensate import unexplained
     from torchproj.transport import build_transport
 
-    scene = parse_scene(yaml.safe_load(config.read_text()))
-    cal = calibrate_virtual(scene)
+    scene, cal = calibrated
     result = run_virtual(scene, calibration=cal)
     op = build_transport(cal.states, scene_targets(scene, scene_images(scene), cal.rig), merge=False,
                          footprint="area")
@@ -149,15 +155,14 @@ def test_targets_on_surfaces_of_one_state(box):
     assert not (masks["cylinders"] & masks["box"]).any()
 
 
-def test_oracle_mode_uses_the_exact_geometry(config):
-    scene = parse_scene(yaml.safe_load(config.read_text()))
+def test_oracle_mode_uses_the_exact_geometry(calibrated):
+    scene, cal = calibrated
     oracle = calibrate_virtual(scene, oracle=True)
     truth = oracle.rig.geometry("near").prj_xy
     assert oracle.oracle and all(torch.allclose(a, b, equal_nan=True) for a, b in zip(oracle.states["near"].prj_xy, truth))
     report = run_virtual(scene, calibration=oracle).report
     assert report["calibration"].startswith("oracle")
-    calibrated = run_virtual(scene).report
-    for o, c in zip(report["targets"], calibrated["targets"]):
+    for o, c in zip(report["targets"], run_virtual(scene, calibration=cal).report["targets"]):
         # Calibration costs little on this rig, but the oracle must not be worse by more than noise.
         assert o["psnr_db"] > c["psnr_db"] - 0.3 and o["psnr_db"] > 15
 
@@ -190,10 +195,9 @@ def test_negative_bounds_in_the_papers_notation(config, tmp_path):
     assert json.loads((out / "report.json").read_text())["bounds_8bit"] == [-100.0, 255.0]
 
 
-def test_values_below_black_are_clipped_or_mapped_as_asked(config, tmp_path, capsys):
+def test_values_below_black_are_clipped_or_mapped_as_asked(config, calibrated, tmp_path, capsys):
     # One calibration, one solve below black (FISTA with the paper's EO_-100^255 bounds), shown both ways.
-    scene = parse_scene(yaml.safe_load(config.read_text()))
-    cal = calibrate_virtual(scene)
+    scene, cal = calibrated
     runs = {o: run_virtual(scene, solver="fista", bounds_8bit=(-100, 255), calibration=cal, outside=o)
             for o in ("clip", "map")}
     assert torch.equal(runs["clip"].solution.patterns, runs["map"].solution.patterns)  # only the display differs
@@ -289,9 +293,9 @@ def test_an_image_objective_on_tinted_surfaces_models_each_channel():
     assert ssim["targets"][0]["psnr_db"] > grey["targets"][0]["psnr_db"] + 1.5
 
 
-def test_depth_sweep_peaks_where_each_image_belongs(config):
-    scene = parse_scene(yaml.safe_load(config.read_text()))
-    result = run_virtual(scene)
+def test_depth_sweep_peaks_where_each_image_belongs(calibrated):
+    scene, cal = calibrated
+    result = run_virtual(scene, calibration=cal)
     depths = [0.7, 0.8, 0.9, 1.0, 1.1]
     sweep = depth_sweep(scene, "near_plane", depths, result.patterns, result.targets, result.report["scale"])
     assert sweep.psnr_db.shape == (5, 2)
