@@ -27,8 +27,6 @@ def _threads():
 @pytest.fixture(autouse=True, scope="session")
 def _calibration_cache(tmp_path_factory):
     """Commands the tests run keep their calibrations in a folder of the session's, not the user's cache."""
-    import os
-
     from torchproj.pipeline.cache import CACHE_DIR_ENV
 
     before = os.environ.get(CACHE_DIR_ENV)

@@ -27,6 +27,13 @@ def op_gram(op):
     return dense.T @ dense
 
 
+def two_projectors(channels: int) -> TransportOperator:
+    """A fresh small operator of two projectors, for the smoothness tests (each smoothed operator is kept
+    by the one it was made from, so a test that counts what is built starts from a new one)."""
+    return build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]),
+                           targets(channels=channels), scale=0.8)
+
+
 def tie_matrix(block: torch.Tensor) -> torch.Tensor:
     """The dense 0/1 matrix P with p = P p_c."""
     return torch.nn.functional.one_hot(block, int(block.max()) + 1).double()
@@ -499,8 +506,7 @@ def test_a_smoothed_operator_takes_its_q_from_the_one_it_was_made_from_and_itera
     origin's."""
     from torchproj.transport.operator import normal_form
 
-    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
-                         scale=0.8).double()
+    op = two_projectors(1).double()
     op.coarse_levels(3, "matrix")
     smooth = op.with_smoothness(0.02)
     stacked = smooth.dense()
@@ -526,20 +532,17 @@ def test_a_smoothed_operators_own_q_is_the_stacks_gram_matrix_made_without_the_s
     """With no Q at hand (a cold run), the smoothed operator builds A^T A + lam D^T D from A's rows and
     A^T: the dense stack's own S^T S (float64), and in float32 within its rounding; the stack's
     transpose is never made. After a conversion it is built in the new dtype."""
-    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
-                         scale=0.8)
+    op = two_projectors(1)
     wide = op.double().with_smoothness(0.02)
     Q = wide.normal_equations("matrix").Q
     assert wide._buffers["t_val"] is None
     stacked = wide.dense()
     torch.testing.assert_close(Q.to_dense(), stacked.T @ stacked, rtol=1e-12, atol=1e-12)
-    narrow = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
-                             scale=0.8).with_smoothness(0.02)
+    narrow = two_projectors(1).with_smoothness(0.02)
     Q32 = narrow.normal_equations("matrix").Q
     assert Q32.dtype == torch.float32 and narrow._buffers["t_val"] is None
     torch.testing.assert_close(Q32.to_dense().double(), stacked.T @ stacked, rtol=1e-6, atol=1e-6 * float(Q.values().abs().max()))
-    converted = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]),
-                                targets(channels=1), scale=0.8).with_smoothness(0.02).double()
+    converted = two_projectors(1).with_smoothness(0.02).double()
     assert converted.normal_equations("matrix").Q.dtype == torch.float64
     torch.testing.assert_close(converted.normal_equations("matrix").Q.to_dense(), stacked.T @ stacked,
                                rtol=1e-6, atol=1e-6 * float(Q.values().abs().max()))
@@ -551,13 +554,11 @@ def test_the_products_form_applies_the_penalty_beside_a_and_ties_and_scales_it_a
     it reaches the matrix form's patterns."""
     from torchproj.solve import solve_fista
 
-    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=3),
-                         scale=0.8).double()
+    op = two_projectors(3).double()
     smooth = op.with_smoothness(0.02)
     ne = smooth.normal_equations("products")
     assert ne.penalty is not None and smooth._buffers["t_val"] is None
     stacked = smooth.dense()
-    Q = stacked.T @ stacked
     tied, level = stacked, ne
     for block in [None, *smooth._level_blocks(3)]:
         if block is not None:
@@ -582,12 +583,10 @@ def test_a_smoothed_operator_solved_from_a_kept_q_never_makes_its_transpose():
     (read, moved to another dtype, saved), the transpose is the whole stack's, in the operator's dtype."""
     from torchproj.solve import solve_fista
 
-    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=3),
-                         scale=0.8)
+    op = two_projectors(3)
     op.coarse_levels(3, "matrix")
     smooth = op.with_smoothness(0.02)
-    reference = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]),
-                                targets(channels=3), scale=0.8).with_smoothness(0.02)  # Q built anew
+    reference = two_projectors(3).with_smoothness(0.02)  # Q built anew
     result = solve_fista(smooth, (0.0, 1.0), max_iter=60, tol=0.0)
     assert smooth._buffers["t_val"] is None  # never made
     torch.testing.assert_close(smooth.normal_equations().q, reference.A_adjoint(reference.rhs), rtol=1e-6, atol=1e-6)
@@ -616,8 +615,7 @@ def test_a_smoothed_operator_solved_from_a_kept_q_never_makes_its_transpose():
 def test_the_step_bound_holds_where_a_smoothness_penalty_puts_negative_entries_in_q(form):
     """The penalty's -lam between neighbours makes Q's entries mixed in sign; the Collatz-Wielandt
     bound, taken on |Q|, still bounds Q's largest eigenvalue (float64 dense eigvalsh), and closely."""
-    op = build_transport(synthetic_calibration(shape=(20, 24), sizes=[(14, 12), (12, 10)]), targets(channels=1),
-                         scale=0.8).double().with_smoothness(2.5)
+    op = two_projectors(1).double().with_smoothness(2.5)
     for ne in (op.normal_equations(form), op.normal_equations(form).jacobi()):
         dense = ne.product(torch.eye(op.shape[1], dtype=torch.float64))
         top = float(torch.linalg.eigvalsh((dense + dense.T) / 2)[-1])
