@@ -26,7 +26,7 @@ SURFACE = {
     "sim": [
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
-        "BUNDLE_VERSION", "CREASE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
+        "BUNDLE_VERSION", "CREASE_RATIO", "CURVE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
         "FEW_DECODED", "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
         "ResponseCurve", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane", "checker_patterns", "checker_shares",
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_colour_mixing", "fit_homography", "fit_plane", "fit_response",

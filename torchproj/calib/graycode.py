@@ -45,7 +45,7 @@ from ..core.checks import check, check_shape
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _recompute_near, depth_edges
 
-__all__ = ["CREASE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "checker_patterns",
+__all__ = ["CREASE_RATIO", "CURVE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "checker_patterns",
            "checker_shares", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel",
            "stripe_contrast"]
 
@@ -719,6 +719,14 @@ _REFINE_STRIP = 256
 # 0.021 / 0.038; 3 0.069 / 0.021 / 0.038.
 CREASE_RATIO = 2.0
 
+# How many times better the quadratic through the centred window must fit its values than the centred
+# plane before refine_subpixel takes it. Where camera pixels span a cell or more and an object spans a
+# few dozen pixels (a small sphere before a coarse camera), the map curves within one window and the
+# plane's value at the centre misses by a third of a cell; a quadratic has twice a plane's variance at
+# the centre, so it must earn its place. Our choice, measured like CREASE_RATIO against the simulator's
+# truth (python benchmarks/refine.py --vary curve).
+CURVE_RATIO = 2.0
+
 
 def _sliding_sums(images: torch.Tensor, window: int, dim: int) -> torch.Tensor:
     """Sums of ``window`` consecutive entries along ``dim`` centred at each one (zeros beyond the
@@ -802,13 +810,96 @@ def _window_planes(values: torch.Tensor, mask: torch.Tensor, window: int) -> tup
     return planes, misfit, count
 
 
+# Pixels per chunk of _window_quadratics' gathered windows: bounds their float64 copies (a chunk of
+# 49-pixel windows is 50 MB).
+_QUADRATIC_CHUNK = 1 << 16
+
+
+def _quadratic_terms(window: int, device) -> torch.Tensor:
+    """:math:`(window^2, 6)` the terms ``1, dx, dy, dx^2, dx dy, dy^2`` at each offset of a window, row-major."""
+    r = window // 2
+    d = torch.arange(-r, r + 1, dtype=torch.float64, device=device)
+    dy, dx = torch.meshgrid(d, d, indexing="ij")
+    return torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], -1).reshape(-1, 6)
+
+
+def _window_quadratics(values: torch.Tensor, mask: torch.Tensor, window: int, pixels: torch.Tensor,
+                       planes: torch.Tensor, misfit: torch.Tensor, count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The least-squares quadratic (six terms in ``dx``, ``dy``) through the masked values of the
+    ``window x window`` neighbourhood of each of ``pixels``, beside the planes of :func:`_window_planes`.
+
+    In a window with every pixel masked in (most of them, away from a map's edges) the three
+    second-order terms, taken about their window means, are orthogonal to the plane's: the quadratic
+    is the plane plus their fit, whose sums are correlations of the map with three kernels that sum
+    to zero (so float32 keeps them exact to the cells' 1e-4 where the map's values reach 1e3). The
+    other windows are gathered and solved one by one in float64.
+
+    Args:
+        values: :math:`(H, W, 2)` the map (any finite value where not masked).
+        mask: :math:`(H, W)` bool, the pixels that count.
+        pixels: :math:`(N,)` flat indices ``y * W + x`` of the windows' centres.
+        planes, misfit, count: :func:`_window_planes`' of the same values, mask and window.
+
+    Returns:
+        ``value`` :math:`(N, 2)` each axis' quadratic at the centre and ``misfit`` :math:`(N,)` the
+        residual sum of squares of both axes per degree of freedom; NaN where the window's pixels
+        do not fix six terms.
+    """
+    height, width = mask.shape
+    dev = values.device
+    r, area = window // 2, window * window
+    terms = _quadratic_terms(window, dev)
+    value = torch.full((pixels.numel(), 2), float("nan"), dtype=values.dtype, device=dev)
+    quad_misfit = torch.full((pixels.numel(),), float("nan"), dtype=torch.float32, device=dev)
+    whole = count.reshape(-1)[pixels] == area
+    if bool(whole.any()):
+        spread = float(terms[:, 1].square().mean())  # the mean of dx^2 (and of dy^2) over the window
+        curved = torch.stack([terms[:, 3] - spread, terms[:, 5] - spread, terms[:, 4]])  # (3, window^2)
+        # dx^2 and dy^2 about their means share a block of the normal matrix; dx dy is apart.
+        inverse = torch.linalg.inv(curved @ curved.T).float()
+        offset = values[mask].mean(0) if bool(mask.any()) else values.new_zeros(2)
+        masked = ((values - offset) * mask[..., None]).permute(2, 0, 1)[:, None].float()
+        h = F.conv2d(masked, curved.reshape(3, 1, window, window).float(), padding=r)  # (2, 3, H, W)
+        h = h.reshape(2, 3, -1)[:, :, pixels[whole]]
+        coef = torch.einsum("ij,ajn->ain", inverse, h)
+        explained = (coef * h).sum((0, 1))  # what the three terms take off the plane's residual, both axes
+        at = pixels[whole]
+        plane = planes.reshape(-1, 2, 3)[at, :, 0]  # (n, 2) the plane's value at the centre: the window's mean
+        value[whole] = (plane - spread * (coef[:, 0] + coef[:, 1]).T).to(values.dtype)
+        rss = (misfit.reshape(-1)[at] * (2 * (area - 3)) - explained).clamp_min(0)
+        quad_misfit[whole] = rss / (2 * (area - 6))
+    offsets = (terms[:, 2] * (width + 2 * r) + terms[:, 1]).long()
+    outer = (terms[:, :, None] * terms[:, None, :]).reshape(-1, 36)
+    flat_mask = F.pad(mask.double(), (r, r, r, r)).reshape(-1)
+    flat = F.pad(values.double().permute(2, 0, 1), (r, r, r, r)).reshape(2, -1)
+    partial = torch.nonzero(~whole)[:, 0]
+    for start in range(0, partial.numel(), _QUADRATIC_CHUNK):
+        chunk = partial[start:start + _QUADRATIC_CHUNK]
+        centre = (pixels[chunk] // width + r) * (width + 2 * r) + pixels[chunk] % width + r
+        at = centre[:, None] + offsets  # (n, window^2)
+        weight = flat_mask[at]
+        # Values about each window's centre value keep the sums of squares small.
+        u = (flat[:, at] - flat[:, centre][..., None]) * weight  # (2, n, window^2)
+        normal = (weight @ outer).reshape(-1, 6, 6)
+        rhs = u @ terms  # (2, n, 6)
+        coef, info = torch.linalg.solve_ex(normal, rhs.permute(1, 2, 0))  # (n, 6, 2)
+        n = weight.sum(1)
+        # A window whose pixels leave the six terms nearly undetermined (a line of pixels) gets none.
+        fixed = (info == 0) & (n > 6) & (torch.linalg.det(normal) > 1e-6 * n.clamp_min(1) ** 6)
+        rss = (u.square().sum(-1) - (coef.permute(2, 0, 1) * rhs).sum(-1)).sum(0).clamp_min(0)
+        value[chunk] = torch.where(fixed[:, None], coef[:, 0, :] + flat[:, centre].T, float("nan")).to(values.dtype)
+        quad_misfit[chunk] = torch.where(fixed, rss / (2 * (n - 6)).clamp_min(1), float("nan")).float()
+    return value, quad_misfit
+
+
 # Tiles (camera pixels a side) in which _refine_again fits again: each costs a fit over the tile and
 # a border of a window either side, so smaller tiles waste less where few pixels changed.
 _AGAIN_TILE = 64
 
 
 def _refine_again(prj_xy: torch.Tensor, valid: torch.Tensor, before: torch.Tensor, changed: torch.Tensor,
-                  spread: torch.Tensor, crease_ratio: float, window: int = 7) -> torch.Tensor:
+                  spread: torch.Tensor, crease_ratio: float, curve_ratio: float = CURVE_RATIO,
+                  window: int = 7) -> torch.Tensor:
     """:func:`refine_subpixel` of ``prj_xy`` where ``changed`` :math:`(H, W)` pixels' values (or spread)
     differ from those ``before`` :math:`(H, W, 2)` was fitted to, and ``before`` elsewhere.
 
@@ -819,12 +910,12 @@ def _refine_again(prj_xy: torch.Tensor, valid: torch.Tensor, before: torch.Tenso
     default scene's two million."""
     return _recompute_near(changed, 2 * (window // 2), _AGAIN_TILE, before.clone(),
                            lambda crop: refine_subpixel(prj_xy[crop], valid[crop], window=window, spread=spread[crop],
-                                                        crease_ratio=crease_ratio))
+                                                        crease_ratio=crease_ratio, curve_ratio=curve_ratio))
 
 
 def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
                     min_fill: float = 0.7, max_shift: float = 0.75, spread: torch.Tensor | None = None,
-                    crease_ratio: float = CREASE_RATIO) -> torch.Tensor:
+                    crease_ratio: float = CREASE_RATIO, curve_ratio: float = CURVE_RATIO) -> torch.Tensor:
     """Sub-pixel projector coordinates by a local affine fit over neighbouring camera pixels.
 
     Gray code quantises each coordinate to whole LCD cells, a staircase across the camera image.
@@ -847,6 +938,14 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     keep the centred window: they may see both surfaces, and a plane of either alone misplaces
     their light.
 
+    Where the surface curves within a window (a small sphere seen by camera pixels a cell or more
+    wide: the map's slope changes by cells across seven pixels) every plane misses the centre, by a
+    third of a cell on the procedural ``suite-1206-6``. There the pixel takes the quadratic through
+    the centred window, where it fits ``curve_ratio`` times better than the centred plane, unless a
+    window beside the pixel was taken (a crease's kink, which no quadratic follows). The quadratic
+    has about twice the plane's variance at the centre, so it must earn its place; our choice, as
+    the stencils are (``python benchmarks/refine.py --vary curve``).
+
     Args:
         prj_xy: :math:`(H, W, 2)` decoded coordinates (NaN where invalid): cells, or their means.
         valid: :math:`(H, W)` bool.
@@ -857,12 +956,15 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
             (:attr:`GrayDecoding.spread`); such a value may move by half its block more.
         crease_ratio: how many times better a window beside the pixel must fit than the centred one
             to be taken (:data:`CREASE_RATIO`); ``math.inf``: the centred window only.
+        curve_ratio: how many times better the centred window's quadratic must fit than its plane to
+            be taken (:data:`CURVE_RATIO`); ``math.inf``: planes only.
 
     Returns:
         :math:`(H, W, 2)` refined coordinates, NaN where invalid.
     """
     check(window % 2 == 1 and window >= 3, f"window must be an odd number >= 3, got {window}")
     check(crease_ratio >= 1, f"crease_ratio must be >= 1 (1: the best-fitting window), got {crease_ratio}")
+    check(curve_ratio >= 1, f"curve_ratio must be >= 1 (1: the better-fitting of plane and quadratic), got {curve_ratio}")
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
     check_shape(valid, "valid", list(prj_xy.shape[:2]))
     height, width = valid.shape
@@ -870,9 +972,13 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     enough = count >= min_fill * window * window
     misfit = torch.where(enough, misfit, float("inf"))
     best, score = planes[..., 0], misfit  # (H, W, 2): the centred window's value at the pixel
+    # Other windows and fits are for pixels away from depth edges, which keep the centred plane.
+    beside = valid & ~depth_edges(prj_xy.masked_fill(~valid[..., None], float("nan"))) \
+        if math.isfinite(crease_ratio) or math.isfinite(curve_ratio) else None
+    moved = torch.zeros_like(valid)  # where a window beside the pixel was taken
     if math.isfinite(crease_ratio):
         score = misfit / crease_ratio
-        shifted = valid & ~depth_edges(prj_xy.masked_fill(~valid[..., None], float("nan")))
+        shifted = beside
         r = window // 2
         for dx, dy in ((r, 0), (-r, 0), (0, r), (0, -r)):
             # The window centred at (x + dx, y + dy), read at each pixel (x, y): its plane's value
@@ -890,6 +996,21 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
             take = shifted & (misfit_there < score)
             score = torch.where(take, misfit_there, score)
             best = torch.where(take[..., None], value, best)
+            moved |= take
+    if math.isfinite(curve_ratio):
+        # The centred quadratic, where it fits curve_ratio times better than the centred plane: a
+        # surface curved within the window. Not beside a crease (a window beside the pixel taken),
+        # whose kink no quadratic follows.
+        pixels = torch.nonzero((beside & enough & ~moved).reshape(-1))[:, 0]
+        if pixels.numel():
+            value, curved = _window_quadratics(torch.nan_to_num(prj_xy), valid, window, pixels, planes, misfit, count)
+            take = curved * curve_ratio < misfit.reshape(-1)[pixels]
+            flat_best = best.reshape(-1, 2).clone()
+            flat_best[pixels[take]] = value[take].to(best.dtype)
+            best = flat_best.view_as(best)
+            flat_score = score.reshape(-1).clone()
+            flat_score[pixels[take]] = curved[take]
+            score = flat_score.view_as(score)
     fitted = best.to(prj_xy.dtype)
     allowed = max_shift if spread is None else max_shift + (spread.to(prj_xy.dtype) - 1).clamp_min(0) / 2
     keep = valid & torch.isfinite(score) & torch.isfinite(fitted).all(-1) & ((fitted - prj_xy).abs() <= allowed).all(-1)

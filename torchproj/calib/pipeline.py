@@ -12,7 +12,7 @@ from ..core.checks import check
 from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
-from .graycode import (CREASE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, cell_shares, checker_shares,
+from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, cell_shares, checker_shares,
                        decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map, map_slope
@@ -106,7 +106,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
                         black_threshold: float = BLACK_THRESHOLD, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
                         max_hole: int = 16, ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
                         plane_tolerance: float = 1.0, crease_ratio: float = CREASE_RATIO,
-                        require_response: bool = True) -> ProjectorCalibration:
+                        curve_ratio: float = CURVE_RATIO, require_response: bool = True) -> ProjectorCalibration:
     """Decode, refine, fill, invert and fit the response of one capture.
 
     A shortened sequence (``bits``) decodes to blocks of cells only. Its map is then one
@@ -130,13 +130,15 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
             (projector pixels, :func:`~torchproj.calib.fit_homography`) that counts as a plane.
         crease_ratio: how much better a refining window beside a pixel must fit than the centred one
             (:func:`refine_subpixel`); ``math.inf``: the centred window only.
+        curve_ratio: how much better the centred window's quadratic must fit than its plane
+            (:func:`refine_subpixel`); ``math.inf``: planes only.
         require_response: refuse a ramp whose bars the camera sees too few of to fit a response
             (an object that covers a few of the 32 bars). False: give no response and say why
             (``response_note``), for a rig whose other states' ramps fit this projector's response.
     """
     m = _forward_map(capture, projector_size, white_threshold=white_threshold, black_threshold=black_threshold,
                      dim_threshold=dim_threshold, subpixel=subpixel, max_hole=max_hole, bits=bits,
-                     plane_tolerance=plane_tolerance, crease_ratio=crease_ratio)
+                     plane_tolerance=plane_tolerance, crease_ratio=crease_ratio, curve_ratio=curve_ratio)
     dec, fit, shares, prj_xy, dim_xy, timings = m.decoding, m.homography, m.shares, m.prj_xy, m.dim_xy, m.timings_s
     t0 = time.perf_counter()
     cam_xy, count = inverse_map(prj_xy, projector_size)
@@ -217,7 +219,8 @@ class _ForwardMap:
 
 def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float,
                  black_threshold: float, dim_threshold: float, subpixel: bool, max_hole: int,
-                 bits: int | tuple[int, int] | None, plane_tolerance: float, crease_ratio: float) -> _ForwardMap:
+                 bits: int | tuple[int, int] | None, plane_tolerance: float, crease_ratio: float,
+                 curve_ratio: float = CURVE_RATIO) -> _ForwardMap:
     check(max_hole >= 0, f"max_hole must be >= 0, got {max_hole}")
     timings = {}
     check(dim_threshold >= 0, f"dim_threshold must be >= 0 (8-bit units), got {dim_threshold}")
@@ -247,7 +250,8 @@ def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, w
         shares = cell_shares(capture.patterns, capture.white, capture.black, seen, projector_size)
         if subpixel:
             coarse = torch.where(seen.valid[..., None], shares.means(), seen.coarse_xy)
-            mapped = refine_subpixel(coarse, seen.valid | seen.partial, spread=seen.spread, crease_ratio=crease_ratio)
+            mapped = refine_subpixel(coarse, seen.valid | seen.partial, spread=seen.spread, crease_ratio=crease_ratio,
+                                     curve_ratio=curve_ratio)
         else:
             mapped = seen.coarse_xy.clone()
         shares, sharp = _partial_shares(capture, seen, shares, mapped, projector_size)
@@ -260,7 +264,7 @@ def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, w
             # fit leaves the faces' error where it is (within 0.0001 cells rms): docs/accuracy.md "The ceiling".
             coarse = torch.where(sharp[..., None], shares.means(), coarse)
             mapped = _refine_again(coarse, seen.valid | seen.partial, mapped, sharp,
-                                   torch.where(sharp[..., None], 1, seen.spread), crease_ratio)
+                                   torch.where(sharp[..., None], 1, seen.spread), crease_ratio, curve_ratio)
         prj_xy = torch.where((dec.valid | dec.partial)[..., None], mapped, float("nan"))
         if max_hole:
             prj_xy, mapped = fill_holes(prj_xy, max_hole), fill_holes(mapped, max_hole)
