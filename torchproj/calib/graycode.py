@@ -726,6 +726,10 @@ CREASE_RATIO = 2.0
 # the centre, so it must earn its place. Our choice, measured like CREASE_RATIO against the simulator's
 # truth (python benchmarks/refine.py --vary curve).
 CURVE_RATIO = 2.0
+# refine_subpixel fits the quadratic only where the bend that the windows beside a pixel show moves
+# its centred plane's value by more than this many standard errors (the conventional two): a
+# significance test that spares the fine cameras' maps, where a quadratic would be taken by chance.
+CURVE_ERRORS = 2.0
 
 
 def _sliding_sums(images: torch.Tensor, window: int, dim: int) -> torch.Tensor:
@@ -851,7 +855,11 @@ def _window_quadratics(values: torch.Tensor, mask: torch.Tensor, window: int, pi
     terms = _quadratic_terms(window, dev)
     value = torch.full((pixels.numel(), 2), float("nan"), dtype=values.dtype, device=dev)
     quad_misfit = torch.full((pixels.numel(),), float("nan"), dtype=torch.float32, device=dev)
+    # The correlations cover the whole map at a twentieth of a gathered window's cost per pixel: for
+    # fewer windows than that, every one is gathered.
     whole = count.reshape(-1)[pixels] == area
+    if pixels.numel() * 20 < height * width:
+        whole = torch.zeros_like(whole)
     if bool(whole.any()):
         spread = float(terms[:, 1].square().mean())  # the mean of dx^2 (and of dy^2) over the window
         curved = torch.stack([terms[:, 3] - spread, terms[:, 5] - spread, terms[:, 4]])  # (3, window^2)
@@ -868,18 +876,19 @@ def _window_quadratics(values: torch.Tensor, mask: torch.Tensor, window: int, pi
         value[whole] = (plane - spread * (coef[:, 0] + coef[:, 1]).T).to(values.dtype)
         rss = (misfit.reshape(-1)[at] * (2 * (area - 3)) - explained).clamp_min(0)
         quad_misfit[whole] = rss / (2 * (area - 6))
-    offsets = (terms[:, 2] * (width + 2 * r) + terms[:, 1]).long()
     outer = (terms[:, :, None] * terms[:, None, :]).reshape(-1, 36)
-    flat_mask = F.pad(mask.double(), (r, r, r, r)).reshape(-1)
-    flat = F.pad(values.double().permute(2, 0, 1), (r, r, r, r)).reshape(2, -1)
+    step_x, step_y = terms[:, 1].long(), terms[:, 2].long()
+    flat_mask, flat = mask.reshape(-1), values.reshape(-1, 2)
     partial = torch.nonzero(~whole)[:, 0]
     for start in range(0, partial.numel(), _QUADRATIC_CHUNK):
-        chunk = partial[start:start + _QUADRATIC_CHUNK]
-        centre = (pixels[chunk] // width + r) * (width + 2 * r) + pixels[chunk] % width + r
-        at = centre[:, None] + offsets  # (n, window^2)
-        weight = flat_mask[at]
+        chunk = pixels[partial[start:start + _QUADRATIC_CHUNK]]
+        ys, xs = (chunk // width)[:, None] + step_y, (chunk % width)[:, None] + step_x  # (n, window^2)
+        inside = (ys >= 0) & (ys < height) & (xs >= 0) & (xs < width)
+        at = ys.clamp(0, height - 1) * width + xs.clamp(0, width - 1)
+        weight = (flat_mask[at] & inside).double()
         # Values about each window's centre value keep the sums of squares small.
-        u = (flat[:, at] - flat[:, centre][..., None]) * weight  # (2, n, window^2)
+        centre = flat[chunk].double()  # (n, 2)
+        u = (flat[at].double() - centre[:, None]).permute(2, 0, 1) * weight  # (2, n, window^2)
         normal = (weight @ outer).reshape(-1, 6, 6)
         rhs = u @ terms  # (2, n, 6)
         coef, info = torch.linalg.solve_ex(normal, rhs.permute(1, 2, 0))  # (n, 6, 2)
@@ -887,8 +896,9 @@ def _window_quadratics(values: torch.Tensor, mask: torch.Tensor, window: int, pi
         # A window whose pixels leave the six terms nearly undetermined (a line of pixels) gets none.
         fixed = (info == 0) & (n > 6) & (torch.linalg.det(normal) > 1e-6 * n.clamp_min(1) ** 6)
         rss = (u.square().sum(-1) - (coef.permute(2, 0, 1) * rhs).sum(-1)).sum(0).clamp_min(0)
-        value[chunk] = torch.where(fixed[:, None], coef[:, 0, :] + flat[:, centre].T, float("nan")).to(values.dtype)
-        quad_misfit[chunk] = torch.where(fixed, rss / (2 * (n - 6)).clamp_min(1), float("nan")).float()
+        here = partial[start:start + _QUADRATIC_CHUNK]
+        value[here] = torch.where(fixed[:, None], coef[:, 0, :] + centre, float("nan")).to(values.dtype)
+        quad_misfit[here] = torch.where(fixed, rss / (2 * (n - 6)).clamp_min(1), float("nan")).float()
     return value, quad_misfit
 
 
@@ -1001,7 +1011,21 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
         # The centred quadratic, where it fits curve_ratio times better than the centred plane: a
         # surface curved within the window. Not beside a crease (a window beside the pixel taken),
         # whose kink no quadratic follows.
-        pixels = torch.nonzero((beside & enough & ~moved).reshape(-1))[:, 0]
+        candidates = beside & enough & ~moved
+        # Only where the planes of the windows beside the pixel show a bend that moves the centred
+        # plane's value by more than two of its standard errors can a quadratic gain: elsewhere (a
+        # fine camera's map, planar faces) it would be taken by chance alone, and is not fitted.
+        # The bias of the centred plane is spread * (f_xx + f_yy) / 2, the second derivatives from
+        # the slopes of the windows half a window either side.
+        r = window // 2
+        bend = torch.full_like(planes[..., 0], float("nan"))  # (H, W, 2), NaN: unknown, so fitted
+        if width > 2 * r and height > 2 * r:
+            across = planes[:, 2 * r:, :, 1] - planes[:, :-2 * r, :, 1]  # at x: slope_x(x + r) - slope_x(x - r)
+            down = planes[2 * r:, :, :, 2] - planes[:-2 * r, :, :, 2]
+            bend[r:-r, r:-r] = (across[r:-r] + down[:, r:-r]) * (r * (r + 1) / 3 / (4 * r))
+        error = (misfit / count.clamp_min(1)).sqrt()
+        candidates &= ~(bend.abs().amax(-1) <= CURVE_ERRORS * error)
+        pixels = torch.nonzero(candidates.reshape(-1))[:, 0]
         if pixels.numel():
             value, curved = _window_quadratics(torch.nan_to_num(prj_xy), valid, window, pixels, planes, misfit, count)
             take = curved * curve_ratio < misfit.reshape(-1)[pixels]
