@@ -268,8 +268,16 @@ def test_window_quadratics_are_each_windows_least_squares_quadratic():
     mask[20:30, 20:30] = True  # a block of whole windows
     planes, misfit, count = _window_planes(values, mask, window)
     probes = [(25, 25), (40, 40), (5, 8), (8, 11), (54, 63), (30, 10), (12, 60)]
-    pixels = torch.tensor([y * width + x for y, x in probes])
-    value, quad_misfit = _window_quadratics(values, mask, window, pixels, planes, misfit, count)
+    # Asked for a few windows, each is gathered; asked for every masked pixel's, the whole ones come
+    # from the correlations.
+    few = torch.tensor([y * width + x for y, x in probes])
+    every = torch.nonzero(mask.reshape(-1))[:, 0]
+    at = torch.searchsorted(every, few)
+    assert torch.equal(every[at], few)
+    gathered = _window_quadratics(values, mask, window, few, planes, misfit, count)
+    value, quad_misfit = (t[at] for t in _window_quadratics(values, mask, window, every, planes, misfit, count))
+    torch.testing.assert_close(value, gathered[0], rtol=0, atol=2e-4)
+    torch.testing.assert_close(quad_misfit, gathered[1], rtol=2e-3, atol=0)
     r = window // 2
     assert int(count[25, 25]) == window * window and int(count[5, 8]) < window * window
     for i, (y, x) in enumerate(probes):
