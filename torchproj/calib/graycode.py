@@ -724,8 +724,12 @@ CREASE_RATIO = 2.0
 # few dozen pixels (a small sphere before a coarse camera), the map curves within one window and the
 # plane's value at the centre misses by a third of a cell; a quadratic has twice a plane's variance at
 # the centre, so it must earn its place. Our choice, measured like CREASE_RATIO against the simulator's
-# truth (python benchmarks/refine.py --vary curve).
-CURVE_RATIO = 2.0
+# truth (python benchmarks/refine.py --vary curve; map error in cells rms inside suite-1206-6's
+# ellipsoid / inside suite-1-14's spheres / near box_cylinders' edges / near suite-1206-5's planes'
+# edges): planes only 0.208 / 0.161 / 0.125 / 0.098; ratio 1 0.018 / 0.031 / 0.115 / 0.101; 1.5
+# 0.020 / 0.036 / 0.115 / 0.100; 2 0.055 / 0.050 / 0.117 / 0.099; 3 0.100 / 0.072 / 0.122 / 0.098.
+CURVE_RATIO = 1.5
+
 # refine_subpixel fits the quadratic only where the bend that the windows beside a pixel show moves
 # its centred plane's value by more than this many standard errors (the conventional two): a
 # significance test that spares the fine cameras' maps, where a quadratic would be taken by chance.
@@ -950,10 +954,12 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
 
     Where the surface curves within a window (a small sphere seen by camera pixels a cell or more
     wide: the map's slope changes by cells across seven pixels) every plane misses the centre, by a
-    third of a cell on the procedural ``suite-1206-6``. There the pixel takes the quadratic through
-    the centred window, where it fits ``curve_ratio`` times better than the centred plane, unless a
-    window beside the pixel was taken (a crease's kink, which no quadratic follows). The quadratic
-    has about twice the plane's variance at the centre, so it must earn its place; our choice, as
+    fifth of a cell inside the procedural ``suite-1206-6``'s ellipsoid. There the pixel takes the
+    quadratic through the centred window, where it fits ``curve_ratio`` times better than the
+    centred plane, unless a window beside the pixel was taken (a crease's kink, which no quadratic
+    follows). The quadratic has about twice the plane's variance at the centre, so it must earn its
+    place, and it is fitted only where the planes of the windows beside the pixel bend enough to
+    move the centred plane's value by :data:`CURVE_ERRORS` of its standard errors; our choice, as
     the stencils are (``python benchmarks/refine.py --vary curve``).
 
     Args:
