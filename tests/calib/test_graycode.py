@@ -234,6 +234,30 @@ def test_refine_follows_a_surface_curved_within_its_window():
     assert flat[CURVE_RATIO] < flat[math.inf] * 1.1, flat
 
 
+def test_an_outline_pixel_beside_a_curved_surface_keeps_its_own_value():
+    """A pixel whose own window the mask cuts takes a window beside it; where that window's surface
+    curves, its plane read half a window away misses by the curvature, and the pixel keeps its own
+    value (its cells' mean). Beside a planar face it still takes the plane, as it did."""
+    values, truth = _sphere_like(noise=0.05)
+    valid = torch.ones(values.shape[:2], dtype=torch.bool)
+    valid[:, 45:] = False  # an outline along x = 44
+    outline = torch.zeros_like(valid)
+    outline[5:-5, 42:45] = True  # under 70% of their 7 x 7 windows is mapped
+    err = {ratio: float((refine_subpixel(values, valid, curve_ratio=ratio) - truth)[outline].norm(dim=-1)
+                        .pow(2).mean().sqrt()) for ratio in (math.inf, CURVE_RATIO)}
+    own = float((values - truth)[outline].norm(dim=-1).pow(2).mean().sqrt())
+    assert err[math.inf] > 3 * own, (err, own)  # the shifted planes' curvature bias
+    assert err[CURVE_RATIO] < 1.5 * own, (err, own)
+    planar, _, _ = _creased(noise=0.15)
+    planar_valid = torch.ones(planar.shape[:2], dtype=torch.bool)
+    planar_valid[:, 30:] = False  # left of the crease: one planar face
+    cut = torch.zeros_like(planar_valid)
+    cut[5:-5, 27:30] = True
+    torch.testing.assert_close(refine_subpixel(planar, planar_valid)[cut],
+                               refine_subpixel(planar, planar_valid, curve_ratio=math.inf)[cut])
+    assert not torch.equal(refine_subpixel(planar, planar_valid)[cut], planar[cut])
+
+
 def test_calibration_places_a_small_sphere_closer_with_the_window_quadratic():
     """A procedural scene's small ellipsoid before camera pixels 1.7 cells wide, three projectors
     (suite-1206-6, drawn after the rule was written): the calibrated map against the simulator's
