@@ -722,7 +722,7 @@ CREASE_RATIO = 2.0
 # How many times better the quadratic through the centred window must fit its values than the centred
 # plane before refine_subpixel takes it. Where camera pixels span a cell or more and an object spans a
 # few dozen pixels (a small sphere before a coarse camera), the map curves within one window and the
-# plane's value at the centre misses by a third of a cell; a quadratic has twice a plane's variance at
+# plane's value at the centre misses by a fifth of a cell; a quadratic has twice a plane's variance at
 # the centre, so it must earn its place. Our choice, measured like CREASE_RATIO against the simulator's
 # truth (python benchmarks/refine.py --vary curve; map error in cells rms inside suite-1206-6's
 # ellipsoid / inside suite-1-14's spheres / near box_cylinders' edges / near suite-1206-5's planes'
