@@ -260,7 +260,7 @@ def test_an_outline_pixel_beside_a_curved_surface_keeps_its_own_value():
 
 def test_calibration_places_a_small_sphere_closer_with_the_window_quadratic():
     """A procedural scene's small ellipsoid before camera pixels 1.7 cells wide, three projectors
-    (suite-1206-6, drawn after the rule was written): the calibrated map against the simulator's
+    (suite-1206-6, the scene the quadratic was found on): the calibrated map against the simulator's
     exact coordinates, with and without the quadratic (0.35 -> 0.22 cells rms when measured)."""
     from torchproj.scene import load_scene
 
