@@ -927,6 +927,16 @@ def _refine_again(prj_xy: torch.Tensor, valid: torch.Tensor, before: torch.Tenso
                                                         crease_ratio=crease_ratio, curve_ratio=curve_ratio))
 
 
+def _shifted(dx: int, dy: int, height: int, width: int) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """``(here, there)``: the slices of an :math:`(H, W)` image such that ``image[there]`` read at
+    ``here`` is each pixel's neighbour at ``(x + dx, y + dy)`` (pixels whose neighbour lies outside
+    are left out; stops clamped at 0, since a negative stop would count from the end of an image
+    narrower than the shift)."""
+    here = slice(max(-dy, 0), max(height - max(dy, 0), 0)), slice(max(-dx, 0), max(width - max(dx, 0), 0))
+    there = slice(max(dy, 0), max(height - max(-dy, 0), 0)), slice(max(dx, 0), max(width - max(-dx, 0), 0))
+    return here, there
+
+
 def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
                     min_fill: float = 0.7, max_shift: float = 0.75, spread: torch.Tensor | None = None,
                     crease_ratio: float = CREASE_RATIO, curve_ratio: float = CURVE_RATIO) -> torch.Tensor:
@@ -991,19 +1001,15 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     # Other windows and fits are for pixels away from depth edges, which keep the centred plane.
     beside = valid & ~depth_edges(prj_xy.masked_fill(~valid[..., None], float("nan"))) \
         if math.isfinite(crease_ratio) or math.isfinite(curve_ratio) else None
-    moved = torch.zeros_like(valid)  # where a window beside the pixel was taken
-    source = torch.full_like(count, -1, dtype=torch.int8)  # which of the four, -1: none
-    shifts = ((window // 2, 0), (-(window // 2), 0), (0, window // 2), (0, -(window // 2)))
+    r = window // 2
+    shifts = ((r, 0), (-r, 0), (0, r), (0, -r))
+    source = torch.full_like(count, -1, dtype=torch.int8)  # which window beside the pixel was taken, -1: none
     if math.isfinite(crease_ratio):
         score = misfit / crease_ratio
-        shifted = beside
-        r = window // 2
         for k, (dx, dy) in enumerate(shifts):
             # The window centred at (x + dx, y + dy), read at each pixel (x, y): its plane's value
             # there and its misfit, infinite where that centre lies outside the image.
-            # (stops clamped at 0: a negative stop would count from the end of a map narrower than r)
-            here = slice(max(-dy, 0), max(height - max(dy, 0), 0)), slice(max(-dx, 0), max(width - max(dx, 0), 0))
-            there = slice(max(dy, 0), max(height - max(-dy, 0), 0)), slice(max(dx, 0), max(width - max(-dx, 0), 0))
+            here, there = _shifted(dx, dy, height, width)
             misfit_there = torch.full_like(misfit, float("inf"))
             misfit_there[here] = misfit[there]
             value = torch.zeros_like(best)
@@ -1011,22 +1017,20 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
             # Its plane read half a window along x or y: the other slope's term is zero (a plane is
             # finite, or NaN in all three parts).
             value[here] = plane[..., 0] - dx * plane[..., 1] if dx else plane[..., 0] - dy * plane[..., 2]
-            take = shifted & (misfit_there < score)
+            take = beside & (misfit_there < score)
             score = torch.where(take, misfit_there, score)
             best = torch.where(take[..., None], value, best)
-            moved |= take
             source.masked_fill_(take, k)
     if math.isfinite(curve_ratio):
         # The centred quadratic, where it fits curve_ratio times better than the centred plane: a
         # surface curved within the window. Not beside a crease (a window beside the pixel taken),
         # whose kink no quadratic follows.
-        candidates = beside & enough & ~moved
+        candidates = beside & enough & (source < 0)
         # Only where the planes of the windows beside the pixel show a bend that moves the centred
         # plane's value by more than two of its standard errors can a quadratic gain: elsewhere (a
         # fine camera's map, planar faces) it would be taken by chance alone, and is not fitted.
         # The bias of the centred plane is spread * (f_xx + f_yy) / 2, the second derivatives from
         # the slopes of the windows half a window either side.
-        r = window // 2
         bend = torch.full_like(planes[..., 0], float("nan"))  # (H, W, 2), NaN: unknown, so fitted
         if width > 2 * r and height > 2 * r:
             across = planes[:, 2 * r:, :, 1] - planes[:, :-2 * r, :, 1]  # at x: slope_x(x + r) - slope_x(x - r)
@@ -1053,8 +1057,7 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
             bent[pixels[take]] = True
             bent = bent.view(height, width)
             for k, (dx, dy) in enumerate(shifts):
-                here = slice(max(-dy, 0), max(height - max(dy, 0), 0)), slice(max(-dx, 0), max(width - max(dx, 0), 0))
-                there = slice(max(dy, 0), max(height - max(-dy, 0), 0)), slice(max(dx, 0), max(width - max(-dx, 0), 0))
+                here, there = _shifted(dx, dy, height, width)
                 from_bent = torch.zeros_like(bent)
                 from_bent[here] = bent[there]
                 score = score.masked_fill(~enough & (source == k) & from_bent, float("inf"))
