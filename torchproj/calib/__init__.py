@@ -16,8 +16,8 @@ The calibration types, and how they relate:
 from .blur import measure_blur
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
-from .graycode import (CREASE_RATIO, CURVE_RATIO, STRIPE_MARGIN, STRIPE_TOLERANCE, WIDE_SHARE, CellShares, GrayDecoding, cell_means, cell_shares, checker_patterns, checker_shares, decode_gray, graycode_bits, graycode_patterns, stripe_contrast,
-                       refine_subpixel, sequence_bits)
+from .graycode import (CREASE_RATIO, CURVE_RATIO, STRIPE_MARGIN, STRIPE_TOLERANCE, WIDE_SHARE, CellShares, GrayDecoding, band_pixels, cell_means, cell_shares, checker_patterns, checker_shares, decode_gray, graycode_bits, graycode_patterns, stripe_contrast,
+                       refine_subpixel, stripe_shares, sequence_bits)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
@@ -46,6 +46,7 @@ __all__ = [
     "ProCamCalibration",
     "ProjectorCalibration",
     "ResponseCurve",
+    "band_pixels",
     "calibrate_folders",
     "calibrate_projector",
     "scan_map",
@@ -77,6 +78,7 @@ __all__ = [
     "refine_subpixel",
     "sequence_bits",
     "stripe_contrast",
+    "stripe_shares",
     "triangulate",
     "triangulate_map",
     "write_bundle",

@@ -33,7 +33,8 @@ colour camera also ``colour_contrast``, white minus black per channel ``(C, H, W
 ``contrast``; bundles without it give every channel the grey weight; from a full sequence also
 ``edge_pixel``, ``edge_xy``, ``edge_slope``, ``edge_share``, the :class:`~torchproj.calib.EdgePixels`,
 and ``share_cell``, ``share_across``, ``share_outside`` (and, where a checkerboard pair was measured,
-``share_checker``), the :class:`~torchproj.calib.CellShares`, ``dim_xy``,
+``share_checker``; ``share_band`` and ``share_band_white``, the pixels beside outlines and every pattern
+pair's share there), the :class:`~torchproj.calib.CellShares`, ``dim_xy``,
 the dimly lit pixels' coordinates (:attr:`~torchproj.calib.ProjectorCalibration.dim_xy`), and ``blur``, each
 pixel's defocus disc in cells (:attr:`~torchproj.calib.ProjectorCalibration.blur`); bundles without them
 model no edge pixel, fit no row to measured shares, add no dim light to rows and take every lens as sharp) and
@@ -314,6 +315,8 @@ def _maps(cal: ProjectorCalibration) -> dict:
         maps.update({f"share_{k}": getattr(cal.shares, k) for k in SHARE_FIELDS})
         if cal.shares.checker is not None:
             maps["share_checker"] = cal.shares.checker
+        if cal.shares.band is not None:
+            maps.update(share_band=cal.shares.band, share_band_white=cal.shares.band_white)
     if cal.dim_xy is not None:
         maps["dim_xy"] = cal.dim_xy
     if cal.blur is not None:
@@ -340,7 +343,8 @@ def cell_shares_of(maps: dict) -> CellShares | None:
     older bundle)."""
     if "share_cell" not in maps:
         return None
-    return CellShares(*(maps[f"share_{k}"] for k in SHARE_FIELDS), checker=maps.get("share_checker"))
+    return CellShares(*(maps[f"share_{k}"] for k in SHARE_FIELDS), checker=maps.get("share_checker"),
+                      band=maps.get("share_band"), band_white=maps.get("share_band_white"))
 
 
 def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:

@@ -45,9 +45,9 @@ from ..core.checks import check, check_shape
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _recompute_near, depth_edges
 
-__all__ = ["CREASE_RATIO", "CURVE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "cell_means", "cell_shares", "checker_patterns",
+__all__ = ["CREASE_RATIO", "CURVE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "band_pixels", "cell_means", "cell_shares", "checker_patterns",
            "checker_shares", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel",
-           "stripe_contrast"]
+           "stripe_contrast", "stripe_shares"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
 
@@ -436,12 +436,20 @@ class CellShares:
             projector axis at a time, measures how a pixel's light splits along each axis but not
             how the two splits combine; this one pair tells a footprint leaning along one diagonal
             of a block of cells from one leaning along the other. None: not measured.
+        band: optional :math:`(M,)` int64 flat camera pixels (row-major) beside an outline, whose
+            every pattern pair's share is kept in ``band_white`` (:func:`band_pixels`); None: none kept.
+        band_white: :math:`(M, B)` float32 with ``band``, the share of each such pixel's light on the
+            cells that pattern pair ``k`` (``x`` pairs, then ``y``, most significant first) shows
+            white in its first image (:func:`stripe_shares`). Beside an outline a pixel's light falls
+            on cells that no parallelogram about its cell holds; each pair says how it splits.
     """
 
     cell: torch.Tensor
     across: torch.Tensor
     outside: torch.Tensor
     checker: torch.Tensor | None = None
+    band: torch.Tensor | None = None
+    band_white: torch.Tensor | None = None
 
     def means(self) -> torch.Tensor:
         """:math:`(H, W, 2)` projector ``(x, y)``: the mean cell centre of each pixel's light,
@@ -471,7 +479,17 @@ class CellShares:
               f"{where}: cell shares name cells outside the {projector_size[0]}x{projector_size[1]} projector")
         if self.checker is not None:
             check_shape(self.checker, f"{where}: cell shares' checker", list(camera))
-        for name, share in (("across", self.across), ("outside", self.outside), ("checker", self.checker)):
+        check((self.band is None) == (self.band_white is None),
+              f"{where}: cell shares need both band and band_white, or neither")
+        if self.band is not None:
+            check(self.band.dim() == 1 and not self.band.is_floating_point(),
+                  f"{where}: cell shares' band must be a 1-D array of integer camera pixels")
+            check_shape(self.band_white, f"{where}: cell shares' band_white", [self.band.numel(), "B"])
+            check(self.band.numel() == 0 or (int(self.band.min()) >= 0 and int(self.band.max()) < camera[0] * camera[1]),
+                  f"{where}: cell shares' band names a pixel outside the {camera[1]}x{camera[0]} camera")
+            check(bool(torch.isfinite(self.band_white).all()), f"{where}: cell shares' band_white must be finite")
+        for name, share in (("across", self.across), ("outside", self.outside), ("checker", self.checker),
+                            ("band_white", self.band_white)):
             if share is None or share.numel() == 0:
                 continue
             low, high = torch.nan_to_num(share, nan=0.0, posinf=0.0, neginf=0.0).aminmax()  # finite ones only
@@ -524,6 +542,30 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     across.view(-1, 2, 2)[pixels] = measured
     outside.view(-1, 2)[pixels] = far_shares
     return CellShares(cells, across, outside)
+
+
+def band_pixels(prj_xy: torch.Tensor, reach: int = 2) -> torch.Tensor:
+    """:math:`(M,)` flat camera pixels of a map :math:`(H, W, 2)` (NaN where unknown) within ``reach``
+    pixels of a depth edge (:func:`~torchproj.calib.maps.depth_edges`) or of a pixel the map does not
+    know: where a pixel may see two surfaces, or one surface and nothing, and its light falls where
+    no parallelogram about its own coordinate puts it."""
+    known = torch.isfinite(prj_xy).all(-1)
+    beside = (depth_edges(prj_xy) | ~known).float()[None, None]
+    near = F.max_pool2d(beside, 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
+    return torch.nonzero((known & near).reshape(-1))[:, 0]
+
+
+def stripe_shares(patterns: torch.Tensor, span: torch.Tensor, pixels: torch.Tensor, bits: tuple[int, int]) -> torch.Tensor:
+    """:math:`(M, B)` the share of each flat camera pixel's light (``pixels`` :math:`(M,)`, white
+    minus black ``span`` :math:`(H, W)`) on the cells each of the full sequence's ``bits = (x, y)``
+    pattern pairs shows white in its first image, ``x`` pairs first: ``(1 + d) / 2`` of the pair's
+    difference ``d`` in units of ``span``, clipped to [0, 1] (:attr:`CellShares.band_white`)."""
+    out = torch.empty(pixels.numel(), bits[0] + bits[1], device=pixels.device)
+    first = -torch.ones(pixels.numel(), device=pixels.device)  # the first image lights the cells in question
+    width = span.reshape(-1)[pixels].clamp_min(_EPS)
+    for k in range(bits[0] + bits[1]):  # one pair at a time, as the decoder
+        out[:, k] = _pair_share(_grey_at(patterns[2 * k:2 * k + 2], pixels), width, first)
+    return out
 
 
 def _shares_at(patterns: torch.Tensor, span: torch.Tensor, cells: torch.Tensor, pixels: torch.Tensor,

@@ -12,8 +12,9 @@ from ..core.checks import check
 from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
-from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, cell_shares, checker_shares,
-                       decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast)
+from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, band_pixels, cell_shares, checker_shares,
+                       decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast,
+                       stripe_shares)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map, map_slope
 from .blur import measure_blur
@@ -199,6 +200,12 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         span = stripe_contrast(capture.patterns, capture.white, capture.black, shares.cell, projector_size)
         dec = replace(dec, contrast=span.mean(0))
         colour = span if colour is not None else None
+        # Beside outlines (and on the edge pixels, mapped or not) a pixel's light falls where no
+        # parallelogram about its coordinate puts it; every pair's share there is kept for the rows
+        # to be fitted to (CellShares.band_white).
+        band = torch.unique(torch.cat([band_pixels(merged), edges.pixel.to(torch.int64)]))  # sorted
+        shares = replace(shares, band=band, band_white=stripe_shares(capture.patterns, dec.contrast, band,
+                                                                     graycode_bits(*projector_size)))
         timings["stripes"] = time.perf_counter() - t0
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,

@@ -36,7 +36,7 @@ from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope, pixel_square
 from ..calib.bundle import cell_shares_of, edge_pixels
 from ..calib.edges import EdgePixels
-from ..calib.graycode import WIDE_SHARE, CellShares
+from ..calib.graycode import WIDE_SHARE, CellShares, graycode_bits
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor, index_dtype
 from ..metrics.ssim import WINDOW
@@ -95,6 +95,10 @@ _SHARE_OUTSIDE = WIDE_SHARE
 # light was measured across it and the row holds none there (_reach_shares). The same 0.05 as above,
 # over the noise; 0.03 and 0.1 give the same scores on box_cylinders (docs/accuracy.md "The ceiling").
 _SHARE_REACH = 0.05
+# _fit_band: the share of a row's light each cell it gains around its own starts with, and the sweeps
+# over every pattern pair's condition. Our choice, on suite-56-1, suite-1206-6, suite-55-16 and
+# suite-97-8 (docs/accuracy.md "Scenes nobody tuned for").
+_BAND_SEED, _BAND_SWEEPS = 0.01, 8
 
 
 def _stamp(tensors: list[torch.Tensor]) -> list[tuple[torch.Tensor, int]]:
@@ -250,6 +254,7 @@ class StateCalibration:
         if self.shares is not None:
             cells, values = _reach_shares(cells, values, self.shares[j], pixels, size)
             values = _fit_shares(cells, values, self.shares[j], pixels, size)
+            cells, values = _fit_band(cells, values, self.shares[j], pixels, size)
         return cells, values
 
     def _slope(self, j: int) -> torch.Tensor:
@@ -817,6 +822,79 @@ def _fit_shares(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, p
             down = torch.where(on, (1 - share) / rest.clamp_min(_SHARE_TOL), 1.0)
             values.mul_(torch.mul(near, down[:, None]).addcmul_(far, up[:, None]))  # up on the far cells, down elsewhere
     return values
+
+
+def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pixels: torch.Tensor,
+              size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rows :math:`(N, s)` of those camera ``pixels`` :math:`(N,)` that lie beside an outline
+    (:attr:`~torchproj.calib.CellShares.band`), widened by the cells around their own and fitted to
+    the share of the pixel's light that every Gray-code pattern pair measured there
+    (:attr:`~torchproj.calib.CellShares.band_white`). Other rows stay as they are.
+
+    Beside an outline a camera pixel may see part of an object and part of what lies behind it (a
+    jump of a cell or two, which :func:`~torchproj.calib.find_edge_pixels` does not take for two
+    surfaces), or part of an object and nothing: its light falls on cells of two slopes, or on part
+    of the parallelogram only, and the cells near the row's edge are wrong by up to a cell. Each
+    pattern pair is one linear condition on the row, as in :func:`_fit_shares`: the share of its
+    light on the cells the pair shows white. Neighbouring cells differ in one pair, so the pairs
+    together say how the light splits across every cell edge the row spans, along each axis, where
+    the four shares about the decoded cell say it for that cell's edges alone. The row first gains
+    the cells around its own (each seeded with ``_BAND_SEED`` of the row's light, so that the fit
+    can move light there; a cell the conditions leave nothing keeps a seed's share of noise), then
+    ``_BAND_SWEEPS`` sweeps of iterative proportional fitting meet the conditions, the row's total
+    kept. Our choice, not the paper's; measured in docs/accuracy.md ("Scenes nobody tuned for").
+    """
+    if shares.band is None or not shares.band.numel() or not pixels.numel():
+        return cells, values
+    band = shares.band.to(pixels.device)
+    at = torch.searchsorted(band, pixels).clamp(max=band.numel() - 1)  # band is sorted
+    hit = torch.nonzero((band[at] == pixels) & (cells >= 0).any(1))[:, 0]
+    if not hit.numel():
+        return cells, values
+    white = shares.band_white.to(pixels.device)[at[hit]].double()
+    w, h = size
+    own, light = cells[hit], values[hit].double()
+    total = light.sum(1, keepdim=True)
+    # The row's cells and their eight neighbours on the projector; the new ones seeded.
+    x, y = own % w, torch.div(own, w, rounding_mode="floor")
+    around = [own]
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dx or dy:
+                inside = (own >= 0) & (x + dx >= 0) & (x + dx < w) & (y + dy >= 0) & (y + dy < h)
+                around.append(torch.where(inside, own + dy * w + dx, -1))
+    around = torch.cat(around, 1)
+    first = torch.zeros_like(around, dtype=light.dtype)
+    first[:, :own.shape[1]] = (own >= 0).to(light.dtype)
+    spread = torch.zeros_like(first)
+    spread[:, :own.shape[1]] = light
+    grown, kept = _combine(around, spread)
+    had = _combine(around, first)[1] > 0  # the same sort: the same cells in the same slots
+    light = torch.where(had, kept, torch.where(grown >= 0, _BAND_SEED * total, 0.0))
+    light = light * (total / light.sum(1, keepdim=True).clamp_min(1e-300))
+    nx, ny = graycode_bits(w, h)
+    if white.shape[1] != nx + ny:
+        return cells, values
+    used = grown >= 0
+    conditions = []
+    for coord, bits, offset in ((grown % w, nx, 0), (torch.div(grown, w, rounding_mode="floor"), ny, nx)):
+        gray = coord ^ (coord >> 1)
+        for k in range(bits):
+            lit = used & (((gray >> (bits - 1 - k)) & 1) == 1)  # the cells the pair's first image lights
+            conditions.append((lit.to(light.dtype), white[:, offset + k]))
+    for _ in range(_BAND_SWEEPS):
+        for lit, share in conditions:
+            part, rest = (light * lit).sum(1), (light * (1 - lit)).sum(1)
+            whole = (part + rest).clamp_min(1e-300)
+            part, rest = part / whole, rest / whole
+            on = (part > _SHARE_TOL) & (rest > _SHARE_TOL)
+            up = torch.where(on, share / part.clamp_min(_SHARE_TOL), 1.0)
+            down = torch.where(on, (1 - share) / rest.clamp_min(_SHARE_TOL), 1.0)
+            light = light * (lit * up[:, None] + (1 - lit) * down[:, None])
+    width = max(cells.shape[1], grown.shape[1])
+    cells, values = _widen(cells, values, width)
+    cells[hit], values[hit] = _widen(grown, light.to(values.dtype), width)
+    return cells, values
 
 
 def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
