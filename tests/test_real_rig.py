@@ -316,11 +316,12 @@ def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
 
 def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
     """Calibrating a bench with an object in front of another stores each map's edge pixels, cell
-    shares and dimly lit pixels; the bundle gives the transport model the same ones as calibrating the
-    captures directly.
+    shares (with the pattern pairs' shares beside outlines) and dimly lit pixels; the bundle gives the
+    transport model the same ones as calibrating the captures directly.
     A bundle without them (older) models none; one with a pixel outside the camera, a share outside
-    [0, 1], only some of the share arrays or a checkerboard share that does not fit is refused, naming
-    the file; a checkerboard share that fits comes back."""
+    [0, 1], only some of the share arrays, a checkerboard share that does not fit, or outline shares
+    without their pixels or of another count is refused, naming the file; a checkerboard share that
+    fits comes back."""
     from torchproj.calib import calibrate_projector
     from torchproj.transport import StateCalibration
 
@@ -343,8 +344,9 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
         assert int(direct.decoding.valid.sum()) > 10000
         assert torch.equal(dim, torch.isfinite(direct.dim_xy).all(-1)) and int(dim.sum()) > 100
         torch.testing.assert_close(xy, torch.where(dim[..., None], direct.dim_xy, direct.prj_xy), equal_nan=True)
-        for field in ("cell", "across", "outside"):
+        for field in ("cell", "across", "outside", "band", "band_white"):
             torch.testing.assert_close(getattr(shares, field), getattr(direct.shares, field), equal_nan=True)
+        assert shares.band.numel() > 100  # the outlines of the cylinders and the box's
     # Each map's defocus disc comes back as calibration measured it.
     for blur, (name, _, _) in zip(state.blur, load_bundle(calib).projectors):
         direct = calibrate_projector(read_graycode_folder(root / "together" / name, (256, 192)), (256, 192))
@@ -359,6 +361,10 @@ def test_a_bench_bundle_keeps_its_edge_pixels_and_cell_shares(tmp_path, capsys):
                             ({"share_outside": None}, "holds .* but not every share_\\* array"),
                             ({"share_checker": np.zeros((5, 5), np.float32)}, "'share_checker' has shape"),
                             ({"share_checker": np.full((240, 320), 2.0, np.float32)}, "checker must lie in"),
+                            ({"share_band_white": None}, "need both band and band_white, or neither"),
+                            ({"share_band": arrays["share_band"] + 320 * 240}, "band names a pixel outside the 320x240"),
+                            ({"share_band_white": arrays["share_band_white"][:-1]}, "band_white.*shape"),
+                            ({"share_band_white": arrays["share_band_white"] + 1.5}, "band_white must lie in"),
                             ({"blur": np.full((240, 320), -1.0, np.float32)}, "'blur' must hold defocus diameters"),
                             ({"blur": np.full((240, 320), np.inf, np.float32)}, "'blur' must hold defocus diameters")):
         np.savez_compressed(path, **{k: v for k, v in {**arrays, **broken}.items() if v is not None})

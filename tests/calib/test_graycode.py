@@ -10,8 +10,9 @@ import torch
 from torchproj.calib import warn_if_few_decoded
 from torchproj.calib.maps import depth_edges
 from torchproj.calib.graycode import CREASE_RATIO, CURVE_RATIO, _refine_again, _window_planes, _window_quadratics
-from torchproj.calib import (GraycodeCapture, calibrate_projector, cell_means, cell_shares, checker_patterns,
-                             checker_shares, decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, write_graycode_folder)
+from torchproj.calib import (GraycodeCapture, band_pixels, calibrate_projector, cell_means, cell_shares, checker_patterns,
+                             checker_shares, decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, stripe_shares,
+                             write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
 from torchproj.core import InputError
 from torchproj.sim import VirtualRig
@@ -727,3 +728,55 @@ def test_window_planes_are_each_windows_least_squares_plane_near_and_far_from_th
         rss = ((design @ coef - target) ** 2).sum()
         np.testing.assert_allclose(planes[y, x].double().numpy(), coef.T, rtol=1e-5, atol=1e-4)
         np.testing.assert_allclose(float(misfit[y, x]), rss / max(2 * (on.sum() - 3), 1), rtol=1e-3, atol=1e-6)
+
+
+def _mixed_pixels(size=(64, 32), pixels=60, seed=3):
+    """Camera pixels (a 6 x 10 image) each lit by 1-6 cells of a ``size`` projector with random
+    weights, and their captures of the Gray-code sequence: each image is the weighted sum of what
+    it shows on those cells. Returns the captures (patterns, white, black), the cells (P, 6, 2) and
+    weights (P, 6; zero where unused)."""
+    width, height = size
+    gen = torch.Generator().manual_seed(seed)
+    images = graycode_patterns(width, height)[:, 0]  # (2 (kx + ky) + 2, H, W)
+    cells = torch.stack([torch.randint(0, width, (pixels, 6), generator=gen),
+                         torch.randint(0, height, (pixels, 6), generator=gen)], -1)
+    weights = torch.rand(pixels, 6, generator=gen) * (torch.rand(pixels, 6, generator=gen) < 0.7)
+    weights[:, 0] += 0.1
+    shown = images[:, cells[..., 1], cells[..., 0]]  # (N, P, 6)
+    captured = (shown * weights).sum(-1).reshape(-1, 6, 10)
+    return captured[:-2], captured[-2], captured[-1], cells, weights
+
+
+def test_stripe_shares_are_each_pairs_light_on_the_cells_its_first_image_lights():
+    """Against the pattern images themselves: a pixel's share for pair k is the weight of its cells
+    that the pair's first image shows white, over all its weight, whatever cells light it."""
+    patterns, white, black, cells, weights = _mixed_pixels()
+    images = graycode_patterns(64, 32)[:, 0]
+    pixels = torch.tensor([0, 7, 13, 31, 59])
+    shares = stripe_shares(patterns, white - black, pixels, graycode_bits(64, 32))
+    assert shares.shape == (5, sum(graycode_bits(64, 32)))
+    for row, p in enumerate(pixels.tolist()):
+        for k in range(shares.shape[1]):
+            lit = images[2 * k, cells[p, :, 1], cells[p, :, 0]]  # 1 where the first image lights the cell
+            expected = float((weights[p] * lit).sum() / weights[p].sum())
+            assert float(shares[row, k]) == pytest.approx(expected, abs=1e-5), (p, k)
+
+
+def test_band_pixels_are_the_known_ones_within_two_of_an_unknown_pixel_or_a_depth_edge():
+    """Against a brute-force search: a plane's map with a hole, and a step of 8 cells along a column
+    (an object in front), its band the mapped pixels two or fewer pixels (either axis) from a hole
+    pixel or from a pixel beside the step."""
+    ys, xs = torch.meshgrid(torch.arange(30.0), torch.arange(40.0), indexing="ij")
+    prj_xy = torch.stack([0.7 * xs + 0.1 * ys + 3, 0.05 * xs + 0.8 * ys + 2], -1)
+    prj_xy[xs >= 25] += torch.tensor([8.0, 0.0])  # a step between columns 24 and 25
+    prj_xy[10:13, 5:9] = float("nan")
+    band = band_pixels(prj_xy)
+    known = torch.isfinite(prj_xy).all(-1).numpy()
+    beside = ~known
+    beside[:, 24:26] = True  # both sides of the step see it
+    expected = []
+    for y in range(30):
+        for x in range(40):
+            if known[y, x] and beside[max(0, y - 2):y + 3, max(0, x - 2):x + 3].any():
+                expected.append(y * 40 + x)
+    assert band.tolist() == expected

@@ -98,7 +98,7 @@ _SHARE_REACH = 0.05
 # _fit_band: the share of a row's light each cell it gains around its own starts with, and the sweeps
 # over every pattern pair's condition. Our choice, on suite-56-1, suite-1206-6, suite-55-16 and
 # suite-97-8 (docs/accuracy.md "Scenes nobody tuned for").
-_BAND_SEED, _BAND_SWEEPS = 0.01, 8
+_BAND_SEED, _BAND_SWEEPS, _BAND_MISS = 0.01, 8, 0.05
 
 
 def _stamp(tensors: list[torch.Tensor]) -> list[tuple[torch.Tensor, int]]:
@@ -837,8 +837,9 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
     of the parallelogram only, and the cells near the row's edge are wrong by up to a cell. Each
     pattern pair is one linear condition on the row, as in :func:`_fit_shares`: the share of its
     light on the cells the pair shows white. Neighbouring cells differ in one pair, so the pairs
-    together say how the light splits across every cell edge the row spans, along each axis, where
-    the four shares about the decoded cell say it for that cell's edges alone. The row first gains
+    say how the light splits across the cell edges the row spans, along each axis, where the four
+    shares about the decoded cell say it for that cell's edges alone (not wholly: the finest pair
+    flips at every other edge, so two edges two cells apart share one condition). The row first gains
     the cells around its own (each seeded with ``_BAND_SEED`` of the row's light, so that the fit
     can move light there; a cell the conditions leave nothing keeps a seed's share of noise), then
     ``_BAND_SWEEPS`` sweeps of iterative proportional fitting meet the conditions, the row's total
@@ -851,8 +852,15 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
     hit = torch.nonzero((band[at] == pixels) & (cells >= 0).any(1))[:, 0]
     if not hit.numel():
         return cells, values
-    white = shares.band_white.to(pixels.device)[at[hit]].double()
     w, h = size
+    nx, ny = graycode_bits(w, h)
+    if shares.band_white.shape[1] != nx + ny:
+        return cells, values
+    # Rows whose cells already give every pair's share (within _BAND_MISS) are left as they are.
+    hit = hit[_pair_miss(cells[hit], values[hit], shares.band_white.to(pixels.device)[at[hit]], w, (nx, ny)) > _BAND_MISS]
+    if not hit.numel():
+        return cells, values
+    white = shares.band_white.to(pixels.device)[at[hit]].double()
     own, light = cells[hit], values[hit].double()
     total = light.sum(1, keepdim=True)
     # The row's cells and their eight neighbours on the projector; the new ones seeded.
@@ -872,29 +880,49 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
     had = _combine(around, first)[1] > 0  # the same sort: the same cells in the same slots
     light = torch.where(had, kept, torch.where(grown >= 0, _BAND_SEED * total, 0.0))
     light = light * (total / light.sum(1, keepdim=True).clamp_min(1e-300))
-    nx, ny = graycode_bits(w, h)
-    if white.shape[1] != nx + ny:
-        return cells, values
     used = grown >= 0
+    # Per pair, the rows whose cells it splits (most pairs show one stripe on a whole row's cells)
+    # and which of their cells it lights.
     conditions = []
     for coord, bits, offset in ((grown % w, nx, 0), (torch.div(grown, w, rounding_mode="floor"), ny, nx)):
         gray = coord ^ (coord >> 1)
         for k in range(bits):
             lit = used & (((gray >> (bits - 1 - k)) & 1) == 1)  # the cells the pair's first image lights
-            conditions.append((lit.to(light.dtype), white[:, offset + k]))
+            rows = torch.nonzero(lit.any(1) & (used & ~lit).any(1))[:, 0]
+            if rows.numel():
+                conditions.append((rows, lit[rows].to(light.dtype), white[rows, offset + k]))
     for _ in range(_BAND_SWEEPS):
-        for lit, share in conditions:
-            part, rest = (light * lit).sum(1), (light * (1 - lit)).sum(1)
-            whole = (part + rest).clamp_min(1e-300)
-            part, rest = part / whole, rest / whole
-            on = (part > _SHARE_TOL) & (rest > _SHARE_TOL)
-            up = torch.where(on, share / part.clamp_min(_SHARE_TOL), 1.0)
-            down = torch.where(on, (1 - share) / rest.clamp_min(_SHARE_TOL), 1.0)
-            light = light * (lit * up[:, None] + (1 - lit) * down[:, None])
+        for rows, lit, share in conditions:
+            part_of = light[rows]
+            whole = part_of.sum(1)
+            part = (part_of * lit).sum(1)
+            rest = whole - part  # float64: no rounding to speak of
+            on = (part > _SHARE_TOL * whole) & (rest > _SHARE_TOL * whole)
+            up = torch.where(on, share * whole / part.clamp_min(1e-300), 1.0)
+            down = torch.where(on, (1 - share) * whole / rest.clamp_min(1e-300), 1.0)
+            light[rows] = part_of * (down[:, None] + lit * (up - down)[:, None])
     width = max(cells.shape[1], grown.shape[1])
     cells, values = _widen(cells, values, width)
     cells[hit], values[hit] = _widen(grown, light.to(values.dtype), width)
     return cells, values
+
+
+def _pair_miss(cells: torch.Tensor, values: torch.Tensor, white: torch.Tensor, width: int,
+               bits: tuple[int, int]) -> torch.Tensor:
+    """:math:`(N,)` the largest difference between each row's share of its light on the cells each
+    pattern pair's first image lights (rows of flat ``cells`` on a projector ``width`` cells wide,
+    -1 unused, and their ``values``) and the measured one, ``white`` :math:`(N, B)`."""
+    used = cells >= 0
+    light = torch.where(used, values, 0.0).double()
+    whole = light.sum(1).clamp_min(1e-300)
+    miss = torch.zeros(cells.shape[0], dtype=torch.float64, device=cells.device)
+    for coord, count, offset in ((cells % width, bits[0], 0), (torch.div(cells, width, rounding_mode="floor"), bits[1], bits[0])):
+        gray = coord ^ (coord >> 1)
+        for k in range(count):
+            lit = used & (((gray >> (count - 1 - k)) & 1) == 1)
+            share = (light * lit).sum(1) / whole
+            miss = torch.maximum(miss, (share - white[:, offset + k].double()).abs())
+    return miss
 
 
 def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
