@@ -901,9 +901,16 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
             up = torch.where(on, share * whole / part.clamp_min(1e-300), 1.0)
             down = torch.where(on, (1 - share) * whole / rest.clamp_min(1e-300), 1.0)
             light[rows] = part_of * (down[:, None] + lit * (up - down)[:, None])
-    width = max(cells.shape[1], grown.shape[1])
-    cells, values = _widen(cells, values, width)
-    cells[hit], values[hit] = _widen(grown, light.to(values.dtype), width)
+    if grown.shape[1] > cells.shape[1]:
+        # Each row keeps its cells of most light, as many as the other rows have slots (98-100% of
+        # its light on the default scene, a median 99% on suite-55-16): a few wider rows would widen
+        # every row of the build. The row's light stays whole.
+        light, slot = light.topk(cells.shape[1], dim=1)
+        grown = grown.gather(1, slot)
+        light = light * (total / light.sum(1, keepdim=True).clamp_min(1e-300))
+        grown, light = _combine(torch.where(light > 0, grown, -1), light)  # ascending again, as assembly reads rows
+    cells, values = _widen(cells, values, max(cells.shape[1], grown.shape[1]))
+    cells[hit], values[hit] = _widen(grown, light.to(values.dtype), cells.shape[1])
     return cells, values
 
 
