@@ -850,8 +850,8 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
     keeps about its seed), then ``_BAND_SWEEPS`` sweeps of iterative proportional fitting meet the
     conditions, the row's total kept, and the row keeps its cells of most light, as many as the
     other rows have slots. A row that already gives every pair's share within ``_BAND_MISS`` is
-    left as it is. Our
-    choice, not the paper's (it models one cell per pixel); measured in docs/accuracy.md ("The ceiling").
+    left as it is. Our choice, not the paper's (it models one cell per pixel); measured in
+    docs/accuracy.md ("The ceiling").
     """
     if shares.band is None or not shares.band.numel() or not pixels.numel():
         return cells, values
