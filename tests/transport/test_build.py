@@ -855,7 +855,8 @@ def test_rows_beside_an_outline_meet_every_pairs_share_and_gain_the_cells_around
     coordinate, (10-12, 10) and (11, 11), evenly. Fitted to every pair's share as the pattern images
     give them, the row meets each to 1e-4, gaining the cell (13, 11) it lacked, and keeps its light;
     its split along each axis comes near the truth's as far as the pairs tell it. A pixel outside the
-    band, or shares without a band, keep their rows to the bit."""
+    band, shares without a band, or a row that already meets every pair's share within 0.05 keep
+    their rows to the bit."""
     size = (40, 30)
     w = size[0]
     truth_cells = torch.tensor([[10 * w + 10, 10 * w + 11, 11 * w + 12, 11 * w + 13]])
@@ -889,6 +890,10 @@ def test_rows_beside_an_outline_meet_every_pairs_share_and_gain_the_cells_around
     unchanged = build._fit_band(cells, values, dataclasses.replace(shares, band=None, band_white=None),
                                 torch.tensor([4, 5]), size)
     assert torch.equal(unchanged[0], cells) and torch.equal(unchanged[1], values)
+    # A row in the band whose cells already give every pair's share (within the captures' noise) stays.
+    met = dataclasses.replace(shares, band_white=(_pair_shares(cells[:1], values[:1], size) + 0.03).clamp(0, 1))
+    kept = build._fit_band(cells, values, met, torch.tensor([4, 5]), size)
+    assert torch.equal(kept[0], cells) and torch.equal(kept[1], values)
 
 
 def test_outline_rows_fitted_to_every_pair_bring_a_plane_between_two_others_nearer_its_capture():
