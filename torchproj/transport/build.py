@@ -36,7 +36,7 @@ from ..core.conventions import round_to_pixel
 from ..calib.maps import map_slope, pixel_square
 from ..calib.bundle import cell_shares_of, edge_pixels
 from ..calib.edges import EdgePixels
-from ..calib.graycode import WIDE_SHARE, CellShares, graycode_bits
+from ..calib.graycode import WIDE_SHARE, CellShares, graycode_bits, stripe_signs
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor, index_dtype
 from ..metrics.ssim import WINDOW
@@ -857,18 +857,18 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
         return cells, values
     band = shares.band.to(pixels.device)
     at = torch.searchsorted(band, pixels).clamp(max=band.numel() - 1)  # band is sorted
-    hit = torch.nonzero((band[at] == pixels) & (cells >= 0).any(1))[:, 0]
-    if not hit.numel():
-        return cells, values
+    hit = torch.nonzero(band[at] == pixels)[:, 0]
+    hit = hit[(cells[hit] >= 0).any(1)]
     w, h = size
-    nx, ny = graycode_bits(w, h)
-    if shares.band_white.shape[1] != nx + ny:
+    bits = graycode_bits(w, h)
+    if not hit.numel() or shares.band_white.shape[1] != sum(bits):
         return cells, values
+    white = shares.band_white.to(pixels.device)[at[hit]]
     # Rows whose cells already give every pair's share (within _BAND_MISS) are left as they are.
-    hit = hit[_pair_miss(cells[hit], values[hit], shares.band_white.to(pixels.device)[at[hit]], w, (nx, ny)) > _BAND_MISS]
+    missed = _pair_miss(cells[hit], values[hit], white, size, bits) > _BAND_MISS
+    hit, white = hit[missed], white[missed].double()
     if not hit.numel():
         return cells, values
-    white = shares.band_white.to(pixels.device)[at[hit]].double()
     own, light = cells[hit], values[hit].double()
     total = light.sum(1, keepdim=True)
     # The row's cells and their eight neighbours on the projector; the new ones seeded.
@@ -888,17 +888,15 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
     had = _combine(around, first)[1] > 0  # the same sort: the same cells in the same slots
     light = torch.where(had, kept, torch.where(grown >= 0, _BAND_SEED * total, 0.0))
     light = light * (total / light.sum(1, keepdim=True).clamp_min(1e-300))
-    used = grown >= 0
     # Per pair, the rows whose cells it splits (most pairs show one stripe on a whole row's cells)
     # and which of their cells it lights.
+    used, lit_by = grown >= 0, _pairs_lit(grown, size, bits)
     conditions = []
-    for coord, bits, offset in ((grown % w, nx, 0), (torch.div(grown, w, rounding_mode="floor"), ny, nx)):
-        gray = coord ^ (coord >> 1)
-        for k in range(bits):
-            lit = used & (((gray >> (bits - 1 - k)) & 1) == 1)  # the cells the pair's first image lights
-            rows = torch.nonzero(lit.any(1) & (used & ~lit).any(1))[:, 0]
-            if rows.numel():
-                conditions.append((rows, lit[rows].to(light.dtype), white[rows, offset + k]))
+    for k in range(sum(bits)):
+        lit = lit_by[..., k]
+        rows = torch.nonzero(lit.any(1) & (used & ~lit).any(1))[:, 0]
+        if rows.numel():
+            conditions.append((rows, lit[rows].to(light.dtype), white[rows, k]))
     for _ in range(_BAND_SWEEPS):
         for rows, lit, share in conditions:
             part_of = light[rows]
@@ -917,27 +915,29 @@ def _fit_band(cells: torch.Tensor, values: torch.Tensor, shares: CellShares, pix
         grown = grown.gather(1, slot)
         light = light * (total / light.sum(1, keepdim=True).clamp_min(1e-300))
         grown, light = _combine(torch.where(light > 0, grown, -1), light)  # ascending again, as assembly reads rows
-    cells, values = _widen(cells, values, max(cells.shape[1], grown.shape[1]))
+    cells, values = cells.clone(), values.clone()
     cells[hit], values[hit] = _widen(grown, light.to(values.dtype), cells.shape[1])
     return cells, values
 
 
-def _pair_miss(cells: torch.Tensor, values: torch.Tensor, white: torch.Tensor, width: int,
+def _pairs_lit(cells: torch.Tensor, size: tuple[int, int], bits: tuple[int, int]) -> torch.Tensor:
+    """:math:`(N, s, B)` bool: which of the rows' flat ``cells`` :math:`(N, s)` (-1 unused) on a
+    ``size`` projector each of its ``bits = (x, y)`` pattern pairs lights in its first image, ``x``
+    pairs first (:func:`~torchproj.calib.graycode.stripe_signs`, :attr:`~torchproj.calib.CellShares.band_white`'s order)."""
+    width, height = size
+    column, row = (cells % width).float(), torch.div(cells, width, rounding_mode="floor").float()
+    lit = torch.cat([stripe_signs(column, bits[0], width), stripe_signs(row, bits[1], height)], -1) > 0
+    return lit & (cells >= 0)[..., None]
+
+
+def _pair_miss(cells: torch.Tensor, values: torch.Tensor, white: torch.Tensor, size: tuple[int, int],
                bits: tuple[int, int]) -> torch.Tensor:
     """:math:`(N,)` the largest difference between each row's share of its light on the cells each
-    pattern pair's first image lights (rows of flat ``cells`` on a projector ``width`` cells wide,
-    -1 unused, and their ``values``) and the measured one, ``white`` :math:`(N, B)`."""
-    used = cells >= 0
-    light = torch.where(used, values, 0.0).double()
-    whole = light.sum(1).clamp_min(1e-300)
-    miss = torch.zeros(cells.shape[0], dtype=torch.float64, device=cells.device)
-    for coord, count, offset in ((cells % width, bits[0], 0), (torch.div(cells, width, rounding_mode="floor"), bits[1], bits[0])):
-        gray = coord ^ (coord >> 1)
-        for k in range(count):
-            lit = used & (((gray >> (count - 1 - k)) & 1) == 1)
-            share = (light * lit).sum(1) / whole
-            miss = torch.maximum(miss, (share - white[:, offset + k].double()).abs())
-    return miss
+    pattern pair's first image lights (rows of flat ``cells`` on a ``size`` projector, -1 unused,
+    and their ``values``) and the measured one, ``white`` :math:`(N, B)`."""
+    light = torch.where(cells >= 0, values, 0.0).double()
+    share = torch.einsum("ns,nsb->nb", light, _pairs_lit(cells, size, bits).double())
+    return (share / light.sum(1, keepdim=True).clamp_min(1e-300) - white.double()).abs().amax(1)
 
 
 def _widen(cells: torch.Tensor, values: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
