@@ -99,7 +99,8 @@ def _difference(patterns: torch.Tensor, k: int, y: torch.Tensor, x: torch.Tensor
 
 
 def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
-                     projector_size: tuple[int, int], slope: torch.Tensor | None = None) -> EdgePixels:
+                     projector_size: tuple[int, int], slope: torch.Tensor | None = None,
+                     depth: torch.Tensor | None = None) -> EdgePixels:
     """The pixels beside depth edges and the lit ones the map misses, each on one or two surfaces
     carried over from its neighbours (module docstring).
 
@@ -110,6 +111,7 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         prj_xy: :math:`(H, W, 2)` the refined map (NaN where unknown).
         projector_size: ``(width, height)``.
         slope: :math:`(H, W, 2, 2)` ``map_slope(prj_xy)`` where the caller has it; None: computed here.
+        depth: :math:`(H, W)` ``depth_edges(prj_xy)`` where the caller has it; None: computed here.
 
     Returns:
         the :class:`EdgePixels`: every lit pixel beside a depth edge, and every lit unmapped one with
@@ -182,7 +184,9 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
     # A pixel with no mapped pixel within reach has no candidate: left out before the candidates'
     # work (a capture that decodes nothing would otherwise send every lit pixel through it).
     reach = F.max_pool2d(source.float()[None, None], 2 * _REACH + 1, stride=1, padding=_REACH)[0, 0] > 0
-    examine = lit & (depth_edges(prj_xy) | ~known) & reach
+    depth = depth_edges(prj_xy) if depth is None else depth
+    check_shape(depth, "depth", [H, W])
+    examine = lit & (depth | ~known) & reach
     ys, xs = torch.nonzero(examine, as_tuple=True)
     found = []
     for start in range(0, ys.numel(), _CHUNK):

@@ -544,13 +544,16 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     return CellShares(cells, across, outside)
 
 
-def band_pixels(prj_xy: torch.Tensor, reach: int = 2) -> torch.Tensor:
+def band_pixels(prj_xy: torch.Tensor, reach: int = 2, depth: torch.Tensor | None = None) -> torch.Tensor:
     """:math:`(M,)` flat camera pixels of a map :math:`(H, W, 2)` (NaN where unknown) within ``reach``
     pixels of a depth edge (:func:`~torchproj.calib.maps.depth_edges`) or of a pixel the map does not
     know: where a pixel may see two surfaces, or one surface and nothing, and its light falls where
-    no parallelogram about its own coordinate puts it."""
+    no parallelogram about its own coordinate puts it. ``depth``: :math:`(H, W)`
+    ``depth_edges(prj_xy)`` where the caller has it; None: computed here."""
     known = torch.isfinite(prj_xy).all(-1)
-    beside = (depth_edges(prj_xy) | ~known).float()[None, None]
+    depth = depth_edges(prj_xy) if depth is None else depth
+    check_shape(depth, "depth", list(known.shape))
+    beside = (depth | ~known).float()[None, None]
     near = F.max_pool2d(beside, 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
     return torch.nonzero((known & near).reshape(-1))[:, 0]
 

@@ -16,7 +16,7 @@ from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDe
                        decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast,
                        stripe_shares)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
-from .maps import fill_holes, inverse_map, map_slope
+from .maps import depth_edges, fill_holes, inverse_map, map_slope
 from .blur import measure_blur
 from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
@@ -152,9 +152,9 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         # The edges read the map with its dim pixels, the blur without: one slope serves both, computed
         # again only near the dim pixels (map_slope's like=).
         merged = torch.where(torch.isfinite(prj_xy), prj_xy, dim_xy)
-        merged_slope = map_slope(merged)
+        merged_slope, merged_depth = map_slope(merged), depth_edges(merged)  # the band reads the same edges
         edges = find_edge_pixels(capture.patterns, capture.white, capture.black, merged, projector_size,
-                                 slope=merged_slope)
+                                 slope=merged_slope, depth=merged_depth)
         timings["edges"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         # A lens focused elsewhere spreads each cell over a disc; the finest stripes show how wide.
@@ -203,7 +203,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         # Beside outlines (and on the edge pixels, mapped or not) a pixel's light falls where no
         # parallelogram about its coordinate puts it; every pair's share there is kept for the rows
         # to be fitted to (CellShares.band_white).
-        band = torch.unique(torch.cat([band_pixels(merged), edges.pixel.to(torch.int64)]))  # sorted
+        band = torch.unique(torch.cat([band_pixels(merged, depth=merged_depth), edges.pixel.to(torch.int64)]))  # sorted
         shares = replace(shares, band=band, band_white=stripe_shares(capture.patterns, dec.contrast, band,
                                                                      graycode_bits(*projector_size)))
         timings["stripes"] = time.perf_counter() - t0
