@@ -266,6 +266,65 @@ def test_rig_warns_when_camera_samples_cannot_resolve_projector_cells():
         VirtualRig(small_scene("paper_two_planes"))
 
 
+def _oblique_camera_scene(angle_deg: float) -> dict:
+    """A projector facing a plane 1 m away (focal 200 px, cells 0.5 camera pixels wide at the same
+    distance), and a narrow camera (focal 400 px, 2 x 2 samples) 1 m from the plane's centre, turned
+    ``angle_deg`` about the vertical from the projector's axis."""
+    angle = math.radians(angle_deg)
+    return {"name": f"oblique_{angle_deg:g}", "seed": 0,
+            "projectors": [{"name": "front", "resolution": [64, 48], "focal": 200,
+                            "pose": {"position": [0.0, 0.0, 0.0], "look_at": [0.0, 0.0, 1.0]}}],
+            "camera": {"resolution": [40, 30], "focal": 400, "supersampling": 2,
+                       "pose": {"position": [math.sin(angle), 0.0, 1.0 - math.cos(angle)], "look_at": [0.0, 0.0, 1.0]}},
+            "surfaces": {"wall": {"type": "rectangle", "size": [1.0, 1.0], "pose": {"position": [0.0, 0.0, 1.0]}}},
+            "states": [{"name": "only", "surfaces": ["wall"]}]}
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 40.0, 60.0])
+def test_sample_spacing_follows_the_obliquity_the_focal_lengths_miss(angle_deg):
+    """By hand: the projector faces the plane, so a step of s metres on it is 200 s cells; a camera
+    pixel at distance 1 m seen at angle a spans 1 / (400 cos a) m of the plane across its width
+    (1 / 400 up it). With 2 x 2 samples that is 0.25 / cos a cells between samples, where the focal
+    lengths alone say 0.25 at every angle. Over the narrow camera's pixels the median is within 4%."""
+    import warnings
+
+    from torchproj.sim.rig import sample_spacing
+
+    scene = parse_scene(_oblique_camera_scene(angle_deg))
+    expected = 0.25 / math.cos(math.radians(angle_deg))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rig = VirtualRig(scene)
+        geo = rig.geometry("only")
+        rig.geometry("only")  # checked once per state
+    spacing = sample_spacing(geo.prj_xy, geo.surface_id, 2)
+    assert float(spacing[0]) == pytest.approx(expected, rel=0.04)
+    said = [str(w.message) for w in caught if "apart" in str(w.message)]
+    if expected <= 0.4:
+        assert not said
+    else:  # 0.5 cells: three samples a side bring them to 0.33
+        assert len(said) == 1
+        assert "state 'only'" in said[0] and "projector 'front'" in said[0] and "camera.supersampling to 3" in said[0]
+        assert f"{float(spacing[0]):.2f} cells" in said[0]
+
+
+def test_sample_spacing_leaves_out_steps_between_surfaces_and_unlit_pixels():
+    """Two pixels on different surfaces, or one unlit, are no neighbours to measure: a map stepping
+    1 cell a pixel down each column, whose columns alternate between two surfaces 50 cells apart,
+    with NaN holes, gives 1 / samples (counted across the surfaces, every pixel would give 50)."""
+    from torchproj.sim.rig import sample_spacing
+
+    col = torch.arange(8)[None, :].expand(6, 8)
+    row = torch.arange(6)[:, None].expand(6, 8)
+    xy = torch.stack([col + 50.0 * (col % 2), row.float()], -1)
+    xy[2, 2] = xy[4, 5] = float("nan")
+    sid = (col % 2).clone()
+    assert float(sample_spacing(xy[None], sid, 4)[0]) == 0.25
+    assert torch.isnan(sample_spacing(torch.full((1, 6, 8, 2), float("nan")), sid, 4)[0])
+    with pytest.raises(InputError, match="surface_id"):
+        sample_spacing(xy[None], sid[:5], 4)
+
+
 def test_colour_mixing_shows_each_primary_in_every_channel_by_its_share():
     # By hand: a camera channel c sees sum_p M[c, p] L_p of the primaries. Pure primary p less black
     # is M[c, p] K_c (a unit of light through channel c's geometry and albedo K_c), white less black

@@ -36,7 +36,7 @@ from .bounce import Bounce, cast_bounce
 from .camera import apply_camera
 from .primitives import make_caster
 
-__all__ = ["VirtualRig", "StateGeometry"]
+__all__ = ["VirtualRig", "StateGeometry", "sample_spacing", "supersampling_needed"]
 
 _CHUNK = 1 << 20  # rays per chunk: bounds memory whatever the camera resolution
 
@@ -172,6 +172,66 @@ def _warn_if_undersampled(scene: Scene) -> None:
                       f"{need} or more", stacklevel=3)
 
 
+def sample_spacing(prj_xy: torch.Tensor, surface_id: torch.Tensor, supersampling: int) -> torch.Tensor:
+    """How far apart a camera pixel's samples fall on each projector's LCD, as cast.
+
+    The focal lengths alone (:func:`_warn_if_undersampled`) tell it for a surface facing both
+    devices at the same distance; a surface the camera sees obliquely, or nearer to it than to the
+    projector, spreads the samples further along one axis. Here it is read off the cast geometry:
+    per camera pixel, the larger of the steps of the projector coordinate to its right and lower
+    neighbours on the same surface (both lit by the projector), over the ``supersampling``.
+
+    Args:
+        prj_xy: :math:`(J, H, W, 2)` the projectors' coordinates at the pixel centres
+            (:attr:`StateGeometry.prj_xy`), NaN where unlit.
+        surface_id: :math:`(H, W)` (:attr:`StateGeometry.surface_id`).
+        supersampling: samples per camera pixel axis.
+
+    Returns:
+        :math:`(J,)` the median over each projector's pixels of that spacing in cells, NaN where it
+        lights no two neighbours on one surface.
+    """
+    check_shape(surface_id, "surface_id", list(prj_xy.shape[1:3]))
+    out = torch.full((prj_xy.shape[0],), float("nan"))
+    for j, xy in enumerate(prj_xy):
+        spacing = torch.full(xy.shape[:2], float("nan"), dtype=xy.dtype, device=xy.device)
+        for a, b, sa, sb, at in ((xy[:, :-1], xy[:, 1:], surface_id[:, :-1], surface_id[:, 1:], (slice(None), slice(0, -1))),
+                                 (xy[:-1], xy[1:], surface_id[:-1], surface_id[1:], (slice(0, -1), slice(None)))):
+            same = torch.isfinite(a).all(-1) & torch.isfinite(b).all(-1) & (sa == sb) & (sa >= 0)
+            step = torch.where(same, (a - b).norm(dim=-1), float("nan"))
+            spacing[at] = torch.fmax(spacing[at], step)
+        found = spacing[torch.isfinite(spacing)]
+        if found.numel():
+            out[j] = float(found.median()) / supersampling
+    return out
+
+
+def supersampling_needed(spacing: torch.Tensor, supersampling: int) -> int:
+    """The fewest samples per camera pixel axis that bring a :func:`sample_spacing` measured with
+    ``supersampling`` samples within ``SAMPLE_SPACING`` cells (the spacing goes as one over the
+    samples; the pixel centres' geometry does not change with them)."""
+    worst = float(torch.nan_to_num(spacing, nan=0.0).max()) if spacing.numel() else 0.0
+    return max(1, math.ceil(supersampling * worst / SAMPLE_SPACING - 1e-9))
+
+
+def _warn_if_cast_undersampled(scene: Scene, state: str, geometry: StateGeometry) -> None:
+    """Warn when a state's cast geometry spreads the camera samples over more than
+    ``SAMPLE_SPACING`` cells of a projector (:func:`sample_spacing`), where the focal lengths alone
+    did not (:func:`_warn_if_undersampled` warned at the rig's start)."""
+    cam = scene.camera
+    if max(p.fx for p in scene.projectors) / (cam.fx * cam.supersampling) > SAMPLE_SPACING:
+        return
+    spacing = sample_spacing(geometry.prj_xy.cpu(), geometry.surface_id.cpu(), cam.supersampling)
+    need = supersampling_needed(spacing, cam.supersampling)
+    if need <= cam.supersampling:
+        return
+    worst = int(torch.nan_to_num(spacing, nan=0.0).argmax())
+    warnings.warn(f"scene {scene.name!r}, state {state!r}: camera samples fall {float(spacing[worst]):.2f} cells of "
+                  f"projector {scene.projectors[worst].name!r} apart on its surfaces (median; an oblique surface or one "
+                  f"nearer the camera spreads them), too coarse to resolve the cells (solvers may fit where the "
+                  f"samples fall); set camera.supersampling to {need} or more", stacklevel=4)
+
+
 class VirtualRig:
     """A simulated rig for a :class:`~torchproj.scene.Scene`.
 
@@ -188,6 +248,7 @@ class VirtualRig:
         self._geometry: dict[str, StateGeometry] = {}
         self._vignette = [_vignette(p, self.device) for p in scene.projectors]
         self._kept: dict = {}  # see _reuse
+        self._spacing_checked: set[str] = set()  # states whose cast spacing was checked (geometry())
         _warn_if_undersampled(scene)
 
     # ---------------------------------------------------------------------------------- rays
@@ -233,7 +294,21 @@ class VirtualRig:
         """Cast the state's geometry (once; later calls return the cached result)."""
         if state not in self._geometry:
             self._geometry[state] = self._cast(state)
+        if state not in self._spacing_checked:
+            self._spacing_checked.add(state)
+            _warn_if_cast_undersampled(self.scene, state, self._geometry[state])
         return self._geometry[state]
+
+    def centre_geometry(self, state: str) -> dict[str, torch.Tensor]:
+        """The state's ground truth at the camera's pixel centres alone: ``prj_xy``, ``points``,
+        ``normals`` and ``surface_id`` as :class:`StateGeometry` holds them. A state already cast
+        gives its own; otherwise one ray a pixel is cast (no transport, a fraction of the cost), and
+        nothing is kept."""
+        if state in self._geometry:
+            g = self._geometry[state]
+            return {"prj_xy": g.prj_xy, "points": g.points, "normals": g.normals, "surface_id": g.surface_id}
+        casters, _, transmit, _ = self._materials([self.scene.surfaces[n] for n in self.scene.state(state).surfaces])
+        return self._centre_truth(casters, transmit)
 
     def cast_geometry(self) -> dict[str, StateGeometry]:
         """The states cast so far, by name (what a cache can keep for a rig of the same scene)."""
