@@ -126,6 +126,7 @@ def procedural_config(seed: int, index: int = 0, size: str = "small") -> dict:
         if _dimmest(data) >= _MARGIN * _SHADOW and min(_seen_shares(data).values()) >= _SEEN:
             break
     data["name"] = _name(seed, index, size)
+    _resolve_cells(data)
     return _plain(data)
 
 
@@ -504,6 +505,28 @@ def _seen_shares(data: dict, across: int = 96) -> dict[str, float]:
             alone = int(torch.isfinite(t[:, mine]).any(1).sum())
             shares[spec.name] = int(torch.isin(first, mine).sum()) / max(alone, 1)
     return shares
+
+
+def _resolve_cells(data: dict) -> None:
+    """Raise the camera's samples until they resolve every projector's cells on the surfaces as the
+    camera sees them (:func:`~torchproj.sim.rig.sample_spacing` within ``SAMPLE_SPACING`` in every
+    state, cast at the pixel centres): the focal lengths alone, which chose them, miss a surface seen
+    obliquely or nearer the camera than the projector, and the virtual rig warns there. Draws
+    nothing from the stream, so a scene that needs no more samples is the same as before."""
+    import warnings
+
+    from ..sim.rig import VirtualRig, sample_spacing, supersampling_needed
+
+    scene = parse_scene(data, name=data["name"])
+    samples = scene.camera.supersampling
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the focal lengths' own check: the samples chosen meet it
+        rig = VirtualRig(scene)
+    need = samples
+    for state in scene.states:
+        truth = rig.centre_geometry(state.name)
+        need = max(need, supersampling_needed(sample_spacing(truth["prj_xy"], truth["surface_id"], samples), samples))
+    data["camera"]["supersampling"] = need
 
 
 def _plain(value):
