@@ -3,7 +3,8 @@
 Every shipped scene was written by hand, and the models were tuned where those scenes showed them
 wrong. The suite asks the same questions of scenes nobody chose: 1-4 projectors of different sizes
 and throws, a camera whose pixels cover a quarter of a projector cell to four cells, 1-6 samples
-per camera pixel (never fewer than the cells need: :func:`supersampling_for`), spheres,
+per camera pixel axis (never fewer than the cells need on the scene's surfaces as the camera sees
+them, :func:`~torchproj.sim.rig.sample_spacing`, which may take 7), spheres,
 ellipsoids, cylinders, boxes, tilted and overlapping planes before a tilted wall, grey and colour,
 defocused lenses, one state with targets side by side or several states with one target each.
 
