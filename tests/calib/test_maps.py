@@ -64,6 +64,23 @@ def test_a_small_jump_between_surfaces_is_a_depth_edge_and_a_steep_surface_is_no
     assert float(map_slope(one_step)[1, 4, 0, 0]) == 1.0  # the pixel beside the jump: its own side only
 
 
+def test_a_pixel_that_decodes_between_two_surfaces_bridges_a_depth_edge():
+    """suite-97-5: a plane 4 cells behind another along y, through pixels 1.05 cells wide along x.
+    The pixel that sees both decodes between them, 63 -> 65.3 -> 67.1: two steps of 2.3 and 1.8,
+    neither an edge by itself. Taken together against the surface's own steps along y (none) they
+    are, and the pixel and its two neighbours on the line are beside a depth edge. A steep surface
+    whose steps grow 1.0, 1.5, 2.2, 3.0 and 3.9 cells is no edge, nor is a step beside another
+    mixed pixel whose small step would hide the surface's own."""
+    across = torch.arange(9.0) * 1.05
+    bridged = torch.stack([across, torch.tensor([63, 63, 63, 63, 65.3, 67.1, 67.1, 67.1, 67.1])], -1)[None].repeat(3, 1, 1)
+    assert depth_edges(bridged)[1].nonzero()[:, 0].tolist() == [3, 4, 5]
+    growing = _line_map([0, 1, 2.5, 4.7, 7.7, 11.6, 15.5, 19.4])
+    assert not depth_edges(growing).any()
+    # suite-2412-12's sphere: steps 1.6, 1.6, 1.55, then 0.54 to a pixel beside the outline.
+    beside = _line_map([110.5, 112.1, 113.7, 115.3, 116.9, 118.4, 118.96, 119.5])
+    assert not depth_edges(beside).any()
+
+
 @pytest.mark.parametrize("size", [(1200, 1600), (130, 70), (5, 9), (64, 128)])
 def test_the_tiles_a_second_fit_visits_are_those_a_dilation_reaches(size):
     """The tiles _refine_again and map_slope's like= visit, from the changed pixels' coordinates: the same as dilating the mask by the

@@ -103,6 +103,8 @@ EDGE_STEP = 4.0
 # pixel's footprint was carried across the jump on one surface's slope; with 2.5 cells alone a
 # steep face through 1.7-cell pixels (suite-97-8's box) broke into edges and lost 6 dB, and with an
 # excess of 1 cell the cylinders' limbs on box_cylinders, where the steps grow fast, lost 0.36 dB.
+# A pixel that decodes between the two surfaces splits the jump into two steps each under EDGE_JUMP:
+# depth_edges takes the two together (_bridges).
 EDGE_JUMP, EDGE_EXCESS = 2.5, 1.5
 
 
@@ -305,7 +307,39 @@ def depth_edges(prj_xy: torch.Tensor) -> torch.Tensor:
         known = {}
         for k in (0, -1):
             edge |= _edge_steps(prj_xy, dim, k, known)[2]
+        edge |= _bridges(dim, known)
     return edge
+
+
+def _bridges(dim: int, known: dict) -> torch.Tensor:
+    """Pixels that bridge a depth edge along ``dim``, and their two neighbours on that line, from
+    the steps ``known`` holds (:func:`_edge_steps` for ``k`` 0 and -1 took steps -2 to 1).
+
+    Such a pixel sees both surfaces, its code mixes theirs, and it decodes between them, so the jump
+    comes in two steps each under EDGE_JUMP (suite-97-5: a plane 4 cells behind another, in steps
+    of 2.2 and 1.7). Per projector axis, the two steps from the pixel before to the pixel after,
+    less the surface's own step (the larger of the steps beyond them: the smaller may be another
+    mixed pixel's), make a depth edge by the rule of :func:`_edge_steps`, and each of the two is
+    over the surface's own step by half EDGE_EXCESS, as a steep surface's growing steps are not."""
+    (before, ok_before, size_before), (after, ok_after, size_after) = known[-1], known[0]
+    (out_step, ok_out, _), (in_step, ok_in, _) = known[-2], known[1]
+    # Only pixels both of whose steps are over half EDGE_EXCESS along some axis can pass (a step's
+    # size is its larger axis): on most maps none, and the rest is done on those alone.
+    bridge = ok_before & ok_after & (size_before > EDGE_EXCESS / 2) & (size_after > EDGE_EXCESS / 2)
+    at = torch.nonzero(bridge, as_tuple=True)
+    if at[0].numel():
+        b, a = before[at], after[at]  # (n, 2)
+        # Per projector axis: a jump along one axis measured against the surface's steps along it;
+        # no step known beyond: none.
+        around = torch.maximum(torch.where(ok_out[at][:, None], out_step[at].abs(), 0.0),
+                               torch.where(ok_in[at][:, None], in_step[at].abs(), 0.0))
+        span = (b + a).abs() - around
+        halves = torch.minimum(b.abs(), a.abs()) - around
+        bridge[at] = ((span > EDGE_JUMP) & (span - around > EDGE_EXCESS) & (halves > EDGE_EXCESS / 2)).any(-1)
+    out = bridge.clone()
+    for shift in (1, -1):  # the pixels either side may see both surfaces too
+        out |= torch.roll(bridge, shift, dim)
+    return out
 
 
 def pixel_square(samples: int, dtype=torch.float32, device=None) -> torch.Tensor:
