@@ -325,6 +325,24 @@ def test_sample_spacing_leaves_out_steps_between_surfaces_and_unlit_pixels():
         sample_spacing(xy[None], sid[:5], 4)
 
 
+def test_sample_spacing_of_a_large_camera_reads_every_kth_pixel_with_its_own_neighbours():
+    """A 1600 x 1200 camera is read at every third pixel of each axis, each still against its
+    neighbours one pixel away: a map stepping 0.6 cells right and 0.55 down gives 0.6 / 3 samples,
+    and a map whose step grows across the image gives the median of all its pixels within 0.001."""
+    from torchproj.sim import rig as rig_module
+
+    yy, xx = torch.meshgrid(torch.arange(1200.0), torch.arange(1600.0), indexing="ij")
+    sid = torch.zeros(1200, 1600, dtype=torch.int64)
+    affine = torch.stack([0.6 * xx, 0.55 * yy], -1)[None]
+    assert float(rig_module.sample_spacing(affine, sid, 3)[0]) == pytest.approx(0.2, abs=1e-6)
+    growing = torch.stack([0.6 * xx + 0.0003 * xx * yy, 0.55 * yy], -1)[None]
+    read = float(rig_module.sample_spacing(growing, sid, 3)[0])
+    right = (growing[0, :, 1:] - growing[0, :, :-1]).norm(dim=-1)[:-1]
+    down = (growing[0, 1:] - growing[0, :-1]).norm(dim=-1)[:, :-1]
+    exact = float(torch.maximum(right, down).median()) / 3
+    assert read == pytest.approx(exact, abs=1e-3) and read != pytest.approx(0.2, abs=0.01)
+
+
 def test_colour_mixing_shows_each_primary_in_every_channel_by_its_share():
     # By hand: a camera channel c sees sum_p M[c, p] L_p of the primaries. Pure primary p less black
     # is M[c, p] K_c (a unit of light through channel c's geometry and albedo K_c), white less black

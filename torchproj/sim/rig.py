@@ -39,6 +39,7 @@ from .primitives import make_caster
 __all__ = ["VirtualRig", "StateGeometry", "sample_spacing", "supersampling_needed"]
 
 _CHUNK = 1 << 20  # rays per chunk: bounds memory whatever the camera resolution
+_SPACING_PIXELS = 1 << 18  # camera pixels sample_spacing reads at most (every k-th of each axis beyond)
 
 
 @dataclass
@@ -192,14 +193,22 @@ def sample_spacing(prj_xy: torch.Tensor, surface_id: torch.Tensor, supersampling
         lights no two neighbours on one surface.
     """
     check_shape(surface_id, "surface_id", list(prj_xy.shape[1:3]))
+    height, width = surface_id.shape
+    # Every step-th pixel of each axis (with its own neighbours) where the camera has more than
+    # _SPACING_PIXELS: a median over a quarter of a million pixels is the whole image's to the
+    # hundredth, at a ninth of the work on a 1600 x 1200 camera.
+    step = max(1, math.ceil(math.sqrt(height * width / _SPACING_PIXELS)))
+    sid = surface_id[::step, ::step]
     out = torch.full((prj_xy.shape[0],), float("nan"))
     for j, xy in enumerate(prj_xy):
-        spacing = torch.full(xy.shape[:2], float("nan"), dtype=xy.dtype, device=xy.device)
-        for a, b, sa, sb, at in ((xy[:, :-1], xy[:, 1:], surface_id[:, :-1], surface_id[:, 1:], (slice(None), slice(0, -1))),
-                                 (xy[:-1], xy[1:], surface_id[:-1], surface_id[1:], (slice(0, -1), slice(None)))):
+        here = xy[::step, ::step]
+        spacing = torch.full(sid.shape, float("nan"), dtype=xy.dtype, device=xy.device)
+        for dy, dx in ((0, 1), (1, 0)):  # the right and lower neighbours
+            there, sid_there = xy[dy::step, dx::step], surface_id[dy::step, dx::step]
+            h, w = min(sid.shape[0], sid_there.shape[0]), min(sid.shape[1], sid_there.shape[1])
+            a, b, sa, sb = here[:h, :w], there[:h, :w], sid[:h, :w], sid_there[:h, :w]
             same = torch.isfinite(a).all(-1) & torch.isfinite(b).all(-1) & (sa == sb) & (sa >= 0)
-            step = torch.where(same, (a - b).norm(dim=-1), float("nan"))
-            spacing[at] = torch.fmax(spacing[at], step)
+            spacing[:h, :w] = torch.fmax(spacing[:h, :w], torch.where(same, (a - b).norm(dim=-1), float("nan")))
         found = spacing[torch.isfinite(spacing)]
         if found.numel():
             out[j] = float(found.median()) / supersampling
