@@ -343,6 +343,20 @@ def test_sample_spacing_of_a_large_camera_reads_every_kth_pixel_with_its_own_nei
     assert read == pytest.approx(exact, abs=1e-3) and read != pytest.approx(0.2, abs=0.01)
 
 
+def test_centre_geometry_is_the_cast_states_own_at_a_fraction_of_the_rays():
+    """The pixel centres' truth cast alone (one ray a pixel, no transport) equals what a full cast
+    of the state holds, field by field and bit for bit, and a state already cast gives its own."""
+    scene = small_scene("box_positions", camera=(160, 120), projector=(128, 96), supersampling=3)
+    first = VirtualRig(scene)
+    alone = first.centre_geometry("near")
+    assert not first._geometry  # nothing kept
+    rig = VirtualRig(scene)
+    cast = rig.geometry("near")
+    for name in ("prj_xy", "points", "normals", "surface_id"):
+        torch.testing.assert_close(alone[name], getattr(cast, name), rtol=0, atol=0, equal_nan=True)
+    assert rig.centre_geometry("near")["prj_xy"] is cast.prj_xy
+
+
 def test_colour_mixing_shows_each_primary_in_every_channel_by_its_share():
     # By hand: a camera channel c sees sum_p M[c, p] L_p of the primaries. Pure primary p less black
     # is M[c, p] K_c (a unit of light through channel c's geometry and albedo K_c), white less black
