@@ -153,6 +153,12 @@ def _footprint_cells(proj: Projector, u: torch.Tensor, g: torch.Tensor, depth: t
     return point, cell, share
 
 
+def _focal_spacing(scene: Scene) -> float:
+    """Cells between a camera pixel's samples by the focal lengths alone (the finest projector, on a
+    surface facing both devices at the same distance): ``f_projector / (f_camera s)``."""
+    return max(p.fx for p in scene.projectors) / (scene.camera.fx * scene.camera.supersampling)
+
+
 def _warn_if_undersampled(scene: Scene) -> None:
     """Warn when camera samples fall too far apart to resolve the projectors' LCD cells.
 
@@ -164,10 +170,9 @@ def _warn_if_undersampled(scene: Scene) -> None:
     (``benchmarks/sampling.py``: 3-5 dB on ``box_positions`` with 2 x 2 samples; with 4 x 4 within
     0.35 dB of 8 x 8).
     """
-    cam = scene.camera
-    spacing = max(p.fx for p in scene.projectors) / (cam.fx * cam.supersampling)
+    spacing = _focal_spacing(scene)
     if spacing > SAMPLE_SPACING:
-        need = supersampling_for(max(p.fx for p in scene.projectors), cam.fx)
+        need = supersampling_for(max(p.fx for p in scene.projectors), scene.camera.fx)
         warnings.warn(f"scene {scene.name!r}: camera samples are {spacing:.2f} projector cells apart, too coarse to "
                       f"resolve the cells (solvers may fit where the samples fall); set camera.supersampling to "
                       f"{need} or more", stacklevel=3)
@@ -228,7 +233,7 @@ def _warn_if_cast_undersampled(scene: Scene, state: str, geometry: StateGeometry
     ``SAMPLE_SPACING`` cells of a projector (:func:`sample_spacing`), where the focal lengths alone
     did not (:func:`_warn_if_undersampled` warned at the rig's start)."""
     cam = scene.camera
-    if max(p.fx for p in scene.projectors) / (cam.fx * cam.supersampling) > SAMPLE_SPACING:
+    if _focal_spacing(scene) > SAMPLE_SPACING:
         return
     spacing = sample_spacing(geometry.prj_xy.cpu(), geometry.surface_id.cpu(), cam.supersampling)
     need = supersampling_needed(spacing, cam.supersampling)
