@@ -149,7 +149,8 @@ def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, p
         projector_width: projector width in pixels.
         steps: number of bars in the ramp.
         margin: camera pixels whose projector column is within this many projector pixels of a bar
-            edge are left out (their footprint straddles two levels).
+            edge are left out (their footprint straddles two levels); at most a third of a bar, so
+            that a narrow projector's bars (3 cells for 96 columns and 32 steps) keep their middle.
         min_contrast: pixels with white - black below this are left out (too dark to measure).
 
     Returns:
@@ -161,6 +162,9 @@ def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, p
     check_shape(black, "black", [sizes["C"], sizes["H"], sizes["W"]])
     check_shape(prj_x, "prj_x", [sizes["H"], sizes["W"]])
     bar = projector_width / steps
+    # A margin of 1.5 cells either side of a 3-cell bar left no pixel of any bar: a 96-column
+    # projector failed calibration for want of a ramp, however well lit.
+    margin = min(margin, bar / 3)
     pos = prj_x / bar
     level = torch.floor(pos)
     frac = pos - level
