@@ -13,7 +13,7 @@ from torchproj.sim.camera import _sensor, apply_camera
 
 def _camera(**kw):
     return SimpleNamespace(**{"exposure": 1.6, "full_well": 20000, "read_noise": 0.002, "gamma": 1.0,
-                              "bit_depth": 8, **kw})
+                              "bit_depth": 8, "frames": 1, **kw})
 
 
 @pytest.mark.parametrize("gamma, full_well, read_noise, bits", [(1.0, 20000, 0.002, 8), (2.2, 5000, 0.0, 8),

@@ -314,6 +314,12 @@ def test_config_files_that_are_not_scenes_are_named(tmp_path):
         load_scene(huge)
 
 
+@pytest.mark.parametrize("frames, message", [(0, "must be at least 1, got 0"), (2.5, "must be a whole number"),
+                                             (1000, "must be at most 256, got 1000")])
+def test_bad_camera_frames_name_the_field(frames, message):
+    assert _bad(lambda d: d["camera"].update(frames=frames)).startswith(f"camera.frames: {message}")
+
+
 def test_a_seed_past_64_bits_is_refused():
     message = _bad(lambda d: d.update(seed=10**40))
     assert message.startswith("seed: must be at most 9223372036854775807, got a number of 41 digits")

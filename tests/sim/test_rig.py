@@ -176,6 +176,32 @@ def test_capture_noise_follows_the_sensor_model():
     assert float(measured.std() / predicted.mean()) == pytest.approx(1.0, abs=0.05)
 
 
+@pytest.mark.parametrize("bits", [16, 8])
+def test_a_capture_of_several_frames_is_their_mean(bits):
+    """camera.frames: 16 averages 16 frames, each with its own noise: the noise falls to a quarter,
+    the expected image stays, and each frame is quantised before the mean (at 8 bits with this
+    noise, the mean holds levels between one frame's)."""
+    scene = small_scene(bit_depth=bits, supersampling=1)
+    averaged = parse_scene(small_config(bit_depth=bits, supersampling=1, frames=16), name="averaged")
+    white = {0: torch.ones(1, 1, 192, 256)}
+    clean = VirtualRig(scene).capture("near", white, noise=False, quantise=False)[0, 0]
+    mask = (clean > 0.2) & (clean < 0.9)
+    spread = {}
+    for world in (scene, averaged):
+        rig = VirtualRig(world)
+        a, b = rig.capture("near", white, seed=1)[0, 0], rig.capture("near", white, seed=2)[0, 0]
+        spread[world.camera.frames] = float(((a - b)[mask] / math.sqrt(2)).std())
+        assert abs(float((a - clean)[mask].mean())) < 2e-4  # no bias from averaging
+    assert spread[16] / spread[1] == pytest.approx(0.25, abs=0.03)
+    a = VirtualRig(averaged).capture("near", white, seed=1)[0, 0]
+    peak = (1 << bits) - 1
+    assert torch.allclose(torch.round(a * peak * 16) / (peak * 16), a, atol=1e-6)  # a mean of 16 quantised frames
+    assert bits == 16 or not torch.equal(torch.round(a * peak) / peak, a)
+    assert averaged.camera.stored_bits == 16 and scene.camera.stored_bits == bits
+    # Without noise every frame is the same image.
+    assert torch.equal(VirtualRig(averaged).capture("near", white, noise=False), VirtualRig(scene).capture("near", white, noise=False))
+
+
 def test_captures_are_quantised_to_the_bit_depth():
     rig = VirtualRig(small_scene())
     img = rig.capture("far", {1: torch.rand(2, 1, 192, 256)})

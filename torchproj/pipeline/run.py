@@ -67,7 +67,7 @@ class RunResult:
             write_image(folder / "patterns" / f"{name}.png", pattern.float() / 255)
         (folder / "captures").mkdir(exist_ok=True)
         for state, shot in self.captures.items():
-            write_image(folder / "captures" / f"{state}.png", shot, bits=self.scene.camera.bit_depth)
+            write_image(folder / "captures" / f"{state}.png", shot, bits=self.scene.camera.stored_bits)
         run_overview(folder / "overview.png", self.patterns, names, self.targets,
                      title=f"Fig. 1: torchproj run: scene {self.report['scene']}, solver {self.report['solver']}, footprint "
                            f"{self.report.get('footprint', 'nearest')}")

@@ -405,7 +405,7 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
     def through_files(state, j, capture):
         proj = scene.projectors[j]
         path = folder / "captures" / state / proj.name
-        write_graycode_folder(path, capture, bits=scene.camera.bit_depth)
+        write_graycode_folder(path, capture, bits=scene.camera.stored_bits)
         return read_graycode_folder(path, (proj.width, proj.height), bits=bits)
 
     results, rows = [], []

@@ -46,6 +46,9 @@ __all__ = [
 ]
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
+# Frames a virtual capture averages: each is a draw of the sensor's whole chain, so 256 frames cost
+# 256 times one's sensor work, and past that the mean's noise falls by little more than a sixteenth.
+MAX_FRAMES = 256
 #: the shipped scenes (``configs/NAME.yaml``), each loaded by name: ``load_scene("box_cylinders")``.
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
                   "two_screens", "box_positions", "paper_defocus", "paper_bumped", "sphere_three_projectors",
@@ -135,7 +138,9 @@ class Camera(Pinhole):
     Pixel value before noise: ``exposure * radiance`` (linear; ``gamma`` != 1 bends it as
     ``v**(1/gamma)``). Noise: shot noise with ``full_well`` electrons at value 1 and Gaussian read
     noise of standard deviation ``read_noise`` (in [0, 1] units), then quantisation to ``bit_depth``.
-    Each pixel integrates ``supersampling**2`` rays over its footprint.
+    Each capture is the mean of ``frames`` such frames (their noise falls as the square root of
+    their number), as a bench averages grabs (``torchproj capture --frames``). Each pixel integrates
+    ``supersampling**2`` rays over its footprint.
     """
 
     world_from_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -147,6 +152,13 @@ class Camera(Pinhole):
     read_noise: float = 0.0
     bit_depth: int = 8
     supersampling: int = 2
+    frames: int = 1
+
+    @property
+    def stored_bits(self) -> int:
+        """Bits a capture file keeps: ``bit_depth``, or 16 for a mean of several frames, which holds
+        levels between one frame's."""
+        return self.bit_depth if self.frames == 1 else 16
 
 
 # Camera samples must fall at most this many projector cells apart, or a solver learns where they land
@@ -387,6 +399,7 @@ def _parse_camera(f: Fields) -> Camera:
         read_noise=noise.number("read", 0.0, lo=0, hi=0.5),
         bit_depth=f.integer("bit_depth", 8, choices=(8, 16)),
         supersampling=f.integer("supersampling", 2, lo=1),
+        frames=f.integer("frames", 1, lo=1, hi=MAX_FRAMES),
     )
     noise.done()
     f.done()

@@ -17,7 +17,9 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
     The sensor collects ``exposure * radiance`` (1.0 = full well). Shot noise is Poisson in the
     collected electrons, drawn as its Gaussian limit with variance ``v / full_well``; read noise adds
     a Gaussian of standard deviation ``read_noise``. The value is clipped (saturation), bent by the
-    response ``v**(1/gamma)`` and quantised to ``bit_depth`` bits.
+    response ``v**(1/gamma)`` and quantised to ``bit_depth`` bits. A camera of several ``frames``
+    gives each capture as the mean of that many such frames, each with its own noise, each quantised
+    (as a bench averages the grabs its camera stores).
 
     Args:
         radiance: :math:`(N, C, H, W)` linear radiance.
@@ -27,7 +29,8 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
         out: where to write the result (may be ``radiance`` itself, overwriting it image by image).
 
     Returns:
-        :math:`(N, C, H, W)` values in [0, 1] on the quantisation grid ``k / (2^bits - 1)``.
+        :math:`(N, C, H, W)` values in [0, 1] on the quantisation grid ``k / (2^bits - 1)`` (a
+        mean of ``frames`` values of it for a camera of several).
     """
     peak = (1 << camera.bit_depth) - 1
     out = torch.empty_like(radiance) if out is None else out
@@ -35,11 +38,17 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
     # One image at a time: whole-stack temporaries of tens of millions of values cost more in memory
     # traffic than the arithmetic. The noise is drawn here, from the rig's generator, so that a fused
     # and an eager run capture the same images.
+    # Without noise every frame is the same, and their mean is one of them.
+    frames = camera.frames if noisy else 1
     for i in range(radiance.shape[0]):
-        noise = torch.randn(radiance[i].shape, generator=generator, device=radiance.device,
-                            dtype=radiance.dtype) if noisy else None
-        out[i] = _sensor(radiance[i], noise, camera.exposure, 1.0 / camera.full_well if camera.full_well > 0 else 0.0,
-                         camera.read_noise ** 2, 1.0 / camera.gamma, float(peak) if quantise else 0.0)
+        total = None
+        for _ in range(frames):
+            noise = torch.randn(radiance[i].shape, generator=generator, device=radiance.device,
+                                dtype=radiance.dtype) if noisy else None
+            frame = _sensor(radiance[i], noise, camera.exposure, 1.0 / camera.full_well if camera.full_well > 0 else 0.0,
+                            camera.read_noise ** 2, 1.0 / camera.gamma, float(peak) if quantise else 0.0)
+            total = frame if total is None else total.add_(frame)
+        out[i] = total if frames == 1 else total.div_(frames)
     return out
 
 
