@@ -3,6 +3,7 @@ captures the virtual rig writes as folders give the same patterns as ``torchproj
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -12,8 +13,8 @@ from torchproj.calib import (calibrate_folders, calibrate_projector, checker_pat
 from torchproj.calib.capture import CHECKER_NAMES, PRIMARY_NAMES, RAMP_NAMES
 from torchproj.pipeline import simulate_calibration
 from torchproj.cli import main
-from torchproj.core import CaptureError, read_image, write_image
-from torchproj.pipeline import run_virtual
+from torchproj.core import CaptureError, InputError, read_image, write_image
+from torchproj.pipeline import capture_sequence, run_virtual
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
 
@@ -263,6 +264,38 @@ def test_capture_helper_with_a_fake_display_and_camera(scene, tmp_path):
         assert float(response.b[0]) == pytest.approx(scene.projectors[j].response_b[0], abs=0.05)
     with pytest.raises(CaptureError, match="sequence.json"):
         capture_sequence(tmp_path, tmp_path / "x", RigDisplay(), None)
+
+
+class _CountingCamera:
+    """A camera whose k-th grab is the uint8 image filled with 10 k (mod 250)."""
+
+    def __init__(self):
+        self.grabs = 0
+
+    def grab(self):
+        self.grabs += 1
+        return np.full((6, 8), 10 * self.grabs % 250, dtype=np.uint8)
+
+
+def test_capture_averages_frames_into_16_bit_files(tmp_path, capsys):
+    """--frames N: each image is the mean of N grabs, kept at 16 bits (an 8-bit file would round the
+    mean back to one grab's levels); a bad count is refused before any window opens."""
+    assert main(["sequence", "--projector", "64x32", "--out", str(tmp_path / "seq")]) == 0
+    camera = _CountingCamera()
+    out = capture_sequence(tmp_path / "seq", tmp_path / "cap", RigDisplay(), camera, settle_s=0, frames=4)
+    files = sorted(out.glob("*.png"))
+    assert camera.grabs == 4 * len(files)
+    first = cv2.imread(str(out / "graycode_00.png"), cv2.IMREAD_UNCHANGED)
+    assert first.dtype == np.uint16  # the mean of grabs 1-4: 25 / 255
+    np.testing.assert_allclose(read_image(out / "graycode_00.png").numpy(), 25 / 255, atol=1 / 65535)
+    assert cv2.imread(str(out / "graycode_01.png"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+    for bad in (0, -2):
+        with pytest.raises(InputError, match=f"frames must be a whole number of camera frames, at least 1, got {bad}"):
+            capture_sequence(tmp_path / "seq", tmp_path / "bad", RigDisplay(), camera, settle_s=0, frames=bad)
+    assert not (tmp_path / "bad").exists()
+    assert main(["capture", str(tmp_path / "seq"), "--frames", "0", "--out", str(tmp_path / "cli")]) == 2
+    assert "frames must be a whole number of camera frames, at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "cli").exists()
 
 
 def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):

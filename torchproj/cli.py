@@ -127,7 +127,7 @@ def cmd_capture(args) -> int:
 
     with atomic_output(args.out) as stage:
         capture_sequence(args.sequence_dir, stage, settle_s=args.settle, camera_index=args.camera,
-                         screen=tuple(int(v) for v in args.screen.split(",")))
+                         screen=tuple(int(v) for v in args.screen.split(",")), frames=args.frames)
     print(f"captured the sequence of {args.sequence_dir} into {args.out}")
     return 0
 
@@ -324,6 +324,8 @@ def _real_rig_commands(sub) -> None:
     p.add_argument("--screen", default="0,0", metavar="X,Y", help="top-left corner of the projector's screen in "
                    "the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
+    p.add_argument("--frames", type=int, default=1, help="camera frames averaged per image, written as 16-bit PNGs "
+                   "where more than one (default 1; 16 quarter the noise a calibration carries)")
 
     from .core.choices import DIM_THRESHOLD
 

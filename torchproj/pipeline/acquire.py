@@ -71,7 +71,8 @@ class OpenCVCamera:
 
 
 def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike, display=None, camera=None, *,
-                     settle_s: float = 0.2, screen: tuple[int, int] = (0, 0), camera_index: int = 0) -> Path:
+                     settle_s: float = 0.2, screen: tuple[int, int] = (0, 0), camera_index: int = 0,
+                     frames: int = 1) -> Path:
     """Show every image of a sequence (``torchproj sequence``) in order and save each capture under the
     same file name, plus ``sequence.json``, in ``out_dir`` (a ``CAPTURE_ROOT/STATE/PROJECTOR`` folder).
 
@@ -79,7 +80,11 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
         display, camera: see the module; None opens (and afterwards closes) an :class:`OpenCVDisplay`
             at ``screen`` and an :class:`OpenCVCamera` with ``camera_index``.
         settle_s: seconds to wait after showing an image before grabbing (projector and camera lag).
+        frames: grabs averaged per image: the camera's noise in the map, weights and cell shares
+            falls as their square root (docs/accuracy.md, "What the calibration's noise costs").
+            A mean of several is written as a 16-bit PNG, which keeps the levels between one grab's.
     """
+    _check_frames(frames)
     sequence_dir, out_dir = Path(sequence_dir), Path(out_dir)
     manifest_path = sequence_dir / SEQUENCE_FILE
     if not manifest_path.is_file():
@@ -93,7 +98,7 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
             if camera is None:
                 camera = OpenCVCamera(camera_index)
                 opened.append(camera)
-            return capture_sequence(sequence_dir, out_dir, display, camera, settle_s=settle_s)
+            return capture_sequence(sequence_dir, out_dir, display, camera, settle_s=settle_s, frames=frames)
         finally:
             for device in opened:
                 device.close()
@@ -103,8 +108,8 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
         pattern = read_image(sequence_dir / entry["file"])
         display.show(_to_screen(pattern))
         time.sleep(settle_s)
-        image, bits = _grab(camera)
-        write_image(out_dir / entry["file"], image, bits=bits)
+        image, bits = _grab(camera, frames)
+        write_image(out_dir / entry["file"], image, bits=bits if frames == 1 else 16)
     shutil.copyfile(manifest_path, out_dir / SEQUENCE_FILE)
     return out_dir
 
@@ -112,6 +117,11 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
 def _to_screen(image: torch.Tensor) -> np.ndarray:
     """A :math:`(C, H, W)` image in [0, 1] as the uint8 :math:`(H, W)` or :math:`(H, W, 3)` array a display shows."""
     return (image.permute(1, 2, 0).squeeze(-1).cpu().numpy() * 255).round().astype(np.uint8)
+
+
+def _check_frames(frames) -> None:
+    if not (isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
+        raise InputError(f"frames must be a whole number of camera frames, at least 1, got {frames!r}")
 
 
 def _grab(camera, frames: int = 1) -> tuple[torch.Tensor, int]:
@@ -140,8 +150,7 @@ class LiveBench:
     """
 
     def __init__(self, displays: dict, camera, *, settle_s: float = 0.2, frames: int = 1, prompt=None):
-        if not (isinstance(frames, int) and frames >= 1):
-            raise InputError(f"frames must be a whole number of camera frames, at least 1, got {frames!r}")
+        _check_frames(frames)
         if not (isinstance(settle_s, (int, float)) and 0 <= settle_s <= 60):
             raise InputError(f"settle must be seconds in [0, 60], got {settle_s!r}")
         self.displays, self.camera, self.settle_s, self.frames, self.prompt = displays, camera, settle_s, frames, prompt
