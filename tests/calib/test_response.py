@@ -50,11 +50,10 @@ def test_virtual_rig_response_fit_and_compensation():
         assert float(raw.std()) > 3 * float(flat.std()) and float(raw.min()) < 0.6
 
 
-@pytest.mark.parametrize("projector", [(96, 72), (64, 48)])
-def test_a_narrow_projectors_ramp_keeps_the_middle_of_its_bars(projector):
+def test_a_narrow_projectors_ramp_keeps_the_middle_of_its_bars():
     """32 bars on 96 columns are 3 cells wide: a margin of 1.5 cells either side of a bar edge left
     no pixel of any bar, and calibration failed for want of a ramp."""
-    scene = small_scene(camera=(200, 150), projector=projector)
+    scene = small_scene(camera=(200, 150), projector=(96, 72))
     cal = calibrate_virtual(scene, progress=False)
     for proj, response in zip(scene.projectors, cal.responses):
         assert abs(float(response.b[0]) - proj.response_b[0]) < 0.1
