@@ -53,8 +53,8 @@ def measure(name: str, log=print) -> dict:
             scores[label] = evaluate_patterns(cal, patterns, targets, scale=ops[0].scale, paper=False, seed=scene.seed,
                                               states=calibrated.states).targets
     # Each on the pixels all three score: a pixel about the shadow threshold's white minus black may
-    # count as lit in one calibration and not the other, and one such pixel, hardly lit, moved a
-    # target of 1,265 pixels by 0.5 dB (suite-2412-2).
+    # count as lit in one calibration and not the other, and such a pixel, hardly lit, is a large
+    # error in a small target's score.
     psnr = {label: {} for label in scores}
     for k, target in enumerate(targets):
         common = scores["area"][k].covered & scores[AVERAGED][k].covered & scores["ceiling"][k].covered
