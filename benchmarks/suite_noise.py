@@ -30,6 +30,7 @@ from pathlib import Path
 from common import machine, write_results
 from suite import solve_model
 
+from torchproj.cli_options import positive_int
 from torchproj.pipeline import calibrate_virtual, evaluate_patterns, scene_targets
 from torchproj.scene import load_scene
 from torchproj.scene.procedural import suite_names
@@ -99,7 +100,7 @@ def markdown(results: list[dict], total: dict, title: str) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=2412)
-    ap.add_argument("--count", type=int, default=20)
+    ap.add_argument("--count", type=positive_int, default=20)
     ap.add_argument("--scenes", nargs="+", help="these scenes instead of the seed's")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/suite_noise"))
     args = ap.parse_args()
