@@ -18,8 +18,8 @@ from torchproj.transport import build_transport
 def _fine_camera():
     """The paper's rig seen by a camera whose pixels are a seventh of a cell across: each pixel's light
     stays on one cell, and nearest has nothing to lose."""
-    data = scale_config(yaml.safe_load(builtin_config("paper_two_planes").read_text()), camera=(800, 600),
-                        projector=(128, 96))
+    data = scale_config(yaml.safe_load(builtin_config("paper_two_planes").read_text()), camera=(600, 450),
+                        projector=(96, 72))
     data["camera"]["supersampling"] = 1
     return parse_scene(data, name="fine_camera")
 
