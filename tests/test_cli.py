@@ -51,6 +51,28 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
     assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
 
 
+def test_simulate_writes_a_mean_of_frames_at_16_bits(tmp_path):
+    """camera.frames: 4 makes each capture the mean of four 8-bit frames, which an 8-bit file would
+    round back to one frame's levels: the folders hold 16-bit PNGs with levels between, and they
+    decode as the calibration simulate ran on them."""
+    import cv2
+
+    path = tmp_path / "averaged.yaml"
+    data = dict(small_config(camera=(160, 120), projector=(128, 96), frames=4), name="averaged")
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "sim"
+    assert main(["simulate", str(path), "--out", str(out), "--write-captures"]) == 0
+    first = cv2.imread(str(out / "captures" / "near" / "upper" / "graycode_00.png"), cv2.IMREAD_UNCHANGED)
+    assert first.dtype == np.uint16
+    levels = np.unique(first)
+    assert not np.allclose(levels / 65535 * 255, np.round(levels / 65535 * 255), atol=1e-3)  # between 8-bit levels
+    dec = tmp_path / "dec"
+    assert main(["decode", str(out / "captures" / "near" / "upper"), "--projector", "128x96", "--out", str(dec)]) == 0
+    got = np.load(dec / "correspondence.npz")["prj_xy"]
+    want = np.load(out / "calibration" / "near" / "upper" / "correspondence.npz")["prj_xy_integer"]
+    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
+
+
 @pytest.mark.slow
 def test_simulate_a_shortened_sequence_checks_the_fitted_maps(tmp_path):
     path = tmp_path / "small.yaml"
