@@ -198,6 +198,7 @@ def test_a_capture_of_several_frames_is_their_mean(bits):
     assert torch.allclose(torch.round(a * peak * 16) / (peak * 16), a, atol=1e-6)  # a mean of 16 quantised frames
     assert bits == 16 or not torch.equal(torch.round(a * peak) / peak, a)
     assert averaged.camera.stored_bits == 16 and scene.camera.stored_bits == bits
+    assert "each capture the mean of 16 frames" in averaged.describe() and "frames" not in scene.describe()
     # Without noise every frame is the same image.
     assert torch.equal(VirtualRig(averaged).capture("near", white, noise=False), VirtualRig(scene).capture("near", white, noise=False))
 

@@ -254,7 +254,8 @@ class Scene:
                          + (f", colour mixing {[list(row) for row in p.colour_mixing]}"
                             if p.colour_mixing is not None else ""))
         lines.append(f"  camera: {cam.width}x{cam.height}, f={cam.fx:g}px, {cam.channels} channel(s), "
-                     f"{cam.bit_depth}-bit, {cam.supersampling}x{cam.supersampling} samples per pixel")
+                     f"{cam.bit_depth}-bit, {cam.supersampling}x{cam.supersampling} samples per pixel"
+                     + (f", each capture the mean of {cam.frames} frames" if cam.frames > 1 else ""))
         lines += [f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m"
                   for s in self.surfaces.values()]
         lines += [f"  state {st.name}: {', '.join(st.surfaces)}" for st in self.states]
