@@ -28,7 +28,7 @@ SURFACE = {
     "calib": [
         "BUNDLE_VERSION", "CREASE_RATIO", "CURVE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
         "FEW_DECODED", "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
-        "ResponseCurve", "band_pixels", "calibrate_folders", "calibrate_projector", "cell_means", "cell_shares", "check_plane", "checker_patterns", "checker_shares",
+        "ResponseCurve", "band_pixels", "calibrate_folders", "calibrate_projector", "capture_noise", "cell_means", "cell_shares", "check_plane", "checker_patterns", "checker_shares",
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_colour_mixing", "fit_homography", "fit_plane", "fit_response",
         "graycode_bits", "graycode_patterns", "homography_map",
         "inverse_map", "largest_plane", "load_bundle", "measure_blur", "measure_ramp", "primary_patterns", "ramp_pattern", "read_graycode_folder",

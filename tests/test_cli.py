@@ -41,6 +41,8 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
         assert row["decoding_integer"]["decoded"] > 0.99 and row["decoding_integer"]["exact"] > 0.999
         assert row["decoding_subpixel"]["rms_px"] < row["decoding_integer"]["rms_px"]
         assert abs(row["response_fit"]["b"][0] - row["response_true_b"][0]) < 0.1
+        assert 0.003 < row["capture_noise"] < 0.03  # this camera's, about 1% of white - black
+    assert "| noise |" in (out / "report.md").read_text()
     for name in ("report.md", "calibration.png", "calibration/near/upper/correspondence.npz"):
         assert (out / name).is_file()
     # The written capture folder is a real capture to the decoder.
@@ -71,6 +73,9 @@ def test_simulate_writes_a_mean_of_frames_at_16_bits(tmp_path):
     got = np.load(dec / "correspondence.npz")["prj_xy"]
     want = np.load(out / "calibration" / "near" / "upper" / "correspondence.npz")["prj_xy_integer"]
     assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
+    # Four frames a capture halve the noise its white - black carries.
+    noise = [r["capture_noise"] for r in json.loads((out / "report.json").read_text())["calibrations"]]
+    assert all(0.002 < n < 0.008 for n in noise)
 
 
 @pytest.mark.slow

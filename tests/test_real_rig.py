@@ -2,6 +2,7 @@
 captures the virtual rig writes as folders give the same patterns as ``torchproj run``."""
 
 import json
+import re
 
 import cv2
 import numpy as np
@@ -74,10 +75,13 @@ def test_a_shortened_sequence_shows_no_checkerboard(scene, tmp_path):
 
 
 @pytest.mark.slow
-def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_root, tmp_path):
+def test_calibrate_and_solve_from_folders_match_the_virtual_run(scene, capture_root, tmp_path, capsys):
     calib, solved = tmp_path / "calib", tmp_path / "solved"
     assert main(["calibrate", str(capture_root), "--projector", "256x192", "--out", str(calib)]) == 0
     assert (calib / "calibration.png").is_file()
+    # The captures' camera noise, said per state and projector: this camera's, about 1% of white - black.
+    said = re.findall(r"(far|near)/(upper|lower) (\d+\.\d+)%", capsys.readouterr().out.split("camera noise")[1])
+    assert len(said) == 4 and all(0.3 < float(share) < 3 for _, _, share in said)
     bundle = load_bundle(calib)
     assert list(bundle.states) == ["far", "near"] and bundle.camera_size == (400, 300)
     assert main(["solve", str(calib), "--targets", "far=astronaut", "near=chelsea", "--out", str(solved)]) == 0

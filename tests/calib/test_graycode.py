@@ -10,7 +10,7 @@ import torch
 from torchproj.calib import warn_if_few_decoded
 from torchproj.calib.maps import depth_edges
 from torchproj.calib.graycode import CREASE_RATIO, CURVE_RATIO, _refine_again, _window_planes, _window_quadratics
-from torchproj.calib import (GraycodeCapture, band_pixels, calibrate_projector, cell_means, cell_shares, checker_patterns,
+from torchproj.calib import (GraycodeCapture, band_pixels, calibrate_projector, capture_noise, cell_means, cell_shares, checker_patterns,
                              checker_shares, decode_gray, graycode_bits, graycode_patterns, read_graycode_folder, refine_subpixel, stripe_shares,
                              write_graycode_folder)
 from torchproj.pipeline import decoding_accuracy, simulate_calibration
@@ -780,3 +780,27 @@ def test_band_pixels_are_the_known_ones_within_two_of_an_unknown_pixel_or_a_dept
             if known[y, x] and beside[max(0, y - 2):y + 3, max(0, x - 2):x + 3].any():
                 expected.append(y * 40 + x)
     assert band.tolist() == expected
+
+
+@pytest.mark.parametrize("frames", [1, 16])
+def test_capture_noise_is_the_spread_of_white_minus_black_over_repeated_captures(frames):
+    """capture_noise reads the noise of a pixel's white minus black from the pattern pairs alone: the
+    independent reference is the spread of white minus black over twelve more captures of each."""
+    scene = small_scene(camera=(200, 150), projector=(128, 96), frames=frames)
+    rig = VirtualRig(scene)
+    capture = simulate_calibration(rig, "near", 0)
+    on, off = {0: torch.ones(1, 1, 96, 128)}, {0: torch.zeros(1, 1, 96, 128)}
+    spans = torch.stack([rig.capture("near", on, seed=10 + k)[0, 0] - rig.capture("near", off, seed=100 + k)[0, 0]
+                         for k in range(12)])
+    lit = spans.mean(0) > 40 / 255
+    spread = float((spans.std(0) / spans.mean(0))[lit].median())
+    estimate = capture_noise(capture.patterns, capture.white, capture.black)
+    assert estimate == pytest.approx(spread, rel=0.1)
+    assert (0.008 < estimate < 0.015) if frames == 1 else (0.002 < estimate < 0.004)  # a quarter at 16 frames
+
+
+def test_capture_noise_of_the_real_captures(chessboard):
+    capture = read_graycode_folder(str(chessboard / "capture_0"), (1024, 768))  # a path as text
+    assert 0.005 < capture_noise(capture.patterns, capture.white, capture.black) < 0.05
+    with pytest.raises(InputError, match="two or more pattern/inverse pairs"):
+        capture_noise(capture.patterns[:2], capture.white, capture.black)

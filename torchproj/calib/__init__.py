@@ -16,7 +16,7 @@ The calibration types, and how they relate:
 from .blur import measure_blur
 from .bundle import BUNDLE_VERSION, CalibrationBundle, calibrate_folders, load_bundle, write_bundle, write_sequence
 from .capture import DEFAULT_NAMES, GraycodeCapture, read_graycode_folder, write_graycode_folder
-from .graycode import (CREASE_RATIO, CURVE_RATIO, STRIPE_MARGIN, STRIPE_TOLERANCE, WIDE_SHARE, CellShares, GrayDecoding, band_pixels, cell_means, cell_shares, checker_patterns, checker_shares, decode_gray, graycode_bits, graycode_patterns, stripe_contrast,
+from .graycode import (CREASE_RATIO, CURVE_RATIO, STRIPE_MARGIN, STRIPE_TOLERANCE, WIDE_SHARE, CellShares, GrayDecoding, band_pixels, capture_noise, cell_means, cell_shares, checker_patterns, checker_shares, decode_gray, graycode_bits, graycode_patterns, stripe_contrast,
                        refine_subpixel, stripe_shares, sequence_bits)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
@@ -78,6 +78,7 @@ __all__ = [
     "refine_subpixel",
     "sequence_bits",
     "stripe_contrast",
+    "capture_noise",
     "stripe_shares",
     "triangulate",
     "triangulate_map",

@@ -136,6 +136,9 @@ class CalibrationBundle:
         decoded: state -> projector -> fraction of camera pixels decoded.
         decoded_lit: state -> projector -> share of the pixels it visibly lights that decoded
             (:attr:`~torchproj.calib.GrayDecoding.lit_located_fraction`).
+        capture_noise: state -> projector -> the camera noise of a lit pixel's white minus black,
+            as a share of it (:func:`~torchproj.calib.capture_noise`); said when calibrating, not
+            kept in ``bundle.json``.
         bits: per projector, the Gray-code pattern pairs per axis its sequence showed.
         homographies: state -> projector -> :class:`~torchproj.calib.HomographyFit` as a dict,
             for projectors calibrated from a shortened sequence.
@@ -153,14 +156,20 @@ class CalibrationBundle:
     ramps: list = field(default_factory=list)  # per projector, (levels (L,), measured (L, C)) the fit used, or None
     bits: list = field(default_factory=list)
     homographies: dict = field(default_factory=dict)
+    capture_noise: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def summary(self) -> str:
         """One line: states, projectors, the fraction of the camera decoded in each and (in brackets)
         the share of the pixels each projector lights."""
         lit = self.decoded_lit
-        return (f"{len(self.states)} state(s) x {len(self.projectors)} projector(s); decoded: "
+        line = (f"{len(self.states)} state(s) x {len(self.projectors)} projector(s); decoded: "
                 + ", ".join(f"{s}/{p} {f:.1%}" + (f" ({lit[s][p]:.1%} of its lit pixels)" if p in lit.get(s, {}) else "")
                             for s, d in self.decoded.items() for p, f in d.items()))
+        noise = [f"{s}/{p} {f:.2%}" for s, d in self.capture_noise.items() for p, f in d.items() if f is not None]
+        if noise:
+            line += ("; camera noise of white - black (median share): " + ", ".join(noise)
+                     + " (torchproj capture --frames N divides it by the square root of N)")
+        return line
 
     def figure_rows(self) -> list[dict]:
         """Per state and projector, a row of :func:`torchproj.figures.calibration_summary`."""
@@ -262,7 +271,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     first = next(iter(layout.values()))
     projectors = [(n, s[0], s[1]) for n, _, s, _ in first]
     shown = [b for _, _, _, b in first]
-    maps, black, decoded, decoded_lit, homographies = {}, {}, {}, {}, {}
+    maps, black, decoded, decoded_lit, homographies, noise = {}, {}, {}, {}, {}, {}
     responses: list[ResponseCurve | None] = [None] * len(projectors)
     ramps: list = [None] * len(projectors)
     unfit: dict[int, str] = {}  # projector -> why its first ramp that showed too few bars fit nothing
@@ -285,6 +294,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
             homographies.setdefault(state, {})[name] = cal.homography.as_dict()
         fraction = check_decoded(cal.decoding, folder)
         decoded_lit.setdefault(state, {})[name] = round(warn_if_few_decoded(cal.decoding, str(folder)), 4)
+        noise.setdefault(state, {})[name] = cal.capture_noise
         decoded.setdefault(state, {})[name] = fraction
         maps.setdefault(state, []).append(_maps(cal))
         black.setdefault(state, []).append(capture.black)
@@ -301,7 +311,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     return CalibrationBundle(camera_size=(shape[2], shape[1]), channels=shape[0], projectors=projectors,
                              states=maps, black={s: torch.stack(b).mean(0) for s, b in black.items()},
                              responses=responses, decoded=decoded, decoded_lit=decoded_lit, ramps=ramps, bits=shown,
-                             homographies=homographies)
+                             homographies=homographies, capture_noise=noise)
 
 
 def _maps(cal: ProjectorCalibration) -> dict:

@@ -100,6 +100,7 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
         CaptureError: naming the file and what to do, for a missing folder or image, an unreadable
             file, images of different sizes, or a white capture that shows no projector light.
     """
+    folder = Path(folder)  # a path given as text, as the signature allows
     paths = sequence_paths(folder, projector_size, names, bits)
     # PNG decoding releases the GIL: read on a few threads.
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:

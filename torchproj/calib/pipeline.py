@@ -12,7 +12,7 @@ from ..core.checks import check
 from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
-from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, band_pixels, cell_shares, checker_shares,
+from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, band_pixels, capture_noise, cell_shares, checker_shares,
                        decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast,
                        stripe_shares)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
@@ -81,6 +81,10 @@ class ProjectorCalibration:
             dimly to count as lit (white minus black between the dim and the shadow threshold,
             :data:`DIM_THRESHOLD`) whose code still reads, refined and filled as ``prj_xy``; NaN
             elsewhere (and wherever ``prj_xy`` is known). From a full sequence; None for a shortened one.
+        capture_noise: the camera noise of a pixel's white minus black, as a share of it (median
+            over the lit pixels, :func:`~torchproj.calib.capture_noise`): what every row's weight,
+            and the map and the shares, carry from one frame a capture; None for fewer than two
+            pattern pairs.
         blur: :math:`(H, W)` the projector's defocus disc at each pixel, diameter in cells
             (:func:`~torchproj.calib.measure_blur` on the finest stripes; NaN where it could not
             tell), which the ``area`` footprint spreads rows over where it is a cell or wider. From
@@ -101,6 +105,7 @@ class ProjectorCalibration:
     dim_xy: torch.Tensor | None = None
     blur: torch.Tensor | None = None
     response_note: str | None = None
+    capture_noise: float | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
@@ -207,9 +212,11 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
         shares = replace(shares, band=band, band_white=stripe_shares(capture.patterns, dec.contrast, band,
                                                                      graycode_bits(*projector_size)))
         timings["stripes"] = time.perf_counter() - t0
+    noise = capture_noise(capture.patterns, capture.white, capture.black) if capture.patterns.shape[0] >= 4 else None
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
-                                edges=edges, shares=shares, dim_xy=dim_xy, blur=blur, response_note=note)
+                                edges=edges, shares=shares, dim_xy=dim_xy, blur=blur, response_note=note,
+                                capture_noise=noise)
 
 
 @dataclass

@@ -366,7 +366,7 @@ def check_calibration(rig: VirtualRig, state: str, projector: int, capture: Gray
               "decoding_integer": decoding_accuracy(calibration.decoding.prj_xy, truth).as_dict(),
               "decoding_subpixel": decoding_accuracy(calibration.prj_xy, truth).as_dict(),
               "response_fit": None, "response_true_b": list(proj.response_b), "compensated_ramp_sum": None,
-              "response_note": calibration.response_note}
+              "response_note": calibration.response_note, "capture_noise": calibration.capture_noise}
     row = {"label": f"{state}/{proj.name}", "prj_xy": calibration.prj_xy,
            "error": (calibration.prj_xy - truth).norm(dim=-1), "levels": None}
     if calibration.response is not None:  # else this state's ramp showed too few bars (response_note)
@@ -441,6 +441,10 @@ def _decode_shares(decode: dict | None, decoded: float) -> str:
     return " / ".join(f"{decode[k] / decode['lit']:.1%}" for k in ("full", "partial", "none"))
 
 
+def _noise(share: float | None) -> str:
+    return "-" if share is None else f"{share:.2%}"
+
+
 def simulate_markdown(report: dict) -> str:
     """``report.md`` of ``torchproj simulate``."""
     lines = [f"# Virtual-rig calibration: {report['scene']}", "",
@@ -453,10 +457,12 @@ def simulate_markdown(report: dict) -> str:
              "not: shares of the pixels the projector visibly lights (white - black over the shadow threshold); a "
              "partly decoded pixel's reliable bits name two or a few cells, and the map places it from its "
              "neighbours (`map` covers those too). Flatness: compensated ramp plus its mirror, normalised by "
-             "white - black (ideal 1, std 0).", "",
+             "white - black (ideal 1, std 0). Noise: the camera noise of a lit pixel's white - black, as a share of "
+             "it (median), read from how the pattern pairs' sums spread; averaging N frames a capture (`camera.frames`, "
+             "`torchproj capture --frames N` on a bench) divides it by the square root of N.", "",
              "| state | projector | block | decoded fully / partly / not | exact | RMS decoded | map covers | RMS map "
-             "| fitted b (true) | ramp+mirror mean / std |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| fitted b (true) | ramp+mirror mean / std | noise |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["calibrations"]:
         di, ds = r["decoding_integer"], r["decoding_subpixel"]
         tb = "/".join(f"{v:g}" for v in r["response_true_b"])
@@ -467,7 +473,8 @@ def simulate_markdown(report: dict) -> str:
             flat = f"{r['compensated_ramp_sum']['mean']:.3f} / {r['compensated_ramp_sum']['std']:.3f}"
         lines.append(f"| {r['state']} | {r['projector']} | {'x'.join(map(str, r['block_cells']))} | "
                      f"{_decode_shares(r.get('decode'), di['decoded'])} | {di['exact']:.2%} | "
-                     f"{di['rms_px']:.3f} | {ds['decoded']:.2%} | {ds['rms_px']:.3f} | {b} | {flat} |")
+                     f"{di['rms_px']:.3f} | {ds['decoded']:.2%} | {ds['rms_px']:.3f} | {b} | {flat} | "
+                     f"{_noise(r.get('capture_noise'))} |")
     t = report["timings_s"]
     lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
     return "\n".join(lines)
