@@ -46,8 +46,8 @@ __all__ = [
 ]
 
 SURFACE_TYPES = ("rectangle", "plane", "box", "cylinder", "sphere", "mesh")
-# Frames a virtual capture averages: each is a draw of the sensor's whole chain, so 256 frames cost
-# 256 times one's sensor work, and past that the mean's noise falls by little more than a sixteenth.
+# Frames a virtual capture averages at most: each is a draw of the sensor's whole chain, so 256 frames
+# cost 256 times one's sensor work, and their mean already holds a sixteenth of one frame's noise.
 MAX_FRAMES = 256
 #: the shipped scenes (``configs/NAME.yaml``), each loaded by name: ``load_scene("box_cylinders")``.
 BUILTIN_SCENES = ("paper_two_planes", "colour_two_planes", "three_planes", "box_cylinders", "head_two_positions",
