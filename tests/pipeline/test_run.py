@@ -48,6 +48,10 @@ def test_run_writes_a_complete_report(config, tmp_path):
     for name in ("report.md", "overview.png", "patterns/upper.png", "patterns/lower.png", "captures/near.png",
                  "captures/far.png"):
         assert (out / name).is_file(), name
+    # The calibration captures' camera noise per state and projector (torchproj.calib.capture_noise).
+    noise = report["capture_noise"]
+    assert sorted(noise) == ["far", "near"] and all(0.003 < v < 0.03 for per in noise.values() for v in per.values())
+    assert f"near upper {noise['near']['upper']:.2%}" in (out / "report.md").read_text()
     # report.md opens with a verdict on the weakest target, held against the paper's prototype, and a legend.
     worst = min(report["targets"], key=lambda t: t["psnr_db"])
     opening = (out / "report.md").read_text().split("\n\n")[1:3]
@@ -86,6 +90,9 @@ def test_run_from_three_gray_code_bits_matches_the_full_sequence(config, tmp_pat
     assert sum(shares.values()) == pytest.approx(1, abs=1e-3)
     assert full["decoded_fraction"]["near"]["upper"] == pytest.approx(shares["full"] + shares["partial"], abs=2e-4)
     assert f"near upper {shares['full']:.1%} fully, {shares['partial']:.1%} partly" in run_markdown(full)
+    # And the calibration captures' camera noise (torchproj.calib.capture_noise), about 1% on this camera.
+    noise = full["capture_noise"]["near"]["upper"]
+    assert 0.003 < noise < 0.03 and f"near upper {noise:.2%}" in run_markdown(full)
     assert all(0 <= t["ghost"] <= 1 for t in full["targets"]) and "| crosstalk | ghost |" in run_markdown(full)
     for short, whole in zip(report["targets"], full["targets"]):
         assert short["psnr_db"] == pytest.approx(whole["psnr_db"], abs=0.3)

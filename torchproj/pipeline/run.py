@@ -466,7 +466,7 @@ def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solve
         "bounds_8bit": list(bounds_8bit), "device": str(device),
         "calibration": _CALIBRATION["geometry" if oracle is None and cal.oracle else oracle],
         "maps": maps, "graycode": _graycode_report(scene, cal), "decoded_fraction": cal.decoded,
-        "decode": cal.decode,
+        "decode": cal.decode, "capture_noise": cal.capture_noise,
         "model": model, "objective": least_squares,
         "unexplained_fraction": solved.unexplained_fraction,
         "iterations": result.iterations, "scale": solved.scale,
@@ -520,6 +520,16 @@ def _decoded_lines(decoded: dict | None, decode: dict | None = None) -> list[str
         f"{state} " + ", ".join(f"{name} {v:.1%}" for name, v in per.items()) for state, per in decoded.items())
         + (f". Under {FEW_DECODED:.0%} somewhere: those pixels take no part in the solve (see the warning)."
            if low else "."), ""]
+
+
+def _noise_lines(noise: dict | None) -> list[str]:
+    said = [f"{state} " + ", ".join(f"{name} {v:.2%}" for name, v in per.items() if v is not None)
+            for state, per in (noise or {}).items() if any(v is not None for v in per.values())]
+    if not said:
+        return []
+    return ["Camera noise of a lit pixel's white - black in the calibration captures (median share of it; "
+            "every row's weight, map and shares carry it, and averaging N frames a capture, `camera.frames`, "
+            "divides it by the square root of N): " + "; ".join(said) + ".", ""]
 
 
 def _image_objective_lines(image: dict | None) -> list[str]:
@@ -670,6 +680,7 @@ def run_markdown(report: dict) -> str:
                 if report.get("colour_weights") == "channel" else "") + _cached(report, "transport") + "; objective "
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
+             *_noise_lines(report.get("capture_noise")),
              *_image_objective_lines(report.get("image_objective")),
              *_show_lines(report),
              *_score_tables(report["targets"], paper, adjusted, ceiling)]
