@@ -638,7 +638,8 @@ def capture_noise(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tens
         white, black: :math:`(C, H, W)` or :math:`(H, W)` captures.
 
     Returns:
-        the median share, or NaN where no pixel is lit.
+        the median share, or NaN where no pixel is lit. A colour camera's channels are read as their
+        mean, as the decoder reads them: each channel alone carries more noise than their mean.
     """
     check(patterns.dim() in (3, 4) and patterns.shape[0] % 2 == 0 and patterns.shape[0] >= 4,
           f"patterns must be two or more pattern/inverse pairs (2K, [C,] H, W), got {tuple(patterns.shape)}")
