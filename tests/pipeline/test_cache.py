@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import os
 import threading
 
 import pytest
@@ -307,6 +308,59 @@ def test_a_broken_entry_is_recomputed_and_the_cache_keeps_to_its_size(cache, mon
     monkeypatch.setenv(CACHE_MAX_ENV, "1e-9")
     cached_calibration(_scene(exposure=1.7))
     assert len(list(cache.glob("*.pt"))) == 1
+
+
+def test_entries_another_process_removes_cost_a_computation_not_a_warning(cache, monkeypatch, recwarn):
+    """Runs that share a cache folder (a sweep run side by side, the test suite's workers) each keep it to
+    the cap, so an entry may go between being found, read and marked used: one read whole stands, one
+    gone before it was read is computed again. Neither is a broken entry to warn about."""
+    import torchproj.pipeline.cache as cache_module
+
+    scene = _scene()
+    cal, _ = cached_calibration(scene)
+    (entry,) = cache.glob("*.pt")
+    touch = cache_module.os.utime
+
+    def removed_after_reading(path, *args, **kwargs):
+        entry.unlink()
+        return touch(path, *args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(cache_module.os, "utime", removed_after_reading)
+        read, how = cached_calibration(scene)
+    assert how == "read" and not entry.exists()
+    torch.testing.assert_close(read.black["near"], cal.black["near"])
+    cached_calibration(scene)  # kept again
+    load = torch.load
+
+    def removed_before_reading(path, *args, **kwargs):
+        entry.unlink()
+        return load(path, *args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(torch, "load", removed_before_reading)
+        again, how = cached_calibration(scene)
+    torch.testing.assert_close(again.black["near"], cal.black["near"])
+    assert entry.exists() and not [w for w in recwarn if "cache" in str(w.message)]
+
+
+def test_the_cap_counts_the_entries_still_there(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from torchproj.pipeline.cache import _evict
+
+    folder = tmp_path / "cache"
+    folder.mkdir()
+    for age, name in enumerate(("old", "new", "kept")):
+        (folder / f"{name}.pt").write_bytes(bytes(1000))
+        os.utime(folder / f"{name}.pt", (age, age))
+    # Listed, then removed by another run keeping its own cap before its size was read.
+    listing = Path.glob
+    monkeypatch.setenv(CACHE_MAX_ENV, str(2500 / 1e9))
+    with monkeypatch.context() as patch:
+        patch.setattr(Path, "glob", lambda self, pattern: [folder / "gone.pt", *listing(self, pattern)])
+        _evict(folder, keep=folder / "kept.pt")
+    assert sorted(p.name for p in folder.glob("*.pt")) == ["kept.pt", "new.pt"]
 
 
 def test_a_cache_folder_that_refuses_the_entries_is_reported_not_kept(tmp_path, monkeypatch):

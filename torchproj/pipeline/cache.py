@@ -316,13 +316,20 @@ def _read(path: Path, key: str, what: str, make, device="cpu"):
         if not isinstance(payload, dict) or payload.get("key") != key:
             raise ValueError("its key does not match its name")
         made = make(payload)
-        os.utime(path)  # recently used: evicted last
-        return made
+    except FileNotFoundError:
+        # Removed since it was found: another process sharing the folder made room under the cap. Not
+        # a broken entry, so nothing to say; this run computes it.
+        return None
     except Exception as exc:  # whatever is wrong with it, it is not trusted
         warnings.warn(f"{what} cache entry {path} is unreadable ({type(exc).__name__}: {exc}); recomputing it",
                       stacklevel=4)
         path.unlink(missing_ok=True)
         return None
+    try:
+        os.utime(path)  # recently used: evicted last
+    except OSError:
+        pass  # removed by another process after it was read whole (a mapped file stays readable)
+    return made
 
 
 class _Behind:
@@ -447,10 +454,18 @@ def _evict(folder: Path, keep: Path) -> None:
         cap = float(os.environ.get(CACHE_MAX_ENV, _DEFAULT_MAX_GB)) * 1e9
     except ValueError:
         cap = _DEFAULT_MAX_GB * 1e9
-    entries = sorted((p for p in folder.glob("*.pt") if p != keep), key=lambda p: p.stat().st_mtime)
-    total = keep.stat().st_size + sum(p.stat().st_size for p in entries)
-    for p in entries:
+    # Each entry's size and age read once: another process sharing the folder may remove an entry at
+    # any moment (its own cap), and one gone since the listing is simply not counted.
+    entries = []
+    for p in folder.glob("*.pt"):
+        try:
+            st = p.stat()
+        except FileNotFoundError:
+            continue
+        entries.append((st.st_mtime, st.st_size, p))
+    total = sum(size for _, size, _ in entries)
+    for _, size, p in sorted(e for e in entries if e[2] != keep):
         if total <= cap:
             break
-        total -= p.stat().st_size
+        total -= size
         p.unlink(missing_ok=True)
