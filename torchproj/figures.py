@@ -89,9 +89,10 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict], title: str = 
     fig = Figure(figsize=(17, 3.4 * len(rows)))
     axes = fig.subplots(len(rows), 4, squeeze=False)
     # One error scale for every row (they are compared), at the 99th percentile of the errors: a fixed
-    # 0-0.5 px scale left maps of 0.05 px errors nearly black.
-    errors = [row["error"][torch.isfinite(row["error"])] for row in rows if row.get("error") is not None]
-    top = max((float(torch.quantile(e.float()[:1_000_000], 0.99)) for e in errors if e.numel()), default=0.5)
+    # 0-0.5 px scale left maps of 0.05 px errors nearly black. numpy's quantile selects where torch's
+    # sorts (a full-size map: 14 against 100 ms, the same value), and takes any number of them.
+    errors = [to_numpy(row["error"][torch.isfinite(row["error"])]) for row in rows if row.get("error") is not None]
+    top = max((float(np.quantile(e, 0.99)) for e in errors if e.size), default=0.5)
     for ax_row, row in zip(axes, rows):
         _map_panel(ax_row[0], to_numpy(row["prj_xy"][..., 0]), f"{row['label']}: projector x", label="px")
         _map_panel(ax_row[1], to_numpy(row["prj_xy"][..., 1]), f"{row['label']}: projector y", label="px")
