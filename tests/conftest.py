@@ -14,7 +14,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-from .helpers import CHESSBOARD
+from .helpers import CHESSBOARD, calibrate_once
 
 
 @pytest.fixture(autouse=True)
@@ -26,11 +26,20 @@ def _threads():
 
 @pytest.fixture(autouse=True, scope="session")
 def _calibration_cache(tmp_path_factory):
-    """Commands the tests run keep their calibrations in a folder of the session's, not the user's cache."""
+    """Commands the tests run keep their calibrations in a folder of the session's, not the user's cache.
+
+    pytest-xdist's workers share it (the folder beside their own temporary roots), as runs side by side
+    share a user's: a scene one worker calibrated, the other reads (:func:`tests.helpers.calibrate_once`).
+    """
     from torchproj.pipeline.cache import CACHE_DIR_ENV
 
     before = os.environ.get(CACHE_DIR_ENV)
-    os.environ[CACHE_DIR_ENV] = str(tmp_path_factory.mktemp("calibration_cache"))
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        folder = tmp_path_factory.getbasetemp().parent / "calibration_cache"
+        folder.mkdir(exist_ok=True)
+    else:
+        folder = tmp_path_factory.mktemp("calibration_cache")
+    os.environ[CACHE_DIR_ENV] = str(folder)
     yield
     if before is None:
         os.environ.pop(CACHE_DIR_ENV, None)
@@ -48,8 +57,7 @@ def chessboard():
 @pytest.fixture(scope="session")
 def quarter_rig():
     """The paper's rig at a quarter of its resolution (``load_scene(scale=0.25)``), calibrated once per session."""
-    from torchproj.pipeline import calibrate_virtual
     from torchproj.scene import load_scene
 
     scene = load_scene("paper_two_planes", scale=0.25)
-    return scene, calibrate_virtual(scene, progress=False)
+    return scene, calibrate_once(scene)

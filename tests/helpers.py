@@ -143,3 +143,13 @@ def calibrate_bench(root: Path, scene, projector: str = "128x96", out: str = "ca
             write_graycode_folder(root / "captures" / st.name / p.name, simulate_calibration(rig, st.name, j), bits=8)
     assert main(["calibrate", str(root / "captures"), "--projector", projector, "--out", str(root / out)]) == 0
     return root / out
+
+
+def calibrate_once(scene, **options):
+    """``scene``'s virtual calibration through the session's cache (``tests/conftest.py``), for tests whose
+    subject is what is done with a calibration rather than calibrating: a scene another test or worker
+    calibrated is read back, the same to the bit, the rig's noise going on where calibration left it
+    (``tests/pipeline/test_cache.py``). ``options`` are :func:`~torchproj.pipeline.cache.cached_calibration`'s."""
+    from torchproj.pipeline.cache import cached_calibration
+
+    return cached_calibration(scene, progress=False, **options)[0]

@@ -8,14 +8,14 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import InputError
-from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, light_transport, run_markdown, run_virtual,
+from torchproj.pipeline import (CEILING_ITERATIONS, light_transport, run_markdown, run_virtual,
                                 scene_targets, solve_on_light_transport)
 from torchproj.pipeline.ceiling import bounce_terms
 from torchproj.scene import parse_scene
 from torchproj.solve import solve_patterns
 from torchproj.transport import build_transport
 
-from ..helpers import small_config, small_scene
+from ..helpers import calibrate_once, small_config, small_scene
 
 
 def _exact(name):
@@ -25,7 +25,7 @@ def _exact(name):
         scene = parse_scene(config, name=name)
     else:
         scene = small_scene(name, camera=(200, 150), projector=(128, 96))
-    cal = calibrate_virtual(scene, oracle=True)
+    cal = calibrate_once(scene, oracle=True)
     targets = scene_targets(scene, None, cal.rig)
     rows = build_transport(cal.states, targets, merge=False)
     return scene, cal, targets, rows, light_transport(cal.rig, targets, rows)
@@ -97,7 +97,7 @@ def test_each_rows_light_sums_to_the_calibration_weight():
 
 def test_light_transport_refuses_merged_rows():
     scene = small_scene(camera=(200, 150), projector=(128, 96))
-    cal = calibrate_virtual(scene, oracle=True)
+    cal = calibrate_once(scene, oracle=True)
     targets = scene_targets(scene, None, cal.rig)
     with pytest.raises(InputError, match="merge=False"):
         light_transport(cal.rig, targets, build_transport(cal.states, targets))
@@ -209,7 +209,7 @@ def test_rows_past_the_projectors_edge_carry_the_light_the_pixel_measured():
     config["surfaces"]["near_plane"]["size"] = [1.2, 0.9]  # the projectors light about 0.53 x 0.40 m of it
     config["states"] = [{"name": "near", "surfaces": ["near_plane"]}]
     scene = parse_scene(config, name="wide_wall")
-    cal = calibrate_virtual(scene, oracle=True)  # the exact maps and weights: only the footprint differs
+    cal = calibrate_once(scene, oracle=True)  # the exact maps and weights: only the footprint differs
     targets = scene_targets(scene, None, cal.rig)
     rows = build_transport(cal.states, targets, footprint="area", merge=False)
     (exact,) = light_transport(cal.rig, targets, rows)

@@ -8,11 +8,13 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import InputError
-from torchproj.pipeline import calibrate_virtual, choose_footprint, run_virtual, scene_targets
+from torchproj.pipeline import choose_footprint, run_virtual, scene_targets
 from torchproj.pipeline.footprint import SCREEN_ITERATIONS, _back_projected_loss, _expected_loss, _share_rows
 from torchproj.scene import builtin_config, load_scene, parse_scene, scale_config
 from torchproj.solve import solve_fista
 from torchproj.transport import build_transport
+
+from ..helpers import calibrate_once
 
 
 def _fine_camera():
@@ -26,7 +28,7 @@ def _fine_camera():
 
 def test_auto_keeps_nearest_where_the_shares_say_a_pixel_sees_one_cell():
     scene = _fine_camera()
-    cal = calibrate_virtual(scene, progress=False)
+    cal = calibrate_once(scene)
     choice = choose_footprint(cal.states, scene_targets(scene, None, cal.rig))
     assert choice.footprint == "nearest"
     assert max(choice.expected_loss_db.values()) < 0.2 and "within 0.2 dB" in choice.reason
@@ -43,7 +45,7 @@ def test_auto_takes_area_where_pixels_span_cells_and_says_why():
     """A suite scene whose camera pixels cover about a projector cell: nearest's expected loss is
     over the tolerance, and the captures show it losing more than that."""
     scene = load_scene("suite-7-1")
-    cal = calibrate_virtual(scene, progress=False)
+    cal = calibrate_once(scene)
     choice = choose_footprint(cal.states, scene_targets(scene, None, cal.rig))
     assert choice.footprint == "area"
     worst = max(choice.expected_loss_db, key=choice.expected_loss_db.get)
@@ -80,7 +82,7 @@ def test_the_back_projections_estimate_is_the_one_nearests_operator_gives(quarte
         scene, cal = quarter_rig
     else:
         scene = load_scene(name)
-        cal = calibrate_virtual(scene, progress=False)
+        cal = calibrate_once(scene)
     targets = scene_targets(scene, None, cal.rig)
     op = build_transport(cal.states, targets, footprint="nearest", merge=False)
     with torch.no_grad():
@@ -96,7 +98,7 @@ def test_the_back_projections_estimate_is_the_one_nearests_operator_gives(quarte
 
 def test_auto_keeps_the_richest_where_no_shares_were_measured():
     scene = load_scene("paper_two_planes", scale=0.25)
-    cal = calibrate_virtual(scene, progress=False, bits=3)
+    cal = calibrate_once(scene, bits=3)
     choice = choose_footprint(cal.states, scene_targets(scene, None, cal.rig))
     assert choice.footprint == "area" and choice.expected_loss_db is None and "no cell shares" in choice.reason
 

@@ -9,12 +9,12 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import CaptureError, InputError
-from torchproj.pipeline import DEFAULT_IMAGES, calibrate_virtual, run_markdown, run_virtual, target_image
+from torchproj.pipeline import DEFAULT_IMAGES, run_markdown, run_virtual, target_image
 from torchproj.experiments import depth_sweep
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
 
-from ..helpers import small_config
+from ..helpers import calibrate_once, small_config
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,7 @@ def calibrated(config):
     """The small scene and one calibration of it, shared by the tests that solve on it: each run here
     takes the calibration as given (``calibration=``), which leaves it as it was."""
     scene = parse_scene(yaml.safe_load(config.read_text()))
-    return scene, calibrate_virtual(scene)
+    return scene, calibrate_once(scene)
 
 
 def test_run_writes_a_complete_report(config, tmp_path):
@@ -164,7 +164,7 @@ def test_targets_on_surfaces_of_one_state(box):
 
 def test_oracle_mode_uses_the_exact_geometry(calibrated):
     scene, cal = calibrated
-    oracle = calibrate_virtual(scene, oracle=True)
+    oracle = calibrate_once(scene, oracle=True)
     truth = oracle.rig.geometry("near").prj_xy
     assert oracle.oracle and all(torch.allclose(a, b, equal_nan=True) for a, b in zip(oracle.states["near"].prj_xy, truth))
     report = run_virtual(scene, calibration=oracle).report
@@ -257,7 +257,7 @@ def test_eo_on_three_projectors_walks_the_components(tmp_path):
 
 def test_colour_targets_end_to_end(tmp_path_factory):
     scene = parse_scene(yaml.safe_load(_small("colour_two_planes", tmp_path_factory).read_text()))
-    cal = calibrate_virtual(scene, progress=False)
+    cal = calibrate_once(scene)
     result = run_virtual(scene, calibration=cal)
     # Tinted planes: each channel its own weights, solved apart.
     grey = run_virtual(scene, calibration=cal, colour_weights="grey")
@@ -290,7 +290,7 @@ def test_an_image_objective_on_tinted_surfaces_models_each_channel():
     data["surfaces"]["near_plane"]["albedo"] = [0.5, 0.85, 0.45]
     data["surfaces"]["far_plane"]["albedo"] = [0.45, 0.6, 0.9]
     scene = parse_scene(data, name="tinted")
-    cal = calibrate_virtual(scene, progress=False)
+    cal = calibrate_once(scene)
     runs = {kw: run_virtual(scene, calibration=cal, progress=False, **dict(kw)).report
             for kw in ((), (("objective", "ssim"),), (("objective", "ssim"), ("colour_weights", "grey")))}
     l2, ssim, grey = runs.values()
@@ -362,8 +362,8 @@ def test_the_default_scene_images_come_without_importing_scipy():
 
 def test_oracle_knows_the_pixels_a_decoder_could_see(box):
     scene = parse_scene(yaml.safe_load(box.read_text()))
-    oracle = calibrate_virtual(scene, oracle=True)
-    calibrated = calibrate_virtual(scene)
+    oracle = calibrate_once(scene, oracle=True)
+    calibrated = calibrate_once(scene)
     a, b = oracle.states["together"].lit(), calibrated.states["together"].lit()
     # Same shadow threshold: the lit sets differ only at edges and unreliable bits, not wholesale.
     assert float((a ^ b).float().sum()) < 0.05 * float(b.float().sum())

@@ -11,7 +11,7 @@ from torchproj.core import InputError
 from torchproj.pipeline import calibrate_virtual, run_markdown, run_virtual, shown_world
 from torchproj.scene import parse_scene
 
-from ..helpers import small_config
+from ..helpers import calibrate_once, small_config
 
 
 def config(show=None):
@@ -23,7 +23,7 @@ def config(show=None):
 
 @pytest.fixture(scope="module")
 def calibration():
-    return calibrate_virtual(parse_scene(config(), name="small"))
+    return calibrate_once(parse_scene(config(), name="small"))
 
 
 def test_the_shown_world_is_the_changed_one_and_the_calibration_is_kept(calibration):
@@ -191,7 +191,7 @@ def test_the_loop_wins_back_a_bumped_projector():
     # rows' bilinear split blurs what the area model knew of each pixel's cells, and the loop stops
     # short of the ceiling (benchmarks/drift.py, docs/camera-in-the-loop.md).
     data = small_config()
-    calibration = calibrate_virtual(parse_scene(data, name="quarter"))
+    calibration = calibrate_once(parse_scene(data, name="quarter"))
     data["show"] = {"projectors": {"upper": {"translation_mm": [2, 0, 0]}}}
     scene = parse_scene(data, name="quarter")
     report = run_virtual(scene, calibration=calibration, refine=4, ceiling=True, progress=False).report

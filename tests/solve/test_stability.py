@@ -6,12 +6,12 @@ import warnings
 import pytest
 import torch
 
-from torchproj.pipeline import calibrate_virtual, scene_images
+from torchproj.pipeline import scene_images
 from torchproj.scene import parse_scene
 from torchproj.solve import make_patterns, solve_adam, solve_eo, solve_fista, solve_lf, solve_pgd
 from torchproj.transport import Target, build_transport
 
-from ..helpers import small_config
+from ..helpers import calibrate_once, small_config
 
 NEG = -100 / 255
 SIZES = dict(camera=(200, 150), projector=(128, 96))
@@ -40,7 +40,7 @@ def stressed():
     for kind in KINDS:
         scene = _scene(kind)
         # The incompatible targets are shown on the paper rig as calibrated (the same seed, the same calibration).
-        cal = out["paper rig"][1] if kind == "incompatible targets" else calibrate_virtual(scene)
+        cal = out["paper rig"][1] if kind == "incompatible targets" else calibrate_once(scene)
         images = scene_images(scene)
         if kind == "incompatible targets":  # white on the near plane, black on the far one
             images = [torch.ones(1, 32, 32), torch.zeros(1, 32, 32)]

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from torchproj.core import InputError
-from torchproj.pipeline import calibrate_virtual
 from torchproj.scene import parse_scene
 from torchproj.transport import build
 from torchproj.transport import (StateCalibration, Target, TransportOperator, build_channel_transports, build_transport,
@@ -18,8 +17,8 @@ from torchproj.transport.build import target_on_camera
 
 from torchproj.calib import CellShares, EdgePixels, cell_shares, checker_patterns, checker_shares, decode_gray
 
-from ..helpers import (LARGE, SIZES, area_captures, curved_map, dense_reference, small_config, synthetic_calibration,
-                       targets)
+from ..helpers import (LARGE, SIZES, area_captures, calibrate_once, curved_map, dense_reference, small_config,
+                       synthetic_calibration, targets)
 
 
 @pytest.mark.parametrize("footprint", ["nearest", "bilinear"])
@@ -318,7 +317,7 @@ def test_area_footprint_predicts_the_simulated_capture(camera, oracle, gain):
     scene = parse_scene(small_config(camera=camera, projector=(256, 192), supersampling=4), name="area")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the coarse camera's undersampling warning is not this test's point
-        cal = calibrate_virtual(scene, progress=False, oracle=oracle)
+        cal = calibrate_once(scene, oracle=oracle)
     rig, state = cal.rig, cal.states["near"]
     g = torch.Generator().manual_seed(0)
     patterns = [torch.rand(1, 1, 96, 128, generator=g).repeat_interleave(2, 2).repeat_interleave(2, 3)
@@ -729,7 +728,7 @@ def test_colour_weights_predict_a_tinted_capture():
     for p in data["projectors"]:
         p["colour_mixing"] = "none"
     scene = parse_scene(data, name="tinted")
-    cal = calibrate_virtual(scene, progress=False)
+    cal = calibrate_once(scene)
     g = torch.Generator().manual_seed(0)
     for name, state in cal.states.items():
         assert len(state.colour_weight) == 2 and state.colour_weight[0].shape == (3, 150, 200)
@@ -744,7 +743,7 @@ def test_colour_weights_predict_a_tinted_capture():
             if model == "channel":
                 assert float(error.mean(1).abs().max()) < 2e-3  # no channel's light is biased
         assert bool((miss["channel"][[0, 2]] < 0.5 * miss["grey"][[0, 2]]).all()), (name, miss)
-    oracle = calibrate_virtual(scene, oracle=True)  # the expected white minus black, per channel too
+    oracle = calibrate_once(scene, oracle=True)  # the expected white minus black, per channel too
     torch.testing.assert_close(oracle.states["near"].colour_weight[0].mean(0), oracle.states["near"].weight[0])
 
 
@@ -907,7 +906,7 @@ def test_outline_rows_fitted_to_every_pair_bring_a_plane_between_two_others_near
     from torchproj.solve import make_patterns
 
     scene = load_scene("suite-56-1")
-    cal = calibrate_virtual(scene, progress=False)
+    cal = calibrate_once(scene)
     targets = scene_targets(scene, None, cal.rig)
     plain = {name: dataclasses.replace(st, shares=[dataclasses.replace(s, band=None, band_white=None) for s in st.shares])
              for name, st in cal.states.items()}

@@ -7,10 +7,10 @@ import torch
 
 from torchproj.core import InputError
 from torchproj.core.conventions import pixel_grid
-from torchproj.pipeline import calibrate_virtual, run_virtual
+from torchproj.pipeline import run_virtual
 from torchproj.transport import StateCalibration, fit_homography, homography_map, planar_calibration
 
-from ..helpers import small_scene
+from ..helpers import calibrate_once, small_scene
 
 TRUE_H = torch.tensor([[0.62, 0.05, 12.0], [-0.03, 0.58, 9.0], [1e-4, -6e-5, 1.0]], dtype=torch.float64)
 
@@ -79,7 +79,7 @@ def test_a_folded_surface_is_refused_with_the_state_and_projector_named():
 @pytest.fixture(scope="module")
 def planes():
     scene = small_scene("paper_two_planes", camera=(400, 300), projector=(256, 192))
-    return scene, calibrate_virtual(scene)
+    return scene, calibrate_once(scene)
 
 
 def test_on_the_virtual_rig_the_planar_map_is_closer_to_the_exact_geometry(planes):
