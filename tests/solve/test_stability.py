@@ -6,7 +6,7 @@ import warnings
 import pytest
 import torch
 
-from torchproj.pipeline import scene_images
+from torchproj.pipeline import run_virtual, scene_images
 from torchproj.scene import parse_scene
 from torchproj.solve import make_patterns, solve_adam, solve_eo, solve_fista, solve_lf, solve_pgd
 from torchproj.transport import Target, build_transport
@@ -101,3 +101,14 @@ def test_a_sound_scene_is_not_reported(stressed):
     op, cal = stressed["paper rig"]
     assert _warnings_of(op, cal) == []
     assert op.unexplained(torch.zeros(op.shape[1], op.rhs.shape[1])) == pytest.approx(1.0)
+
+
+def test_a_run_with_its_ceiling_says_an_ill_posed_scene_once(stressed):
+    """The ceiling's solve on the exact light left as much unexplained and said so in the same words:
+    ``torchproj run --ceiling`` printed the warning twice."""
+    _, cal = stressed["no baseline"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        report = run_virtual(_scene("no baseline"), calibration=cal, ceiling=True, progress=False, max_iter=100).report
+    assert all("ceiling" in t for t in report["targets"])
+    assert len([w for w in caught if "unexplained" in str(w.message)]) == 1

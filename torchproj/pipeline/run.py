@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from ..core.checks import check
 from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
-from ..solve.compensate import iteration_limit, resolve_smoothness, unexplained
+from ..solve.compensate import ILL_POSED_MESSAGE, iteration_limit, resolve_smoothness, unexplained
 from ..solve.refine import refine_patterns
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, Target, build_transport, select_maps
 from ..transport.build import build_operators, used_colour_weights
@@ -445,10 +446,14 @@ def _ceiling(cal, states, targets, bounds, footprint, progress, device, outside,
     rows = build_transport(states, targets, merge=False, footprint=footprint, device=device)
     # The exact light, shown through the projectors' exact responses: a response fit the world biases
     # (light bouncing between surfaces lifts the ramp's captures) is calibration's error, not the ceiling's.
-    _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds,
-                                              true_responses(cal.rig.scene), max_iter=CEILING_ITERATIONS,
-                                              progress=progress, outside=outside, world=cal, targets=targets,
-                                              objective=image)
+    # Whether the targets can be shown apart, the run's own solve has said: the ceiling's would say it
+    # again in the same words (an ill-posed scene is ill-posed on the exact light too).
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=ILL_POSED_MESSAGE)
+        _, _, patterns = solve_on_light_transport(light_transport(cal.rig, targets, rows), bounds,
+                                                  true_responses(cal.rig.scene), max_iter=CEILING_ITERATIONS,
+                                                  progress=progress, outside=outside, world=cal, targets=targets,
+                                                  objective=image)
     return evaluate_patterns(cal, patterns, targets, scale=rows.scale, states=states, paper=False).targets
 
 

@@ -52,6 +52,9 @@ def unexplained(ops, p: torch.Tensor) -> float:
     return sum(float(op.objective(p[:, c:c + 1])) for c, op in enumerate(ops)) / energy if energy > 0 else 0.0
 
 
+ILL_POSED_MESSAGE = "the patterns leave"  # how warn_if_ill_posed's warning starts (a filter matches it)
+
+
 def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WARNING) -> float:
     """Warn when the patterns leave more than ``limit`` of the targets' energy unexplained.
 
@@ -62,7 +65,7 @@ def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WAR
     """
     share = unexplained(op, patterns)
     if share > limit:
-        warnings.warn(f"the patterns leave {share:.0%} of the targets' energy unexplained (over {limit:.0%}): expect "
+        warnings.warn(f"{ILL_POSED_MESSAGE} {share:.0%} of the targets' energy unexplained (over {limit:.0%}): expect "
                       "faint images and crosstalk. The scene may be ill-posed: projectors too close together, targets "
                       "too close in depth or asking opposite light along the same rays, more targets than the "
                       "projectors can carry, or a noisy calibration", stacklevel=3)
