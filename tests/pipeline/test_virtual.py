@@ -3,6 +3,7 @@
 import warnings
 
 import pytest
+import torch
 
 from torchproj.calib import FEW_DECODED
 from torchproj.core import InputError
@@ -117,3 +118,43 @@ def test_a_procedural_scenes_simulate_report_names_what_loads_it_again(tmp_path)
     simulate_scene(scene, tmp_path / "sim")
     again = load_scene(json.loads((tmp_path / "sim" / "report.json").read_text())["config"])
     assert again.name == scene.name and again.describe() == scene.describe()
+
+
+@pytest.mark.parametrize("exposure", [1.0, 3.6])
+def test_a_white_capture_the_camera_clips_is_measured_warned_and_said_before_calibrating(exposure, tmp_path, capsys):
+    """An over-exposed camera clips the white capture, and with it every row's weight and the ramp: at
+    exposure 3.6 the far target lost 3.4 dB and nothing said why. The share calibration measures is
+    the noise-free captures' (the simulator's truth) within the noise; the scene command says it first."""
+    import yaml
+
+    from torchproj.calib import SATURATED, SATURATED_SHARE
+    from torchproj.cli import main
+    from torchproj.pipeline.virtual import calibrate_rig
+    from torchproj.sim import VirtualRig
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["camera"]["exposure"] = exposure
+    scene = parse_scene(data, name="exposed")
+    truth = VirtualRig(scene)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        measured = {(state, scene.projectors[j].name): cal.saturated
+                    for state, j, _, cal in calibrate_rig(VirtualRig(scene), progress=False)}
+    said = [str(w.message) for w in caught if "the white capture is clipped" in str(w.message)]
+    for state in scene.states:
+        black = truth.capture(state.name, {}, noise=False)[0]
+        for j, proj in enumerate(scene.projectors):
+            white = truth.capture(state.name, {j: torch.ones(1, 1, proj.height, proj.width)}, noise=False)[0]
+            lit = (white - black).mean(0) >= 40 / 255
+            share = float((lit & (white.amax(0) >= SATURATED)).sum() / lit.sum())
+            assert measured[state.name, proj.name] == pytest.approx(share, abs=0.05), (state.name, proj.name)
+            warned = [m for m in said if m.startswith(f"state {state.name!r}, projector {proj.name!r}: ")]
+            assert len(warned) == (share > SATURATED_SHARE), (state.name, proj.name, said)
+    assert bool(said) == (exposure > 1) and all("Lower camera.exposure" in m for m in said)
+    path = tmp_path / "exposed.yaml"
+    path.write_text(yaml.safe_dump(dict(data, name="exposed")))
+    assert main(["scene", str(path)]) == 0
+    levels = capsys.readouterr().out.split("white level per state and projector")[1].splitlines()
+    near = next(line for line in levels if line.startswith("  state near:"))
+    far = next(line for line in levels if line.startswith("  state far:"))
+    assert ("white clipped at" in near) == (exposure > 1) and "white clipped" not in far

@@ -21,8 +21,8 @@ from .blur import measure_blur
 from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
 
-__all__ = ["DIM_THRESHOLD", "FEW_DECODED", "DecodedFolder", "ProjectorCalibration", "calibrate_projector", "decode_folder",
-           "scan_map", "warn_if_few_decoded"]
+__all__ = ["DIM_THRESHOLD", "FEW_DECODED", "SATURATED", "SATURATED_SHARE", "DecodedFolder", "ProjectorCalibration",
+           "calibrate_projector", "decode_folder", "scan_map", "warn_if_few_decoded", "warn_if_saturated"]
 
 # Below this share of its lit pixels decoded, a projector's calibration is warned about (measured on
 # the shipped scenes: docs/commands.md, "Bad inputs and odd captures").
@@ -34,6 +34,28 @@ FEW_DECODED = 0.7
 # there belongs in its row (StateCalibration.dim). Our choice, not the paper's (docs/accuracy.md, "The ceiling",
 # measures it against none; other values are not benchmarked).
 from ..core.choices import BLACK_THRESHOLD, DIM_THRESHOLD  # noqa: E402  (40 and 10; there, for the command's parser)
+
+
+# A camera value at or above this (of 1) is clipped: 255 of 255, and the mean of frames most of which
+# were (camera.frames, capture --frames).
+SATURATED = 254.5 / 255
+# Past this share of its lit pixels whose white capture is clipped, a projector's calibration is warned
+# about. The paper's rig at 200x150 / 128x96 (tests/pipeline/test_virtual.py's), `torchproj run` at
+# camera.exposure 1, 2.8 and 3.6: the near state's white clipped at 0 / 82 and 28 / 98 and 98% of the
+# two projectors' lit pixels, and the far target at 17.4 / 17.0 / 14.1 dB, the near one unharmed. The
+# real chessboard captures clip 0.03% (capture_0).
+SATURATED_SHARE = 0.05
+
+
+def warn_if_saturated(saturated: float | None, where: str, fix: str = "lower the camera's exposure (or the "
+                      "projector's brightness) and capture again") -> None:
+    """Warn, naming ``where`` and the ``fix``, when more than :data:`SATURATED_SHARE` of the lit pixels'
+    white capture is clipped (:attr:`ProjectorCalibration.saturated`)."""
+    if saturated is not None and saturated > SATURATED_SHARE:
+        warnings.warn(f"{where}: the white capture is clipped at {saturated:.0%} of the pixels the projector "
+                      f"lights (over {SATURATED_SHARE:.0%}): there every row's weight (white minus black) and the "
+                      f"ramp the response is fitted to read less light than the projector gives. {fix}",
+                      stacklevel=3)
 
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:
@@ -85,6 +107,9 @@ class ProjectorCalibration:
             over the lit pixels, :func:`~torchproj.calib.capture_noise`): what every row's weight,
             and the map and the shares, carry from one frame a capture; None for fewer than two
             pattern pairs.
+        saturated: the share of the lit pixels whose white capture is clipped in any channel
+            (:data:`SATURATED`): light the camera cannot count, so that white minus black, and the
+            ramp, read low there (:func:`warn_if_saturated`).
         blur: :math:`(H, W)` the projector's defocus disc at each pixel, diameter in cells
             (:func:`~torchproj.calib.measure_blur` on the finest stripes; NaN where it could not
             tell), which the ``area`` footprint spreads rows over where it is a cell or wider. From
@@ -106,6 +131,7 @@ class ProjectorCalibration:
     blur: torch.Tensor | None = None
     response_note: str | None = None
     capture_noise: float | None = None
+    saturated: float | None = None
 
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
@@ -213,10 +239,14 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
                                                                      graycode_bits(*projector_size)))
         timings["stripes"] = time.perf_counter() - t0
     noise = capture_noise(capture.patterns, capture.white, capture.black) if capture.patterns.shape[0] >= 4 else None
+    # The white capture is the brightest the projector makes a pixel: where it is clipped, so is every
+    # pattern and ramp level near full light.
+    clipped = (capture.white.amax(0) >= SATURATED) & dec.valid
+    saturated = float(clipped.sum()) / max(int(dec.valid.sum()), 1)
     return ProjectorCalibration(decoding=dec, prj_xy=prj_xy, cam_xy=cam_xy, count=count, response=response,
                                 ramp=ramp, timings_s=timings, homography=fit, colour_contrast=colour,
                                 edges=edges, shares=shares, dim_xy=dim_xy, blur=blur, response_note=note,
-                                capture_noise=noise)
+                                capture_noise=noise, saturated=saturated)
 
 
 @dataclass

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..calib import (DIM_THRESHOLD, GraycodeCapture, ResponseCurve, calibrate_projector, checker_patterns, graycode_bits,
-                     graycode_patterns, primary_patterns, ramp_pattern, sequence_bits, warn_if_few_decoded)
+from ..calib import (DIM_THRESHOLD, SATURATED, SATURATED_SHARE, GraycodeCapture, ResponseCurve, calibrate_projector,
+                     checker_patterns, graycode_bits, graycode_patterns, primary_patterns, ramp_pattern, sequence_bits,
+                     warn_if_few_decoded, warn_if_saturated)
 from ..core.checks import check
 from ..core.choices import BLACK_THRESHOLD
 from ..core.conventions import to_numpy
@@ -133,14 +134,17 @@ def white_levels(scene: Scene, device="cpu") -> dict[tuple[str, str], float]:
     return _light_levels(scene, device)[0]
 
 
-def _light_levels(scene: Scene, device) -> tuple[dict[tuple[str, str], float], dict[str, float]]:
-    """:func:`white_levels`, and per state the median of its black capture over the grid."""
+def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD
+                  ) -> tuple[dict[tuple[str, str], float], dict[str, float], dict[tuple[str, str], float]]:
+    """:func:`white_levels`; per state the median of its black capture over the grid; and per state and
+    projector the share of the grid's lit pixels (white minus black past ``threshold``) whose white
+    capture is clipped (:data:`~torchproj.calib.SATURATED`)."""
     cam = scene.camera
     rig = VirtualRig(scene, device=device)
     ys = torch.linspace(0, cam.height - 1, min(LIGHT_CHECK_GRID, cam.height), device=device).round().long()
     xs = torch.linspace(0, cam.width - 1, min(LIGHT_CHECK_GRID, cam.width), device=device).round().long()
     pixels = (ys[:, None] * cam.width + xs[None, :]).reshape(-1)
-    levels, blacks = {}, {}
+    levels, blacks, clipped = {}, {}, {}
     for state in scene.states:
         surfaces = [scene.surfaces[n] for n in state.surfaces]
         black = rig.capture_surfaces(surfaces, {}, pixels, noise=False, direct_only=True)
@@ -149,7 +153,9 @@ def _light_levels(scene: Scene, device) -> tuple[dict[tuple[str, str], float], d
             white = rig.capture_surfaces(surfaces, {j: torch.ones(1, 1, proj.height, proj.width, device=device)},
                                          pixels, noise=False, direct_only=True)
             levels[state.name, proj.name] = float((white - black).mean(0).max())
-    return levels, blacks
+            lit = (white - black).mean(0) >= threshold
+            clipped[state.name, proj.name] = float((lit & (white.amax(0) >= SATURATED)).sum()) / max(int(lit.sum()), 1)
+    return levels, blacks, clipped
 
 
 def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD) -> None:
@@ -162,7 +168,7 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD)
     threshold somewhere on them; a state whose black capture is saturated by room light shows no
     projector at all.
     """
-    levels, blacks = _light_levels(scene, device)
+    levels, blacks, _ = _light_levels(scene, device, threshold)
     for state, black in blacks.items():
         if black >= 1 - 1 / 255 and not any(levels[state, p.name] >= threshold for p in scene.projectors):
             raise InputError(
@@ -185,13 +191,14 @@ def describe_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHO
     decoder's threshold (:func:`white_levels`)."""
     lines = [f"white level per state and projector (brightest pixel, white minus black, of 255; decoding needs "
              f"{threshold * 255:.0f}; saturation at 255):"]
-    levels = white_levels(scene, device)
+    levels, _, clipped = _light_levels(scene, device, threshold)
     for state in scene.states:
         cells = []
         for proj in scene.projectors:
-            peak = levels[state.name, proj.name]
+            peak, share = levels[state.name, proj.name], clipped[state.name, proj.name]
             verdict = "does not reach it" if peak == 0 else "too dim: raise camera.exposure or move closer" \
-                if peak < threshold else "saturates" if peak >= 1 else "ok"
+                if peak < threshold else f"white clipped at {share:.0%} of its lit pixels: lower camera.exposure" \
+                if share > SATURATED_SHARE else "ok"
             cells.append(f"{proj.name} {peak * 255:.0f} ({verdict})")
         lines.append(f"  state {state.name}: " + ", ".join(cells))
     return "\n".join(lines)
@@ -307,6 +314,8 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
         except InputError as exc:  # a block map off the plane, or nothing decoded: say which state and projector
             raise InputError(f"state {name!r}, projector {proj.name!r}: {exc}") from None
         warn_if_few_decoded(calibration.decoding, f"state {name!r}, projector {proj.name!r}")
+        warn_if_saturated(calibration.saturated, f"state {name!r}, projector {proj.name!r}",
+                          "Lower camera.exposure or the projector's power")
         for key, seconds in (("cast", t1 - t0), ("capture", t2 - t1), ("calibrate", time.perf_counter() - t2)):
             timings[key] = timings.get(key, 0.0) + seconds
         yield name, j, capture, calibration
