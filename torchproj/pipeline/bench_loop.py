@@ -14,7 +14,8 @@ Each turn replays the loop (:func:`~torchproj.solve.refine_patterns`) from the s
 captures already in the folder: the solve and every update are deterministic, so the same patterns
 come back, and a step whose photos are missing is where the turn stops, after writing that step's
 patterns. Nothing the person put there is ever removed or overwritten. A photo of the wrong size or
-colour, or named after no state of the calibration, is refused naming the file. With a live bench
+colour, or named after no state of the calibration, is refused naming the file, and so is one that
+shows another state's light (:func:`_check_photos`). With a live bench
 (``torchproj refine --camera``, :class:`~torchproj.pipeline.acquire.LiveBench`) torchproj shows the
 patterns and takes the photos itself, into the same folder, and the loop runs to its end in one turn.
 """
@@ -22,6 +23,7 @@ patterns and takes the photos itself, into the same folder, and the loop runs to
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import torch
@@ -32,7 +34,7 @@ from ..core.imageio import read_image, write_image
 from ..core.output import write_json
 from ..solve import make_patterns
 from ..solve.compensate import resolve_smoothness
-from ..solve.refine import captured_loss, refine_patterns
+from ..solve.refine import _rows, captured_loss, refine_patterns
 from ..transport import DEFAULT_FOOTPRINT
 from .real_rig import bundle_problem
 from .register import Reregister
@@ -98,7 +100,7 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
     names = [name for name, _, _ in bundle.projectors]
     shape = (bundle.channels, bundle.camera_size[1], bundle.camera_size[0])
     steps = []
-    measure = _folder_measure(folder, names, wanted, bundle.black, ops, shape, steps, live)
+    measure = _folder_measure(folder, names, wanted, bundle.black, ops, shape, steps, live, responses)
     remodel = Reregister(states, wanted, footprint=footprint, colour_weights=colour_weights, device=device) \
         if register else None
     report = {"options": options, "camera": list(shape), "steps": steps}
@@ -137,9 +139,11 @@ def _check_options(folder: Path, options: dict) -> None:
                        "its photos are of that loop's patterns; give the same options or a new --out folder")
 
 
-def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, shape, steps: list, live=None):
+def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, shape, steps: list, live=None,
+                    responses=None):
     """The loop's ``measure`` over the working folder: step K's photos (taken by ``live`` where they are
-    missing), or the patterns to show and a stop."""
+    missing), or the patterns to show and a stop. With the ``responses``, each photo is held against
+    the light the model predicts for its state (:func:`_check_photos`)."""
     read = CapturedRows(ops, targets)
     states = list(read.rows_of)
 
@@ -166,12 +170,64 @@ def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, s
                 raise CaptureError(f"{present[state]}: size {tuple(photo.shape)} (C, H, W), but the calibration's camera "
                                    f"gives {shape}; take the photo with the camera and settings of the calibration")
             above[state] = photo - black[state].to(photo)
+        if responses is not None:
+            _check_photos(read, above, _rows(ops, _shown_light(ops, images, responses)), present)
         rows = read(above)
         loss, psnr = captured_loss(ops, rows)
         steps.append({"step": k, "loss": loss, "psnr_db": psnr})
         return rows
 
     return measure
+
+
+# A photo that differs from its state's predicted light by more than this (relative squared error over
+# the state's rows) is warned about. On the tests' small two-plane benches a photo differs from its own
+# state's prediction by 0.04-0.07% unchanged and 1.5-3.1% with a projector moved 3 mm or its lamp 25%
+# brighter, and from the other state's by 31-106% (benchmarks/photo_states.py).
+PHOTO_MISMATCH = 0.5
+
+
+def _shown_light(ops, images: list[torch.Tensor], responses) -> torch.Tensor:
+    """The columns the 8-bit ``images`` make the projectors emit, :math:`(N_{cols}, C)`: each cell's
+    relative light as :func:`~torchproj.solve.compensate` made it (``y = x^b``; what a colour camera's
+    channels see of it through the projector's mixing)."""
+    op = ops[0] if isinstance(ops, (list, tuple)) else ops
+    channels = len(ops) if isinstance(ops, (list, tuple)) and len(ops) > 1 else op.rhs.shape[1]
+    p = torch.zeros(op.shape[1], channels, dtype=torch.float64, device=op.rhs.device)
+    for j, (image, response) in enumerate(zip(images, responses)):
+        x = image.to(p.device, torch.float64) / 255
+        y = x ** response.b.to(x).view(-1, 1, 1)
+        if response.mixing is not None and y.shape[0] == 3:
+            y = torch.einsum("cp,phw->chw", response.mixing.to(y), y)
+        cells = y.reshape(y.shape[0], -1).T  # (cells, C)
+        cells = cells if cells.shape[1] == channels else cells.mean(1, keepdim=True).expand(-1, channels)
+        mine = op.column_projector == j
+        p[mine] = cells[op.column_cell[mine]]
+    return p.to(op.rhs.dtype)
+
+
+def _check_photos(read: CapturedRows, above: dict, predicted: torch.Tensor, files: dict) -> None:
+    """Refuse a photo whose light is another state's: it matches that state's predicted rows at least
+    twice as well as its own state's, which it misses by more than a tenth (photos saved under each
+    other's names, or the scene set up as another state). Warn where a photo misses its own state's
+    prediction by more than :data:`PHOTO_MISMATCH` and no other state's explains it."""
+    def miss(state: str, image: torch.Tensor) -> float:
+        want = predicted[read.rows_of[state]].double()
+        return float((read.state_rows(image, state).double() - want).pow(2).sum() / want.pow(2).sum().clamp_min(1e-12))
+
+    for state, image in above.items():
+        own = miss(state, image)
+        others = {other: miss(other, image) for other in above if other != state}
+        better = min(others, key=others.get, default=None)
+        if better is not None and own > 0.1 and others[better] < own / 2:
+            raise CaptureError(f"{files[state]}: shows the light of state {better!r}, not {state!r} (it misses the "
+                               f"model's prediction for {better!r} by {others[better]:.1%} and for {state!r} by "
+                               f"{own:.1%}, squared and relative): were the photos saved under each other's names, or "
+                               f"the scene set up as {better!r}? Take it again with {state!r} set up, or rename the files")
+        if own > PHOTO_MISMATCH:
+            warnings.warn(f"{files[state]}: differs from the light the model predicts for state {state!r} by "
+                          f"{own:.0%} (squared, relative): check that this step's patterns were shown, every "
+                          "projector on, the room's light and the camera as at calibration", stacklevel=2)
 
 
 def _write_or_compare(folder: Path, names: list[str], images: list[torch.Tensor]) -> None:

@@ -67,9 +67,16 @@ class CapturedRows:
         op = self.op
         rows = torch.empty(op.shape[0], self.channels, dtype=op.rhs.dtype, device=op.rhs.device)
         for state, which in self.rows_of.items():
-            values = above[state].flatten(1)[:, op.row_pixel[which].cpu()].T  # (rows, C_cam)
-            rows[which] = (values if values.shape[1] == self.channels else values.mean(1, keepdim=True)).to(rows)
+            rows[which] = self.state_rows(above[state], state)
         return rows
+
+    def state_rows(self, image: torch.Tensor, state: str) -> torch.Tensor:
+        """``state``'s rows read out of one :math:`(C_{cam}, H, W)` image, :math:`(N_{state}, C)`:
+        any image, so that a photo can be read as another state's."""
+        which = self.rows_of[state]
+        values = image.flatten(1)[:, self.op.row_pixel[which].cpu()].T  # (rows, C_cam)
+        values = values if values.shape[1] == self.channels else values.mean(1, keepdim=True)
+        return values.to(self.op.rhs.device, self.op.rhs.dtype)
 
 
 def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: int = 1, noise: bool = True):
