@@ -10,7 +10,7 @@ from torchproj.core import InputError
 from torchproj.pipeline import calibrate_virtual, decoding_accuracy
 from torchproj.scene import parse_scene
 
-from ..helpers import small_config
+from ..helpers import small_config, small_scene
 
 
 def test_decoded_share_is_reported_and_warned_where_stripes_are_finer_than_the_camera():
@@ -104,6 +104,23 @@ def test_a_state_saturated_by_room_light_is_refused_before_calibrating():
     data["ambient"] = 1e6
     with pytest.raises(InputError, match=r"state '\w+': the black capture saturates the camera \(room light alone"):
         check_light(parse_scene(data))
+
+
+def test_a_state_no_projector_lights_is_refused_before_calibrating(monkeypatch):
+    """A black surface (albedo 0), or one moved out of view, left a state dark: calibration ran to the
+    end and the run was refused at its target (the fuzzer's config mutations). Refused before, naming
+    the state; a small object the check's grid passes between is found pixel by pixel."""
+    import torchproj.pipeline.virtual as virtual
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["surfaces"]["far_plane"]["albedo"] = 0
+    monkeypatch.setattr(virtual, "simulate_calibration", lambda *a, **k: pytest.fail("calibrated before checking"))
+    with pytest.raises(InputError, match=r"state 'far': no projector's light reaches the camera there .* albedo"):
+        virtual.calibrate_virtual(parse_scene(data))
+    # One grid point, the corner pixel, which the planes leave dark: the state is lit elsewhere.
+    scene = small_scene(camera=(200, 150), projector=(128, 96))
+    assert all(level == 0 for level in virtual._light_levels(scene, "cpu", grid=1)[0].values())
+    virtual.check_light(scene, grid=1)
 
 
 def test_a_procedural_scenes_simulate_report_names_what_loads_it_again(tmp_path):

@@ -134,18 +134,22 @@ def white_levels(scene: Scene, device="cpu") -> dict[tuple[str, str], float]:
     return _light_levels(scene, device)[0]
 
 
-def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD
+def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD, states: list[str] | None = None,
+                  grid: int | None = LIGHT_CHECK_GRID
                   ) -> tuple[dict[tuple[str, str], float], dict[str, float], dict[tuple[str, str], float]]:
     """:func:`white_levels`; per state the median of its black capture over the grid; and per state and
     projector the share of the grid's lit pixels (white minus black past ``threshold``) whose white
-    capture is clipped (:data:`~torchproj.calib.SATURATED`)."""
+    capture is clipped (:data:`~torchproj.calib.SATURATED`). ``states``: those only (default all);
+    ``grid`` None: every camera pixel."""
     cam = scene.camera
     rig = VirtualRig(scene, device=device)
-    ys = torch.linspace(0, cam.height - 1, min(LIGHT_CHECK_GRID, cam.height), device=device).round().long()
-    xs = torch.linspace(0, cam.width - 1, min(LIGHT_CHECK_GRID, cam.width), device=device).round().long()
-    pixels = (ys[:, None] * cam.width + xs[None, :]).reshape(-1)
+    pixels = None
+    if grid is not None:
+        ys = torch.linspace(0, cam.height - 1, min(grid, cam.height), device=device).round().long()
+        xs = torch.linspace(0, cam.width - 1, min(grid, cam.width), device=device).round().long()
+        pixels = (ys[:, None] * cam.width + xs[None, :]).reshape(-1)
     levels, blacks, clipped = {}, {}, {}
-    for state in scene.states:
+    for state in scene.states if states is None else [scene.state(name) for name in states]:
         surfaces = [scene.surfaces[n] for n in state.surfaces]
         black = rig.capture_surfaces(surfaces, {}, pixels, noise=False, direct_only=True)
         blacks[state.name] = float(black.mean(0).median())
@@ -158,7 +162,7 @@ def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD
     return levels, blacks, clipped
 
 
-def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD) -> None:
+def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD, grid: int = LIGHT_CHECK_GRID) -> None:
     """Refuse, before any calibration, a scene where a projector lights a state too dimly to decode.
 
     Gray-code decoding keeps pixels whose white minus black passes ``threshold`` (the shadow mask of
@@ -166,15 +170,33 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD)
     a state stays under it (:func:`white_levels`) decodes nothing there, and calibration fails
     minutes later at the ramp. A projector that reaches a state's surfaces at all must pass the
     threshold somewhere on them; a state whose black capture is saturated by room light shows no
-    projector at all.
+    projector at all, and neither does a state a target asks for whose surfaces no projector's light
+    reaches the camera from (out of view, hidden or black). ``grid``: pixels per axis the levels are
+    read at (:data:`LIGHT_CHECK_GRID`); a state dark on the grid is read at every pixel before it is
+    refused.
     """
-    levels, blacks, _ = _light_levels(scene, device, threshold)
+    levels, blacks, _ = _light_levels(scene, device, threshold, grid=grid)
     for state, black in blacks.items():
         if black >= 1 - 1 / 255 and not any(levels[state, p.name] >= threshold for p in scene.projectors):
             raise InputError(
                 f"state {state!r}: the black capture saturates the camera (room light alone, ambient "
                 f"{scene.ambient:g} at exposure {scene.camera.exposure:g}), so no projector's light can be seen: "
                 "lower camera.exposure or ambient (checked before calibrating; nothing was simulated)")
+    # A state a target asks for that no projector's light reaches at any pixel: nothing there can be
+    # decoded or shown. The grid may pass between the pixels of a small object, so every pixel of such
+    # a state is asked before it is refused.
+    dark = [name for name in dict.fromkeys(spec.state for spec in scene.target_specs())
+            if all(levels[name, p.name] == 0 for p in scene.projectors)]
+    if dark:
+        everywhere = _light_levels(scene, device, threshold, states=dark, grid=None)[0]
+        dark = [name for name in dark if all(everywhere[name, p.name] == 0 for p in scene.projectors)]
+    if dark:
+        others = f" (and state(s) {', '.join(map(repr, dark[1:]))})" if len(dark) > 1 else ""
+        raise InputError(
+            f"state {dark[0]!r}{others}: no projector's light reaches the camera there (white minus black is 0 at every "
+            "pixel, for each projector), so nothing can be decoded or shown: its surfaces are out of the camera's "
+            "or every projector's view, hidden behind others, or black (albedo 0); check their poses and albedo "
+            "and the camera's pose (checked before calibrating; nothing was simulated)")
     dim = sorted((peak, state, name) for (state, name), peak in levels.items() if 0 < peak < threshold)
     if dim:
         peak, state, name = dim[0]
