@@ -93,6 +93,19 @@ def test_bad_loop_options_are_refused_before_calibrating(kwargs, message, monkey
         run_virtual(parse_scene(config(), name="small"), **kwargs)
 
 
+def test_room_light_that_saturates_the_camera_while_showing_is_refused_before_calibrating(monkeypatch):
+    """``show: {ambient: 1e6}`` calibrated, then scored a camera that saw only room light (5.5 dB) without
+    a word. A shown world whose black capture saturates is refused first; room light it does not is
+    shown as asked."""
+    import torchproj.pipeline.run as run
+    from torchproj.pipeline.virtual import check_shown_light
+
+    monkeypatch.setattr(run, "calibrate_virtual", lambda *a, **k: pytest.fail("calibrated before checking"))
+    with pytest.raises(InputError, match=r"show.ambient: room light of 1e\+06 while showing saturates .* state 'near'"):
+        run_virtual(parse_scene(config({"ambient": 1e6}), name="small"))
+    check_shown_light(parse_scene(config({"ambient": 0.05}), name="small"))
+
+
 def _stale_capture(calibration, show):
     """The scene shown changed, the patterns solved on its calibration, and their capture."""
     from torchproj.pipeline import rig_measure, scene_targets

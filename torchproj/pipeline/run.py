@@ -31,7 +31,7 @@ from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
 from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, smoothed_key,
                     keep_normal_matrices, read_geometry, read_normal_matrices, transport_key, writing_behind)
-from .virtual import VirtualCalibration, calibrate_virtual, true_responses
+from .virtual import VirtualCalibration, calibrate_virtual, check_shown_light, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
 
@@ -169,6 +169,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     check_footprint(footprint)
     images = scene_images(scene) if images is None else images  # a missing image file is refused before the work
+    check_shown_light(scene, device)
     t_total = time.perf_counter()
     # Cache entries are written on a background thread while the run goes on (1.2 GB on the default
     # scene); the block waits for them before the report says what was kept.

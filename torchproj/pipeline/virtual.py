@@ -208,6 +208,24 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD,
             "closer (checked before calibrating; nothing was simulated)")
 
 
+def check_shown_light(scene: Scene, device="cpu", grid: int = LIGHT_CHECK_GRID) -> None:
+    """Refuse, before any calibration, a ``show`` section whose room light saturates the camera's black
+    capture in a state the targets ask for: no pattern could be seen in the world as shown (the
+    grid's median, as :func:`check_light` reads a calibrated state's)."""
+    from ..scene.show import shown_scene
+
+    if scene.show is None:
+        return
+    shown = shown_scene(scene)
+    asked = list(dict.fromkeys(spec.state for spec in scene.target_specs()))
+    _, blacks, _ = _light_levels(shown, device, states=asked, grid=grid)
+    for state, black in blacks.items():
+        if black >= 1 - 1 / 255:
+            raise InputError(f"show.ambient: room light of {shown.ambient:g} while showing saturates the camera's black "
+                             f"capture in state {state!r} (exposure {shown.camera.exposure:g}), so no pattern could be "
+                             "seen there: lower show.ambient (checked before calibrating; nothing was simulated)")
+
+
 def describe_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD) -> str:
     """Lines for ``torchproj scene``: each state's brightest white level per projector against the
     decoder's threshold (:func:`white_levels`)."""
