@@ -140,6 +140,26 @@ def test_a_signal_at_any_moment_leaves_the_old_result_or_the_new(old_result, tmp
         assert last.endswith(f"interrupted; {out} is as it was") or last == "torchproj: interrupted; nothing was written", err
 
 
+def test_ctrl_c_while_the_program_exits_prints_no_traceback(tmp_path):
+    """A signal after the command's last line, while the interpreter runs torch's finalizers, printed
+    "Exception ignored in atexit callback" and a traceback (a signals case of ``TORCHPROJ_FUZZ=all``,
+    where it landed by chance). Here it is sent from the first exit callback, every time; the
+    installed program is that same function."""
+    from importlib.metadata import entry_points
+
+    program = ("import atexit, os, signal, sys, time\n"
+               "from torchproj.cli import console\n"
+               "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGINT), time.sleep(0.2)))\n"
+               "sys.argv = ['torchproj', 'sequence', '--projector', '64x48', '--out', sys.argv[1]]\n"
+               "console()\n")
+    out = tmp_path / "seq"
+    done = subprocess.run([sys.executable, "-c", program, str(out)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    assert (out / "sequence.json").is_file()
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "torchproj"]
+    assert script.value == "torchproj.cli:console"
+
+
 def _limit_file_size(limit: int):
     """In the child: no file may grow past ``limit`` bytes; a write past it fails in the kernel (EFBIG)
     as one on a full disk does (ENOSPC), rather than killing the process (SIGXFSZ ignored)."""
