@@ -180,17 +180,18 @@ def _folder_measure(folder: Path, names: list[str], targets, black: dict, ops, s
     return measure
 
 
-# A photo that differs from its state's predicted light by more than this (relative squared error over
-# the state's rows) is warned about. On the tests' small two-plane benches a photo differs from its own
-# state's prediction by 0.04-0.07% unchanged and 1.5-3.1% with a projector moved 3 mm or its lamp 25%
-# brighter, and from the other state's by 31-106% (benchmarks/photo_states.py).
-PHOTO_MISMATCH = 0.5
+# How far a photo may lie from the light the model predicts for its state (squared error over the
+# state's rows, over the prediction's own): past WRONG_STATE_MISS it is refused where another state's
+# prediction explains it at least twice as well, past PHOTO_MISMATCH warned about. On the tests' small
+# two-plane benches a photo misses its own state's by 0.04-0.07% unchanged and 1.5-3.1% with a projector
+# moved 3 mm or its lamp 25% brighter, and the other state's by 31-106% (benchmarks/photo_states.py).
+WRONG_STATE_MISS, PHOTO_MISMATCH = 0.1, 0.5
 
 
 def _shown_light(ops, images: list[torch.Tensor], responses) -> torch.Tensor:
     """The columns the 8-bit ``images`` make the projectors emit, :math:`(N_{cols}, C)`: each cell's
-    relative light as :func:`~torchproj.solve.compensate` made it (``y = x^b``; what a colour camera's
-    channels see of it through the projector's mixing)."""
+    relative light, :func:`~torchproj.solve.compensate` undone (it sends ``x = y^(1/b)``, so ``y =
+    x^b``; what a colour camera's channels see of it through the projector's mixing)."""
     op = ops[0] if isinstance(ops, (list, tuple)) else ops
     channels = len(ops) if isinstance(ops, (list, tuple)) and len(ops) > 1 else op.rhs.shape[1]
     p = torch.zeros(op.shape[1], channels, dtype=torch.float64, device=op.rhs.device)
@@ -208,9 +209,9 @@ def _shown_light(ops, images: list[torch.Tensor], responses) -> torch.Tensor:
 
 def _check_photos(read: CapturedRows, above: dict, predicted: torch.Tensor, files: dict) -> None:
     """Refuse a photo whose light is another state's: it matches that state's predicted rows at least
-    twice as well as its own state's, which it misses by more than a tenth (photos saved under each
-    other's names, or the scene set up as another state). Warn where a photo misses its own state's
-    prediction by more than :data:`PHOTO_MISMATCH` and no other state's explains it."""
+    twice as well as its own state's, which it misses by more than :data:`WRONG_STATE_MISS` (photos
+    saved under each other's names, or the scene set up as another state). Warn where a photo misses
+    its own state's prediction by more than :data:`PHOTO_MISMATCH`."""
     def miss(state: str, image: torch.Tensor) -> float:
         want = predicted[read.rows_of[state]].double()
         return float((read.state_rows(image, state).double() - want).pow(2).sum() / want.pow(2).sum().clamp_min(1e-12))
@@ -219,15 +220,16 @@ def _check_photos(read: CapturedRows, above: dict, predicted: torch.Tensor, file
         own = miss(state, image)
         others = {other: miss(other, image) for other in above if other != state}
         better = min(others, key=others.get, default=None)
-        if better is not None and own > 0.1 and others[better] < own / 2:
+        if better is not None and own > WRONG_STATE_MISS and others[better] < own / 2:
             raise CaptureError(f"{files[state]}: shows the light of state {better!r}, not {state!r} (it misses the "
                                f"model's prediction for {better!r} by {others[better]:.1%} and for {state!r} by "
                                f"{own:.1%}, squared and relative): were the photos saved under each other's names, or "
                                f"the scene set up as {better!r}? Take it again with {state!r} set up, or rename the files")
         if own > PHOTO_MISMATCH:
             warnings.warn(f"{files[state]}: differs from the light the model predicts for state {state!r} by "
-                          f"{own:.0%} (squared, relative): check that this step's patterns were shown, every "
-                          "projector on, the room's light and the camera as at calibration", stacklevel=2)
+                          f"{own:.0%} (squared, relative): check that this step's patterns were shown with every "
+                          "projector on, and that the room's light, the camera and the projectors are as at "
+                          "calibration (the loop follows small moves, not large ones)", stacklevel=2)
 
 
 def _write_or_compare(folder: Path, names: list[str], images: list[torch.Tensor]) -> None:
