@@ -41,9 +41,9 @@ from ..core.choices import BLACK_THRESHOLD, DIM_THRESHOLD  # noqa: E402  (40 and
 SATURATED = 254.5 / 255
 # Past this share of its lit pixels whose white capture is clipped, a projector's calibration is warned
 # about. The paper's rig at 200x150 / 128x96 (tests/pipeline/test_virtual.py's), `torchproj run` at
-# camera.exposure 1, 2.8 and 3.6: the near state's white clipped at 0 / 82 and 28 / 98 and 98% of the
-# two projectors' lit pixels, and the far target at 17.4 / 17.0 / 14.1 dB, the near one unharmed. The
-# real chessboard captures clip 0.03% (capture_0).
+# camera.exposure 1, 2.8 and 3.6: the near state's white clipped at 0 and 0, 82 and 28, 98 and 98% of
+# its two projectors' lit pixels, and the far target at 17.4, 17.0 and 14.1 dB, the near one unharmed.
+# The real chessboard captures clip 0.03% (capture_0).
 SATURATED_SHARE = 0.05
 
 
