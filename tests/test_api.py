@@ -27,13 +27,13 @@ SURFACE = {
         "Caster", "StateGeometry", "VirtualRig", "apply_camera", "make_caster"],
     "calib": [
         "BUNDLE_VERSION", "CREASE_RATIO", "CURVE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "CalibrationBundle", "CellShares", "DEFAULT_NAMES", "DIM_THRESHOLD", "DecodedFolder", "EdgePixels",
-        "FEW_DECODED", "GrayDecoding", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
+        "FEW_DECODED", "GrayDecoding", "NOISY_CAPTURES", "GraycodeCapture", "HomographyFit", "ProCamCalibration", "ProjectorCalibration",
         "ResponseCurve", "SATURATED", "SATURATED_SHARE", "band_pixels", "calibrate_folders", "calibrate_projector", "capture_noise", "cell_means", "cell_shares", "check_plane", "checker_patterns", "checker_shares",
         "decode_folder", "decode_gray", "fill_holes", "find_edge_pixels", "fit_colour_mixing", "fit_homography", "fit_plane", "fit_response",
         "graycode_bits", "graycode_patterns", "homography_map",
         "inverse_map", "largest_plane", "load_bundle", "measure_blur", "measure_ramp", "primary_patterns", "ramp_pattern", "read_graycode_folder",
         "read_opencv_calibration", "refine_subpixel", "scan_map", "sequence_bits", "stripe_contrast", "stripe_shares", "triangulate", "triangulate_map",
-        "warn_if_few_decoded", "warn_if_saturated", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
+        "warn_if_few_decoded", "warn_if_noisy", "warn_if_saturated", "write_bundle", "write_graycode_folder", "write_ply", "write_sequence"],
     "transport": [
         "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "HomographyFit", "MAPS", "StateCalibration", "Target",
         "TransportOperator", "build_channel_transports", "build_transport", "cell_blocks", "csr_from_coo",

@@ -29,3 +29,38 @@ def test_the_scan_map_checks_its_options():
     capture, _ = _captures()
     with pytest.raises(InputError, match="max_hole"):
         scan_map(capture, PROJECTOR, max_hole=-1)
+
+
+def test_captures_whose_pairs_do_not_add_up_are_warned_about_naming_the_fix():
+    """A camera drowned in noise, or an exposure that changed while capturing, spreads the sums of each
+    pattern and its inverse (capture_noise); past NOISY_CAPTURES the calibration says so, with frames to
+    average. One frame of the rig's camera reads under 3%; clipped whites are said as such instead."""
+    import dataclasses
+    import warnings
+
+    from torchproj.calib import NOISY_CAPTURES, capture_noise, warn_if_noisy
+    from torchproj.pipeline import simulate_calibration
+    from torchproj.scene import parse_scene
+    from torchproj.sim import VirtualRig
+
+    from ..helpers import small_config
+
+    def capture(**camera):
+        data = small_config(camera=(200, 150), projector=(128, 96))
+        data["camera"].update(camera)
+        return simulate_calibration(VirtualRig(parse_scene(data, name="noise")), "far", 0)
+
+    plain, noisy = capture(), capture(noise={"full_well": 20, "read": 0.06})
+    changed = plain.patterns.clone()
+    changed[1::4] *= 0.85  # every other pair's pattern image 15% darker: the exposure changed
+    shares = {"one frame": capture_noise(plain.patterns, plain.white, plain.black),
+              "exposure changed": capture_noise(changed, plain.white, plain.black),
+              "full well of 20": capture_noise(noisy.patterns, noisy.white, noisy.black)}
+    assert shares["one frame"] < 0.03 < NOISY_CAPTURES < shares["exposure changed"] < 0.1 < 0.3 < shares["full well of 20"]
+    cal = calibrate_projector(dataclasses.replace(plain, patterns=changed), (128, 96))
+    with pytest.warns(UserWarning, match=r"far/p: the captures' noise is 6\.\d% .* Average frames \(camera.frames"):
+        warn_if_noisy(cal.capture_noise, cal.saturated, "far/p", "camera.frames")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_if_noisy(shares["one frame"], 0.0, "far/p", "camera.frames")
+        warn_if_noisy(shares["full well of 20"], 0.5, "far/p", "camera.frames")  # the clipped whites explain it

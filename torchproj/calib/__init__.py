@@ -21,8 +21,9 @@ from .graycode import (CREASE_RATIO, CURVE_RATIO, STRIPE_MARGIN, STRIPE_TOLERANC
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import fill_holes, inverse_map
 from .edges import EdgePixels, find_edge_pixels
-from .pipeline import (DIM_THRESHOLD, FEW_DECODED, SATURATED, SATURATED_SHARE, DecodedFolder, ProjectorCalibration,
-                       calibrate_projector, decode_folder, scan_map, warn_if_few_decoded, warn_if_saturated)
+from .pipeline import (DIM_THRESHOLD, FEW_DECODED, NOISY_CAPTURES, SATURATED, SATURATED_SHARE, DecodedFolder,
+                       ProjectorCalibration, calibrate_projector, decode_folder, scan_map, warn_if_few_decoded, warn_if_noisy,
+                       warn_if_saturated)
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp, primary_patterns, ramp_pattern
 from .triangulate import (ProCamCalibration, fit_plane, largest_plane, read_opencv_calibration, triangulate,
                           triangulate_map, write_ply)
@@ -39,6 +40,7 @@ __all__ = [
     "DIM_THRESHOLD",
     "DecodedFolder",
     "FEW_DECODED",
+    "NOISY_CAPTURES",
     "SATURATED",
     "SATURATED_SHARE",
     "GrayDecoding",
@@ -87,6 +89,7 @@ __all__ = [
     "write_bundle",
     "write_graycode_folder",
     "warn_if_few_decoded",
+    "warn_if_noisy",
     "warn_if_saturated",
     "write_ply",
     "write_sequence",

@@ -64,7 +64,8 @@ from ..core.imageio import write_image
 from .edges import EdgePixels
 from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, read_graycode_folder, sequence_paths
 from .graycode import CellShares, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
-from .pipeline import ProjectorCalibration, calibrate_projector, check_decoded, warn_if_few_decoded, warn_if_saturated
+from .pipeline import (ProjectorCalibration, calibrate_projector, check_decoded, warn_if_few_decoded, warn_if_noisy,
+                       warn_if_saturated)
 from .response import ResponseCurve, primary_patterns, ramp_pattern
 
 __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
@@ -295,6 +296,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
         fraction = check_decoded(cal.decoding, folder)
         decoded_lit.setdefault(state, {})[name] = round(warn_if_few_decoded(cal.decoding, str(folder)), 4)
         warn_if_saturated(cal.saturated, str(folder))
+        warn_if_noisy(cal.capture_noise, cal.saturated, str(folder), "torchproj capture --frames N")
         noise.setdefault(state, {})[name] = cal.capture_noise
         decoded.setdefault(state, {})[name] = fraction
         maps.setdefault(state, []).append(_maps(cal))

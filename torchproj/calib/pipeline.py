@@ -21,8 +21,9 @@ from .blur import measure_blur
 from .edges import EdgePixels, find_edge_pixels
 from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
 
-__all__ = ["DIM_THRESHOLD", "FEW_DECODED", "SATURATED", "SATURATED_SHARE", "DecodedFolder", "ProjectorCalibration",
-           "calibrate_projector", "decode_folder", "scan_map", "warn_if_few_decoded", "warn_if_saturated"]
+__all__ = ["DIM_THRESHOLD", "FEW_DECODED", "NOISY_CAPTURES", "SATURATED", "SATURATED_SHARE", "DecodedFolder",
+           "ProjectorCalibration", "calibrate_projector", "decode_folder", "scan_map", "warn_if_few_decoded", "warn_if_noisy",
+           "warn_if_saturated"]
 
 # Below this share of its lit pixels decoded, a projector's calibration is warned about (measured on
 # the shipped scenes: docs/commands.md, "Bad inputs and odd captures").
@@ -56,6 +57,27 @@ def warn_if_saturated(saturated: float | None, where: str, fix: str = "lower the
                       f"lights (over {SATURATED_SHARE:.0%}): there every row's weight (white minus black) and the "
                       f"ramp the response is fitted to read less light than the projector gives. {fix}",
                       stacklevel=3)
+
+
+# Past this camera noise of white minus black (capture_noise: median share over the lit pixels) a
+# projector's calibration is warned about. A single frame reads at most 2.6% on the shipped scenes and
+# the suite scenes of seeds 1 and 2412 (suite-1-4, as `torchproj simulate` tabulates it) and 2.4-2.5%
+# on the real chessboard captures; a pattern image in every other pair 15% darker (an exposure that
+# changed while capturing) reads 6.6% and a camera with a full well of 20 electrons 40%
+# (tests/calib/test_pipeline.py). Clipped whites read high too, and are said as such instead.
+NOISY_CAPTURES = 0.05
+
+
+def warn_if_noisy(noise: float | None, saturated: float | None, where: str, frames: str) -> None:
+    """Warn, naming ``where`` and how to average ``frames``, when the captures' noise
+    (:attr:`ProjectorCalibration.capture_noise`) passes :data:`NOISY_CAPTURES`, unless clipped whites
+    (:func:`warn_if_saturated`) explain it."""
+    if noise is None or not noise > NOISY_CAPTURES or (saturated is not None and saturated > SATURATED_SHARE):
+        return
+    warnings.warn(f"{where}: the captures' noise is {noise:.1%} of white minus black (over {NOISY_CAPTURES:.0%}; how "
+                  "far each pattern plus its inverse strays from the others' sum), and every row's weight, map and "
+                  f"share carry it. Average frames ({frames}: the noise falls as the square root of their number), "
+                  "and keep the camera's exposure and the room's light fixed while capturing", stacklevel=3)
 
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:

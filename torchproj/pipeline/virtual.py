@@ -16,7 +16,7 @@ import torch
 
 from ..calib import (DIM_THRESHOLD, SATURATED, SATURATED_SHARE, GraycodeCapture, ResponseCurve, calibrate_projector,
                      checker_patterns, graycode_bits, graycode_patterns, primary_patterns, ramp_pattern, sequence_bits,
-                     warn_if_few_decoded, warn_if_saturated)
+                     warn_if_few_decoded, warn_if_noisy, warn_if_saturated)
 from ..core.checks import check
 from ..core.choices import BLACK_THRESHOLD
 from ..core.conventions import to_numpy
@@ -356,6 +356,8 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
         warn_if_few_decoded(calibration.decoding, f"state {name!r}, projector {proj.name!r}")
         warn_if_saturated(calibration.saturated, f"state {name!r}, projector {proj.name!r}",
                           "Lower camera.exposure or the projector's power")
+        warn_if_noisy(calibration.capture_noise, calibration.saturated, f"state {name!r}, projector {proj.name!r}",
+                      "camera.frames")
         for key, seconds in (("cast", t1 - t0), ("capture", t2 - t1), ("calibrate", time.perf_counter() - t2)):
             timings[key] = timings.get(key, 0.0) + seconds
         yield name, j, capture, calibration
