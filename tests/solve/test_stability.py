@@ -88,7 +88,7 @@ def _warnings_of(op, cal):
 
 
 # Not "noisy camera": its maps are wrong, but the model built on them is consistent, and nothing inside
-# it can tell. It was reported while each weight came from one white and one black frame (their noise
+# it can tell (calibration says it instead: the captures' noise, tests/pipeline/test_virtual.py). It was reported while each weight came from one white and one black frame (their noise
 # left more than the limit of the targets unexplained); averaged over the stripes (stripe_contrast) 9% is.
 @pytest.mark.parametrize("kind", ["incompatible targets", "no baseline", "more targets than projectors"])
 def test_ill_posed_scenes_are_reported(stressed, kind):
