@@ -146,7 +146,7 @@ def test_a_white_capture_the_camera_clips_is_measured_warned_and_said_before_cal
 
     from torchproj.calib import SATURATED, SATURATED_SHARE
     from torchproj.cli import main
-    from torchproj.pipeline.virtual import calibrate_rig
+    from torchproj.pipeline import run_markdown, run_virtual
     from torchproj.sim import VirtualRig
 
     data = small_config(camera=(200, 150), projector=(128, 96))
@@ -155,8 +155,8 @@ def test_a_white_capture_the_camera_clips_is_measured_warned_and_said_before_cal
     truth = VirtualRig(scene)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        measured = {(state, scene.projectors[j].name): cal.saturated
-                    for state, j, _, cal in calibrate_rig(VirtualRig(scene), progress=False)}
+        cal = calibrate_virtual(scene, progress=False)
+    measured = {(state, name): share for state, per in cal.white_clipped.items() for name, share in per.items()}
     said = [str(w.message) for w in caught if "the white capture is clipped" in str(w.message)]
     for state in scene.states:
         black = truth.capture(state.name, {}, noise=False)[0]
@@ -168,6 +168,10 @@ def test_a_white_capture_the_camera_clips_is_measured_warned_and_said_before_cal
             warned = [m for m in said if m.startswith(f"state {state.name!r}, projector {proj.name!r}: ")]
             assert len(warned) == (share > SATURATED_SHARE), (state.name, proj.name, said)
     assert bool(said) == (exposure > 1) and all("Lower camera.exposure" in m for m in said)
+    # The run's report keeps the shares, and report.md says them where any pixel was clipped.
+    report = run_virtual(scene, calibration=cal, max_iter=20, progress=False).report
+    assert report["white_clipped"] == cal.white_clipped
+    assert ("White capture clipped by the camera" in run_markdown(report)) == (exposure > 1)
     path = tmp_path / "exposed.yaml"
     path.write_text(yaml.safe_dump(dict(data, name="exposed")))
     assert main(["scene", str(path)]) == 0

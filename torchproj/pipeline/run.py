@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from ..calib import sequence_bits
+from ..calib import SATURATED_SHARE, sequence_bits
 from ..core.checks import check
 from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
@@ -472,7 +472,7 @@ def _report(scene, cal, solver, image, bounds_8bit, device, maps, solved: _Solve
         "bounds_8bit": list(bounds_8bit), "device": str(device),
         "calibration": _CALIBRATION["geometry" if oracle is None and cal.oracle else oracle],
         "maps": maps, "graycode": _graycode_report(scene, cal), "decoded_fraction": cal.decoded,
-        "decode": cal.decode, "capture_noise": cal.capture_noise,
+        "decode": cal.decode, "capture_noise": cal.capture_noise, "white_clipped": cal.white_clipped,
         "model": model, "objective": least_squares,
         "unexplained_fraction": solved.unexplained_fraction,
         "iterations": result.iterations, "scale": solved.scale,
@@ -536,6 +536,16 @@ def _noise_lines(noise: dict | None) -> list[str]:
     return ["Camera noise of a lit pixel's white - black in the calibration captures (median share of it; "
             "every row's weight, map and shares carry it, and averaging N frames a capture, `camera.frames`, "
             "divides it by the square root of N): " + "; ".join(said) + ".", ""]
+
+
+def _clipped_lines(clipped: dict | None) -> list[str]:
+    """Said where the camera clipped any lit pixel's white: a bright enough camera to be worth a look."""
+    said = [f"{state} " + ", ".join(f"{name} {v:.1%}" for name, v in per.items())
+            for state, per in (clipped or {}).items() if any(v > 0 for v in per.values())]
+    if not said:
+        return []
+    return [f"White capture clipped by the camera (share of each projector's lit pixels; past {SATURATED_SHARE:.0%} "
+            "every row's weight and the ramp read low there, and calibration warned): " + "; ".join(said) + ".", ""]
 
 
 def _image_objective_lines(image: dict | None) -> list[str]:
@@ -687,6 +697,7 @@ def run_markdown(report: dict) -> str:
              f"{report['objective']:.4g} after {report['iterations']} iterations.", "",
              *_decoded_lines(report.get("decoded_fraction"), report.get("decode")),
              *_noise_lines(report.get("capture_noise")),
+             *_clipped_lines(report.get("white_clipped")),
              *_image_objective_lines(report.get("image_objective")),
              *_show_lines(report),
              *_score_tables(report["targets"], paper, adjusted, ceiling)]

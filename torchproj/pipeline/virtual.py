@@ -113,6 +113,9 @@ class VirtualCalibration:
     # per state, per projector name, the camera noise of a lit pixel's white minus black, as a share of it
     # (torchproj.calib.capture_noise)
     capture_noise: dict | None = None
+    # per state, per projector name, the share of its lit pixels whose white capture the camera clipped
+    # (ProjectorCalibration.saturated)
+    white_clipped: dict | None = None
 
 
 DECODE_THRESHOLD = BLACK_THRESHOLD / 255  # calibrate_projector's shadow mask, in camera values: below it, not decoded
@@ -273,6 +276,7 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
     decoded: dict[str, dict[str, float]] = {}
     decode: dict[str, dict[str, dict]] = {}
     noise: dict[str, dict[str, float | None]] = {}
+    clipped: dict[str, dict[str, float]] = {}
     for name, j, capture, calibration in calibrate_rig(rig, bits=bits, plane_tolerance=plane_tolerance,
                                                         progress=progress):
         per_state.setdefault(name, []).append(calibration)
@@ -282,6 +286,7 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
             k: round(counts[k] / max(counts["lit"], 1), 4) for k in ("full", "partial", "none")}
         noise.setdefault(name, {})[scene.projectors[j].name] = (None if calibration.capture_noise is None
                                                                 else round(calibration.capture_noise, 5))
+        clipped.setdefault(name, {})[scene.projectors[j].name] = round(calibration.saturated, 4)
         # Every projector shows black: the state's black level and ambient light. A copy, not a view that
         # would keep the whole capture stack (hundreds of MB per projector) alive.
         black[name] = capture.black.to("cpu", copy=True)
@@ -293,7 +298,7 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
         homographies = {name: [pc.homography for pc in pcs] for name, pcs in per_state.items()}
     return VirtualCalibration(rig=rig, states=states, black=black, responses=_first_responses(per_state, scene),
                               seconds=time.perf_counter() - t0, bits=shown, homographies=homographies,
-                              decoded=decoded, decode=decode, capture_noise=noise)
+                              decoded=decoded, decode=decode, capture_noise=noise, white_clipped=clipped)
 
 
 def _first_responses(per_state: dict[str, list], scene: Scene) -> list:
