@@ -138,12 +138,13 @@ def white_levels(scene: Scene, device="cpu") -> dict[tuple[str, str], float]:
 
 
 def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD, states: list[str] | None = None,
-                  grid: int | None = LIGHT_CHECK_GRID
+                  grid: int | None = LIGHT_CHECK_GRID, whites: bool = True
                   ) -> tuple[dict[tuple[str, str], float], dict[str, float], dict[tuple[str, str], float]]:
     """:func:`white_levels`; per state the median of its black capture over the grid; and per state and
     projector the share of the grid's lit pixels (white minus black past ``threshold``) whose white
     capture is clipped (:data:`~torchproj.calib.SATURATED`). ``states``: those only (default all);
-    ``grid`` None: every camera pixel."""
+    ``grid`` None: every camera pixel; ``whites`` False: the black captures only (the first and
+    third dicts empty)."""
     cam = scene.camera
     rig = VirtualRig(scene, device=device)
     pixels = None
@@ -156,7 +157,7 @@ def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD, sta
         surfaces = [scene.surfaces[n] for n in state.surfaces]
         black = rig.capture_surfaces(surfaces, {}, pixels, noise=False, direct_only=True)
         blacks[state.name] = float(black.mean(0).median())
-        for j, proj in enumerate(scene.projectors):
+        for j, proj in enumerate(scene.projectors if whites else []):
             white = rig.capture_surfaces(surfaces, {j: torch.ones(1, 1, proj.height, proj.width, device=device)},
                                          pixels, noise=False, direct_only=True)
             levels[state.name, proj.name] = float((white - black).mean(0).max())
@@ -221,7 +222,7 @@ def check_shown_light(scene: Scene, device="cpu", grid: int = LIGHT_CHECK_GRID) 
         return
     shown = shown_scene(scene)
     asked = list(dict.fromkeys(spec.state for spec in scene.target_specs()))
-    _, blacks, _ = _light_levels(shown, device, states=asked, grid=grid)
+    _, blacks, _ = _light_levels(shown, device, states=asked, grid=grid, whites=False)
     for state, black in blacks.items():
         if black >= 1 - 1 / 255:
             raise InputError(f"show.ambient: room light of {shown.ambient:g} while showing saturates the camera's black "
