@@ -107,6 +107,38 @@ def test_read_image_errors_name_the_file(tmp_path):
         read_image(bad)
 
 
+@pytest.mark.parametrize("suffix", [".jpg", ".png"])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_images_are_read_upright_by_their_exif_orientation(tmp_path, suffix, channels):
+    """A phone's photo keeps the sensor's rows and says its turn in EXIF: read as Pillow turns it."""
+    from PIL import Image, ImageOps
+
+    rng = np.random.default_rng(3)
+    stored = rng.integers(0, 256, (12, 20, 3) if channels == 3 else (12, 20), dtype=np.uint8)
+    for orientation in range(1, 9):
+        image = Image.fromarray(stored)
+        exif = image.getexif()
+        exif[274] = orientation
+        path = tmp_path / f"turned{orientation}{suffix}"
+        image.save(path, exif=exif, **({"quality": 100} if suffix == ".jpg" else {}))
+        upright = np.asarray(ImageOps.exif_transpose(Image.open(path)), dtype=np.float32) / 255
+        got = read_image(path).permute(1, 2, 0).numpy()
+        got = got[..., 0] if channels == 1 else got
+        assert got.shape == upright.shape, orientation
+        assert np.abs(got - upright).max() <= 2 / 255, orientation
+
+
+def test_a_tiff_turned_a_quarter_is_refused_saying_why(tmp_path):
+    from PIL import Image
+
+    image = Image.fromarray(np.zeros((12, 20), np.uint8))
+    exif = image.getexif()
+    exif[274] = 6
+    image.save(tmp_path / "phone.tif", exif=exif)
+    with pytest.raises(CaptureError, match=r"phone.tif: cannot be read.*EXIF orientation.*upright or as PNG"):
+        read_image(tmp_path / "phone.tif")
+
+
 def test_atomic_output_leaves_nothing_on_failure(tmp_path):
     out = tmp_path / "run"
     with pytest.raises(RuntimeError):

@@ -34,9 +34,15 @@ def read_image(path: str | os.PathLike, remedy: str = "capture it again") -> tor
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: file not found")
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    # Upright as a viewer shows it: a phone's photo keeps its pixels as the sensor read them and says
+    # the turn in its EXIF orientation. These flags turn JPEG and PNG by it (IMREAD_UNCHANGED does not)
+    # and keep 16 bits; they drop alpha, which no image here uses. A TIFF is turned by libtiff either
+    # way, but OpenCV 5.1 reads none whose turn swaps its sides (orientations 5-8).
+    data = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if data is None:
-        raise CaptureError(f"{path}: cannot be read as an image (corrupt or truncated?); {remedy}")
+        turned = ("; OpenCV reads no TIFF turned a quarter by its EXIF orientation (5-8): save such a one "
+                  "upright or as PNG") if path.suffix.lower() in (".tif", ".tiff") else ""
+        raise CaptureError(f"{path}: cannot be read as an image (corrupt or truncated?); {remedy}{turned}")
     if data.dtype == np.uint8:
         scale = 255.0
     elif data.dtype == np.uint16:
@@ -44,8 +50,6 @@ def read_image(path: str | os.PathLike, remedy: str = "capture it again") -> tor
     else:
         raise CaptureError(f"{path}: unsupported pixel type {data.dtype}; save 8- or 16-bit images")
     if data.ndim == 3:
-        if data.shape[2] == 4:
-            data = data[:, :, :3]
         data = data[:, :, ::-1]  # OpenCV stores BGR
         tensor = torch.from_numpy(np.ascontiguousarray(data)).permute(2, 0, 1)
     else:
