@@ -218,6 +218,22 @@ class TestBadInput:
         with pytest.raises(InputError, match=r"must lie in \[0, 1\]"):
             build_transport(synthetic_calibration(), [Target("near", torch.full((1, 4, 4), 2.0), name="x")])
 
+    @pytest.mark.parametrize("image, says", [
+        (torch.rand(4, 4), r"'x' image must have shape \(C, H, W\), got \(4, 4\)"),
+        (torch.rand(4, 4, 4), "'x' image must have 1 or 3 channels, got 4"),
+        (torch.rand(1, 4, 4).tolist(), "'x' image must be a torch.Tensor, got list"),
+    ])
+    @pytest.mark.parametrize("build_with", [build_transport, has_colour_weights])
+    def test_a_wrong_target_image_is_named_as_itself(self, image, says, build_with):
+        """Named as the image it is, not as a channel count differing from the other target's."""
+        with pytest.raises(InputError, match=says):
+            build_with(synthetic_calibration(), [targets()[0], Target("far", image, name="x")])
+
+    def test_a_one_pixel_target_image_is_refused_as_too_small(self):
+        """Its corners meet in one point, which no warp stretches over a surface."""
+        with pytest.raises(InputError, match="'x' image is 1x1 pixels; .* needs at least 2 x 2"):
+            build_transport(synthetic_calibration(), [Target("near", torch.rand(1, 1, 1), name="x")])
+
     def test_non_finite_weights(self):
         cals = synthetic_calibration()
         cals["near"].weight[0][3, 3] = float("inf")
@@ -236,6 +252,20 @@ class TestBadInput:
             op.A(torch.zeros(op.shape[1] + 1, 1))
         with pytest.raises(InputError, match="dtype"):
             op.A(torch.zeros(op.shape[1], 1, dtype=torch.float64))
+
+
+def test_a_target_image_that_requires_grad_builds_the_operator_its_values_do():
+    """The images are data the solve reads: one that carries a graph (a network's output) is taken
+    as its values, and the solvers, which iterate in place, run on it."""
+    cals = synthetic_calibration()
+    plain = targets()
+    carried = [dataclasses.replace(t, image=t.image.clone().requires_grad_(True)) for t in plain]
+    op, again = build_transport(cals, plain, scale=1.0), build_transport(cals, carried, scale=1.0)
+    assert not again.rhs.requires_grad
+    assert torch.equal(op.rhs, again.rhs)
+    from torchproj.solve import solve_patterns
+    assert torch.equal(solve_patterns(op, "fista", bounds=(0, 1)).patterns,
+                       solve_patterns(again, "fista", bounds=(0, 1)).patterns)
 
 
 def test_normal_equations_follow_dtype_changes():

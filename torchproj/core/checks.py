@@ -107,7 +107,7 @@ def check_image(image: torch.Tensor, name: str) -> dict[str, int]:
     check(sizes["C"] in (1, 3), f"{name} must have 1 or 3 channels, got {sizes['C']}")
     check(image.is_floating_point(), f"{name} must be a float tensor in [0, 1], got {image.dtype}")
     check(image.numel() > 0, f"{name} is empty (shape {tuple(image.shape)}): give an image of at least one pixel")
-    lo, hi = (float(v) for v in torch.aminmax(image))  # NaN where any value is NaN: one pass for both checks
+    lo, hi = (float(v) for v in torch.aminmax(image.detach()))  # NaN where any value is NaN: one pass for both checks
     if not (lo >= 0.0 and hi <= 1.0):
         check_finite(image, name)
         check(False, f"{name} must lie in [0, 1], got values in [{lo:.3g}, {hi:.3g}]")

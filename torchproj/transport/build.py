@@ -353,6 +353,8 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     """
     sizes = check_image(target.image, f"target {target.name!r} image")
     h_img, w_img = sizes["H"], sizes["W"]
+    check(min(h_img, w_img) >= 2, f"target {target.name!r} image is {w_img}x{h_img} pixels; a target image is "
+                                  "stretched over its surfaces' pixels and needs at least 2 x 2")
     H, W = mask.shape
     if target.corners is not None:
         corners = torch.as_tensor(target.corners, dtype=torch.float32)
@@ -366,11 +368,21 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     src = torch.tensor([[0.0, 0.0], [w_img - 1, 0.0], [w_img - 1, h_img - 1], [0.0, h_img - 1]])
     # The warp runs where the mask lives (a user's image is on the host, the maps may be on a GPU).
     dst_from_src = get_perspective_transform(src[None], corners.cpu()[None]).to(mask.device)  # 1x3x3, pixel centres
-    image = torch.cat([target.image.float().cpu(), torch.ones(1, h_img, w_img)])[None].to(mask.device)
+    # The image is what to show: data the solve reads, not a graph it extends (the solvers iterate in
+    # place and take no gradient through their right-hand side), so one that requires grad is detached.
+    image = torch.cat([target.image.detach().float().cpu(), torch.ones(1, h_img, w_img)])[None].to(mask.device)
     warped = warp_perspective(image, dst_from_src, (H, W), mode="bilinear", align_corners=True)[0]
     covered = mask & (warped[-1] > 0.999)
     _check_room(target, covered)
     return warped[:-1].clamp(0, 1), covered
+
+
+def _target_channels(targets: list[Target]) -> int:
+    """The channel count all ``targets``' images share, each image checked first (so that a wrong one,
+    an :math:`(H, W)` image, a 4-channel one, a list, is named as itself, not as a count that differs)."""
+    channels = {check_image(t.image, f"target {t.name or i!r} image")["C"] for i, t in enumerate(targets)}
+    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
+    return channels.pop()
 
 
 def _check_room(target: Target, covered: torch.Tensor) -> None:
@@ -1098,9 +1110,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     each row's per-channel ratios (every state needs :attr:`StateCalibration.colour_weight`)."""
     check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
     check(len(targets) >= 1, "targets must hold at least one Target")
-    channels = {t.image.shape[0] for t in targets}
-    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
-    n_ch = channels.pop()
+    n_ch = _target_channels(targets)
     sizes = camera = None
     checked = set()
     row_cols, row_vals, row_values, row_tgt, row_pix, row_ratio = [], [], [], [], [], []
@@ -1247,7 +1257,7 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
 def has_colour_weights(calibrations: dict[str, StateCalibration], targets: list[Target]) -> bool:
     """Whether :func:`build_channel_transports` applies: colour targets, and every target's state
     calibrated with a white minus black per channel of each projector."""
-    n_ch = targets[0].image.shape[0] if targets else 1
+    n_ch = _target_channels(targets) if targets else 1
     return n_ch > 1 and all(
         t.state in calibrations and calibrations[t.state].colour_weight is not None
         and all(c.shape[0] == n_ch for c in calibrations[t.state].colour_weight) for t in targets)
@@ -1329,9 +1339,7 @@ def retarget_rhs(op, calibrations: dict[str, StateCalibration], targets: list[Ta
                                     "with merge=False")
     check(len(targets) == op.target_count, f"give one image per target of the operator ({op.target_count}), got "
                                            f"{len(targets)}")
-    channels = {t.image.shape[0] for t in targets}
-    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
-    rhs = torch.empty(op.shape[0], channels.pop(), dtype=op.rhs.dtype)
+    rhs = torch.empty(op.shape[0], _target_channels(targets), dtype=op.rhs.dtype)
     for k, target in enumerate(targets):
         lit = calibrations[target.state].lit()
         mask = lit if target.mask is None else target.mask.to(device=lit.device, dtype=torch.bool) & lit
