@@ -76,6 +76,24 @@ def test_patterns_for_another_rig_are_refused(quarter_rig):
                           scale=0.5)
 
 
+@pytest.mark.parametrize("as_given, says", [
+    (lambda p: p.long(), "must be uint8 .* or float light in \\[0, 1\\], got torch.int64"),
+    (lambda p: p.float(), r"must lie in \[0, 1\], got values in \[0, 255\]"),
+    (lambda p: p > 128, "got torch.bool"),
+    (lambda p: p.float().fill_(float("nan")), "non-finite"),
+    (lambda p: p.numpy(), "must be a torch.Tensor, got ndarray"),
+])
+def test_patterns_of_levels_in_another_type_are_refused_not_shown_as_white(quarter_rig, as_given, says):
+    """Levels 0-255 in int64 or float were taken as light 0-255: every cell white, 4 dB."""
+    scene, cal = quarter_rig
+    targets = scene_targets(scene, rig=cal.rig)
+    model = ProjectionModel.from_calibration(cal, targets)
+    patterns = model.to_patterns()
+    patterns[1] = as_given(patterns[1])
+    with pytest.raises(InputError, match=r"patterns\[1\] .*" + says):
+        evaluate_patterns(cal, patterns, targets, scale=model.scale)
+
+
 def test_ghost_images_follow_the_light_to_where_parallax_puts_it(quarter_rig):
     """One projector shows a picture; the simulator renders it on the far plane and on the near one.
     Carried from the far capture through the calibrated correspondences, the picture must reproduce

@@ -231,6 +231,8 @@ def test_bad_patterns_get_clear_errors():
         rig.capture("near", {"left": torch.ones(1, 1, 192, 256)})
     with pytest.raises(InputError, match=r"patterns\['upper'\] must have shape \(N, C, 192, 256\)"):
         rig.capture("near", {"upper": torch.ones(1, 1, 100, 256)})
+    with pytest.raises(InputError, match=r"patterns\['upper'\] must be float light in \[0, 1\], got torch.uint8"):
+        rig.capture("near", {"upper": torch.full((1, 1, 192, 256), 255, dtype=torch.uint8)})
 
 
 def test_distorted_camera_rays_land_where_opencv_projects_them():

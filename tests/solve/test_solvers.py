@@ -260,7 +260,7 @@ def test_clamped_adam_in_a_training_loop_with_a_scheduler():
     assert again.param_groups[0]["bounds"] == (0.0, 1.0) and again.param_groups[0]["lr"] == opt.param_groups[0]["lr"]
 
 
-@pytest.mark.parametrize("bounds", [(1.0, 1.0), (0.5, 0.2), (0.0, float("nan"))])
+@pytest.mark.parametrize("bounds", [(1.0, 1.0), (0.5, 0.2), (0.0, float("nan")), (0.0, 1.0, 2.0), 1.0, ("a", 1.0)])
 def test_bad_bounds(problem, bounds):
     op, _, _ = problem
     with pytest.raises(InputError, match="bounds"):

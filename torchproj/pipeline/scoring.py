@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_image
 from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
@@ -167,8 +167,15 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     check(seed is None or (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
           f"seed must be a whole number from 0 to 2**62 (or None: the rig's own noise draws), got {seed!r}")
     device = calibration.rig.device
-    shown = {j: (p.float() / 255 if p.dtype == torch.uint8 else p.float())[None].to(device)
-             for j, p in enumerate(patterns)}
+    shown = {}
+    for j, pattern in enumerate(patterns):
+        check(isinstance(pattern, torch.Tensor), f"patterns[{j}] must be a torch.Tensor, got {type(pattern).__name__}")
+        if pattern.dtype != torch.uint8:
+            # Other integers read as floats would be levels 0-255 taken as light 0-255: all white.
+            check(pattern.is_floating_point(), f"patterns[{j}] must be uint8 (0-255, as make_patterns gives) or "
+                                               f"float light in [0, 1], got {pattern.dtype}")
+            check_image(pattern, f"patterns[{j}]")
+        shown[j] = (pattern.float() / 255 if pattern.dtype == torch.uint8 else pattern.float())[None].to(device)
     captures = {state: calibration.rig.capture(state, shown, noise=noise, seed=None if seed is None else seed + k)[0].cpu()
                 for k, state in enumerate(dict.fromkeys(t.state for t in targets))}
     regions = []  # scored on the host, beside the captures

@@ -606,6 +606,8 @@ class VirtualRig:
             proj = scene.projectors[j]
             check_shape(pat, f"patterns[{key!r}]", ["N", "C", proj.height, proj.width])
             check(pat.shape[1] in (1, 3), f"patterns[{key!r}] must have 1 or 3 channels, got {pat.shape[1]}")
+            check(pat.is_floating_point(), f"patterns[{key!r}] must be float light in [0, 1], got {pat.dtype} (8-bit "
+                                           "images: divide by 255)")
             by_index[j] = pat.to(self.device, torch.float32)
         sizes = {p.shape[0] for p in by_index.values()}
         check(len(sizes) <= 1, f"every projector must show the same number of images, got {sorted(sizes)}")

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..core.checks import check, check_finite
+from ..core.errors import InputError
 from ..core.fused import fused
 from ..core.progress import progress_bar
 from ..transport.operator import SUM_RUN, TransportOperator
@@ -53,7 +54,12 @@ class SolveResult:
 
 
 def check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
-    lo, hi = (float(b) for b in bounds)
+    """``bounds`` as two floats ``(lo, hi)``, finite and ordered; an :class:`InputError` otherwise."""
+    try:
+        lo, hi = (float(b) for b in bounds)
+    except (TypeError, ValueError):
+        raise InputError(f"bounds must be two numbers (lo, hi) in linear light, 0 black and 1 white; got {bounds!r}") \
+            from None
     check(math.isfinite(lo) and math.isfinite(hi), f"bounds must be finite numbers, got {bounds}")
     check(lo < hi, f"bounds must satisfy lo < hi, got lo={lo:g}, hi={hi:g}")
     return lo, hi
