@@ -15,8 +15,8 @@ SURFACE = {
         "solve_eo", "solve_fista", "solve_lf", "solve_patterns", "solve_pgd", "solve_ssim", "ssim", "target_image",
         "transport"],
     "core": [
-        "CaptureError", "ConfigError", "InputError", "TorchprojError", "atomic_output", "check", "check_finite",
-        "check_image", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_numpy", "to_uint", "write_image",
+        "CaptureError", "ConfigError", "InputError", "TorchprojError", "atomic_output", "check", "check_count",
+        "check_finite", "check_image", "check_number", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_numpy", "to_uint", "write_image",
         "write_json"],
     "scene": [
         "BUILTIN_SCENES", "Camera", "Projector", "SIZE_LIMIT", "Scene", "ShowChanges", "State", "Surface", "TargetSpec",

@@ -60,6 +60,21 @@ def test_all_finite_agrees_with_isfinite_wherever_the_bad_value_lies(dtype, shap
     assert all_finite(torch.zeros(0))
 
 
+def test_counts_and_numbers_are_checked_by_kind_not_only_by_size():
+    from torchproj.core import check_count, check_number
+
+    assert check_count(np.int64(3), "n") == 3 and type(check_count(np.int64(3), "n")) is int
+    for bad in (2.5, True, "3", None, 0):
+        with pytest.raises(InputError, match=f"n must be a whole number >= 1, got {bad!r}"):
+            check_count(bad, "n")
+    assert check_number(np.float32(0.5), "w") == 0.5 and check_number(0, "w") == 0.0
+    for bad in (float("nan"), float("inf"), -1e-9, True, "1"):
+        with pytest.raises(InputError, match="w must be a finite number >= 0"):
+            check_number(bad, "w")
+    with pytest.raises(InputError, match="lr must be a finite number > 0, got 0"):
+        check_number(0, "lr", strict=True)
+
+
 def test_check_image_range():
     with pytest.raises(InputError, match=r"must lie in \[0, 1\]"):
         check_image(torch.full((1, 2, 2), 1.5), "target")

@@ -86,6 +86,17 @@ class TestBadInput:
         with pytest.raises(InputError, match="psnr_drop must be a finite number of dB >= 0"):
             image_objective("ssim", psnr_drop=-2.0)
 
+    @pytest.mark.parametrize("option, value, says", [
+        ("l2_weight", float("inf"), "l2_weight must be a finite number >= 0, got inf"),  # crashed in the loss
+        ("lr", float("inf"), "lr must be a finite number > 0, got inf"),  # ran, and returned the start
+        ("max_iter", 2.5, "max_iter must be a whole number >= 1, got 2.5"),
+        ("tol", float("nan"), "tol must be a finite number >= 0, got nan"),
+    ])
+    def test_solve_ssim_options_out_of_kind(self, option, value, says):
+        op = build_transport(synthetic_calibration(shape=(40, 50)), targets(), merge=False, scale=1.0)
+        with pytest.raises(InputError, match=says):
+            solve_ssim(op, **{option: value})
+
     def test_merged_operator(self):
         op = build_transport(synthetic_calibration(shape=(40, 50)), targets(), merge=True, scale=1.0)
         with pytest.raises(InputError, match="merge=False"):

@@ -272,6 +272,24 @@ def test_unknown_solver(problem):
         solve_patterns(problem[0], "magic")
 
 
+@pytest.mark.parametrize("solver", ["fista", "pgd", "adam", "lf"])
+@pytest.mark.parametrize("option, value, says", [
+    ("max_iter", 2.5, "max_iter must be a whole number >= 1, got 2.5"),
+    ("max_iter", True, "max_iter must be a whole number >= 1, got True"),
+    ("tol", float("nan"), "tol must be a finite number >= 0, got nan"),
+    ("tol", -1.0, "tol must be a finite number >= 0, got -1"),
+])
+def test_iteration_options_of_the_wrong_kind_are_named(problem, solver, option, value, says):
+    """A float count broke inside range() as a TypeError; a NaN tolerance never stopped (or at once)."""
+    with pytest.raises(InputError, match=says):
+        solve_patterns(problem[0], solver, (0.0, 1.0), **{option: value})
+
+
+def test_a_whole_number_of_any_integer_type_is_a_count(problem):
+    res = solve_patterns(problem[0], "fista", (0.0, 1.0), max_iter=np.int64(7), levels=np.int32(0))
+    assert res.iterations <= 7
+
+
 def test_clamped_adam_rejects_bad_lr():
     with pytest.raises(ValueError, match="Invalid learning rate"):
         ClampedAdam([torch.zeros(1, requires_grad=True)], lr=-1.0)

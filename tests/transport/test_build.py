@@ -229,6 +229,10 @@ class TestBadInput:
         with pytest.raises(InputError, match=says):
             build_with(synthetic_calibration(), [targets()[0], Target("far", image, name="x")])
 
+    def test_one_target_not_in_a_list_is_refused_saying_so(self):
+        with pytest.raises(InputError, match="targets must be a list of Target, got Target"):
+            build_transport(synthetic_calibration(), targets()[0])
+
     def test_a_one_pixel_target_image_is_refused_as_too_small(self):
         """Its corners meet in one point, which no warp stretches over a surface."""
         with pytest.raises(InputError, match="'x' image is 1x1 pixels; .* needs at least 2 x 2"):

@@ -6,6 +6,8 @@ the argument and says how to fix it.
 
 from __future__ import annotations
 
+import math
+import numbers
 from typing import Sequence
 
 import torch
@@ -18,13 +20,29 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_device"]
+__all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
+           "check_number"]
 
 
 def check(condition: bool, message: str) -> None:
     """Raise :class:`InputError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise InputError(message)
+
+
+def check_count(value, name: str, minimum: int = 1) -> int:
+    """``value`` as an int: a whole number (not a bool, not a float such as 2.5) of at least ``minimum``."""
+    check(isinstance(value, numbers.Integral) and not isinstance(value, bool) and value >= minimum,
+          f"{name} must be a whole number >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def check_number(value, name: str, minimum: float = 0.0, *, strict: bool = False) -> float:
+    """``value`` as a float: a finite real number at least ``minimum`` (above it where ``strict``)."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) and (
+        value > minimum if strict else value >= minimum)
+    check(ok, f"{name} must be a finite number {'>' if strict else '>='} {minimum:g}, got {value!r}")
+    return float(value)
 
 
 def check_device(device) -> torch.device:

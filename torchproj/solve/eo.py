@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from kornia.geometry.epipolar import find_fundamental
 
-from ..core.checks import check
+from ..core.checks import check, check_count, check_number
 from ..core.progress import progress_bar
 from ..core.sparse import csr_tensor, spmm
 from ..transport.build import StateCalibration
@@ -324,8 +324,8 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
         sweeps keep) and the coarse levels' iterations.
     """
     lo, hi = check_bounds(bounds)
-    check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
-    check(inner_iter >= 1, f"inner_iter must be >= 1, got {inner_iter}")
+    max_iter, inner_iter = check_count(max_iter, "max_iter"), check_count(inner_iter, "inner_iter")
+    levels, tol = check_count(levels, "levels", 0), check_number(tol, "tol")
     t0 = time.perf_counter()
     plain = op.normal_equations()
     history = []

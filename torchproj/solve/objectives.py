@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_count, check_number, check_shape
 from ..core.progress import progress_bar
 from ..metrics import SSIMLoss
 from ..transport.operator import TransportOperator
@@ -196,7 +196,7 @@ class ImageLoss(nn.Module):
                  l2_weight: float = OBJECTIVES["ssim"], psnr_drop: float | None = PSNR_DROP_DB,
                  offset: torch.Tensor | None = None):
         super().__init__()
-        check(l2_weight >= 0, f"l2_weight must be >= 0, got {l2_weight}")
+        l2_weight = check_number(l2_weight, "l2_weight")
         check(psnr_drop is None or psnr_drop >= 0, f"psnr_drop must be >= 0 dB (or None), got {psnr_drop}")
         op = _one_operator(op)
         model = ProjectionModel(op, start=start.detach())  # checks the operator's pixel map and the start's shape
@@ -278,8 +278,8 @@ def solve_ssim(op: TransportOperator | list[TransportOperator], bounds=(0.0, 1.0
         patterns (``l2_objective``) and the start's (``start_l2_objective``).
     """
     lo, hi = check_bounds(bounds)
-    check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
-    check(lr > 0, f"lr must be positive, got {lr}")
+    max_iter, tol = check_count(max_iter, "max_iter"), check_number(tol, "tol")
+    lr = check_number(lr, "lr", strict=True)
     t0 = time.perf_counter()
     op = _one_operator(op)
     if x0 is None:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..core.checks import check, check_finite
+from ..core.checks import check, check_count, check_finite, check_number
 from ..core.errors import InputError
 from ..core.fused import fused
 from ..core.progress import progress_bar
@@ -174,7 +174,8 @@ _COARSE_MAX_ITER = 100
 
 def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate, form="auto"):
     lo, hi = check_bounds(bounds)
-    check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
+    max_iter, levels = check_count(max_iter, "max_iter"), check_count(levels, "levels", 0)
+    tol = check_number(tol, "tol")
     t0 = time.perf_counter()
     ne = op.normal_equations(form)
     history = []
@@ -482,7 +483,8 @@ def solve_adam(op: TransportOperator, bounds=(0.0, 1.0), *, lr: float = 0.02, ma
     the learning rate is too large for this problem.
     """
     lo, hi = check_bounds(bounds)
-    check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
+    max_iter, tol = check_count(max_iter, "max_iter"), check_number(tol, "tol")
+    lr, rise_window = check_number(lr, "lr", strict=True), check_count(rise_window, "rise_window")
     t0 = time.perf_counter()
     p = _start(op, x0, lo, hi).requires_grad_(True)
     opt = ClampedAdam([p], lr=lr, bounds=(lo, hi))
@@ -539,7 +541,7 @@ def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 20000,
     """
     lo, hi = check_bounds(bounds)
     check(normalise in LF_NORMALISE, f"normalise must be one of {list(LF_NORMALISE)}, got {normalise!r}")
-    check(max_iter >= 1, f"max_iter must be >= 1, got {max_iter}")
+    max_iter, tol = check_count(max_iter, "max_iter"), check_number(tol, "tol")
     t0 = time.perf_counter()
     base = op.normal_equations("auto")
     ne = base.jacobi()

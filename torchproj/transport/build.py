@@ -380,6 +380,10 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
 def _target_channels(targets: list[Target]) -> int:
     """The channel count all ``targets``' images share, each image checked first (so that a wrong one,
     an :math:`(H, W)` image, a 4-channel one, a list, is named as itself, not as a count that differs)."""
+    check(isinstance(targets, (list, tuple)) and all(isinstance(t, Target) for t in targets),
+          f"targets must be a list of Target, got {type(targets).__name__}"
+          + (f" of {sorted({type(t).__name__ for t in targets})}" if isinstance(targets, (list, tuple)) else ""))
+    check(len(targets) >= 1, "targets must hold at least one Target")
     channels = {check_image(t.image, f"target {t.name or i!r} image")["C"] for i, t in enumerate(targets)}
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
     return channels.pop()
@@ -1109,7 +1113,6 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     """Every target's rows (:func:`build_transport`'s checks, in the user's terms); with ``colour`` also
     each row's per-channel ratios (every state needs :attr:`StateCalibration.colour_weight`)."""
     check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
-    check(len(targets) >= 1, "targets must hold at least one Target")
     n_ch = _target_channels(targets)
     sizes = camera = None
     checked = set()
