@@ -133,6 +133,7 @@ def test_an_image_objective_refines_on_the_capture(op):
 @pytest.mark.parametrize("kwargs, message", [
     ({"iterations": -1}, "iterations"), ({"relax": 0}, "relax"), ({"relax": 1.5}, "relax"),
     ({"responses": None}, "response curves"), ({"solver_iterations": 0}, "solver_iterations"),
+    ({"solver_iterations": 2.5}, "solver_iterations must be a whole number"),
 ])
 def test_bad_loop_options_are_refused_before_any_capture(op, kwargs, message):
     def measure(images):
@@ -140,6 +141,15 @@ def test_bad_loop_options_are_refused_before_any_capture(op, kwargs, message):
     options = {"responses": RESPONSES, **kwargs}
     with pytest.raises(InputError, match=message):
         refine_patterns(op, torch.zeros(op.shape[1], 1), measure, **options)
+
+
+def test_a_capture_that_is_not_light_is_named_by_the_loop(op):
+    """A NaN from a failed read ended the loop in its scores' math (ValueError: math domain error)."""
+    truth = 1.2 * op.dense().double().numpy()
+    measure = world(op, truth)
+    with pytest.raises(InputError, match="measure\\(...\\)'s rows of capture 0 holds .* non-finite"):
+        refine_patterns(op, torch.zeros(op.shape[1], 1), lambda images: measure(images) + float("inf"),
+                        responses=RESPONSES, iterations=1)
 
 
 def test_a_merged_operator_is_refused(op):

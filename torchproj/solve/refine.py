@@ -44,7 +44,7 @@ from typing import Callable
 
 import torch
 
-from ..core.checks import check, check_finite, check_shape
+from ..core.checks import check, check_count, check_finite, check_shape
 from ..core.progress import progress_bar
 from .compensate import projectable_patterns
 from .model import _one_operator
@@ -180,9 +180,9 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
     """
     ops = _operators(op)
     lo, hi = check_bounds(bounds)
-    check(isinstance(iterations, int) and iterations >= 0, f"iterations must be a whole number >= 0, got {iterations!r}")
+    iterations = check_count(iterations, "iterations", 0)
     check(0 < relax <= 1, f"relax must be in (0, 1], got {relax}")
-    check(solver_iterations >= 1, f"solver_iterations must be >= 1, got {solver_iterations}")
+    solver_iterations = check_count(solver_iterations, "solver_iterations")
     check(responses is not None, "give the projectors' response curves: the loop shows 8-bit patterns")
     check_shape(start, "start", [ops[0].shape[1], len(ops) if len(ops) > 1 else "C"])
     check_finite(start, "start")
@@ -200,6 +200,9 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
         images = projectable_patterns(ops[0], p, (lo, hi), responses, outside)[1]
         measured = measure(images)
         check_shape(measured, "measure(...)'s rows", list(targets.shape))
+        # A capture that is not light (NaN from a failed read, an inf) would end the loop deep in its
+        # scores; what the camera gave back is named instead.
+        check_finite(measured, f"measure(...)'s rows of capture {k}")
         measured = measured.to(targets)
         loss, psnr_db = captured_loss(ops, measured)
         if image is not None:
