@@ -1,5 +1,6 @@
 """The image-space model: its prediction against dense algebra, its derivatives, its state and its errors."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -163,6 +164,15 @@ class TestBadInput:
         op = operator()
         with pytest.raises(InputError, match="start must have shape"):
             ProjectionModel(op, start=torch.zeros(op.shape[1] + 1, 1, dtype=torch.float64))
+
+    @pytest.mark.parametrize("given, says", [
+        (lambda n: np.zeros((n, 1)), "patterns must be a torch.Tensor, got ndarray"),
+        (lambda n: torch.zeros(n + 1, 1, dtype=torch.float64), r"patterns must be \(\d+, 1\) like the model's"),
+    ])
+    def test_patterns_given_to_forward_that_are_not_the_models_kind(self, given, says):
+        model = ProjectionModel(operator())
+        with pytest.raises(InputError, match=says):
+            model(given(model.patterns.shape[0]))
 
     def test_responses_for_another_number_of_projectors(self):
         with pytest.raises(InputError, match="one response curve per projector"):

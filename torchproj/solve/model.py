@@ -255,6 +255,7 @@ class ProjectionModel(nn.Module):
         """
         p = self.patterns if patterns is None else patterns
         n, c = self.patterns.shape
+        check(isinstance(p, torch.Tensor), f"patterns must be a torch.Tensor, got {type(p).__name__}")
         check(p.dim() in (2, 3) and tuple(p.shape[-2:]) == (n, c),
               f"patterns must be ({n}, {c}) like the model's, or a batch (B, {n}, {c}); got {tuple(p.shape)}")
         op = self.operator
