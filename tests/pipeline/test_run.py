@@ -312,6 +312,19 @@ def test_depth_sweep_peaks_where_each_image_belongs(calibrated):
     assert np.nanmax(sweep.ssim[:, 1]) > 2 * np.nanmax(sweep.ssim[[0, 1, 2], 1])
     with pytest.raises(InputError, match="unknown surface"):
         depth_sweep(scene, "wall", depths, result.patterns, result.targets, 1.0)
+    # Float light in [0, 1] is shown as it is (it was divided by 255 again: every cell black).
+    light = [p.float() / 255 for p in result.patterns]
+    again = depth_sweep(scene, "near_plane", [0.8], light, result.targets, result.report["scale"])
+    assert np.isfinite(again.psnr_db).all() and np.nanmax(again.psnr_db[:, 0]) > np.nanmax(sweep.psnr_db[:, 0]) - 1
+    for bad, says in [(dict(depths=[float("nan")]), "depths must be a non-empty list of finite numbers"),
+                      (dict(patterns=result.patterns[:1]), "one pattern per projector"),
+                      (dict(scale=0.0), "scale must be a finite number > 0"),
+                      (dict(min_pixels=0), "min_pixels must be a whole number >= 1")]:
+        args = dict(depths=depths, patterns=result.patterns, scale=result.report["scale"])
+        options = {"min_pixels": bad.pop("min_pixels")} if "min_pixels" in bad else {}
+        args.update(bad)
+        with pytest.raises(InputError, match=says):
+            depth_sweep(scene, "near_plane", args["depths"], args["patterns"], result.targets, args["scale"], **options)
 
 
 def test_target_images_by_name_or_file(tmp_path):

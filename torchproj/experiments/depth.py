@@ -12,11 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_count, check_number
 from ..core.progress import progress_bar
 from ..scene.config import Scene, State
 from ..sim.rig import VirtualRig
-from ..pipeline.scoring import TargetScore, score_image
+from ..pipeline.scoring import TargetScore, as_light, score_image
 
 __all__ = ["DepthSweep", "depth_sweep"]
 
@@ -57,15 +57,25 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
         scene: the scene the patterns were made for.
         surface: name of the surface to move (along the world z axis, orientation kept).
         depths: world z positions of its centre.
-        patterns: per projector, :math:`(C, H_j, W_j)` uint8 patterns (as from ``run_virtual``).
+        patterns: per projector, :math:`(C, H_j, W_j)` uint8 patterns (as from ``run_virtual``) or float
+            light in [0, 1].
         targets: per target, its image on the camera (``values`` (C, H, W), ``covered`` (H, W)):
             :class:`~torchproj.pipeline.TargetScore` (``RunResult.targets``).
         scale: camera value of target value 1 (the operator's ``scale``).
         min_pixels: fewer scored pixels than this give NaN.
     """
     check(surface in scene.surfaces, f"unknown surface {surface!r}; known: {sorted(scene.surfaces)}")
-    depths = np.asarray(list(depths), dtype=np.float64)
-    check(depths.ndim == 1 and len(depths) >= 1, "depths must be a non-empty list of numbers")
+    given = depths
+    try:
+        depths = np.asarray(depths.cpu() if isinstance(depths, torch.Tensor) else depths, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        depths = None
+    check(depths is not None and len(depths) >= 1 and np.isfinite(depths).all(),
+          f"depths must be a non-empty list of finite numbers (world z in metres), got {given!r}")
+    check(len(patterns) == len(scene.projectors),
+          f"give one pattern per projector ({len(scene.projectors)}), got {len(patterns)}")
+    check_number(scale, "scale", strict=True)
+    min_pixels = check_count(min_pixels, "min_pixels")
     base = scene.surfaces[surface]
     moved, states = dict(scene.surfaces), []
     for i, z in enumerate(depths):
@@ -75,7 +85,7 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
         states.append(State(name=f"z{i}", surfaces=[f"{surface}@{i}"]))
     swept = dataclasses.replace(scene, surfaces=moved, states=states, targets=[])
     rig = VirtualRig(swept, device=device)
-    shown = {j: (p.float() / 255)[None].to(device) for j, p in enumerate(patterns)}
+    shown = as_light(patterns, device)
     K = len(targets)
     out = {key: np.full((len(depths), K), np.nan) for key in ("psnr", "ssim")}
     pixels = np.zeros((len(depths), K), dtype=np.int64)

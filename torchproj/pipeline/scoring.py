@@ -133,6 +133,29 @@ class PatternEvaluation:
     captures: dict[str, torch.Tensor]  # state -> (C, H, W) capture in [0, 1], on the CPU
 
 
+def as_light(patterns: list[torch.Tensor], device) -> dict[int, torch.Tensor]:
+    """Patterns as the light the rig shows: projector index -> :math:`(1, C, H_j, W_j)` float in [0, 1].
+
+    Args:
+        patterns: per projector, :math:`(C, H_j, W_j)` uint8 levels (what
+            :func:`~torchproj.solve.make_patterns` gives) or float light in [0, 1].
+    """
+    shown = {}
+    for j, pattern in enumerate(patterns):
+        check(isinstance(pattern, torch.Tensor), f"patterns[{j}] must be a torch.Tensor, got {type(pattern).__name__}")
+        if pattern.dtype == torch.uint8:
+            light = pattern.float() / 255
+        else:
+            # Levels 0-255 in another integer type read as light 0-255 (every cell white), and float light
+            # divided by 255 as if it were levels (every cell black): either is refused, not shown.
+            check(pattern.is_floating_point(), f"patterns[{j}] must be uint8 (0-255, as make_patterns gives) or "
+                                               f"float light in [0, 1], got {pattern.dtype}")
+            check_image(pattern, f"patterns[{j}]")
+            light = pattern.float()
+        shown[j] = light[None].to(device)
+    return shown
+
+
 def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[Target], *, scale: float,
                       states=None, noise: bool = True, paper: bool = True, seed: int | None = None) -> PatternEvaluation:
     """Project patterns on the virtual rig, capture each target's state and score every target.
@@ -166,16 +189,7 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     check(scale > 0, f"scale must be positive, got {scale}")
     check(seed is None or (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
           f"seed must be a whole number from 0 to 2**62 (or None: the rig's own noise draws), got {seed!r}")
-    device = calibration.rig.device
-    shown = {}
-    for j, pattern in enumerate(patterns):
-        check(isinstance(pattern, torch.Tensor), f"patterns[{j}] must be a torch.Tensor, got {type(pattern).__name__}")
-        if pattern.dtype != torch.uint8:
-            # Other integers read as floats would be levels 0-255 taken as light 0-255: all white.
-            check(pattern.is_floating_point(), f"patterns[{j}] must be uint8 (0-255, as make_patterns gives) or "
-                                               f"float light in [0, 1], got {pattern.dtype}")
-            check_image(pattern, f"patterns[{j}]")
-        shown[j] = (pattern.float() / 255 if pattern.dtype == torch.uint8 else pattern.float())[None].to(device)
+    shown = as_light(patterns, calibration.rig.device)
     captures = {state: calibration.rig.capture(state, shown, noise=noise, seed=None if seed is None else seed + k)[0].cpu()
                 for k, state in enumerate(dict.fromkeys(t.state for t in targets))}
     regions = []  # scored on the host, beside the captures

@@ -17,6 +17,7 @@ from ..core.checks import check
 from ..scene.show import shown_scene
 from ..sim import VirtualRig
 from ..transport import Target
+from .scoring import as_light
 from .virtual import VirtualCalibration, true_responses
 
 __all__ = ["CapturedRows", "rig_measure", "shown_world"]
@@ -101,7 +102,7 @@ def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: in
                                        for state in read.rows_of}
 
     def measure(images: list[torch.Tensor]) -> torch.Tensor:
-        shown = {j: (img.float() / 255)[None].to(world.rig.device) for j, img in enumerate(images)}
+        shown = as_light(images, world.rig.device)
         above = {state: world.rig.capture(state, {j: s.expand(frames, -1, -1, -1) for j, s in shown.items()},
                                           noise=noise, quantise=noise).mean(0).cpu() - black[state]
                  for state in read.rows_of}
