@@ -69,6 +69,38 @@ def test_wrong_number_of_images():
         decode_gray(pats[:-4], pats[-2], pats[-1], (64, 48))
 
 
+@pytest.mark.parametrize("change, says", [
+    (lambda p, w, b: ((p * 255).to(torch.uint8), w, b), "patterns must be float captures in \\[0, 1\\].*uint8"),
+    (lambda p, w, b: (p * 255, w * 255, b), "white must lie in \\[0, 1\\].*up to 255"),
+    (lambda p, w, b: (p.numpy(), w, b), "patterns must be float captures.*ndarray"),
+])
+def test_captures_in_8_bit_units_are_refused_not_read_against_thresholds_over_255(change, says):
+    """The thresholds are 8-bit units over 255: 0-255 captures passed every pixel as lit and reliable."""
+    pats = graycode_patterns(64, 48)
+    with pytest.raises(InputError, match=says):
+        decode_gray(*change(pats[:-2], pats[-2], pats[-1]), (64, 48))
+
+
+def test_bad_thresholds_and_sizes_are_named():
+    pats = graycode_patterns(64, 48)
+    for options, says in [({"white_threshold": -1}, "white_threshold must be a finite number >= 0"),
+                          ({"black_threshold": float("nan")}, "black_threshold must be a finite number >= 0")]:
+        with pytest.raises(InputError, match=says):
+            decode_gray(pats[:-2], pats[-2], pats[-1], (64, 48), **options)
+    with pytest.raises(InputError, match="projector_size must be \\(width, height\\), got \\(64,\\)"):
+        decode_gray(pats[:-2], pats[-2], pats[-1], (64,))
+
+
+def test_a_pixel_whose_captures_are_nan_is_not_decoded():
+    """NaN compares false with the threshold: its bits were taken as reliable and decoded to a cell."""
+    pats = graycode_patterns(64, 48)
+    stack = pats[:-2].clone()
+    stack[3, 0, 5:9, 10:20] = float("nan")  # one capture of one pair, a block of pixels
+    decoded = decode_gray(stack, pats[-2], pats[-1], (64, 48))
+    assert not decoded.valid[5:9, 10:20].any()
+    assert decoded.valid[:5].all() and decoded.valid[9:].all()
+
+
 def test_noise_free_round_trip_is_exact():
     """Each camera pixel centre sees one LCD cell: decoding must give exactly that cell."""
     scene = small_scene(supersampling=1)

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_number, check_shape
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _recompute_near, depth_edges
 
@@ -299,7 +299,7 @@ def _decode_axis(images: torch.Tensor, pairs: range, threshold: float):
         diff = pair[0] - pair[1]
         binary ^= diff > 0
         value.mul_(2).add_(binary)
-        weak = diff.abs_() < threshold
+        weak = ~(diff.abs_() >= threshold)  # so written, a NaN capture's bit is weak, not read as a sign
         bad += weak
         first_bad.masked_fill_(weak & (first_bad == len(pairs)), i)
     return value.to(torch.int64), first_bad, bad
@@ -347,10 +347,23 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
         a :class:`GrayDecoding`; with a shortened sequence, ``prj_xy`` holds the centre of the cells
         of the decoded block that lie inside the projector image.
     """
+    for name, image in (("patterns", patterns), ("white", white), ("black", black)):
+        check(isinstance(image, torch.Tensor) and image.is_floating_point(),
+              f"{name} must be float captures in [0, 1] (8-bit images over 255), got "
+              f"{image.dtype if isinstance(image, torch.Tensor) else type(image).__name__}")
+    check(isinstance(projector_size, (tuple, list)) and len(projector_size) == 2,
+          f"projector_size must be (width, height), got {projector_size!r}")
     width, height = projector_size
     nx, ny = graycode_bits(width, height)
     kx, ky = sequence_bits(width, height, bits)
+    white_threshold = check_number(white_threshold, "white_threshold")
+    black_threshold = check_number(black_threshold, "black_threshold")
     white, black = _grey_image(white), _grey_image(black)
+    # The thresholds are in 8-bit units over 255: captures in 0-255 would pass nearly every pixel as lit
+    # and every bit as reliable. The white capture is the brightest, and one image is cheap to read.
+    brightest = float(white.max()) if white.numel() else 0.0
+    check(brightest <= 1.0 + 1e-6, f"white must lie in [0, 1] (8-bit captures over 255), got values up to "
+                                   f"{brightest:.4g}")
     sizes = check_shape(patterns[:, 0] if patterns.dim() == 4 else patterns, "patterns", ["N", "H", "W"])
     check(sizes["N"] == 2 * (kx + ky),
           f"patterns must hold {2 * (kx + ky)} images for a {width}x{height} projector "
