@@ -25,6 +25,23 @@ def test_fit_recovers_exact_parameters():
     assert torch.allclose(fit.c, torch.tensor([0.02, 0.0]), atol=1e-4)
 
 
+@pytest.mark.parametrize("levels, response, says", [
+    (torch.linspace(0, 255, 9), torch.linspace(0, 1, 9) ** 2, r"levels must lie in \[0, 1\].*got \[0, 255\]"),
+    ((torch.linspace(0, 1, 9) * 255).long(), torch.linspace(0, 1, 9) ** 2,
+     "levels must be a float tensor, got torch.int64"),
+    (torch.linspace(0, 1, 9), torch.zeros(9), "channel 0 does not rise with the level"),
+    (torch.linspace(0, 1, 9), 1 - torch.linspace(0, 1, 9) ** 2, "channel 0 does not rise with the level"),
+    (torch.linspace(0, 1, 9), torch.linspace(0, 1, 9).pow(2).index_fill(0, torch.tensor([4]), float("nan")),
+     "response holds 1 non-finite"),
+    (torch.tensor([0.0, 1.0]), torch.tensor([0.0, 1.0]), "2 levels cannot fit 3 unknowns"),
+])
+def test_a_response_no_curve_can_fit_is_refused_naming_why(levels, response, says):
+    """Each of these gave a curve without a word (0-255 levels: a = 5e-6; a flat response: b = 6) or
+    scipy's 'array must not contain infs or NaNs'."""
+    with pytest.raises(InputError, match=says):
+        fit_response(levels, response)
+
+
 def test_virtual_rig_response_fit_and_compensation():
     scene = small_scene(camera=(320, 240), projector=(256, 192))
     rig = VirtualRig(scene)

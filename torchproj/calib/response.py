@@ -10,12 +10,13 @@ curve fitted here is the projector's own, normalised so that black is 0 and whit
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_finite, check_shape
 from ..core.conventions import to_numpy
 
 __all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
@@ -207,21 +208,44 @@ def fit_response(levels: torch.Tensor, response: torch.Tensor, normalised: bool 
     Returns:
         the fitted :class:`ResponseCurve`.
     """
-    from scipy.optimize import curve_fit  # imported here: a run from the cache fits no response and need not import it
+    # Imported here: a run from the cache fits no response and need not import scipy.
+    from scipy.optimize import OptimizeWarning, curve_fit
 
+    for name, values in (("levels", levels), ("response", response)):
+        check(isinstance(values, torch.Tensor) and values.is_floating_point(),
+              f"{name} must be a float tensor, got "
+              f"{values.dtype if isinstance(values, torch.Tensor) else type(values).__name__}")
+    check_shape(levels, "levels", ["L"])
     if response.dim() == 1:
         response = response[:, None]
     check_shape(response, "response", [levels.shape[0], "C"])
+    check_finite(levels, "levels")
+    check_finite(response, "response")
+    check(bool(((levels >= 0) & (levels <= 1)).all()),
+          f"levels must lie in [0, 1] (8-bit levels over 255), got [{float(levels.min()):g}, {float(levels.max()):g}]")
+    unknowns = 1 if normalised else 3
+    check(levels.shape[0] >= unknowns, f"{levels.shape[0]} levels cannot fit {unknowns} unknowns "
+                                       f"({'x^b' if normalised else 'a x^b + c'}): measure more levels")
     x = to_numpy(levels.double())  # scipy fits on the host
     params = []
-    for ch in range(response.shape[1]):
-        y = to_numpy(response[:, ch].double())
-        if normalised:
-            (b,), _ = curve_fit(lambda x, b: np.power(x, b), x, y, p0=(2.0,), bounds=([0.2], [6.0]), maxfev=10000)
-            params.append((1.0, b, 0.0))
-            continue
-        p, _ = curve_fit(lambda x, a, b, c: a * np.power(x, b) + c, x, y, p0=(1.0, 2.0, 0.0),
-                         bounds=([1e-6, 0.2, -1.0], [10.0, 6.0, 1.0]), maxfev=10000)
-        params.append(p)
+    with warnings.catch_warnings():
+        # Only the parameters are used: a fit as determined as its unknowns (one level for x^b) has no
+        # covariance, which scipy warns of.
+        warnings.simplefilter("ignore", OptimizeWarning)
+        for ch in range(response.shape[1]):
+            y = to_numpy(response[:, ch].double())
+            if normalised:
+                (b,), _ = curve_fit(lambda x, b: np.power(x, b), x, y, p0=(2.0,), bounds=([0.2], [6.0]), maxfev=10000)
+                params.append((1.0, b, 0.0))
+                continue
+            # A flat or falling response has no curve that compensation could invert (its fit sits at a's
+            # bound, with any b).
+            low, high = y[np.argmin(x)], y[np.argmax(x)]
+            check(high > low, f"response channel {ch} does not rise with the level (from {low:.4g} at the lowest level "
+                              f"to {high:.4g} at the highest): were the projector and camera on, and the levels in "
+                              "the order shown?")
+            p, _ = curve_fit(lambda x, a, b, c: a * np.power(x, b) + c, x, y, p0=(1.0, 2.0, 0.0),
+                             bounds=([1e-6, 0.2, -1.0], [10.0, 6.0, 1.0]), maxfev=10000)
+            params.append(p)
     p = torch.tensor(np.array(params), dtype=torch.float32, device=response.device)
     return ResponseCurve(a=p[:, 0], b=p[:, 1], c=p[:, 2])
