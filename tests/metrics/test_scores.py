@@ -18,6 +18,27 @@ def test_psnr_matches_scikit_image():
     assert psnr(a, a) == math.inf
 
 
+@pytest.mark.parametrize("metric", ["psnr", "ssim"])
+def test_8_bit_images_are_refused_where_scikit_image_would_read_their_range(metric):
+    """psnr of uint8 images scored them against a range of 1: -21.6 dB for what is 26.5 dB."""
+    from torchproj.metrics import ssim
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(1, 20, 20, generator=g), torch.rand(1, 20, 20, generator=g)
+    score = (lambda x, y: psnr(x, y)) if metric == "psnr" else (lambda x, y: ssim(x, y, torch.ones(20, 20, dtype=bool)))
+    with pytest.raises(InputError, match="estimate must be a float tensor .*got torch.uint8"):
+        score((a * 255).to(torch.uint8), (b * 255).to(torch.uint8))
+    with pytest.raises(InputError, match="reference must be a float tensor .*got ndarray"):
+        score(a, b.numpy())
+
+
+def test_psnr_of_nothing_or_no_range_is_refused():
+    with pytest.raises(InputError, match="hold no values"):
+        psnr(torch.zeros(1, 0, 4), torch.zeros(1, 0, 4))
+    with pytest.raises(InputError, match="data_range must be positive"):
+        psnr(torch.zeros(1, 2, 2), torch.ones(1, 2, 2), data_range=0)
+
+
 def test_model_space_psnr_per_target():
     op = build_transport(synthetic_calibration(), targets(), merge=False, scale=1.0)
     exact = torch.linalg.lstsq(op.dense().double(), op.rhs.double()).solution.float()

@@ -11,9 +11,21 @@ from ..core.checks import check
 __all__ = ["psnr", "model_space_psnr", "crosstalk", "explained_share"]
 
 
+def _check_float_pair(estimate, reference) -> None:
+    """Both images float tensors: integers would be scored against a data range of 1 (8-bit images
+    over 255 first), where scikit-image would take the dtype's range."""
+    for name, image in (("estimate", estimate), ("reference", reference)):
+        check(isinstance(image, torch.Tensor) and image.is_floating_point(),
+              f"{name} must be a float tensor (8-bit images over 255), got "
+              f"{image.dtype if isinstance(image, torch.Tensor) else type(image).__name__}")
+
+
 def psnr(estimate: torch.Tensor, reference: torch.Tensor, data_range: float = 1.0) -> float:
     """Peak signal-to-noise ratio in dB over all given values: ``10 log10(range^2 / MSE)``."""
+    _check_float_pair(estimate, reference)
     check(estimate.shape == reference.shape, f"shapes differ: {tuple(estimate.shape)} vs {tuple(reference.shape)}")
+    check(estimate.numel() > 0, "estimate and reference hold no values to score")
+    check(data_range > 0, f"data_range must be positive, got {data_range}")
     mse = float((estimate.double() - reference.double()).pow(2).mean())
     return math.inf if mse == 0 else 10 * math.log10(data_range**2 / mse)
 

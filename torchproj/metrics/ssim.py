@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..core.checks import check, check_shape
+from .scores import _check_float_pair
 
 __all__ = ["ssim_map", "ssim", "SSIMLoss"]
 
@@ -176,6 +177,7 @@ def _bounding_box(mask: torch.Tensor, name: str) -> tuple[int, int, int, int]:
 
 def _batched(estimate, reference, mask):
     """Shapes checked; (B, C, H, W), (B, C, H, W), (B, H, W) and whether a batch was given."""
+    _check_float_pair(estimate, reference)
     batched = estimate.dim() == 4
     dims = ["B", "C", "H", "W"] if batched else ["C", "H", "W"]
     sizes = check_shape(estimate, "estimate", dims)
