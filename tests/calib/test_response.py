@@ -42,6 +42,18 @@ def test_a_response_no_curve_can_fit_is_refused_naming_why(levels, response, say
         fit_response(levels, response)
 
 
+def test_a_curve_is_made_from_numbers_and_refused_where_it_does_not_rise():
+    from torchproj.calib import ResponseCurve
+
+    curve = ResponseCurve(1.0, [2.2], 0.0)  # numbers and lists become tensors
+    y = torch.tensor([[[0.25]]])
+    assert float(curve.to_pattern(y)) == pytest.approx(0.25 ** (1 / 2.2), rel=1e-6)
+    for a, b, says in [(1.0, -2.0, "needs a > 0 and b > 0"), (0.0, 2.0, "needs a > 0 and b > 0"),
+                       (1.0, float("nan"), "response b must be finite"), ("x", 2.0, "response a must be a number")]:
+        with pytest.raises(InputError, match=says):
+            ResponseCurve(a, b, 0.0)
+
+
 def test_virtual_rig_response_fit_and_compensation():
     scene = small_scene(camera=(320, 240), projector=(256, 192))
     rig = VirtualRig(scene)

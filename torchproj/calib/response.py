@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..core.checks import check, check_finite, check_shape
+from ..core.errors import InputError
 from ..core.conventions import to_numpy
 
 __all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
@@ -52,6 +53,23 @@ class ResponseCurve:
     b: torch.Tensor
     c: torch.Tensor
     mixing: torch.Tensor | None = None
+
+    def __post_init__(self):
+        # Numbers and lists become tensors; a curve that does not rise has no inverse, so compensation
+        # through it would give nonsense (b = -2 asked the projector for 22 times its white).
+        for name in ("a", "b", "c"):
+            value = getattr(self, name)
+            if not isinstance(value, torch.Tensor):
+                try:
+                    value = torch.as_tensor(value, dtype=torch.float32)
+                except (TypeError, ValueError, RuntimeError):
+                    raise InputError(f"response {name} must be a number or one per channel, got {value!r}") from None
+                setattr(self, name, value)
+            check(value.numel() >= 1 and bool(torch.isfinite(value).all()),
+                  f"response {name} must be finite numbers, got {value.tolist()}")
+        check(bool((self.a > 0).all()) and bool((self.b > 0).all()),
+              f"y = a x^b + c needs a > 0 and b > 0 (a projector's light rises with its input), got "
+              f"a={self.a.tolist()}, b={self.b.tolist()}")
 
     def _params(self, x: torch.Tensor):
         """a, b, c shaped to broadcast over ``x``'s channels, on its device (a curve fitted where the
