@@ -233,6 +233,11 @@ def test_bad_patterns_get_clear_errors():
         rig.capture("near", {"upper": torch.ones(1, 1, 100, 256)})
     with pytest.raises(InputError, match=r"patterns\['upper'\] must be float light in \[0, 1\], got torch.uint8"):
         rig.capture("near", {"upper": torch.full((1, 1, 192, 256), 255, dtype=torch.uint8)})
+    with pytest.raises(InputError, match="patterns hold no image"):
+        rig.capture("near", {"upper": torch.ones(0, 1, 192, 256)})
+    for seed in (1.5, -1, 2 ** 70, True):
+        with pytest.raises(InputError, match="seed must be a whole number"):
+            rig.capture("near", {}, seed=seed)
 
 
 def test_distorted_camera_rays_land_where_opencv_projects_them():

@@ -611,6 +611,7 @@ class VirtualRig:
             by_index[j] = pat.to(self.device, torch.float32)
         sizes = {p.shape[0] for p in by_index.values()}
         check(len(sizes) <= 1, f"every projector must show the same number of images, got {sorted(sizes)}")
+        check(0 not in sizes, "patterns hold no image (N = 0): give at least one per projector")
         return by_index, (sizes.pop() if sizes else 1)
 
     def channel_gain(self, j: int) -> torch.Tensor:
@@ -653,6 +654,8 @@ class VirtualRig:
         Returns:
             :math:`(N, C, H, W)` float images in [0, 1], quantised to the camera's bit depth.
         """
+        check(seed is None or (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2 ** 63),
+              f"seed must be a whole number from 0 to 2**63 - 1 (or None: the rig's own draws), got {seed!r}")
         gen = self.generator if seed is None else torch.Generator(device=self.device).manual_seed(seed)
         radiance = self.radiance(state, patterns)
         return apply_camera(radiance, self.scene.camera, gen if noise else None, quantise, out=radiance)
