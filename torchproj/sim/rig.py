@@ -21,6 +21,7 @@ is a sparse product. This matrix is the simulator's private ground truth: the so
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from dataclasses import dataclass
 
@@ -640,6 +641,14 @@ class VirtualRig:
                      else torch.einsum("cp,npm->ncm", mixing, light))
         return light
 
+    def _generator(self, seed: int | None) -> torch.Generator:
+        """The generator of one capture's noise: the rig's own (None), or a fresh one from ``seed``."""
+        if seed is None:
+            return self.generator
+        check(isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed < 2 ** 63,
+              f"seed must be a whole number from 0 to 2**63 - 1 (or None: the rig's own draws), got {seed!r}")
+        return torch.Generator(device=self.device).manual_seed(int(seed))
+
     def capture(self, state: str, patterns: dict[str | int, torch.Tensor], seed: int | None = None,
                 noise: bool = True, quantise: bool = True) -> torch.Tensor:
         """Capture what the camera sees while the projectors show ``patterns``.
@@ -654,9 +663,7 @@ class VirtualRig:
         Returns:
             :math:`(N, C, H, W)` float images in [0, 1], quantised to the camera's bit depth.
         """
-        check(seed is None or (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2 ** 63),
-              f"seed must be a whole number from 0 to 2**63 - 1 (or None: the rig's own draws), got {seed!r}")
-        gen = self.generator if seed is None else torch.Generator(device=self.device).manual_seed(seed)
+        gen = self._generator(seed)
         radiance = self.radiance(state, patterns)
         return apply_camera(radiance, self.scene.camera, gen if noise else None, quantise, out=radiance)
 
@@ -737,5 +744,5 @@ class VirtualRig:
                         received[ch].index_add_(0, point, light)
                 value = received * w.T[[min(ch, w.shape[1] - 1) for ch in range(out_c)]]
                 total.index_add_(1, owner[layer.ray], value)
-        gen = self.generator if seed is None else torch.Generator(device=self.device).manual_seed(seed)
+        gen = self._generator(seed)
         return apply_camera(total[None, :, :, None], cam, gen if noise else None)[0, :, :, 0]
