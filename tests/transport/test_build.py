@@ -117,6 +117,21 @@ def test_corners_place_the_image():
     assert covered[2:12, 5:15].all() and not covered[:, :5].any()
 
 
+def test_a_mirrored_placement_is_an_image_and_a_crossed_one_is_refused():
+    img = torch.zeros(1, 4, 4)
+    img[0, 0, 0] = 1.0
+    mirrored = torch.tensor([[14.0, 2.0], [5.0, 2.0], [5.0, 11.0], [14.0, 11.0]])  # left and right swapped
+    values, covered = target_on_camera(Target("s", img, corners=mirrored), torch.ones(15, 20, dtype=torch.bool))
+    assert values[0, 2, 14] == pytest.approx(1.0) and covered[2:12, 5:15].all()
+    lit = torch.ones(15, 20, dtype=torch.bool)
+    for corners, says in [([[5, 2], [14, 11], [14, 2], [5, 11]], "do not go once around a quadrilateral"),  # a bow tie
+                          ([[1, 1], [5, 1], [10, 1], [15, 1]], "do not go once around a quadrilateral"),  # a line
+                          ([[float("nan"), 2], [14, 2], [14, 11], [5, 11]], "corners must be finite"),
+                          ([[100, 100], [200, 100], [200, 200], [100, 200]], "place the image on none of the lit")]:
+        with pytest.raises(InputError, match=says):
+            target_on_camera(Target("s", img, corners=torch.tensor(corners, dtype=torch.float32), name="x"), lit)
+
+
 def test_a_target_the_camera_sees_on_a_sliver_is_refused_naming_it():
     """A back surface hidden behind a front one but for a row of pixels cannot hold an image, and
     SSIM could not score it after the solve: the warp refuses it, naming the target and its span."""

@@ -359,6 +359,7 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     if target.corners is not None:
         corners = torch.as_tensor(target.corners, dtype=torch.float32)
         check_shape(corners, "corners", [4, 2])
+        _check_corners(target, corners)
     else:
         ys, xs = torch.nonzero(mask, as_tuple=True)
         check(len(xs) > 0, f"target {target.name!r}: its region holds no lit camera pixel in state {target.state!r}")
@@ -373,6 +374,9 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     image = torch.cat([target.image.detach().float().cpu(), torch.ones(1, h_img, w_img)])[None].to(mask.device)
     warped = warp_perspective(image, dst_from_src, (H, W), mode="bilinear", align_corners=True)[0]
     covered = mask & (warped[-1] > 0.999)
+    check(target.corners is None or bool(covered.any()),
+          f"target {target.name!r}: its corners {corners.tolist()} place the image on none of the lit camera pixels "
+          f"of state {target.state!r} (camera pixel coordinates, x right and y down, within {W}x{H})")
     _check_room(target, covered)
     return warped[:-1].clamp(0, 1), covered
 
@@ -387,6 +391,18 @@ def _target_channels(targets: list[Target]) -> int:
     channels = {check_image(t.image, f"target {t.name or i!r} image")["C"] for i, t in enumerate(targets)}
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
     return channels.pop()
+
+
+def _check_corners(target: Target, corners: torch.Tensor) -> None:
+    """Corners :math:`(4, 2)` that go once around a quadrilateral with area: each turn from one edge to
+    the next the same way (a mirrored image turns the other way throughout). A crossed order (a bow
+    tie) would fold the image over itself, and a line or a point stretches it over nothing."""
+    check(bool(torch.isfinite(corners).all()), f"target {target.name!r}: corners must be finite, got {corners.tolist()}")
+    edges = corners.roll(-1, 0) - corners
+    turns = edges[:, 0] * edges.roll(-1, 0)[:, 1] - edges[:, 1] * edges.roll(-1, 0)[:, 0]
+    check(bool((turns > 0).all() or (turns < 0).all()),
+          f"target {target.name!r}: corners {corners.tolist()} do not go once around a quadrilateral with area; give "
+          "the image's top-left, top-right, bottom-right and bottom-left corners in that order")
 
 
 def _check_room(target: Target, covered: torch.Tensor) -> None:
