@@ -244,6 +244,19 @@ class TestBadInput:
         with pytest.raises(InputError, match=says):
             build_with(synthetic_calibration(), [targets()[0], Target("far", image, name="x")])
 
+    def test_a_mask_of_zeros_and_ones_is_a_mask_and_one_of_other_values_is_refused(self):
+        """A NaN or a painted 0.5 read as bool is True: the whole camera, or a blurred edge, taken in."""
+        mask = torch.zeros(15, 20, dtype=torch.bool)
+        mask[2:13, 3:17] = True
+        image = torch.rand(1, 6, 8)
+        want = build_transport(synthetic_calibration(), [Target("near", image, mask=mask)], scale=1.0)
+        for same in (mask.float(), mask.to(torch.uint8), mask.numpy()):
+            got = build_transport(synthetic_calibration(), [Target("near", image, mask=same)], scale=1.0)
+            assert torch.equal(got.rhs, want.rhs) and got.shape == want.shape
+        for bad in (mask.float() * 0.5, mask.to(torch.uint8) * 255, torch.full((15, 20), float("nan"))):
+            with pytest.raises(InputError, match="'x' mask must be bool, or hold only 0 and 1"):
+                Target("near", image, mask=bad, name="x")
+
     def test_one_target_not_in_a_list_is_refused_saying_so(self):
         with pytest.raises(InputError, match="targets must be a list of Target, got Target"):
             build_transport(synthetic_calibration(), targets()[0])

@@ -33,6 +33,7 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 
 from ..core.checks import check, check_device, check_finite, check_image, check_shape
 from ..core.conventions import round_to_pixel
+from ..core.errors import InputError
 from ..calib.maps import map_slope, pixel_square
 from ..calib.bundle import cell_shares_of, edge_pixels
 from ..calib.edges import EdgePixels
@@ -338,6 +339,25 @@ class Target:
     mask: torch.Tensor | None = None
     corners: torch.Tensor | None = None
     name: str = ""
+
+    def __post_init__(self):
+        # Every use takes the mask as bool (selection, &, indexing): one of 0/1 values becomes that here,
+        # and one of other values is refused: a NaN or a painted 0.5 read as bool is True, the whole
+        # camera or a blurred edge taken in.
+        if self.mask is None:
+            return
+        mask = self.mask
+        if not isinstance(mask, torch.Tensor):
+            try:  # a numpy array, as an image library gives a painted mask
+                mask = torch.as_tensor(mask)
+            except (TypeError, ValueError, RuntimeError):
+                raise InputError(f"target {self.name!r} mask must be a bool tensor, got {type(mask).__name__}") from None
+        if mask.dtype != torch.bool:
+            check(bool(((mask == 0) | (mask == 1)).all()),
+                  f"target {self.name!r} mask must be bool, or hold only 0 and 1; got {mask.dtype} values "
+                  "outside them (threshold a painted mask first: mask > 127 for 8-bit, mask > 0.5 for [0, 1])")
+            mask = mask != 0
+        self.mask = mask
 
 
 def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
