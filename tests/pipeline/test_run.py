@@ -342,6 +342,38 @@ def test_target_images_by_name_or_file(tmp_path):
         target_image(str(tmp_path / "broken.png"), 1)
 
 
+def test_scene_targets_name_an_image_that_is_not_a_library_image(calibrated):
+    from torchproj.pipeline import scene_targets
+
+    scene, cal = calibrated
+    grey = target_image("astronaut", 1)
+    for bad, says in [(grey.numpy(), "must be a torch.Tensor, got ndarray"), (grey[0], r"must have shape \(C, H, W\)")]:
+        with pytest.raises(InputError, match=f"target 'near' image {says}"):
+            scene_targets(scene, [bad, grey], rig=cal.rig)
+
+
+def test_a_scikit_image_name_that_is_not_one_picture_is_refused_naming_it(monkeypatch):
+    """lfw_subset (200 faces of 25 x 25) was read as a 200 x 25 image of 25 channels; stereo_motorcycle
+    (a tuple) and data_dir (a string) raised numpy's and Python's errors; a loader that must download
+    raised the network's."""
+    from skimage import data
+
+    with pytest.raises(InputError, match=r"'lfw_subset': .*array of shape \(200, 25, 25\), not one grey"):
+        target_image("lfw_subset", 1)
+    with pytest.raises(InputError, match="'stereo_motorcycle': .*gives tuple"):
+        target_image("stereo_motorcycle", 1)
+    with pytest.raises(InputError, match="unknown image 'data_dir'"):
+        target_image("data_dir", 1)
+
+    def offline():
+        raise ConnectionError("no network")
+    monkeypatch.setattr(data, "brain", offline)
+    with pytest.raises(InputError, match="'brain': scikit-image could not load it .*give an image file"):
+        target_image("brain", 1)
+    with pytest.raises(InputError, match="channels must be 1 .* or 3"):
+        target_image("astronaut", 2)
+
+
 @pytest.mark.parametrize("name", DEFAULT_IMAGES)
 @pytest.mark.parametrize("channels", [1, 3])
 def test_a_default_image_read_from_its_file_is_what_its_loader_gives(name, channels):

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_image
+from ..core.errors import InputError
 from ..core.imageio import read_image
 from ..scene.config import Scene
 from ..transport import Target
@@ -34,15 +35,26 @@ def target_image(name: str, channels: int) -> torch.Tensor:
     """
     from skimage import data  # a lazy package: its loaders import on first use
 
+    check(channels in (1, 3), f"channels must be 1 (grey) or 3 (RGB), the camera's, got {channels!r}")
     if Path(name).suffix:
         img = read_image(name, "save the target image again as PNG, TIFF or JPEG").permute(1, 2, 0).numpy()
     elif (shipped := _shipped_file(name)) is not None:
         img = read_image(shipped).permute(1, 2, 0).numpy()
     else:
-        check(name in getattr(data, "__all__", dir(data)) and not name.startswith("_"),
+        check(name in getattr(data, "__all__", dir(data)) and not name.startswith("_")
+              and callable(getattr(data, name, None)),
               f"unknown image {name!r}: give an image file (with its suffix) or a scikit-image test image "
               "name such as astronaut, chelsea, coffee, rocket, camera, checkerboard, horse")
-        raw = np.asarray(getattr(data, name)())
+        try:
+            raw = getattr(data, name)()
+        except Exception as exc:  # noqa: BLE001 - a loader that must download fails in as many ways as a network
+            raise InputError(f"image {name!r}: scikit-image could not load it ({type(exc).__name__}: some of its "
+                             "images are downloaded on first use); give an image file instead") from None
+        check(isinstance(raw, np.ndarray) and (raw.ndim == 2 or (raw.ndim == 3 and raw.shape[2] in (3, 4))),
+              f"image {name!r}: scikit-image's loader gives "
+              f"{f'an array of shape {raw.shape}' if isinstance(raw, np.ndarray) else type(raw).__name__}, not one "
+              "grey or colour picture; choose another name or give an image file")
+        raw = np.asarray(raw)
         img = raw.astype(np.float32) / (1.0 if raw.dtype == bool else float(np.iinfo(raw.dtype).max)
                                         if raw.dtype.kind in "ui" else 1.0)
     if img.ndim == 2:
@@ -108,6 +120,8 @@ def scene_targets(scene: Scene, images: list[torch.Tensor] | None = None, rig=No
     specs = scene.target_specs()
     images = scene_images(scene) if images is None else list(images)
     check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
+    for spec, img in zip(specs, images):
+        check_image(img, f"target {spec.name!r} image")
     check(rig is not None or all(s.surfaces is None for s in specs),
           "targets that name surfaces need the virtual rig for their camera masks: pass rig=")
     return [Target(spec.state, img.to(torch.float32), name=spec.name,
