@@ -412,6 +412,10 @@ def test_target_sets_solved_side_by_side_equal_each_solved_alone(quarter_rig):
         assert float(op.with_rhs(r).objective(v)) <= float(op.with_rhs(r).objective(alone)) * (1 + 1e-3) + 1e-9
     with pytest.raises(InputError, match="one image per target"):
         retarget_rhs(op, cal.states, frames[0][:1])
+    with pytest.raises(InputError, match="a stacked batch: give list"):
+        solve_target_sets(op, torch.stack(rhs))
+    with pytest.raises(InputError, match=r"rhs_sets\[1\] must have shape"):
+        solve_target_sets(op, [rhs[0], rhs[1][:5]])
 
 
 @contextlib.contextmanager

@@ -11,13 +11,17 @@ from ..core.checks import check
 __all__ = ["psnr", "model_space_psnr", "crosstalk", "explained_share"]
 
 
+def _check_float(image, name: str) -> None:
+    """A float tensor: integers would be scored against a data range of 1 (8-bit images over 255
+    first), where scikit-image would take the dtype's range."""
+    check(isinstance(image, torch.Tensor) and image.is_floating_point(),
+          f"{name} must be a float tensor (8-bit images over 255), got "
+          f"{image.dtype if isinstance(image, torch.Tensor) else type(image).__name__}")
+
+
 def _check_float_pair(estimate, reference) -> None:
-    """Both images float tensors: integers would be scored against a data range of 1 (8-bit images
-    over 255 first), where scikit-image would take the dtype's range."""
-    for name, image in (("estimate", estimate), ("reference", reference)):
-        check(isinstance(image, torch.Tensor) and image.is_floating_point(),
-              f"{name} must be a float tensor (8-bit images over 255), got "
-              f"{image.dtype if isinstance(image, torch.Tensor) else type(image).__name__}")
+    _check_float(estimate, "estimate")
+    _check_float(reference, "reference")
 
 
 def psnr(estimate: torch.Tensor, reference: torch.Tensor, data_range: float = 1.0) -> float:

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..core.checks import check, check_shape
-from .scores import _check_float_pair
+from .scores import _check_float, _check_float_pair
 
 __all__ = ["ssim_map", "ssim", "SSIMLoss"]
 
@@ -215,6 +215,7 @@ class SSIMLoss(nn.Module):
 
     def __init__(self, reference: torch.Tensor, mask: torch.Tensor, data_range: float = 1.0):
         super().__init__()
+        _check_float(reference, "reference")
         reference, _, mask, self.batched = _batched(reference, reference, mask)
         self.c1, self.c2 = _constants(data_range)
         self.crops = [_bounding_box(m, f"mask[{b}]" if self.batched else "mask") for b, m in enumerate(mask)]

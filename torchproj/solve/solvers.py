@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..core.checks import check, check_count, check_finite, check_number
+from ..core.checks import check, check_count, check_finite, check_number, check_shape
 from ..core.errors import InputError
 from ..core.fused import fused
 from ..core.progress import progress_bar
@@ -161,7 +161,12 @@ def solve_target_sets(op: TransportOperator, rhs_sets: list[torch.Tensor], bound
     Returns:
         per set its :math:`(N_{cols}, C)` values, and the joint :class:`SolveResult`.
     """
+    check(isinstance(rhs_sets, (list, tuple)) and all(isinstance(r, torch.Tensor) for r in rhs_sets),
+          f"rhs_sets must be a list of (N_rows, C) tensors, one per set, got {type(rhs_sets).__name__}"
+          + (" (a stacked batch: give list(rhs_sets))" if isinstance(rhs_sets, torch.Tensor) else ""))
     check(len(rhs_sets) >= 1, "give at least one set of targets")
+    for k, r in enumerate(rhs_sets):
+        check_shape(r, f"rhs_sets[{k}]", [op.shape[0], "C"])
     widths = [r.shape[1] for r in rhs_sets]
     joint = solve_fista(op.with_rhs(torch.cat(rhs_sets, 1)), bounds, max_iter=max_iter, tol=tol, progress=progress)
     return list(torch.split(joint.patterns, widths, 1)), joint
