@@ -365,6 +365,17 @@ def test_placement_error_of_real_scans_from_files(tmp_path, capsys):
     assert main(["placement-error", str(moved), "--reference", str(ref), "--distance", "700", "--mask",
                  str(tmp_path / "small_mask.png"), "--out", str(bad)]) == 2
     assert "--mask is 10x10" in capsys.readouterr().err and not bad.exists()
+    # A scan that is not the decoder's (2-vectors, a file of garbage) and a distance of inf are refused
+    # too: they raised scipy's and numpy's errors, and inf made every error 0%.
+    _fake_decode(tmp_path / "flat", goal[..., :2])
+    (tmp_path / "garbage").mkdir()
+    (tmp_path / "garbage" / "correspondence.npz").write_bytes(b"not an npz")
+    for scan, distance, says in [("flat", "700", "points must be camera H x W x 3"),
+                                 ("garbage", "700", "cannot be read as the decoder's .npz"),
+                                 ("placed", "inf", "--distance must be the object-projector distance")]:
+        assert main(["placement-error", str(tmp_path / scan), "--reference", str(ref), "--distance", distance,
+                     "--out", str(bad)]) == 2
+        assert says in capsys.readouterr().err and not bad.exists()
 
 
 @pytest.mark.slow

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,7 +35,7 @@ from ..calib.triangulate import ProCamCalibration, triangulate
 from ..core.checks import check
 from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
-from ..core.errors import ConfigError, InputError
+from ..core.errors import CaptureError, ConfigError, InputError
 from ..scene.config import Scene, State, Surface
 from ..scene.pose import rotation_from_rotvec
 from ..sim.rig import VirtualRig
@@ -544,10 +545,17 @@ def _scan_points(folder: Path, mask: np.ndarray | None) -> np.ndarray:
     path = folder / "correspondence.npz"
     if not path.is_file():
         raise InputError(f"{path}: not found; give the --out folder of torchproj decode")
-    data = np.load(path)
-    if "points" not in data:
+    try:
+        with np.load(path) as data:  # no pickles: a file that holds objects is not the decoder's
+            points = data["points"] if "points" in data.files else None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise CaptureError(f"{path}: cannot be read as the decoder's .npz ({type(exc).__name__}); run torchproj "
+                           "decode again") from None
+    if points is None:
         raise InputError(f"{path}: holds no points; run torchproj decode with --calibration FILE.xml")
-    points = data["points"]
+    if points.ndim != 3 or points.shape[-1] != 3 or not np.issubdtype(points.dtype, np.floating):
+        raise CaptureError(f"{path}: points must be camera H x W x 3 floats, got {points.dtype} {points.shape}; run "
+                           "torchproj decode --calibration again")
     keep = np.isfinite(points).all(-1)
     if mask is not None:
         if mask.shape != keep.shape:
@@ -573,7 +581,7 @@ def placement_error(placed, reference, distance: float, mask=None) -> dict:
     """
     from ..core.imageio import read_image
 
-    if not distance > 0:
+    if not (distance > 0 and math.isfinite(distance)):
         raise InputError(f"--distance must be the object-projector distance (> 0), got {distance:g}")
     keep = None if mask is None else to_numpy(read_image(mask).mean(0)) > 0.5
     placed_points = _scan_points(Path(placed), keep)
