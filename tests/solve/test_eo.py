@@ -144,3 +144,7 @@ def test_epipolar_chains_need_two_projectors_and_calibrations():
         solve_eo(op, (0, 1), chains="epipolar")
     with pytest.raises(InputError, match="chains must be"):
         solve_eo(op, (0, 1), chains="rows")
+    cals = synthetic_calibration()
+    for band in (0.0, -1.0, float("nan"), float("inf")):  # each made every cell one band, or reversed them
+        with pytest.raises(InputError, match="band must be a finite number > 0"):
+            solve_eo(op, (0, 1), calibrations=cals, band=band)

@@ -105,6 +105,8 @@ def epipolar_bands(op: TransportOperator, F: torch.Tensor, band: float = 1.0) ->
         :math:`(N_{cols},)` int64 band index.
     """
     check(len(op.projector_sizes) == 2, "epipolar chains need exactly two projectors; use chains='components'")
+    # NaN, 0 or inf would round every line to one integer past int64's reach: one band of everything.
+    band = check_number(band, "band", strict=True)
     F = F.double().cpu()
     e1 = torch.linalg.svd(F)[2][-1]  # right null vector: the epipole in projector 1
     w1, h1 = op.projector_sizes[0]
