@@ -300,6 +300,20 @@ def test_an_image_objective_on_tinted_surfaces_models_each_channel():
     assert ssim["targets"][0]["psnr_db"] > grey["targets"][0]["psnr_db"] + 1.5
 
 
+def test_a_calibration_of_another_scene_is_refused_not_run_in_its_own_world(calibrated):
+    """A calibration of another scene was solved and scored in its own world, under this scene's name."""
+    import dataclasses
+
+    scene, cal = calibrated
+    brighter = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, exposure=scene.camera.exposure * 2))
+    with pytest.raises(InputError, match="the calibration is of scene 'small' .* differs from scene 'small'"):
+        run_virtual(brighter, calibration=cal)
+    with pytest.raises(InputError, match="calibration must be a VirtualCalibration"):
+        run_virtual(scene, calibration="calib")
+    renamed = dataclasses.replace(scene, name="renamed")  # a name, targets and show: are not the world
+    assert run_virtual(renamed, calibration=cal, max_iter=5).report["scene"] == "renamed"
+
+
 def test_depth_sweep_peaks_where_each_image_belongs(calibrated):
     scene, cal = calibrated
     result = run_virtual(scene, calibration=cal)

@@ -118,10 +118,16 @@ def geometry_key(scene: Scene) -> str:
     return _scene_key(scene, {"cast": "geometry"})
 
 
+def scene_as_calibrated(scene: Scene) -> dict:
+    """What of ``scene`` a calibration depends on (module docstring), canonically: two scenes that give
+    the same are one world to calibrate, whatever their names, targets and ``show:`` changes."""
+    return _canonical(dataclasses.replace(scene, name="", targets=[], show=None, source=None))
+
+
 def _scene_key(scene: Scene, what: dict) -> str:
     """A digest of the scene as calibrated (module docstring), of ``what`` is made from it, and of the code."""
-    calibrated = dataclasses.replace(scene, name="", targets=[], show=None, source=None)
-    text = json.dumps({"scene": _canonical(calibrated), **what, "code": _code_digest()}, sort_keys=True, default=str)
+    text = json.dumps({"scene": scene_as_calibrated(scene), **what, "code": _code_digest()}, sort_keys=True,
+                      default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -16,6 +16,7 @@ import torch
 
 from ..calib import SATURATED_SHARE, sequence_bits
 from ..core.checks import check
+from ..core.errors import InputError
 from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
@@ -29,8 +30,9 @@ from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
 from .targets import scene_images, scene_targets
-from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, smoothed_key,
-                    keep_normal_matrices, read_geometry, read_normal_matrices, transport_key, writing_behind)
+from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, keep_normal_matrices,
+                    read_geometry, read_normal_matrices, scene_as_calibrated, smoothed_key, transport_key,
+                    writing_behind)
 from .virtual import VirtualCalibration, calibrate_virtual, check_shown_light, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
@@ -76,6 +78,19 @@ class RunResult:
         write_json(folder / "report.json", self.report)
         (folder / "report.md").write_text(text)
         return text
+
+
+def _check_calibration_of(calibration, scene: Scene) -> None:
+    """A calibration given to a run must be of the run's scene as calibrated: one of another scene (another
+    size, another rig) was solved and scored in its own world, and the report named the scene given."""
+    check(isinstance(calibration, VirtualCalibration),
+          f"calibration must be a VirtualCalibration (calibrate_virtual's), got {type(calibration).__name__}")
+    if scene_as_calibrated(calibration.rig.scene) != scene_as_calibrated(scene):
+        theirs, ours = calibration.rig.scene, scene
+        raise InputError(f"the calibration is of scene {theirs.name!r} (camera {theirs.camera.width}x"
+                         f"{theirs.camera.height}), which differs from scene {ours.name!r} (camera {ours.camera.width}x"
+                         f"{ours.camera.height}) in more than its name, targets and show: section; calibrate this "
+                         "scene, or pass its own scene")
 
 
 def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), images: list[torch.Tensor] | None = None,
@@ -177,6 +192,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         cached = None
         calibrated_with = dict(oracle=oracle is not None, bits=bits, plane_tolerance=plane_tolerance)
         if calibration is not None:
+            _check_calibration_of(calibration, scene)
             cal = calibration
         elif cache:
             cal, cached = cached_calibration(scene, device=device, progress=progress, **calibrated_with)
