@@ -272,6 +272,12 @@ def test_unknown_solver(problem):
         solve_patterns(problem[0], "magic")
 
 
+def test_an_option_the_solver_does_not_take_is_named_with_those_it_does(problem):
+    with pytest.raises(InputError, match=r"solver 'fista' takes no option 'lr'; its options: \['max_iter'"):
+        solve_patterns(problem[0], "fista", (0.0, 1.0), lr=0.1)
+    assert solve_patterns(problem[0], "adam", (0.0, 1.0), lr=0.05, max_iter=3).iterations <= 3
+
+
 @pytest.mark.parametrize("solver", ["fista", "pgd", "adam", "lf"])
 @pytest.mark.parametrize("option, value, says", [
     ("max_iter", 2.5, "max_iter must be a whole number >= 1, got 2.5"),

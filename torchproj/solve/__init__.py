@@ -19,6 +19,14 @@ def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> So
     from ..core.checks import check
 
     check(method in SOLVERS, f"unknown solver {method!r}; choose from {sorted(SOLVERS)}")
+    import inspect
+
+    # Named here, not as Python's "got an unexpected keyword argument" from inside the solver (a
+    # run's solver_options reach this point from a dict).
+    options = [name for name, p in inspect.signature(SOLVERS[method]).parameters.items()
+               if p.kind is p.KEYWORD_ONLY]
+    unknown = sorted(set(kwargs) - set(options))
+    check(not unknown, f"solver {method!r} takes no option {', '.join(map(repr, unknown))}; its options: {options}")
     return SOLVERS[method](op, bounds, **kwargs)
 
 
