@@ -83,3 +83,24 @@ def test_needs_unmerged_rows_and_sane_limits(problem):
         solve_gain_offset(op, flat, (0.0, 1.0), gain=(1.5, 0.5))
     with pytest.raises(InputError, match="positive"):
         solve_gain_offset(op, flat, (0.0, 1.0), gain=(0.0, 0.0))
+    with pytest.raises(InputError, match="gain must be two numbers"):
+        solve_gain_offset(op, flat, (0.0, 1.0), gain=1.0)
+    with pytest.raises(InputError, match="offset limits must be finite"):
+        solve_gain_offset(op, flat, (0.0, 1.0), offset=(0.0, float("inf")))
+
+
+def test_a_run_checks_its_gain_and_offset_before_calibrating(monkeypatch):
+    """A run given gain_offset=(1, 2) calibrated first and then raised Python's 'not iterable'."""
+    from torchproj.pipeline import run as run_module
+    from torchproj.scene import parse_scene
+
+    from ..helpers import small_config
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("calibrated before the options were checked")
+    monkeypatch.setattr(run_module, "calibrate_virtual", no_work)
+    monkeypatch.setattr(run_module, "cached_calibration", no_work)
+    scene = parse_scene(small_config())
+    for given, says in [((1.0, 2.0), "gain must be two numbers"), (((1.0, 2.0),), "gain_offset must be \\(\\(gain_lo")]:
+        with pytest.raises(InputError, match=says):
+            run_module.run_virtual(scene, gain_offset=given)

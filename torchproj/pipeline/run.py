@@ -21,6 +21,7 @@ from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
 from ..solve.compensate import ILL_POSED_MESSAGE, iteration_limit, resolve_smoothness, unexplained
+from ..solve.gain_offset import check_gain_offset
 from ..solve.refine import refine_patterns
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, Target, build_transport, select_maps
 from ..transport.build import build_operators, used_colour_weights
@@ -333,6 +334,13 @@ def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps,
     check(gain_offset is None or (solver == "fista" and image is None),
           "gain_offset works with the fista solver and the l2 objective; drop --solver, --objective or the "
           "gain/offset option")
+    if gain_offset is not None:
+        try:
+            gain, offset = gain_offset
+        except (TypeError, ValueError):
+            raise InputError(f"gain_offset must be ((gain_lo, gain_hi), (offset_lo, offset_hi)), got {gain_offset!r}") \
+                from None
+        check_gain_offset(gain, offset)
     check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
     return oracle, bounds, image
 

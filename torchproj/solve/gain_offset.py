@@ -12,11 +12,13 @@ target for fixed p. Each block step cannot raise the objective, so the sequence 
 
 from __future__ import annotations
 
+import math
 import time
 
 import torch
 
 from ..core.checks import check, check_shape
+from ..core.errors import InputError
 from ..transport.operator import TransportOperator
 from .solvers import SolveResult, check_bounds, solve_fista
 
@@ -51,6 +53,22 @@ def _box_quadratic_2d(H: torch.Tensor, r: torch.Tensor, box: torch.Tensor) -> to
     return min(candidates, key=value)
 
 
+def check_gain_offset(gain, offset) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``gain`` and ``offset`` as ``(lo, hi)`` pairs of finite numbers, lo <= hi and a positive upper gain."""
+    limits = []
+    for name, pair in (("gain", gain), ("offset", offset)):
+        try:
+            lo, hi = (float(v) for v in pair)
+        except (TypeError, ValueError):
+            raise InputError(f"{name} must be two numbers (lo, hi), got {pair!r}") from None
+        check(math.isfinite(lo) and math.isfinite(hi), f"{name} limits must be finite, got {pair!r}")
+        limits.append((lo, hi))
+    (g_lo, g_hi), (o_lo, o_hi) = limits
+    check(g_lo <= g_hi and o_lo <= o_hi, f"gain and offset limits need lo <= hi, got gain={gain}, offset={offset}")
+    check(g_hi > 0, f"the gain's upper limit must be positive (a gain of 0 shows no image), got {gain}")
+    return (g_lo, g_hi), (o_lo, o_hi)
+
+
 def solve_gain_offset(op: TransportOperator, flat: torch.Tensor, bounds=(0.0, 1.0), *, gain=(0.5, 1.5), offset=(-0.2, 0.2),
                       outer: int = 8, max_iter: int = 300, tol: float = 1e-6, progress: bool | None = None) -> SolveResult:
     """Box-constrained patterns plus one gain and offset per target.
@@ -71,10 +89,7 @@ def solve_gain_offset(op: TransportOperator, flat: torch.Tensor, bounds=(0.0, 1.
         ``info["offset"]`` (one per target) and ``info["operator"]``, the operator of the final targets.
     """
     lo, hi = check_bounds(bounds)
-    g_lo, g_hi = (float(v) for v in gain)
-    o_lo, o_hi = (float(v) for v in offset)
-    check(g_lo <= g_hi and o_lo <= o_hi, f"gain and offset limits need lo <= hi, got gain={gain}, offset={offset}")
-    check(g_hi > 0, f"the gain's upper limit must be positive (a gain of 0 shows no image), got {gain}")
+    (g_lo, g_hi), (o_lo, o_hi) = check_gain_offset(gain, offset)
     check_shape(flat, "flat", [op.shape[0], op.channels])
     check(bool((op.constant == 0).all()), "op must be built with merge=False: merged rows fix the targets")
     check(outer >= 1, f"outer must be >= 1, got {outer}")
