@@ -94,6 +94,25 @@ def test_patterns_of_levels_in_another_type_are_refused_not_shown_as_white(quart
         evaluate_patterns(cal, patterns, targets, scale=model.scale)
 
 
+def test_targets_of_another_camera_or_kind_are_named_and_a_numpy_seed_is_a_seed(quarter_rig):
+    """A mask of another camera raised torch's size mismatch, one Target 'not iterable', a numpy seed
+    was refused while the rig takes it, and a scale of '1' raised a TypeError."""
+    import dataclasses
+
+    scene, cal = quarter_rig
+    targets = scene_targets(scene, rig=cal.rig)
+    model = ProjectionModel.from_calibration(cal, targets)
+    patterns = model.to_patterns()
+    other = [dataclasses.replace(targets[0], mask=torch.ones(10, 10, dtype=torch.bool)), targets[1]]
+    for given, options, says in [(other, {}, "'near' mask must have shape"), (targets[0], {}, "list of Target"),
+                                 (targets, {"scale": "1"}, "scale must be a finite number > 0")]:
+        with pytest.raises(InputError, match=says):
+            evaluate_patterns(cal, patterns, given, **{"scale": model.scale, **options})
+    by_numpy = evaluate_patterns(cal, patterns, targets, scale=model.scale, seed=np.int64(4)).targets
+    by_int = evaluate_patterns(cal, patterns, targets, scale=model.scale, seed=4).targets
+    assert [t.psnr_db for t in by_numpy] == [t.psnr_db for t in by_int]
+
+
 def test_ghost_images_follow_the_light_to_where_parallax_puts_it(quarter_rig):
     """One projector shows a picture; the simulator renders it on the far plane and on the near one.
     Carried from the far capture through the calibrated correspondences, the picture must reproduce

@@ -8,12 +8,13 @@ from the physics, never computed as ``A p``, so calibration errors show in the s
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import check, check_image
+from ..core.checks import check, check_image, check_number
 from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
@@ -186,9 +187,16 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     states = calibration.states if states is None else states
     check(len(patterns) == len(calibration.rig.scene.projectors),
           f"give one pattern per projector ({len(calibration.rig.scene.projectors)}), got {len(patterns)}")
-    check(scale > 0, f"scale must be positive, got {scale}")
-    check(seed is None or (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
+    check_number(scale, "scale", strict=True)
+    check(seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
           f"seed must be a whole number from 0 to 2**62 (or None: the rig's own noise draws), got {seed!r}")
+    seed = None if seed is None else int(seed)
+    check(isinstance(targets, (list, tuple)) and all(isinstance(t, Target) for t in targets),
+          f"targets must be a list of Target, got {type(targets).__name__}")
+    camera = (calibration.rig.scene.camera.height, calibration.rig.scene.camera.width)
+    for target in (t for t in targets if t.mask is not None):
+        check(tuple(target.mask.shape) == camera,
+              f"target {target.name!r} mask must have shape {camera} (the camera's), got {tuple(target.mask.shape)}")
     shown = as_light(patterns, calibration.rig.device)
     captures = {state: calibration.rig.capture(state, shown, noise=noise, seed=None if seed is None else seed + k)[0].cpu()
                 for k, state in enumerate(dict.fromkeys(t.state for t in targets))}
