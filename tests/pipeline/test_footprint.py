@@ -110,6 +110,12 @@ def test_a_bad_tolerance_is_refused(quarter_rig, bad):
         choose_footprint(cal.states, scene_targets(scene, None, cal.rig), tolerance_db=bad)
 
 
+def test_one_target_without_a_list_is_named(quarter_rig):
+    scene, cal = quarter_rig
+    with pytest.raises(InputError, match="targets must be a list of Target, got Target"):
+        choose_footprint(cal.states, scene_targets(scene, None, cal.rig)[0])
+
+
 def test_an_unknown_footprint_is_refused_before_any_work(quarter_rig):
     scene, _ = quarter_rig
     with pytest.raises(InputError, match="footprint must be one of"):

@@ -51,7 +51,7 @@ from ..solve import solve_fista
 from ..solve.compensate import iteration_limit
 from ..transport import FOOTPRINTS, StateCalibration, Target, TransportOperator, build_transport, csr_from_coo
 # build_transport's own rows and scale, before assembly: the screen needs nearest's rows, not its operator
-from ..transport.build import _scale, _target_rows
+from ..transport.build import _scale, _target_rows, check_targets
 
 __all__ = ["AUTO", "AUTO_TOLERANCE_DB", "SCREEN_BACK_PROJECTION", "SCREEN_ITERATIONS", "FootprintChoice", "check_footprint", "choose_footprint"]
 
@@ -138,6 +138,7 @@ def choose_footprint(states: dict[str, StateCalibration], targets: list[Target],
     """
     check(isinstance(tolerance_db, (int, float)) and math.isfinite(tolerance_db) and tolerance_db >= 0,
           f"tolerance_db must be a number >= 0 (dB), got {tolerance_db!r}")
+    check_targets(targets)
     t0 = time.perf_counter()
     used = {t.state for t in targets}
     if any(states[s].shares is None for s in used if s in states):

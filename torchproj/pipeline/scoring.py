@@ -18,7 +18,7 @@ from ..core.checks import check, check_image, check_number
 from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
-from ..transport.build import kept_target_on_camera  # the targets' warps, kept by the model's build
+from ..transport.build import check_targets, kept_target_on_camera  # the targets' warps, kept by the model's build
 
 __all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "affine_psnr", "evaluate_patterns", "ghost_images",
            "score_image"]
@@ -191,8 +191,7 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     check(seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
           f"seed must be a whole number from 0 to 2**62 (or None: the rig's own noise draws), got {seed!r}")
     seed = None if seed is None else int(seed)
-    check(isinstance(targets, (list, tuple)) and all(isinstance(t, Target) for t in targets),
-          f"targets must be a list of Target, got {type(targets).__name__}")
+    check_targets(targets)
     camera = (calibration.rig.scene.camera.height, calibration.rig.scene.camera.width)
     for target in (t for t in targets if t.mask is not None):
         check(tuple(target.mask.shape) == camera,

@@ -401,13 +401,18 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     return warped[:-1].clamp(0, 1), covered
 
 
-def _target_channels(targets: list[Target]) -> int:
-    """The channel count all ``targets``' images share, each image checked first (so that a wrong one,
-    an :math:`(H, W)` image, a 4-channel one, a list, is named as itself, not as a count that differs)."""
+def check_targets(targets) -> None:
+    """``targets`` a list (or tuple) of at least one :class:`Target`: one Target alone is named as such."""
     check(isinstance(targets, (list, tuple)) and all(isinstance(t, Target) for t in targets),
           f"targets must be a list of Target, got {type(targets).__name__}"
           + (f" of {sorted({type(t).__name__ for t in targets})}" if isinstance(targets, (list, tuple)) else ""))
     check(len(targets) >= 1, "targets must hold at least one Target")
+
+
+def _target_channels(targets: list[Target]) -> int:
+    """The channel count all ``targets``' images share, each image checked first (so that a wrong one,
+    an :math:`(H, W)` image, a 4-channel one, a list, is named as itself, not as a count that differs)."""
+    check_targets(targets)
     channels = {check_image(t.image, f"target {t.name or i!r} image")["C"] for i, t in enumerate(targets)}
     check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
     return channels.pop()
