@@ -175,3 +175,5 @@ def test_the_models_straight_through_step_has_the_captures_value_and_the_models_
     assert torch.allclose(model.patterns.grad, expected, atol=1e-10)
     with pytest.raises(InputError, match="captured must be"):
         model.straight_through(captured[:1])
+    with pytest.raises(InputError, match="captured must be a torch.Tensor, got ndarray"):
+        model.straight_through(captured.detach().numpy())

@@ -280,6 +280,7 @@ class ProjectionModel(nn.Module):
                 (target units: what :meth:`forward` predicts), e.g. ``operator.to_camera(rows / scale)``
                 of :func:`torchproj.pipeline.rig_measure`'s rows.
         """
+        check(isinstance(captured, torch.Tensor), f"captured must be a torch.Tensor, got {type(captured).__name__}")
         predicted = self()
         check(captured.shape == predicted.shape, f"captured must be {tuple(predicted.shape)} like the model's images, "
                                                  f"got {tuple(captured.shape)}")
