@@ -137,6 +137,9 @@ def test_colour_mixing_is_measured_as_shares_of_white_and_undone_by_compensation
     want = (shares @ torch.tensor([0.2, 0.7, 0.4])).view(3, 1, 1).expand(3, 4, 5)  # a colour the primaries give
     x = curve.to_pattern(want)
     assert torch.allclose(curve(x), want, atol=1e-5)
+    assert torch.allclose(curve.from_pattern(x), want, atol=1e-5)  # compensation undone, as the bench loop reads it
+    offset = ResponseCurve(torch.full((3,), 0.8), curve.b, torch.full((3,), 0.05), shares)  # relative light: a, c aside
+    assert torch.allclose(offset.from_pattern(offset.to_pattern(want)), want, atol=1e-5)
     assert not torch.allclose(x, want ** (1 / curve.b.view(3, 1, 1)), atol=0.01)
     # A colour no primaries give (a pure red the mixing always lifts green for) is clipped, not wrapped.
     assert float(curve.to_pattern(torch.tensor([1.0, 0.0, 0.0]).view(3, 1, 1)).min()) == 0.0

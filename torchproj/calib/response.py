@@ -100,6 +100,15 @@ class ResponseCurve:
             y = torch.einsum("pc,...chw->...phw", torch.linalg.inv(self.mixing.double()).to(y), y)
         return y.clamp(0, 1) ** (1 / b)
 
+    def from_pattern(self, x: torch.Tensor) -> torch.Tensor:
+        """The relative light (0 = black, 1 = white) pattern values x make the projector emit, as the
+        camera's channels see it: :meth:`to_pattern`'s inverse, ``x^b``, through the mixing."""
+        _, b, _ = self._params(x)
+        y = x.clamp(0, 1) ** b
+        if self._mixes(y):
+            y = torch.einsum("cp,...phw->...chw", self.mixing.to(y), y)
+        return y
+
     def as_dict(self) -> dict:
         out = {"a": self.a.tolist(), "b": self.b.tolist(), "c": self.c.tolist()}
         if self.mixing is not None:

@@ -190,16 +190,12 @@ WRONG_STATE_MISS, PHOTO_MISMATCH = 0.1, 0.5
 
 def _shown_light(ops, images: list[torch.Tensor], responses) -> torch.Tensor:
     """The columns the 8-bit ``images`` make the projectors emit, :math:`(N_{cols}, C)`: each cell's
-    relative light, :func:`~torchproj.solve.compensate` undone (it sends ``x = y^(1/b)``, so ``y =
-    x^b``; what a colour camera's channels see of it through the projector's mixing)."""
+    relative light, :func:`~torchproj.solve.compensate` undone (:meth:`ResponseCurve.from_pattern`)."""
     op = ops[0] if isinstance(ops, (list, tuple)) else ops
     channels = len(ops) if isinstance(ops, (list, tuple)) and len(ops) > 1 else op.rhs.shape[1]
     p = torch.zeros(op.shape[1], channels, dtype=torch.float64, device=op.rhs.device)
     for j, (image, response) in enumerate(zip(images, responses)):
-        x = image.to(p.device, torch.float64) / 255
-        y = x ** response.b.to(x).view(-1, 1, 1)
-        if response.mixing is not None and y.shape[0] == 3:
-            y = torch.einsum("cp,phw->chw", response.mixing.to(y), y)
+        y = response.from_pattern(image.to(p.device, torch.float64) / 255)
         cells = y.reshape(y.shape[0], -1).T  # (cells, C)
         cells = cells if cells.shape[1] == channels else cells.mean(1, keepdim=True).expand(-1, channels)
         mine = op.column_projector == j
