@@ -72,8 +72,7 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
         depths = None
     check(depths is not None and len(depths) >= 1 and np.isfinite(depths).all(),
           f"depths must be a non-empty list of finite numbers (world z in metres), got {given!r}")
-    check(len(patterns) == len(scene.projectors),
-          f"give one pattern per projector ({len(scene.projectors)}), got {len(patterns)}")
+    shown = as_light(patterns, len(scene.projectors), device)
     check_number(scale, "scale", strict=True)
     min_pixels = check_count(min_pixels, "min_pixels")
     base = scene.surfaces[surface]
@@ -85,7 +84,6 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
         states.append(State(name=f"z{i}", surfaces=[f"{surface}@{i}"]))
     swept = dataclasses.replace(scene, surfaces=moved, states=states, targets=[])
     rig = VirtualRig(swept, device=device)
-    shown = as_light(patterns, device)
     K = len(targets)
     out = {key: np.full((len(depths), K), np.nan) for key in ("psnr", "ssim")}
     pixels = np.zeros((len(depths), K), dtype=np.int64)

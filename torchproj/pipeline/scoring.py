@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import check, check_image, check_number
+from ..core.checks import check, check_image, check_number, check_shape
 from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
@@ -134,13 +134,14 @@ class PatternEvaluation:
     captures: dict[str, torch.Tensor]  # state -> (C, H, W) capture in [0, 1], on the CPU
 
 
-def as_light(patterns: list[torch.Tensor], device) -> dict[int, torch.Tensor]:
+def as_light(patterns: list[torch.Tensor], projectors: int, device) -> dict[int, torch.Tensor]:
     """Patterns as the light the rig shows: projector index -> :math:`(1, C, H_j, W_j)` float in [0, 1].
 
     Args:
-        patterns: per projector, :math:`(C, H_j, W_j)` uint8 levels (what
+        patterns: per projector (``projectors`` of them), :math:`(C, H_j, W_j)` uint8 levels (what
             :func:`~torchproj.solve.make_patterns` gives) or float light in [0, 1].
     """
+    check(len(patterns) == projectors, f"give one pattern per projector ({projectors}), got {len(patterns)}")
     shown = {}
     for j, pattern in enumerate(patterns):
         check(isinstance(pattern, torch.Tensor), f"patterns[{j}] must be a torch.Tensor, got {type(pattern).__name__}")
@@ -185,18 +186,15 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
             says only that it "projected the original image on the plane".
     """
     states = calibration.states if states is None else states
-    check(len(patterns) == len(calibration.rig.scene.projectors),
-          f"give one pattern per projector ({len(calibration.rig.scene.projectors)}), got {len(patterns)}")
+    scene = calibration.rig.scene
+    shown = as_light(patterns, len(scene.projectors), calibration.rig.device)
     check_number(scale, "scale", strict=True)
     check(seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
           f"seed must be a whole number from 0 to 2**62 (or None: the rig's own noise draws), got {seed!r}")
     seed = None if seed is None else int(seed)
     check_targets(targets)
-    camera = (calibration.rig.scene.camera.height, calibration.rig.scene.camera.width)
-    for target in (t for t in targets if t.mask is not None):
-        check(tuple(target.mask.shape) == camera,
-              f"target {target.name!r} mask must have shape {camera} (the camera's), got {tuple(target.mask.shape)}")
-    shown = as_light(patterns, calibration.rig.device)
+    for target in (t for t in targets if t.mask is not None):  # as build_transport checks them
+        check_shape(target.mask, f"target {target.name!r} mask", [scene.camera.height, scene.camera.width])
     captures = {state: calibration.rig.capture(state, shown, noise=noise, seed=None if seed is None else seed + k)[0].cpu()
                 for k, state in enumerate(dict.fromkeys(t.state for t in targets))}
     regions = []  # scored on the host, beside the captures

@@ -102,7 +102,7 @@ def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: in
                                        for state in read.rows_of}
 
     def measure(images: list[torch.Tensor]) -> torch.Tensor:
-        shown = as_light(images, world.rig.device)
+        shown = as_light(images, len(world.rig.scene.projectors), world.rig.device)
         above = {state: world.rig.capture(state, {j: s.expand(frames, -1, -1, -1) for j, s in shown.items()},
                                           noise=noise, quantise=noise).mean(0).cpu() - black[state]
                  for state in read.rows_of}
