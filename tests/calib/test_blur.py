@@ -13,9 +13,10 @@ from torchproj.transport import StateCalibration, Target, build_transport
 PROJECTOR = (128, 96)
 
 
-def _rig(focus: dict | None) -> VirtualRig:
-    """A 128x96 projector facing a wall 1 m away, a camera beside it at about 2.5 pixels per cell."""
-    projector = {"name": "p", "resolution": list(PROJECTOR), "focal": 192, "black_level": 0.01,
+def _rig(focus: dict | None, size: tuple[int, int] = PROJECTOR) -> VirtualRig:
+    """A 128x96 projector (or ``size``, the same cells) facing a wall 1 m away, a camera beside it at
+    about 2.5 pixels per cell."""
+    projector = {"name": "p", "resolution": list(size), "focal": 192, "black_level": 0.01,
                  "pose": {"position": [0, 0, 0], "look_at": [0, 0, 1]}}
     if focus is not None:
         projector["focus"] = focus
@@ -28,10 +29,10 @@ def _rig(focus: dict | None) -> VirtualRig:
         "states": [{"name": "s", "surfaces": ["wall"]}]}))
 
 
-def _measured(rig: VirtualRig):
+def _measured(rig: VirtualRig, size: tuple[int, int] = PROJECTOR):
     capture = simulate_calibration(rig, "s", 0)
-    cal = calibrate_projector(capture, PROJECTOR)
-    return cal, measure_blur(capture.patterns, capture.white, capture.black, cal.prj_xy, PROJECTOR)
+    cal = calibrate_projector(capture, size)
+    return cal, measure_blur(capture.patterns, capture.white, capture.black, cal.prj_xy, size)
 
 
 # Focused at 0.5 m through a 20 mm aperture, the wall at 1 m gets f A |1/0.5 - 1/1| = 3.84 cells.
@@ -47,6 +48,20 @@ def test_measured_blur_recovers_the_thin_lens_circle_of_confusion(focus, want):
     assert bool(known[torch.isfinite(cal.prj_xy).all(-1)].float().mean() > 0.95)
     assert float(blur[known].median()) == pytest.approx(want, abs=0.5)
     assert float((blur[known] - want).abs().quantile(0.9)) <= 1.0
+
+
+def test_a_projector_of_few_rows_is_measured_on_the_bits_it_has():
+    """An 8-row projector has 3 row bits, under the 4 finest compared by default: it is measured on 3
+    (the calibration of such a projector stopped at "finest must be 1..3, got 4")."""
+    size = (64, 8)
+    rig = _rig({"distance": 0.5, "aperture": 10}, size)
+    cal, blur = _measured(rig, size)
+    known = torch.isfinite(blur)
+    assert bool(known[torch.isfinite(cal.prj_xy).all(-1)].float().mean() > 0.9)
+    assert float(blur[known].median()) == pytest.approx(1.92, abs=0.5)
+    capture = simulate_calibration(rig, "s", 0)
+    with pytest.raises(InputError, match="finest must be 1..3, got 4"):
+        measure_blur(capture.patterns, capture.white, capture.black, cal.prj_xy, size, finest=4)
 
 
 def test_a_model_with_the_measured_blur_predicts_a_defocused_capture():

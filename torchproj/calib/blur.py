@@ -26,8 +26,9 @@ from .maps import map_slope, pixel_square
 
 __all__ = ["measure_blur"]
 
-# Diameters (cells) tried per sample: half-cell steps from sharp to wider than the finest bits can
-# tell (the fourth-finest stripes are 16 cells wide).
+# Bits per axis compared, and the diameters (cells) tried per sample: half-cell steps from sharp to
+# wider than the finest bits can tell (the fourth-finest stripes are 16 cells wide).
+_FINEST = 4
 _DIAMETERS = torch.arange(0, 12.25, 0.5)
 _AREA = 4  # points per axis across a camera pixel's square, as the area footprint
 _DISC = 16  # points of the disc (Vogel spiral), as the virtual rig samples a circle of confusion
@@ -36,7 +37,7 @@ _AGREE = 1.0
 
 
 def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
-                 projector_size: tuple[int, int], *, finest: int = 4, step: int = 16,
+                 projector_size: tuple[int, int], *, finest: int | None = None, step: int = 16,
                  min_contrast: float = 0.1, slope: torch.Tensor | None = None) -> torch.Tensor:
     """Diameter in cells of each camera pixel's defocus disc, from the finest Gray-code captures.
 
@@ -46,7 +47,8 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
         white, black: :math:`(H, W)` or :math:`(C, H, W)`.
         prj_xy: :math:`(H, W, 2)` the refined map (NaN where unknown).
         projector_size: ``(width, height)``.
-        finest: how many of each axis' finest bits to compare.
+        finest: how many of each axis' finest bits to compare; None: 4, or every bit of a projector
+            with fewer (a narrower one tells a smaller range of diameters).
         step: camera pixels between samples along each axis; each pixel takes its sample's value.
         min_contrast: white minus black, [0, 1] units, below which a pixel is too dark to judge.
         slope: :math:`(H, W, 2, 2)` ``map_slope(prj_xy)`` where the caller has it; None: computed here.
@@ -60,6 +62,7 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
                                            " (a shortened sequence, --bits, lacks the finest stripes that show the blur)")
     grey = _grey(patterns)
     H, W = contrast.shape
+    finest = min(_FINEST, nx, ny) if finest is None else finest
     check(1 <= finest <= min(nx, ny), f"finest must be 1..{min(nx, ny)}, got {finest}")
     check(step >= 1, f"step must be >= 1, got {step}")
     slope = map_slope(prj_xy) if slope is None else slope
