@@ -123,6 +123,36 @@ def test_a_state_no_projector_lights_is_refused_before_calibrating(monkeypatch):
     virtual.check_light(scene, grid=1)
 
 
+def test_a_projector_that_lights_nothing_is_refused_before_calibrating(monkeypatch):
+    """A projector turned away from every surface decoded nothing; calibration simulated every state
+    and stopped at its ramp ("0 usable levels"). Refused before, naming it; the other still lights."""
+    import torchproj.pipeline.virtual as virtual
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["projectors"][1]["pose"]["look_at"] = [0.0, 0.1, -1.0]
+    monkeypatch.setattr(virtual, "simulate_calibration", lambda *a, **k: pytest.fail("calibrated before checking"))
+    with pytest.raises(InputError, match=r"projectors\[1\]: projector 'lower' lights nothing the camera sees in any "
+                                         r"state .* check its pose"):
+        virtual.calibrate_virtual(parse_scene(data))
+    levels = virtual._light_levels(parse_scene(data), "cpu", grid=None)[0]
+    assert all(levels[state, "lower"] == 0 < levels[state, "upper"] for state in ("near", "far"))
+
+
+@pytest.mark.parametrize("resolution", [[31, 96], [128, 1]])
+def test_a_projector_too_small_for_the_calibration_sequence_is_refused_before_simulating(resolution, monkeypatch):
+    """A projector narrower than the ramp's 32 bars stopped at "steps must be between 2 and the width
+    31, got 32", one of a single row at "finest must be 1..0", each after casting every state."""
+    import torchproj.pipeline.virtual as virtual
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["projectors"][1]["resolution"] = resolution
+    rig = virtual.VirtualRig(parse_scene(data))
+    monkeypatch.setattr(rig, "geometry", lambda *a, **k: pytest.fail("cast before checking"))
+    with pytest.raises(InputError, match=rf"projectors\[1\].resolution: projector 'lower' is {resolution[0]}x"
+                                         rf"{resolution[1]} cells, .* give it at least 32x2"):
+        next(virtual.calibrate_rig(rig, progress=False))
+
+
 def test_a_procedural_scenes_simulate_report_names_what_loads_it_again(tmp_path):
     """viz/correspondences.py loads the scene from the report's ``config``: a procedural scene has no
     file, and its report said "None", which no loader takes."""

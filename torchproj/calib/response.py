@@ -23,7 +23,13 @@ from ..core.conventions import to_numpy
 __all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
 
 
-def ramp_pattern(width: int, height: int, steps: int = 32, mirrored: bool = False) -> torch.Tensor:
+# Bars of the photometric ramp ``torchproj sequence`` and the virtual rig show, the levels ``a x^b + c`` is
+# fitted to. The paper's "System calibration" shows a grey ramp and its mirror without saying how many
+# bars; 32 is our choice. A projector needs at least this many cells across, one a bar.
+RAMP_STEPS = 32
+
+
+def ramp_pattern(width: int, height: int, steps: int = RAMP_STEPS, mirrored: bool = False) -> torch.Tensor:
     """A ramp of ``steps`` vertical bars from 0 (left) to 1 (right), or its mirror.
 
     Returns:
@@ -162,7 +168,7 @@ def fit_colour_mixing(primaries: torch.Tensor, white: torch.Tensor, black: torch
 
 
 def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_x: torch.Tensor,
-                 projector_width: int, steps: int = 32, margin: float = 1.5,
+                 projector_width: int, steps: int = RAMP_STEPS, margin: float = 1.5,
                  min_contrast: float = 0.05, mirrored: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-level normalised response from one capture of :func:`ramp_pattern` (and of its mirror).
 

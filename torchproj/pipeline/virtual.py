@@ -17,6 +17,7 @@ import torch
 from ..calib import (DIM_THRESHOLD, SATURATED, SATURATED_SHARE, GraycodeCapture, ResponseCurve, calibrate_projector,
                      checker_patterns, graycode_bits, graycode_patterns, primary_patterns, ramp_pattern, sequence_bits,
                      warn_if_few_decoded, warn_if_noisy, warn_if_saturated)
+from ..calib.response import RAMP_STEPS
 from ..core.checks import check
 from ..core.choices import BLACK_THRESHOLD
 from ..core.conventions import to_numpy
@@ -173,7 +174,8 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD,
     :func:`~torchproj.calib.calibrate_projector`, 40/255); a projector whose brightest lit pixel in
     a state stays under it (:func:`white_levels`) decodes nothing there, and calibration fails
     minutes later at the ramp. A projector that reaches a state's surfaces at all must pass the
-    threshold somewhere on them; a state whose black capture is saturated by room light shows no
+    threshold somewhere on them, and each projector must light something the camera sees in some
+    state; a state whose black capture is saturated by room light shows no
     projector at all, and neither does a state a target asks for whose surfaces no projector's light
     reaches the camera from (out of view, hidden or black). ``grid``: pixels per axis the levels are
     read at (:data:`LIGHT_CHECK_GRID`); a state dark on the grid is read at every pixel before it is
@@ -201,6 +203,20 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD,
             "pixel, for each projector), so nothing can be decoded or shown: its surfaces are out of the camera's "
             "or every projector's view, hidden behind others, or black (albedo 0); check their poses and albedo "
             "and the camera's pose (checked before calibrating; nothing was simulated)")
+    # A projector that lights nothing the camera sees, in any state, decodes nothing: its calibration
+    # failed after every state was simulated, at a ramp that showed "0 usable levels".
+    unlit = [j for j, p in enumerate(scene.projectors) if all(levels[state, p.name] == 0 for state in blacks)]
+    if unlit:
+        everywhere = _light_levels(scene, device, threshold, grid=None)[0]
+        unlit = [j for j in unlit if all(everywhere[state, scene.projectors[j].name] == 0 for state in blacks)]
+    if unlit:
+        j = unlit[0]
+        others = f" (and {', '.join(repr(scene.projectors[k].name) for k in unlit[1:])})" if len(unlit) > 1 else ""
+        raise InputError(
+            f"projectors[{j}]: projector {scene.projectors[j].name!r}{others} lights nothing the camera sees in any "
+            "state (white minus black is 0 at every pixel), so it can be neither calibrated nor used: check its pose "
+            "(it may face away from the surfaces or be hidden behind them) and the camera's, or leave it out of the "
+            "scene (checked before calibrating; nothing was simulated)")
     dim = sorted((peak, state, name) for (state, name), peak in levels.items() if 0 < peak < threshold)
     if dim:
         peak, state, name = dim[0]
@@ -341,6 +357,14 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
     from ..core.progress import progress_bar
 
     scene = rig.scene
+    for j, proj in enumerate(scene.projectors):
+        # The ramp gives each bar a cell at least; a narrower projector would fail at its ramp after
+        # the whole calibration was simulated.
+        check(proj.width >= RAMP_STEPS and proj.height >= 2,
+              f"projectors[{j}].resolution: projector {proj.name!r} is {proj.width}x{proj.height} cells, and "
+              f"calibration shows it a response ramp of {RAMP_STEPS} bars (a cell each at least) and a Gray code "
+              f"down its rows (2 at least): give it at least {RAMP_STEPS}x2 (checked before calibrating; nothing "
+              "was simulated)")
     timings = {} if timings is None else timings
     jobs = [(st.name, j) for st in scene.states for j in range(len(scene.projectors))]
     for name, j in progress_bar(jobs, "calibrating states x projectors", progress):
