@@ -183,6 +183,20 @@ def test_target_names_are_unique():
         parse_scene(_with_targets([{"name": "a", "state": "together"}, {"name": "a", "state": "together"}]))
 
 
+@pytest.mark.parametrize("second, where", [
+    ({"name": "b", "state": "together", "surfaces": ["box", "cylinder_left"]}, r"targets\[1\]\.surfaces: puts target 'b' "
+                                                                              r"on surface 'cylinder_left'"),
+    ({"name": "b", "state": "together"}, r"targets\[1\]: puts target 'b' on surface 'cylinder_left'")])
+def test_two_targets_of_a_state_on_one_surface_are_refused(second, where):
+    """Two images asked of one surface at once ran, both at 14 dB and crosstalk 0.74; refused, naming
+    the surface and the target already there."""
+    first = {"name": "a", "state": "together", "surfaces": ["cylinder_left"]}
+    with pytest.raises(ConfigError, match=where + r" in state 'together', where targets\[0\] \('a'\) already is"):
+        parse_scene(_with_targets([first, second]))
+    other = parse_scene(_with_targets([first, {"name": "b", "state": "together", "surfaces": ["box"]}]))
+    assert [t.surfaces for t in other.target_specs()] == [["cylinder_left"], ["box"]]
+
+
 def test_target_image_paths_are_relative_to_the_config(tmp_path):
     import yaml
 
