@@ -94,8 +94,17 @@ def test_measure_ramp_needs_a_lit_scene():
     from torchproj.core import InputError
 
     dark = torch.zeros(1, 10, 10)
-    with pytest.raises(InputError, match="usable levels"):
+    with pytest.raises(InputError, match="usable levels .*: 0 of the 100 camera pixels are decoded and that bright"):
         measure_ramp(dark, dark + 0.5, dark, torch.full((10, 10), float("nan")), 64)
+    # Every pixel decoded, each on a bar's edge (a camera pixel as wide as a bar sees two): the
+    # message tells this apart from a dark or undecoded capture.
+    wide = torch.zeros(1, 10, 64)
+    edges = (torch.arange(64) // 2 * 2).float().expand(10, 64)  # 64 columns, 32 bars of 2 cells
+    with pytest.raises(InputError, match=r"640 of the 640 camera pixels are decoded and that bright, 0 of them clear "
+                                         r"of an edge of the 2-cell bars.*as wide as a bar"):
+        measure_ramp(wide + 0.25, wide + 0.5, wide, edges, 64)
+    levels, _ = measure_ramp(wide + 0.25, wide + 0.5, wide, edges + 1, 64)  # the bars' middles
+    assert len(levels) == 32
 
 
 def test_response_is_fitted_per_colour_channel():

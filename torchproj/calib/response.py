@@ -217,10 +217,18 @@ def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, p
         if int(sel.sum()) >= 5:
             levels.append(k / (steps - 1))
             response.append(norm[:, sel].median(1).values)
-    check(len(levels) >= 4, f"the ramp capture shows only {len(levels)} usable levels (bars of at least 5 decoded "
-                            f"pixels with white - black over {min_contrast * 255:.0f}/255); check that the projector "
-                            "lights the scene and is bright enough against the camera's exposure, and that decoding "
-                            "succeeded")
+    if len(levels) < 4:
+        # Say which of the two causes it is: too few pixels decoded (dark, or stripes the camera does
+        # not resolve), or decoded pixels that each see two bars (camera pixels as wide as a bar).
+        seen = torch.isfinite(prj_x) & (contrast >= min_contrast)
+        raise InputError(
+            f"the ramp capture shows only {len(levels)} usable levels (bars of at least 5 decoded pixels with white - "
+            f"black over {min_contrast * 255:.0f}/255, clear of the bar's edges by {margin:.2g} cells): "
+            f"{int(seen.sum())} of the {prj_x.numel()} camera pixels are decoded and that bright, {int(ok.sum())} of "
+            f"them clear of an edge of the {bar:.3g}-cell bars. Where few decode, check that the projector lights the "
+            "scene and is bright enough against the camera's exposure, and that decoding succeeded (camera pixels "
+            "wider than a cell decode only partly); where few are clear of an edge, the camera's pixels are as wide "
+            "as a bar: bring the camera closer or give it more pixels")
     return torch.tensor(levels), torch.stack(response)
 
 
