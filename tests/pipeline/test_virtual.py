@@ -117,6 +117,13 @@ def test_a_state_no_projector_lights_is_refused_before_calibrating(monkeypatch):
     monkeypatch.setattr(virtual, "simulate_calibration", lambda *a, **k: pytest.fail("calibrated before checking"))
     with pytest.raises(InputError, match=r"state 'far': no projector's light reaches the camera there .* albedo"):
         virtual.calibrate_virtual(parse_scene(data))
+    # Light too faint to move the camera's 8 bits reads as none: the message names that cause too.
+    faint = small_config(camera=(200, 150), projector=(128, 96))
+    for projector in faint["projectors"]:
+        projector["power"] = 1e-4
+    with pytest.raises(InputError, match=r"no projector's light reaches .* lit too faintly for the camera's 8 bits to "
+                                         r"register; .* the projectors' power against camera.exposure"):
+        virtual.calibrate_virtual(parse_scene(faint))
     # One grid point, the corner pixel, which the planes leave dark: the state is lit elsewhere.
     scene = small_scene(camera=(200, 150), projector=(128, 96))
     assert all(level == 0 for level in virtual._light_levels(scene, "cpu", grid=1)[0].values())

@@ -201,8 +201,9 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD,
         raise InputError(
             f"state {dark[0]!r}{others}: no projector's light reaches the camera there (white minus black is 0 at every "
             "pixel, for each projector), so nothing can be decoded or shown: its surfaces are out of the camera's "
-            "or every projector's view, hidden behind others, or black (albedo 0); check their poses and albedo "
-            "and the camera's pose (checked before calibrating; nothing was simulated)")
+            "or every projector's view, hidden behind others, black (albedo 0), or lit too faintly for the camera's "
+            f"{scene.camera.bit_depth} bits to register; check their poses and albedo, the camera's pose, and the "
+            "projectors' power against camera.exposure (checked before calibrating; nothing was simulated)")
     # A projector that lights nothing the camera sees, in any state, decodes nothing: its calibration
     # failed after every state was simulated, at a ramp that showed "0 usable levels".
     unlit = [j for j, p in enumerate(scene.projectors) if all(levels[state, p.name] == 0 for state in blacks)]
