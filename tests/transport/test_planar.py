@@ -70,6 +70,8 @@ def test_a_folded_surface_is_refused_with_the_state_and_projector_named():
               "box": StateCalibration([left, folded], [weight, weight], [(256, 192)] * 2)}
     with pytest.raises(InputError, match=r"state 'box', projector 1: the decoded map is not one plane"):
         planar_calibration(states)
+    with pytest.raises(InputError, match=r"state 'box', projector 'lower': the decoded map is not one plane"):
+        planar_calibration(states, names=["upper", "lower"])
     planar, fits = planar_calibration({"flat": states["flat"]})
     assert fits["flat"][0].p95 < 0.75
     assert torch.equal(planar["flat"].lit(), states["flat"].lit())
@@ -109,7 +111,7 @@ def test_run_with_homography_maps_reports_the_fits_and_keeps_quality(planes):
 
 def test_a_box_is_not_a_plane():
     scene = small_scene("box_positions", camera=(400, 300), projector=(256, 192), supersampling=2)
-    with pytest.raises(InputError, match="is not one plane"):
+    with pytest.raises(InputError, match=r"state '\w+', projector '(upper|lower)': the decoded map is not one plane"):
         run_virtual(scene, maps="homography", progress=False)
 
 

@@ -97,7 +97,8 @@ def bundle_problem(bundle, targets: list, *, solver: str, bounds_8bit, objective
     wanted = _bundle_targets(bundle, targets)
     fitted = ({state: [bundle.homographies[state][name] for name, _, _ in bundle.projectors] for state in bundle.states}
               if bundle.homographies else None)
-    states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted)
+    states, maps, fits = select_maps(StateCalibration.from_bundle(bundle), maps, plane_tolerance, fitted,
+                                     [name for name, _, _ in bundle.projectors])
     choice = None
     if footprint == AUTO:
         choice = choose_footprint(states, wanted, (lo, hi), device=device)

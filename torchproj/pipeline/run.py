@@ -212,7 +212,8 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
         if cached is not None and cast.get("how") is None and _cast_all(world.rig):
             cast["how"] = keep_geometry(world.rig)  # now, so that writing it overlaps the run; nothing casts more
         t0 = time.perf_counter()
-        states, maps, fits = select_maps(cal.states, maps, plane_tolerance, cal.homographies)
+        states, maps, fits = select_maps(cal.states, maps, plane_tolerance, cal.homographies,
+                                         [p.name for p in scene.projectors])
         if fits is not None and cal.homographies is None:
             timings["homography"] = time.perf_counter() - t0
         targets = scene_targets(scene, images, cal.rig)

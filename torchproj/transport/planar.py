@@ -18,7 +18,8 @@ __all__ = ["HomographyFit", "MAPS", "fit_homography", "homography_map", "planar_
 from ..core.choices import MAPS  # noqa: E402
 
 
-def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> tuple[dict, dict]:
+def planar_calibration(states: dict, tolerance: float = 1.0, names: list[str] | None = None,
+                       **fit_options) -> tuple[dict, dict]:
     """Every state's maps replaced by fitted homographies, where each state is one plane.
 
     The weights (white minus black) stay as measured: they carry fall-off and vignetting, which a
@@ -29,6 +30,8 @@ def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> t
         states: state name -> :class:`~torchproj.transport.StateCalibration`.
         tolerance: the largest 95th-percentile distance (projector pixels) between decoded and
             fitted coordinates that still counts as a plane.
+        names: each projector's name, for the message that refuses a state that is not one plane
+            (None: its index).
         fit_options: passed to :func:`fit_homography`.
 
     Returns:
@@ -39,7 +42,8 @@ def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> t
     for name, state in states.items():
         fits[name] = [fit_homography(xy, **fit_options) for xy in state.prj_xy]
         for j, fit in enumerate(fits[name]):
-            check_plane(fit, tolerance, f"state {name!r}, projector {j}", "keep the decoded maps for this scene")
+            check_plane(fit, tolerance, f"state {name!r}, projector {j if names is None else repr(names[j])}",
+                        "keep the decoded maps for this scene")
         maps = [homography_map(fit.matrix, torch.isfinite(xy).all(-1), size)
                 for fit, xy, size in zip(fits[name], state.prj_xy, state.projector_sizes)]
         # The same weights (grey and per channel), blur and measured cell shares (they measure the light,
@@ -49,13 +53,14 @@ def planar_calibration(states: dict, tolerance: float = 1.0, **fit_options) -> t
     return planar, fits
 
 
-def select_maps(states: dict, maps: str = "decoded", tolerance: float = 1.0, fitted: dict | None = None):
+def select_maps(states: dict, maps: str = "decoded", tolerance: float = 1.0, fitted: dict | None = None,
+                names: list[str] | None = None):
     """The maps an operator is built on: decoded per pixel, or one homography per state and projector.
 
     Args:
         states: state name -> :class:`~torchproj.transport.StateCalibration` as calibrated.
         maps: ``"decoded"`` or ``"homography"`` (:func:`planar_calibration`; planar scenes only).
-        tolerance: see :func:`planar_calibration`.
+        tolerance, names: see :func:`planar_calibration`.
         fitted: state name -> per projector, the fits (:class:`HomographyFit` or its ``as_dict``) a
             calibration from shortened Gray-code sequences was read through: its maps are
             homographies already, whatever ``maps`` asks.
@@ -72,5 +77,5 @@ def select_maps(states: dict, maps: str = "decoded", tolerance: float = 1.0, fit
                                       for name, per in fitted.items()}
     if maps == "decoded":
         return states, maps, None
-    planar, fits = planar_calibration(states, tolerance)
+    planar, fits = planar_calibration(states, tolerance, names)
     return planar, maps, {name: [f.as_dict() for f in per] for name, per in fits.items()}
