@@ -235,3 +235,17 @@ def test_a_camera_drowned_in_noise_is_said_naming_each_state_and_projector():
     said = [str(w.message) for w in caught if "the captures' noise is" in str(w.message)]
     assert len(said) == len(noise) == 2 and all(n > 0.25 for n in noise.values())
     assert all("camera.frames" in m for m in said) and said[0].startswith("state 'near', projector 'upper': ")
+
+
+def test_a_coarse_camera_is_warned_of_once_per_run():
+    """The warning that the camera's samples fall too far apart came once per rig made: from the light
+    check's rig, the calibrating one and the world as shown, three times in one run."""
+    import torchproj.pipeline.virtual as virtual
+    from torchproj.pipeline import shown_world
+
+    scene = small_scene("paper_bumped", camera=(200, 150), projector=(128, 96), supersampling=1)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        shown_world(virtual.calibrate_virtual(scene, progress=False), scene)
+    said = [str(w.message) for w in seen if "camera samples are" in str(w.message)]
+    assert len(said) == 1 and "set camera.supersampling to" in said[0]

@@ -15,10 +15,9 @@ import torch
 
 from ..core.checks import check
 from ..scene.show import shown_scene
-from ..sim import VirtualRig
 from ..transport import Target
 from .scoring import as_light
-from .virtual import VirtualCalibration, true_responses
+from .virtual import VirtualCalibration, quiet_rig, true_responses
 
 __all__ = ["CapturedRows", "rig_measure", "shown_world"]
 
@@ -36,7 +35,7 @@ def shown_world(cal: VirtualCalibration, scene=None, prepare=None) -> VirtualCal
     scene = cal.rig.scene if scene is None else scene
     if scene.show is None:
         return cal
-    rig = VirtualRig(shown_scene(scene), device=cal.rig.device)
+    rig = quiet_rig(shown_scene(scene), cal.rig.device)
     if prepare is not None:
         prepare(rig)
     black = {state: rig.capture(state, {})[0].cpu() for state in cal.black}

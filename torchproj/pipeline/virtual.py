@@ -8,6 +8,7 @@ mode, the simulator's exact geometry.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -138,6 +139,15 @@ def white_levels(scene: Scene, device="cpu") -> dict[tuple[str, str], float]:
     return _light_levels(scene, device)[0]
 
 
+def quiet_rig(scene: Scene, device) -> VirtualRig:
+    """A second rig of a scene (a check before the work, the world as shown), without the warning
+    about the camera's samples that the focal lengths alone decide and the rig doing the work gives:
+    a run printed it once per rig made."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"scene .*: camera samples are [\d.]+ projector cells apart")
+        return VirtualRig(scene, device=device)
+
+
 def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD, states: list[str] | None = None,
                   grid: int | None = LIGHT_CHECK_GRID, whites: bool = True
                   ) -> tuple[dict[tuple[str, str], float], dict[str, float], dict[tuple[str, str], float]]:
@@ -147,7 +157,7 @@ def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD, sta
     ``grid`` None: every camera pixel; ``whites`` False: the black captures only (the first and
     third dicts empty)."""
     cam = scene.camera
-    rig = VirtualRig(scene, device=device)
+    rig = quiet_rig(scene, device)
     pixels = None
     if grid is not None:
         ys = torch.linspace(0, cam.height - 1, min(grid, cam.height), device=device).round().long()
