@@ -56,6 +56,27 @@ def test_ssim_solve_descends_stays_in_its_box_and_reports_the_model_ssim():
         assert res.info["model_ssim"] == pytest.approx((1 - loss(model())).tolist(), abs=1e-6)
 
 
+def test_a_start_below_black_is_refined_in_its_own_box():
+    """EO_-100^255's box reaches below black; ``--objective ssim`` on its patterns stopped at "start
+    must lie in the bounds [0, 1]": the loss built a model in the default box only to read its
+    targets. The loss and the solve take such a start, and the solve stays in the box given."""
+    op = build_transport(synthetic_calibration(shape=(40, 50)), targets(), merge=False, scale=0.8).double()
+    lo = -100 / 255
+    start = (torch.rand(op.shape[1], 1, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 1.5
+             + lo).clamp(lo, 1.0)
+    assert float(start.min()) < -0.3
+    loss = ImageLoss(op, start, l2_weight=0.3, psnr_drop=None)
+    model = ProjectionModel(op, (lo, 1.0), start=start)
+    with torch.no_grad():
+        dissimilarity = SSIMLoss(model.targets, model.mask)(model())  # 1 - SSIM per target
+    assert float(loss(start)) == pytest.approx(float(dissimilarity.mean()) + 0.3, rel=1e-12)
+    res = solve_ssim(op, (lo, 1.0), x0=start, max_iter=10)
+    assert float(res.patterns.min()) >= lo and float(res.patterns.max()) <= 1.0
+    assert res.objective <= res.history[0][1]
+    with pytest.raises(InputError, match=r"start must have shape \(\d+, 1\) \(columns, channels\), got \(3, 1\)"):
+        ImageLoss(op, start[:3])
+
+
 def test_the_psnr_budget_holds_where_the_weight_alone_would_give_a_target_away(quarter):
     scene, cal = quarter
     op = build_transport(cal.states, scene_targets(scene, rig=cal.rig), merge=False)

@@ -119,6 +119,26 @@ def _one_operator(op):
     return op
 
 
+def image_operator(op):
+    """``op`` as one operator (:func:`_one_operator`), checked to predict camera images: a
+    :class:`~torchproj.transport.TransportOperator` (or one per colour channel) whose rows are
+    camera pixels. The one check of :class:`ProjectionModel` and :class:`~torchproj.solve.ImageLoss`."""
+    op = _one_operator(op)
+    check(isinstance(op, (TransportOperator, _Channels)), f"operator must be a TransportOperator (or a list "
+                                                          f"of one per colour channel), got {type(op).__name__}")
+    check(op.row_pixel is not None, "the operator's rows are merged and mix camera pixels: build it with "
+                                    "build_transport(..., merge=False) for an image-space model")
+    return op
+
+
+def check_patterns_shape(op, patterns: torch.Tensor, name: str = "start") -> None:
+    """``patterns`` :math:`(N_{cols}, C)` for the (image) operator ``op``."""
+    shape = (op.shape[1], op.channels)
+    check(isinstance(patterns, torch.Tensor), f"{name} must be a torch.Tensor, got {type(patterns).__name__}")
+    check(tuple(patterns.shape) == shape, f"{name} must have shape {shape} (columns, channels), got "
+                                          f"{tuple(patterns.shape)}")
+
+
 def _least_squares(op, bounds, smoothness: float | None = None) -> torch.Tensor:
     """FISTA's bounded least squares with the smoothness penalty (None: ``torchproj run``'s default),
     each colour channel's alone where ``op`` holds one per channel."""
@@ -163,11 +183,7 @@ class ProjectionModel(nn.Module):
     def __init__(self, operator: TransportOperator | list[TransportOperator], bounds=(0.0, 1.0),
                  responses: list | None = None, start: torch.Tensor | None = None):
         super().__init__()
-        operator = _one_operator(operator)
-        check(isinstance(operator, (TransportOperator, _Channels)), f"operator must be a TransportOperator (or a list "
-                                                                    f"of one per colour channel), got {type(operator).__name__}")
-        check(operator.row_pixel is not None, "the operator's rows are merged and mix camera pixels: build it with "
-                                              "build_transport(..., merge=False) for an image-space model")
+        operator = image_operator(operator)
         self.bounds = check_bounds(bounds)
         check(responses is None or len(responses) == len(operator.projector_sizes),
               f"give one response curve per projector ({len(operator.projector_sizes)}), got "
@@ -179,8 +195,7 @@ class ProjectionModel(nn.Module):
         if start is None:
             start = torch.full(shape, 0.5 * (lo + hi), dtype=operator.val.dtype, device=operator.val.device)
         else:
-            check(tuple(start.shape) == shape, f"start must have shape {shape} (columns, channels), got "
-                                               f"{tuple(start.shape)}")
+            check_patterns_shape(operator, start)
             check_finite(start, "start")
             low, high = float(start.min()), float(start.max())
             check(low >= lo - 1e-6 and high <= hi + 1e-6, f"start must lie in the bounds [{lo:g}, {hi:g}], got values "

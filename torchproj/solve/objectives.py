@@ -30,7 +30,7 @@ from ..core.checks import check, check_count, check_number, check_shape
 from ..core.progress import progress_bar
 from ..metrics import SSIMLoss
 from ..transport.operator import TransportOperator
-from .model import ProjectionModel, _least_squares, _one_operator
+from .model import ProjectionModel, _least_squares, _one_operator, check_patterns_shape, image_operator
 from .solvers import ClampedAdam, SolveResult, check_bounds
 
 __all__ = ["ImageLoss", "ImageObjective", "OBJECTIVES", "PSNRBudget", "PSNR_DROP_DB", "image_objective", "psnr_hinge",
@@ -198,13 +198,15 @@ class ImageLoss(nn.Module):
         super().__init__()
         l2_weight = check_number(l2_weight, "l2_weight")
         check(psnr_drop is None or psnr_drop >= 0, f"psnr_drop must be >= 0 dB (or None), got {psnr_drop}")
-        op = _one_operator(op)
-        model = ProjectionModel(op, start=start.detach())  # checks the operator's pixel map and the start's shape
+        # The start may lie anywhere a solve's box allows (EO_-100^255's below 0): a model of it, whose
+        # box is [0, 1] unless told, refused such a start; only the targets and masks are needed.
+        op = image_operator(op)
+        check_patterns_shape(op, start)
         self.op, self.l2_weight, self.psnr_drop = op, float(l2_weight), psnr_drop
         if offset is not None:
             check_shape(offset, "offset", list(op.rhs.shape))
         self.offset = offset
-        self.ssim_loss = SSIMLoss(model.targets, model.mask)
+        self.ssim_loss = SSIMLoss(op.to_camera(op.rhs / op.scale), op.camera_masks())
         self.squared_error = _squared_error(op)
         with torch.no_grad():
             start_rows = self._predict(start.detach())
