@@ -16,7 +16,7 @@ SURFACE = {
         "transport"],
     "core": [
         "CaptureError", "ConfigError", "InputError", "TorchprojError", "atomic_output", "check", "check_count",
-        "check_finite", "check_image", "check_number", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_numpy", "to_uint", "write_image",
+        "check_finite", "check_image", "check_number", "check_seed", "check_shape", "pixel_grid", "read_image", "round_to_pixel", "to_numpy", "to_uint", "write_image",
         "write_json"],
     "scene": [
         "BUILTIN_SCENES", "Camera", "Projector", "SIZE_LIMIT", "Scene", "ShowChanges", "State", "Surface", "TargetSpec",

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -73,6 +75,19 @@ def test_counts_and_numbers_are_checked_by_kind_not_only_by_size():
             check_number(bad, "w")
     with pytest.raises(InputError, match="lr must be a finite number > 0, got 0"):
         check_number(0, "lr", strict=True)
+
+
+def test_seeds_are_whole_numbers_the_generators_take():
+    from torchproj.core import check_seed
+
+    assert check_seed(np.int64(7)) == 7 and type(check_seed(np.int64(7))) is int
+    assert check_seed(2 ** 63 - 1) == 2 ** 63 - 1
+    torch.Generator().manual_seed(check_seed(2 ** 63 - 1))  # the largest one torch takes
+    for bad in (-1, 2 ** 63, 1.0, True, "1", None):
+        with pytest.raises(InputError, match=rf"seed must be a whole number from 0 to 2\*\*63 - 1, got {re.escape(repr(bad))}"):
+            check_seed(bad)
+    with pytest.raises(InputError, match=r"trial seed must be a whole number from 0 to 1000 - 1 \(or none\), got 1000"):
+        check_seed(1000, "trial seed", limit=1000, hint=" (or none)")
 
 
 def test_check_image_range():

@@ -325,6 +325,11 @@ def test_position_refuses_bad_settings(box_scene):
         evaluate_positioning(box_scene, spread_mm=1e9)
     with pytest.raises(InputError, match="spread_deg 90: .* give at most 45"):
         evaluate_positioning(box_scene, spread_deg=90)
+    # A negative seed reached numpy's generator ("expected non-negative integer", a traceback from the
+    # command); one past 2**32 would derive capture seeds past the rig's 2**63.
+    for seed in (-1, 2 ** 32, 1.5, True):
+        with pytest.raises(InputError, match=r"seed must be a whole number from 0 to 2\*\*32 - 1, got"):
+            evaluate_positioning(box_scene, seed=seed)
 
 
 def _fake_decode(folder, points):

@@ -6,8 +6,8 @@ from here before anything has imported torch.
 
 from .._lazy import lazy_names
 
-_WHERE = {**dict.fromkeys(("check", "check_count", "check_finite", "check_image", "check_number", "check_shape"),
-                         "checks"),
+_WHERE = {**dict.fromkeys(("check", "check_count", "check_finite", "check_image", "check_number", "check_seed",
+                           "check_shape"), "checks"),
           **dict.fromkeys(("pixel_grid", "round_to_pixel", "to_numpy"), "conventions"),
           **dict.fromkeys(("CaptureError", "ConfigError", "InputError", "TorchprojError"), "errors"),
           **dict.fromkeys(("read_image", "to_uint", "write_image"), "imageio"),

@@ -21,7 +21,7 @@ from .errors import InputError
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
 __all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
-           "check_number"]
+           "check_number", "check_seed"]
 
 
 def check(condition: bool, message: str) -> None:
@@ -35,6 +35,19 @@ def check_count(value, name: str, minimum: int = 1) -> int:
     check(isinstance(value, numbers.Integral) and not isinstance(value, bool) and value >= minimum,
           f"{name} must be a whole number >= {minimum}, got {value!r}")
     return int(value)
+
+
+def check_seed(value, name: str = "seed", limit: int = 2 ** 63, hint: str = "") -> int:
+    """``value`` as an int: a whole number from 0 to ``limit - 1`` (torch's and numpy's generators take
+    no negative seed, torch none of 2**63 or more). ``hint`` follows the range in the message."""
+    check(isinstance(value, numbers.Integral) and not isinstance(value, bool) and 0 <= value < limit,
+          f"{name} must be a whole number from 0 to {_power(limit)} - 1{hint}, got {value!r}")
+    return int(value)
+
+
+def _power(limit: int) -> str:
+    """``2**k`` where ``limit`` is a power of two, else the number."""
+    return f"2**{limit.bit_length() - 1}" if limit & (limit - 1) == 0 else str(limit)
 
 
 def check_number(value, name: str, minimum: float = 0.0, *, strict: bool = False) -> float:

@@ -32,7 +32,7 @@ import torch
 from ..calib import scan_map
 from ..pipeline import simulate_calibration
 from ..calib.triangulate import ProCamCalibration, triangulate
-from ..core.checks import check
+from ..core.checks import check, check_seed
 from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import CaptureError, ConfigError, InputError
@@ -408,6 +408,9 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
             (the paper's own test used ``eo`` with ``(0, 255)``, ``EO_0^255``).
     """
     check(trials >= 1, f"trials must be at least 1, got {trials}")
+    # Each position and trial draws its captures' and scans' noise from seeds derived from this one
+    # (1000 (seed + 1) (k + 1) and on), which must stay within the rig's 2**63.
+    seed = check_seed(seed, limit=2 ** 32)
     check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)  # before calibrating
     check(spread_mm >= 0 and spread_deg >= 0, f"spread_mm and spread_deg must be numbers >= 0 (mm, degrees), got "
                                                f"{spread_mm!r} and {spread_deg!r}")  # NaN fails too

@@ -21,14 +21,13 @@ is a sparse product. This matrix is the simulator's private ground truth: the so
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 from dataclasses import dataclass
 
 import torch
 from kornia.geometry.calibration import undistort_points
 
-from ..core.checks import check, check_device, check_shape
+from ..core.checks import check, check_device, check_seed, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
 from ..core.lens import DISC_POINTS, GOLDEN_ANGLE, disc_points
 from ..core.sparse import csr_tensor
@@ -645,9 +644,8 @@ class VirtualRig:
         """The generator of one capture's noise: the rig's own (None), or a fresh one from ``seed``."""
         if seed is None:
             return self.generator
-        check(isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed < 2 ** 63,
-              f"seed must be a whole number from 0 to 2**63 - 1 (or None: the rig's own draws), got {seed!r}")
-        return torch.Generator(device=self.device).manual_seed(int(seed))
+        seed = check_seed(seed, hint=" (or None: the rig's own draws)")
+        return torch.Generator(device=self.device).manual_seed(seed)
 
     def capture(self, state: str, patterns: dict[str | int, torch.Tensor], seed: int | None = None,
                 noise: bool = True, quantise: bool = True) -> torch.Tensor:
