@@ -198,9 +198,11 @@ def test_out_never_takes_a_persons_files_and_an_interrupt_exits_130(tmp_path, ca
 
 
 @pytest.mark.parametrize("size, message", [("1x1", "projector 1x1: a Gray code needs at least 2 x 2 cells"),
-                                           ("16x8", "projector 16x8: narrower than the ramp's 32 bars")])
+                                           ("16x8", "projector 16x8: narrower than the ramp's 32 bars"),
+                                           ("64x64 --ramp-steps 1", "ramp_steps (--ramp-steps, the ramp's bars) must be "
+                                                                    "a whole number >= 2, got 1")])
 def test_a_projector_too_small_for_the_sequence_is_named(tmp_path, capsys, size, message):
-    assert main(["sequence", "--projector", size, "--out", str(tmp_path / "seq")]) == 2
+    assert main(["sequence", "--projector", *size.split(), "--out", str(tmp_path / "seq")]) == 2
     assert message in capsys.readouterr().err and not (tmp_path / "seq").exists()
 
 

@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.checks import SIZE_LIMIT
+from ..core.checks import SIZE_LIMIT, check_count
 from ..core.conventions import MAX_MIXING_CONDITION, to_numpy
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
@@ -87,6 +87,7 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
     if not (2 <= width and 2 <= height):
         raise InputError(f"projector {width}x{height}: a Gray code needs at least 2 x 2 cells; check the projector's "
                          "resolution (WIDTHxHEIGHT, e.g. 1024x768)")
+    ramp_steps = check_count(ramp_steps, "ramp_steps (--ramp-steps, the ramp's bars)", 2)
     if ramp_steps > width:
         raise InputError(f"projector {width}x{height}: narrower than the ramp's {ramp_steps} bars; check the projector's "
                          f"resolution, or give at most {width} ramp steps")
