@@ -84,9 +84,16 @@ def test_captures_in_8_bit_units_are_refused_not_read_against_thresholds_over_25
 def test_bad_thresholds_and_sizes_are_named():
     pats = graycode_patterns(64, 48)
     for options, says in [({"white_threshold": -1}, "white_threshold must be a finite number >= 0"),
-                          ({"black_threshold": float("nan")}, "black_threshold must be a finite number >= 0")]:
+                          ({"black_threshold": float("nan")}, "black_threshold must be a finite number >= 0"),
+                          ({"white_threshold": 255}, "white_threshold is in 8-bit units and must be under 255"),
+                          ({"black_threshold": 300}, "black_threshold is in 8-bit units and must be under 255")]:
         with pytest.raises(InputError, match=says):
             decode_gray(pats[:-2], pats[-2], pats[-1], (64, 48), **options)
+    # A threshold no difference of captures reaches kept no pixel, reported as a projector that lit nothing.
+    decoded = decode_gray(pats[:-2], pats[-2], pats[-1], (64, 48), black_threshold=254)
+    assert bool(decoded.lit.all())
+    with pytest.raises(InputError, match=r"black_threshold is in 8-bit units and must be under 255 \(.*\), got 300"):
+        decoded.above(300)
     with pytest.raises(InputError, match="projector_size must be \\(width, height\\), got \\(64,\\)"):
         decode_gray(pats[:-2], pats[-2], pats[-1], (64,))
 

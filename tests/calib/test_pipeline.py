@@ -27,8 +27,10 @@ def test_the_scan_map_is_the_calibrations_forward_map(options):
 
 def test_the_scan_map_checks_its_options():
     capture, _ = _captures()
-    with pytest.raises(InputError, match="max_hole"):
-        scan_map(capture, PROJECTOR, max_hole=-1)
+    for bad in (-1, 2.5):
+        with pytest.raises(InputError, match=r"max_hole \(--fill-holes, the largest hole filled, pixels\) must be a "
+                                             rf"whole number >= 0, got {bad}"):
+            scan_map(capture, PROJECTOR, max_hole=bad)
 
 
 def test_captures_whose_pairs_do_not_add_up_are_warned_about_naming_the_fix():

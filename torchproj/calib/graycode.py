@@ -161,6 +161,7 @@ class GrayDecoding:
         """This decoding with a higher shadow threshold (8-bit units, as :func:`decode_gray`'s): what
         :func:`decode_gray` gives with that ``black_threshold``, without decoding again (a pixel's
         bits read the same at any threshold; only which pixels count as lit changes)."""
+        black_threshold = _check_threshold(black_threshold, "black_threshold")
         lit = self.lit & (self.contrast.abs() > (black_threshold + _EPS) / 255)
         valid = self.valid & lit
         prj_xy = torch.where(valid[..., None], self.prj_xy, float("nan"))
@@ -328,6 +329,15 @@ def _open_cells(value: torch.Tensor, first_bad: torch.Tensor, bad: torch.Tensor,
     return centre, torch.where(known, width, 0)
 
 
+def _check_threshold(value, name: str) -> float:
+    """A threshold on a difference of captures, in 8-bit units: at most 255 apart, so a threshold there
+    keeps no pixel, which was then reported as a projector that lit nothing."""
+    value = check_number(value, name)
+    check(value < 255, f"{name} is in 8-bit units and must be under 255 (no difference of captures reaches it), "
+                       f"got {value:g}")
+    return value
+
+
 def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, projector_size: tuple[int, int],
                 white_threshold: float = 5, black_threshold: float = BLACK_THRESHOLD,
                 bits: int | tuple[int, int] | None = None) -> GrayDecoding:
@@ -356,8 +366,8 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
     width, height = projector_size
     nx, ny = graycode_bits(width, height)
     kx, ky = sequence_bits(width, height, bits)
-    white_threshold = check_number(white_threshold, "white_threshold")
-    black_threshold = check_number(black_threshold, "black_threshold")
+    white_threshold = _check_threshold(white_threshold, "white_threshold")
+    black_threshold = _check_threshold(black_threshold, "black_threshold")
     white, black = _grey_image(white), _grey_image(black)
     # The thresholds are in 8-bit units over 255: captures in 0-255 would pass nearly every pixel as lit
     # and every bit as reliable. The white capture is the brightest, and one image is cheap to read.

@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_count
 from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
@@ -287,7 +287,7 @@ def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, w
                  black_threshold: float, dim_threshold: float, subpixel: bool, max_hole: int,
                  bits: int | tuple[int, int] | None, plane_tolerance: float, crease_ratio: float,
                  curve_ratio: float = CURVE_RATIO) -> _ForwardMap:
-    check(max_hole >= 0, f"max_hole must be >= 0, got {max_hole}")
+    max_hole = check_count(max_hole, "max_hole (--fill-holes, the largest hole filled, pixels)", 0)
     timings = {}
     check(dim_threshold >= 0, f"dim_threshold must be >= 0 (8-bit units), got {dim_threshold}")
     t0 = time.perf_counter()
