@@ -195,6 +195,22 @@ def test_atomic_output_leaves_nothing_on_failure(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
+def test_an_error_about_a_file_of_the_new_result_names_it_as_such(tmp_path):
+    """``simulate --write-captures`` reads back the captures it wrote: a dark one was named by its path
+    in the staging folder, which is gone by the time the message is read."""
+    from torchproj.core import ConfigError
+
+    out = tmp_path / "sim"
+    with pytest.raises(CaptureError) as caught:
+        with atomic_output(out) as stage:
+            raise CaptureError(f"{stage / 'captures' / 'n' / 'a' / 'white.png'}: dark everywhere")
+    assert str(caught.value) == f"the new result's captures/n/a/white.png: dark everywhere ({out} is as it was)"
+    with pytest.raises(ConfigError, match=r"^camera.focal: bad$") as caught:  # other errors pass as they were
+        with atomic_output(out):
+            raise ConfigError("camera.focal", "bad")
+    assert caught.value.field == "camera.focal" and list(tmp_path.iterdir()) == []
+
+
 def test_an_output_folder_holding_a_persons_files_is_refused_and_left_whole(tmp_path):
     from torchproj.core.output import MANIFEST
 

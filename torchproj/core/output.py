@@ -26,7 +26,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from .errors import InputError
+from .errors import InputError, TorchprojError
 
 __all__ = ["MANIFEST", "atomic_output", "check_output_folder", "write_json"]
 
@@ -96,6 +96,14 @@ def atomic_output(out_dir: str | os.PathLike):
         what = "" if inside is None else f" while writing {inside} of the new result"
         message = f"{exc.strerror or exc}{what}; {out_dir} is as it was and nothing of the new result was kept"
         raise (OSError(message) if exc.errno is None else OSError(exc.errno, message)) from None
+    except TorchprojError as exc:
+        # A file of the staging folder the work read back (``simulate --write-captures``' captures) is
+        # named as part of the new result: the folder is gone by the time the message is read.
+        text = str(exc)
+        if str(stage) in text:
+            exc.args = (text.replace(f"{stage}{os.sep}", "the new result's ").replace(str(stage), "the new result")
+                        + f" ({out_dir} is as it was)",)
+        raise
     finally:
         if old is not None and not out_dir.exists() and (old / out_dir.name).exists():
             os.replace(old / out_dir.name, out_dir)  # the new one did not go in: the old one goes back, whole
