@@ -16,6 +16,9 @@ def _camera(**kw):
                               "bit_depth": 8, "frames": 1, **kw})
 
 
+# Compiling takes 15-19 s on a first use in a process (every CI run's): with the slow tests, as the
+# solvers' compiled pass (tests/solve/test_solvers.py) and the model's (tests/solve/test_model.py).
+@pytest.mark.slow
 @pytest.mark.parametrize("gamma, full_well, read_noise, bits", [(1.0, 20000, 0.002, 8), (2.2, 5000, 0.0, 8),
                                                                  (1.8, 0, 0.01, 16)])
 def test_the_fused_camera_model_is_the_eager_chain(gamma, full_well, read_noise, bits, monkeypatch):
