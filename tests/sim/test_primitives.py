@@ -83,3 +83,37 @@ def test_ray_starting_inside_a_box_hits_its_far_wall():
     t, n = box.hit(torch.zeros(1, 3), torch.tensor([[0.0, 0, 1]]))
     assert float(t[0]) == pytest.approx(1.0)
     assert n[0].abs().tolist() == [0, 0, 1]
+
+
+def test_a_mesh_surface_is_cast_by_the_rig_as_its_analytic_shape(tmp_path):
+    """The rig casts rays for a capture of moving surfaces (and for the light check before every
+    calibration) from one camera origin, (1, 3) against (N, 3) directions: the mesh caster sized its
+    results by the origins, and every run of a scene with a mesh stopped at an IndexError. An
+    icosphere seen through the rig lands, and is lit, where the analytic sphere is."""
+    from torchproj.scene import parse_scene
+    from torchproj.sim import VirtualRig
+
+    trimesh.creation.icosphere(5, radius=0.1).export(tmp_path / "ball.ply")
+
+    def rig(surface):
+        return VirtualRig(parse_scene({
+            "name": "ball", "projectors": [{"name": "p", "resolution": [128, 96], "focal": 192,
+                                            "pose": {"position": [0.05, 0, 0], "look_at": [0, 0, 0.8]}}],
+            "camera": {"resolution": [160, 120], "focal": 400, "supersampling": 2,
+                       "pose": {"position": [-0.05, 0, 0], "look_at": [0, 0, 0.8]}},
+            "surfaces": {"ball": {**surface, "pose": {"position": [0, 0, 0.8]}}},
+            "states": [{"name": "s", "surfaces": ["ball"]}]}))
+
+    mesh, sphere = rig({"type": "mesh", "file": str(tmp_path / "ball.ply")}), rig({"type": "sphere", "radius": 0.1})
+    m, s = mesh.geometry("s"), sphere.geometry("s")
+    seen_m, seen_s = m.surface_id >= 0, s.surface_id >= 0
+    assert int(seen_s.sum()) > 2000 and float((seen_m != seen_s).float().mean()) < 0.01
+    both = seen_m & seen_s
+    apart = (m.points[both] - s.points[both]).norm(dim=-1)  # the tessellation's, metres; most at the outline
+    assert float(apart.median()) < 1e-4 and float(apart.quantile(0.99)) < 1e-3
+    lit = torch.isfinite(m.prj_xy[0]).all(-1) & torch.isfinite(s.prj_xy[0]).all(-1)
+    assert float((m.prj_xy[0][lit] - s.prj_xy[0][lit]).norm(dim=-1).median()) < 0.05  # cells
+    white = {0: torch.ones(1, 1, 96, 128)}
+    shot_m, shot_s = (r.capture_surfaces(list(r.scene.surfaces.values()), white, None, noise=False)[0]
+                      for r in (mesh, sphere))
+    assert float((shot_m - shot_s).abs().median()) < 2 / 255 and float(shot_s.max()) > 0.3

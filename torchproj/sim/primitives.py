@@ -155,6 +155,9 @@ class _Mesh(Caster):
 
     def hit(self, origins, directions, t_min=1e-5):
         device, dtype = origins.device, origins.dtype
+        # The rig casts a camera's rays from one origin, (1, 3) against (N, 3) directions, as torch
+        # broadcasts for the analytic casters; Embree takes one origin per ray.
+        origins, directions = torch.broadcast_tensors(origins, directions)
         # Step the origins forward by t_min so that Embree never reports the surface a ray starts on.
         o = (origins + t_min * directions).detach().cpu().numpy().astype(np.float64)
         d = directions.detach().cpu().numpy().astype(np.float64)
