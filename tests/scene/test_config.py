@@ -117,6 +117,26 @@ def test_missing_mesh_file(tmp_path):
         parse_scene(data, base_dir=tmp_path)
 
 
+def test_a_mesh_in_millimetres_is_warned_of_naming_the_scale(tmp_path):
+    """A 20 cm ball saved in millimetres was read as 200 m across, the camera inside it: the run was
+    refused as a state no light reaches. Warned of at load, naming the scale that reads millimetres."""
+    import warnings
+
+    import trimesh
+
+    trimesh.creation.icosphere(2, radius=100.0).export(tmp_path / "ball.ply")  # 200 mm across, in mm
+    data = small_config()
+    data["surfaces"]["near_plane"] = {"type": "mesh", "file": "ball.ply", "pose": {"position": [0, 0, 0.8]}}
+    with pytest.warns(UserWarning, match=r"surfaces.near_plane.file: the mesh spans 200 m at scale 1, .* give the "
+                                         r"surface scale: 0.001"):
+        parse_scene(data, base_dir=tmp_path)
+    data["surfaces"]["near_plane"]["scale"] = 0.001
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene = parse_scene(data, base_dir=tmp_path)
+    assert scene.surfaces["near_plane"].scale == 0.001
+
+
 def test_state_naming_an_unknown_surface():
     msg = _bad(lambda d: d["states"][0].update(surfaces=["nope"]))
     assert msg.startswith("states[0].surfaces: names unknown surface 'nope'")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -407,8 +408,14 @@ def _parse_camera(f: Fields) -> Camera:
     return cam
 
 
-def _check_mesh(path: Path, where: str) -> None:
-    """A mesh file must hold triangles trimesh can read (the ray caster's loader), checked at load time."""
+# A mesh wider than this (metres, after its scale) is more likely a file in millimetres than an object
+# before projectors: warned of, naming the scale that reads millimetres.
+MESH_SPAN_WARN = 10.0
+
+
+def _check_mesh(path: Path, where: str) -> float:
+    """A mesh file must hold triangles trimesh can read (the ray caster's loader), checked at load time.
+    Returns the mesh's largest extent in the file's units."""
     import trimesh
 
     try:
@@ -420,6 +427,7 @@ def _check_mesh(path: Path, where: str) -> None:
     if faces is None or len(faces) == 0 or not np.isfinite(np.asarray(mesh.vertices)).all():
         raise ConfigError(where, f"{str(path)!r} holds no triangles (or non-finite vertices)",
                           "give an OBJ, PLY, STL, OFF or GLB file of triangles")
+    return float(np.max(mesh.extents))
 
 
 def _parse_surface(f: Fields, name: str, base_dir: Path) -> Surface:
@@ -450,9 +458,13 @@ def _parse_surface(f: Fields, name: str, base_dir: Path) -> Surface:
         if not path.is_file():
             raise ConfigError(f.where("file"), f"mesh file {str(path)!r} not found",
                               "paths are relative to the config file's folder")
-        _check_mesh(path, f.where("file"))
+        extent = _check_mesh(path, f.where("file"))
         surf.mesh_file = path
         surf.scale = f.number("scale", 1.0, lo=0, strict_lo=True)
+        if extent * surf.scale > MESH_SPAN_WARN:
+            warnings.warn(f"{f.where('file')}: the mesh spans {extent * surf.scale:.4g} m at scale {surf.scale:g}, and "
+                          "scenes are in metres: if the file is in millimetres, give the surface scale: 0.001",
+                          stacklevel=2)
     f.done()
     return surf
 
