@@ -249,3 +249,8 @@ def test_a_coarse_camera_is_warned_of_once_per_run():
         shown_world(virtual.calibrate_virtual(scene, progress=False), scene)
     said = [str(w.message) for w in seen if "camera samples are" in str(w.message)]
     assert len(said) == 1 and "set camera.supersampling to" in said[0]
+    # The levels asked for alone (``torchproj scene``) still say it.
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        virtual.describe_light(scene)
+    assert sum("camera samples are" in str(w.message) for w in seen) == 1

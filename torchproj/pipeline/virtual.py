@@ -136,7 +136,7 @@ def white_levels(scene: Scene, device="cpu") -> dict[tuple[str, str], float]:
     Returns:
         ``(state, projector) -> value`` in [0, 1] camera units.
     """
-    return _light_levels(scene, device)[0]
+    return _light_levels(scene, device, quiet=False)[0]
 
 
 def quiet_rig(scene: Scene, device) -> VirtualRig:
@@ -149,15 +149,16 @@ def quiet_rig(scene: Scene, device) -> VirtualRig:
 
 
 def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD, states: list[str] | None = None,
-                  grid: int | None = LIGHT_CHECK_GRID, whites: bool = True
+                  grid: int | None = LIGHT_CHECK_GRID, whites: bool = True, quiet: bool = True
                   ) -> tuple[dict[tuple[str, str], float], dict[str, float], dict[tuple[str, str], float]]:
     """:func:`white_levels`; per state the median of its black capture over the grid; and per state and
     projector the share of the grid's lit pixels (white minus black past ``threshold``) whose white
     capture is clipped (:data:`~torchproj.calib.SATURATED`). ``states``: those only (default all);
     ``grid`` None: every camera pixel; ``whites`` False: the black captures only (the first and
-    third dicts empty)."""
+    third dicts empty); ``quiet``: without the rig's warning about the camera's samples (a check
+    before the work, whose own rig gives it), else with it (the levels asked for alone)."""
     cam = scene.camera
-    rig = quiet_rig(scene, device)
+    rig = quiet_rig(scene, device) if quiet else VirtualRig(scene, device=device)
     pixels = None
     if grid is not None:
         ys = torch.linspace(0, cam.height - 1, min(grid, cam.height), device=device).round().long()
@@ -262,7 +263,7 @@ def describe_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHO
     decoder's threshold (:func:`white_levels`)."""
     lines = [f"white level per state and projector (brightest pixel, white minus black, of 255; decoding needs "
              f"{threshold * 255:.0f}; saturation at 255):"]
-    levels, _, clipped = _light_levels(scene, device, threshold)
+    levels, _, clipped = _light_levels(scene, device, threshold, quiet=False)
     for state in scene.states:
         cells = []
         for proj in scene.projectors:
