@@ -8,13 +8,12 @@ from the physics, never computed as ``A p``, so calibration errors show in the s
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import check, check_image, check_number, check_shape
+from ..core.checks import check, check_image, check_number, check_seed, check_shape
 from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
@@ -189,9 +188,8 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     scene = calibration.rig.scene
     shown = as_light(patterns, len(scene.projectors), calibration.rig.device)
     check_number(scale, "scale", strict=True)
-    check(seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed < 2 ** 62),
-          f"seed must be a whole number from 0 to 2**62 (or None: the rig's own noise draws), got {seed!r}")
-    seed = None if seed is None else int(seed)
+    # State k's noise is drawn from seed + k, within the rig's 2**63.
+    seed = None if seed is None else check_seed(seed, limit=2 ** 62, hint=" (or None: the rig's own noise draws)")
     check_targets(targets)
     for target in (t for t in targets if t.mask is not None):  # as build_transport checks them
         check_shape(target.mask, f"target {target.name!r} mask", [scene.camera.height, scene.camera.width])
