@@ -310,10 +310,12 @@ def _real_rig_commands(sub) -> None:
                    help="object-projector distance, in the calibration's units, for the percentage")
     p.add_argument("--mask", type=Path, help="camera-sized image, white on the object: score only those pixels")
 
+    from .core.choices import RAMP_STEPS
+
     p = command(sub, "sequence", cmd_sequence, "write the images to show on a projector, in order, with sequence.json: "
                 "Gray code, white, black, the ramps and a checkerboard pair")
     p.add_argument("--projector", type=projector_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
-    p.add_argument("--ramp-steps", type=int, default=32, help="bars in the photometric ramp (default 32)")
+    p.add_argument("--ramp-steps", type=int, default=RAMP_STEPS, help=f"bars in the photometric ramp (default {RAMP_STEPS})")
     p.add_argument("--bits", type=int, metavar="K", help=BITS_HELP + "; for scenes where each state is one plane, "
                                                          "read through a homography")
 

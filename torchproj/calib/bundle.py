@@ -66,7 +66,7 @@ from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, re
 from .graycode import CellShares, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import (ProjectorCalibration, calibrate_projector, check_decoded, warn_if_few_decoded, warn_if_noisy,
                        warn_if_saturated)
-from .response import ResponseCurve, primary_patterns, ramp_pattern
+from .response import RAMP_STEPS, ResponseCurve, primary_patterns, ramp_pattern
 
 __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
            "write_sequence"]
@@ -75,7 +75,7 @@ BUNDLE_VERSION = 1
 SEQUENCE_FILE = "sequence.json"
 
 
-def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_steps: int = 32,
+def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_steps: int = RAMP_STEPS,
                    bits: int | tuple[int, int] | None = None) -> dict:
     """Write the images one projector shows, in order, and ``sequence.json``; returns the manifest.
 

@@ -19,7 +19,7 @@ from .homography import HomographyFit, check_plane, fit_homography, homography_m
 from .maps import depth_edges, fill_holes, inverse_map, map_slope
 from .blur import measure_blur
 from .edges import EdgePixels, find_edge_pixels
-from .response import ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
+from .response import RAMP_STEPS, ResponseCurve, fit_colour_mixing, fit_response, measure_ramp
 
 __all__ = ["DIM_THRESHOLD", "FEW_DECODED", "NOISY_CAPTURES", "SATURATED", "SATURATED_SHARE", "DecodedFolder",
            "ProjectorCalibration", "calibrate_projector", "decode_folder", "scan_map", "warn_if_few_decoded", "warn_if_noisy",
@@ -158,7 +158,7 @@ class ProjectorCalibration:
 
 def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float = 5,
                         black_threshold: float = BLACK_THRESHOLD, dim_threshold: float = DIM_THRESHOLD, subpixel: bool = True,
-                        max_hole: int = 16, ramp_steps: int = 32, bits: int | tuple[int, int] | None = None,
+                        max_hole: int = 16, ramp_steps: int = RAMP_STEPS, bits: int | tuple[int, int] | None = None,
                         plane_tolerance: float = 1.0, crease_ratio: float = CREASE_RATIO,
                         curve_ratio: float = CURVE_RATIO, require_response: bool = True) -> ProjectorCalibration:
     """Decode, refine, fill, invert and fit the response of one capture.

@@ -26,7 +26,7 @@ __all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp",
 # Bars of the photometric ramp ``torchproj sequence`` and the virtual rig show, the levels ``a x^b + c`` is
 # fitted to. The paper's "System calibration" shows a grey ramp and its mirror without saying how many
 # bars; 32 is our choice. A projector needs at least this many cells across, one a bar.
-RAMP_STEPS = 32
+from ..core.choices import RAMP_STEPS  # noqa: E402  (32; there, for the command's parser)
 
 
 def ramp_pattern(width: int, height: int, steps: int = RAMP_STEPS, mirrored: bool = False) -> torch.Tensor:

@@ -32,7 +32,7 @@ __all__ = ["DECODE_THRESHOLD", "DecodingAccuracy", "VirtualCalibration", "calibr
            "simulate_markdown", "simulate_scene", "true_responses", "white_levels"]
 
 
-def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp_steps: int = 32,
+def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp_steps: int = RAMP_STEPS,
                          noise: bool = True, bits: int | tuple[int, int] | None = None) -> GraycodeCapture:
     """Capture the calibration sequence of one projector in one state on the virtual rig.
 
