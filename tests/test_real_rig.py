@@ -453,3 +453,31 @@ def test_calibrating_captures_whose_white_is_clipped_says_which_folder(tmp_path,
     for p in scene.projectors:
         assert f"warning: {root / 'near' / p.name}: the white capture is clipped at" in err, err
     assert "lower the camera's exposure" in err
+
+
+def test_projectors_named_like_the_black_file_or_each_other_but_for_case_keep_their_own_maps(tmp_path):
+    """A state folder holds each projector's map beside ``black.npz``: a projector named ``black`` had its
+    map overwritten by the black level (``torchproj solve`` then said the file lacks ``prj_xy``:
+    "calibrate again", which gave the same), and on macOS's and Windows' file systems ``a.npz`` and
+    ``A.npz`` are one file. Each map comes back as it was written, and so does the black level."""
+    from torchproj.calib import CalibrationBundle, write_bundle
+
+    g = torch.Generator().manual_seed(0)
+    names = ["black", "Black", "a", "A", "black_1"]
+    camera, states = (5, 4), {}
+    for state in ("near", "far"):
+        states[state] = [{"prj_xy": torch.rand(4, 5, 2, generator=g) * 5, "valid": torch.ones(4, 5, dtype=torch.bool),
+                          "contrast": torch.rand(4, 5, generator=g)} for _ in names]
+    black = {state: torch.rand(1, 4, 5, generator=g) for state in states}
+    bundle = CalibrationBundle(camera_size=camera, channels=1, projectors=[(n, 8, 6) for n in names], states=states,
+                               black=black, responses=[None] * len(names))
+    write_bundle(tmp_path / "calib", bundle)
+    back = load_bundle(tmp_path / "calib")
+    assert [n for n, _, _ in back.projectors] == names
+    for state in states:
+        torch.testing.assert_close(back.black[state], black[state])
+        for j, written in enumerate(states[state]):
+            for key, value in written.items():
+                assert torch.equal(back.states[state][j][key], value), (state, names[j], key)
+    files = [p.name.casefold() for p in (tmp_path / "calib" / "near").iterdir()]
+    assert len(files) == len(set(files)) == len(names) + 1

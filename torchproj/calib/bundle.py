@@ -39,6 +39,8 @@ the dimly lit pixels' coordinates (:attr:`~torchproj.calib.ProjectorCalibration.
 pixel's defocus disc in cells (:attr:`~torchproj.calib.ProjectorCalibration.blur`); bundles without them
 model no edge pixel, fit no row to measured shares, add no dim light to rows and take every lens as sharp) and
 ``STATE/black.npz`` (``black``: the mean of the state's all-black captures, ``(C, H, W)``).
+``bundle.json``'s ``files`` names each projector's file: a projector named ``black``, or one whose
+name another's matches but for case, is written as ``PROJECTOR_1.npz``.
 Bundles from shortened sequences also record ``graycode_bits`` (per projector) and ``homographies``
 (per state and projector, :meth:`~torchproj.calib.HomographyFit.as_dict`).
 """
@@ -361,15 +363,32 @@ def cell_shares_of(maps: dict) -> CellShares | None:
                       band=maps.get("share_band"), band_white=maps.get("share_band_white"))
 
 
+def _map_stems(names: list[str]) -> list[str]:
+    """Each projector's file name (without ``.npz``) in a state folder: its own name, unless the state's
+    ``black.npz`` or another projector's file has it, ignoring case as macOS's and Windows' file
+    systems do (projectors named ``black``, or ``a`` and ``A``); then the name with ``_1``, ``_2``, ...
+    ``bundle.json``'s ``files`` says which file is whose, so that a reader needs no rule."""
+    taken, stems = {"black"}, []
+    for name in names:
+        stem, k = name, 0
+        while stem.casefold() in taken:
+            k += 1
+            stem = f"{name}_{k}"
+        taken.add(stem.casefold())
+        stems.append(stem)
+    return stems
+
+
 def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:
     """Write a bundle into ``folder`` (module docstring: the format)."""
     folder = Path(folder)
     files = {}
+    stems = _map_stems([name for name, _, _ in bundle.projectors])
     for state, maps in bundle.states.items():
         (folder / state).mkdir(parents=True, exist_ok=True)
-        for (name, _, _), m in zip(bundle.projectors, maps):
-            np.savez_compressed(folder / state / f"{name}.npz", **{k: to_numpy(v) for k, v in m.items()})
-            files.setdefault(state, {})[name] = f"{state}/{name}.npz"
+        for (name, _, _), stem, m in zip(bundle.projectors, stems, maps):
+            np.savez_compressed(folder / state / f"{stem}.npz", **{k: to_numpy(v) for k, v in m.items()})
+            files.setdefault(state, {})[name] = f"{state}/{stem}.npz"
         np.savez_compressed(folder / state / "black.npz", black=to_numpy(bundle.black[state]))
     meta = {
         "format": "torchproj calibration bundle", "version": BUNDLE_VERSION,
