@@ -370,6 +370,16 @@ def test_a_name_that_cannot_name_an_output_file_is_refused(name, where):
         parse_scene(data)
 
 
+@pytest.mark.parametrize("where", ["projectors", "states"])
+def test_names_that_differ_only_in_case_are_refused(where):
+    """``patterns/a.png`` and ``patterns/A.png`` are one file on macOS's and Windows' file systems: the
+    second projector's pattern was written over the first's without a word."""
+    data = small_config()
+    data[where][1]["name"] = data[where][0]["name"].upper()
+    with pytest.raises(ConfigError, match=rf"^{where}: names .* differ only in case"):
+        parse_scene(data)
+
+
 @pytest.mark.parametrize("text", ["name: " + "[" * 5000 + "]" * 5000, "camera: " + "{a: " * 2000 + "1" + "}" * 2000])
 def test_a_config_nested_past_any_scene_is_refused_before_yaml_recurses(tmp_path, text):
     """PyYAML composes one level per Python call: 50,000 brackets ended in a RecursionError traceback."""

@@ -532,6 +532,19 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
     return targets
 
 
+def _unique_file_names(where: str, names: list[str]) -> None:
+    """Projectors and states name files of the outputs (``patterns/PROJECTOR.png``, ``captures/STATE.png``):
+    unique, and unique ignoring case, which macOS's and Windows' file systems ignore (``a.png`` and
+    ``A.png`` are one file there: one pattern would be written over the other without a word)."""
+    if len(set(names)) != len(names):
+        raise ConfigError(where, f"names must be unique, got {names}")
+    folded = [n.casefold() for n in names]
+    same = sorted({n for n, f in zip(names, folded) if folded.count(f) > 1})
+    if same:
+        raise ConfigError(where, f"names {same} differ only in case, and name one file of the outputs on macOS and "
+                                 "Windows", "give each a name of its own beyond case")
+
+
 def _interreflection(top: Fields, surfaces: dict[str, Surface]) -> bool:
     """``interreflection``: true simulates one bounce of projector light between the (opaque) surfaces."""
     value = top.raw("interreflection", False)
@@ -559,9 +572,7 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     camera = _parse_camera(top.sub("camera"))
     projectors = [_parse_projector(Fields(p, f"projectors[{i}]"), i, camera.channels)
                   for i, p in enumerate(projectors_raw)]
-    names = [p.name for p in projectors]
-    if len(set(names)) != len(names):
-        raise ConfigError("projectors", f"names must be unique, got {names}")
+    _unique_file_names("projectors", [p.name for p in projectors])
     surfaces_f = top.sub("surfaces")
     surfaces = {}
     for key in surfaces_f.data:
@@ -583,9 +594,7 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
                                   f"known: {sorted(surfaces)}")
         states.append(State(name=sf.name("name", f"state{i}"), surfaces=list(members)))
         sf.done()
-    state_names = [s.name for s in states]
-    if len(set(state_names)) != len(state_names):
-        raise ConfigError("states", f"names must be unique, got {state_names}")
+    _unique_file_names("states", [s.name for s in states])
     targets = _parse_targets(top, {s.name: s for s in states}, base_dir) if top.has("targets") else []
     show = parse_show(top.sub("show"), projectors) if top.has("show") else top.raw("show", None)
     scene = Scene(
