@@ -197,6 +197,29 @@ def test_out_never_takes_a_persons_files_and_an_interrupt_exits_130(tmp_path, ca
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "seq"]
 
 
+def test_out_is_refused_where_it_is_or_holds_what_the_command_reads(tmp_path, capsys):
+    """``--out`` replaces a folder torchproj wrote, and an input is often one: ``torchproj solve calib
+    --out calib`` replaced the bundle it had just read with its patterns. Refused before any work,
+    naming the input; nothing is touched."""
+    seq = tmp_path / "seq"
+    assert main(["sequence", "--projector", "64x48", "--out", str(seq)]) == 0
+    before = sorted(p.name for p in seq.iterdir())
+    image = seq / "graycode_00.png"
+    for argv, what in ((["solve", str(seq), "--out", str(seq), "--targets", "a=astronaut"], "is this command's calibration bundle"),
+                       (["capture", str(seq), "--out", str(seq)], "is this command's sequence folder"),
+                       (["solve", str(tmp_path / "calib"), "--out", str(seq), "--targets", f"a={image}"],
+                        f"holds {image}, this command's --targets image"),
+                       (["decode", str(seq), "--projector", "64x48", "--out", str(seq)], "is this command's capture folder")):
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"output folder {seq}: {what}" in err and "nothing was touched" in err, err
+        assert sorted(p.name for p in seq.iterdir()) == before
+    # An --out apart from its inputs is the command's to write: it goes on to read them (here, no bundle).
+    assert main(["solve", str(tmp_path / "calib"), "--out", str(tmp_path / "patterns"), "--targets", f"a={image}"]) == 2
+    assert "not a calibration bundle" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("size, message", [("1x1", "projector 1x1: a Gray code needs at least 2 x 2 cells"),
                                            ("16x8", "projector 16x8: narrower than the ramp's 32 bars"),
                                            ("64x64 --ramp-steps 1", "ramp_steps (--ramp-steps, the ramp's bars) must be "

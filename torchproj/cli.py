@@ -21,7 +21,7 @@ from .cli_options import (BITS_HELP, cache_option, command, config_option, decod
                           join_negative_pairs, limits, map_options, named_projector_size, projector_size, solve_options,
                           solver_options)
 from .core.errors import TorchprojError
-from .core.output import atomic_output, check_output_folder, write_json
+from .core.output import atomic_output, check_inputs_outside, check_output_folder, write_json
 
 __all__ = ["main", "build_parser"]
 
@@ -409,6 +409,8 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(join_negative_pairs(argv))
         if getattr(args, "out", None) is not None:
             check_output_folder(args.out, replace=not getattr(args, "workspace", False))  # before the work
+            if not getattr(args, "workspace", False):
+                check_inputs_outside(args.out, _inputs(args))
         with warnings.catch_warnings():
             # The library's warnings (a state that decoded little, a missing ramp) in the command's own voice.
             warnings.showwarning = lambda message, *_: print(f"torchproj {args.command}: warning: {message}",
@@ -429,6 +431,24 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+# The arguments that name what a command reads, as its messages name them.
+_INPUT_ARGS = {"config": "scene file", "placed": "placed scan", "reference": "reference scan", "mask": "--mask",
+               "sequence_dir": "sequence folder", "capture_root": "capture root", "calibration": "--calibration",
+               "bundle": "calibration bundle", "capture_dir": "capture folder"}
+
+
+def _inputs(args) -> dict[str, Path]:
+    """The files and folders ``args`` reads that exist (a built-in scene's name is no path), by what
+    names each; ``--targets``' image files among them."""
+    found = {what: Path(getattr(args, dest)) for dest, what in _INPUT_ARGS.items()
+             if getattr(args, dest, None) is not None and Path(getattr(args, dest)).exists()}
+    for pair in getattr(args, "targets", None) or []:
+        image = pair.partition("=")[2] if isinstance(pair, str) else None
+        if image and Path(image).exists():
+            found[f"--targets image {image}"] = Path(image)
+    return found
 
 
 def _who(args) -> str:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from .errors import InputError, TorchprojError
 
-__all__ = ["MANIFEST", "atomic_output", "check_output_folder", "write_json"]
+__all__ = ["MANIFEST", "atomic_output", "check_inputs_outside", "check_output_folder", "write_json"]
 
 MANIFEST = ".torchproj-output.json"  # what torchproj wrote into an output folder, so that it may replace it
 
@@ -60,6 +60,22 @@ def check_output_folder(out_dir: str | os.PathLike, replace: bool = True) -> Pat
     if not os.access(existing, os.W_OK | os.X_OK):
         raise InputError(f"output folder {out_dir}: {existing} is not writable; choose another folder")
     return out_dir
+
+
+def check_inputs_outside(out_dir: str | os.PathLike, inputs: dict[str, str | os.PathLike]) -> None:
+    """Raise :class:`InputError` where ``out_dir`` is, or holds, a file or folder the command reads.
+
+    ``inputs``: what names each input (an option, ``bundle``) -> its path. A folder torchproj wrote may
+    be replaced (:func:`check_output_folder`), and so ``torchproj solve calib --out calib`` replaced the
+    calibration it had just read with its patterns: a bench's 184 captures' work gone without a word.
+    """
+    out = Path(out_dir).resolve()
+    for what, path in inputs.items():
+        full = Path(path).resolve()
+        if full == out or out in full.parents:
+            where = f"is this command's {what}" if full == out else f"holds {path}, this command's {what}"
+            raise InputError(f"output folder {out_dir}: {where}; torchproj replaces --out whole, so give an --out "
+                             "apart from what it reads (nothing was touched)")
 
 
 @contextlib.contextmanager
