@@ -255,3 +255,28 @@ def test_a_views_bad_option_is_refused_by_its_parser(viz, tmp_path, capsys, scri
     with pytest.raises(SystemExit) as refused:
         viz[script].main([str(tmp_path), *argv])
     assert refused.value.code == 2 and f"argument {argv[0]}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name, far", [("suite-1-3", None), ("paper_two_planes", 2.5)])
+def test_rig_view_frames_rigs_of_any_size_and_reaches_past_every_surface(rig_module, tmp_path, name, far):
+    """The view was fixed on the paper's rig: other rigs' axes ran off the image's edges, and frusta 1.1 m
+    long stopped short of surfaces beyond it. The view is framed on what the scene holds (nothing drawn
+    touches the left, right or bottom edge), and the frusta reach every surface point a device faces."""
+    if far is None:
+        scene = load_scene(name)
+    else:  # the same planes moved out to 2.5 m
+        data = small_config(name)
+        for surface in data["surfaces"].values():
+            surface["pose"]["position"][2] *= far
+        from torchproj.scene import parse_scene
+
+        scene = parse_scene(data, name=name)
+    out = tmp_path / "rig.png"
+    rig_module.draw_rig(scene, out, window_size=(500, 375)).close()
+    ink = (read_image(out).numpy() < 0.8).any(0)
+    assert ink.sum() > 2000
+    assert not ink[:, :3].any() and not ink[:, -3:].any() and not ink[-3:, :].any()
+    depth = rig_module.frustum_depth(scene)
+    points = np.vstack([rig_module.surface_mesh(s).points for s in scene.surfaces.values()])
+    for pose in [scene.camera.world_from_cam, *(p.world_from_prj for p in scene.projectors)]:
+        assert ((points - pose[:3, 3]) @ pose[:3, 2]).max() <= depth

@@ -13,6 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
 import pyvista as pv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -23,17 +24,31 @@ from torchproj.scene import Scene, load_scene  # noqa: E402
 STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"]
 
 
-def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = False,
+def frustum_depth(scene: Scene) -> float:
+    """How far the frusta reach: just past the farthest surface point any device faces (its depth along
+    that device's axis), so that every surface lies inside the lines that show what lights and sees it."""
+    points = np.vstack([surface_mesh(s).points for s in scene.surfaces.values()])
+    poses = [scene.camera.world_from_cam, *(p.world_from_prj for p in scene.projectors)]
+    far = max(float(((points - pose[:3, 3]) @ pose[:3, 2]).max()) for pose in poses)
+    return round(min(max(1.05 * far, 0.1), 20.0), 2)
+
+
+def draw_rig(scene: Scene, out: Path | None, depth: float | None = None, show: bool = False,
              window_size=(1000, 750)) -> pv.Plotter:
+    """``depth``: the frusta's length in metres; None reaches past the farthest surface (:func:`frustum_depth`)."""
+    depth = frustum_depth(scene) if depth is None else depth
     plotter = pv.Plotter(off_screen=not show, window_size=window_size)
+    # Text is sized in points, not in parts of the view: scaled with the window so that the title and
+    # the axes' labels fit a small one as they fit the default 1000 px.
+    pt = window_size[0] / 1000
     cam = scene.camera
     geometry = {"camera": frustum(cam.K, cam.width, cam.height, cam.world_from_cam, depth)}
     plotter.add_mesh(geometry["camera"], color="black", line_width=2)
-    plotter.add_point_labels([cam.world_from_cam[:3, 3]], ["camera"], font_size=12, point_size=8)
+    plotter.add_point_labels([cam.world_from_cam[:3, 3]], ["camera"], font_size=round(12 * pt), point_size=8)
     for p in scene.projectors:
         lines = geometry[f"projector_{p.name}"] = frustum(p.K, p.width, p.height, p.world_from_prj, depth)
         plotter.add_mesh(lines, color="#d62728", line_width=2)
-        plotter.add_point_labels([p.centre], [p.name], font_size=12, point_size=8, text_color="#d62728")
+        plotter.add_point_labels([p.centre], [p.name], font_size=round(12 * pt), point_size=8, text_color="#d62728")
     for i, state in enumerate(scene.states):
         colour = STATE_COLOURS[i % len(STATE_COLOURS)]
         for name in state.surfaces:
@@ -44,10 +59,14 @@ def draw_rig(scene: Scene, out: Path | None, depth: float = 1.1, show: bool = Fa
     plotter.add_legend(bcolor="white", face="rectangle", loc="upper left",
                        size=(0.18, 0.03 + 0.03 * sum(len(s.surfaces) for s in scene.states)))
     plotter.show_bounds(grid=False, location="outer", xtitle="x (m)", ytitle="y (m)", ztitle="z (m)", color="black",
-                        font_size=8)
+                        font_size=max(round(8 * pt), 4))
     plotter.add_text(f"{scene.name}: camera (black), projectors (red), frusta {depth:g} m", position="upper_edge",
-                     font_size=10, color="black")
-    plotter.camera_position = [(1.6, -0.9, -0.9), (0.0, 0.0, 0.7), (0, -1, 0)]
+                     font_size=round(10 * pt), color="black")
+    # Seen from the devices' right, above and behind (y points down), framed on whatever the scene holds:
+    # a fixed camera cut off rigs of other sizes and the axes' labels.
+    plotter.camera_position = [(1.6, -0.9, -1.6), (0.0, 0.0, 0.0), (0, -1, 0)]
+    plotter.reset_camera(bounds=pv.MultiBlock(geometry).bounds)
+    plotter.camera.zoom(0.95)
     return finish(plotter, out, show, geometry=geometry)
 
 
@@ -55,7 +74,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("config", nargs="?", help="YAML file or built-in name (default: paper_two_planes)")
     parser.add_argument("--out", type=Path, default=Path("out/rig.png"))
-    parser.add_argument("--depth", type=float, default=1.1, help="frustum length in metres")
+    parser.add_argument("--depth", type=float, help="frustum length in metres (default: just past the farthest surface)")
     parser.add_argument("--show", action="store_true", help="open a window (needs a display)")
     args = parser.parse_args(argv)
     scene = load_scene(args.config)
