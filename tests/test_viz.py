@@ -280,3 +280,23 @@ def test_rig_view_frames_rigs_of_any_size_and_reaches_past_every_surface(rig_mod
     points = np.vstack([rig_module.surface_mesh(s).points for s in scene.surfaces.values()])
     for pose in [scene.camera.world_from_cam, *(p.world_from_prj for p in scene.projectors)]:
         assert ((points - pose[:3, 3]) @ pose[:3, 2]).max() <= depth
+
+
+def test_each_cloud_takes_its_projectors_colour_and_no_other_clouds(viz):
+    """Rays and frusta are drawn in their projector's colour; a cloud palette of its own gave a third
+    projector's rays the colour of the first projector's far cloud. Each (state, projector) cloud now
+    has a colour of its own, nearer its projector's than any other projector's."""
+    module = viz["correspondences"]
+
+    import colorsys
+
+    def hue(hex_colour):
+        return colorsys.rgb_to_hsv(*(int(hex_colour[i:i + 2], 16) / 255 for i in (1, 3, 5)))[0]
+
+    projectors = [hue(module.PROJECTOR_COLOURS[j]) for j in range(4)]
+    for states in (1, 2, 3):
+        clouds = {(j, s): module.cloud_colour(j, s, states) for j in range(4) for s in range(states)}
+        assert len(set(clouds.values())) == len(clouds)
+        for (j, _), colour in clouds.items():
+            gaps = [min(abs(hue(colour) - h), 1 - abs(hue(colour) - h)) for h in projectors]
+            assert int(np.argmin(gaps)) == j and gaps[j] < 0.02, (j, colour)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe", "side_bar", "written"]
+__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe", "side_bar", "written", "frame_rig"]
 
 
 def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, depth: float) -> pv.PolyData:
@@ -17,6 +17,15 @@ def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, 
     pts = np.vstack([np.zeros(3), rays]) @ world_from_dev[:3, :3].T + world_from_dev[:3, 3]
     lines = [2, 0, 1, 2, 0, 2, 2, 0, 3, 2, 0, 4, 2, 1, 2, 2, 2, 3, 2, 3, 4, 2, 4, 1]
     return pv.PolyData(pts, lines=np.array(lines))
+
+
+def frame_rig(plotter: pv.Plotter, geometry: dict) -> None:
+    """Look at a rig from the devices' right, above and behind (y points down), framed on ``geometry``
+    (name -> dataset) with room for the axes' labels: a camera fixed for the paper's rig cut other
+    rigs' axes off at the image's edges."""
+    plotter.camera_position = [(1.6, -0.9, -1.6), (0.0, 0.0, 0.0), (0, -1, 0)]
+    plotter.reset_camera(bounds=pv.MultiBlock(geometry).bounds)
+    plotter.camera.zoom(0.95)
 
 
 def surface_mesh(surface) -> pv.DataSet:

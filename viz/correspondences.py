@@ -22,7 +22,7 @@ import pyvista as pv
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, frustum, side_bar, written  # noqa: E402
+from _common import finish, frame_rig, frustum, side_bar, written  # noqa: E402
 
 from torchproj.calib import triangulate  # noqa: E402
 from torchproj.cli_options import positive_int  # noqa: E402
@@ -30,9 +30,18 @@ from torchproj.core.conventions import pixel_grid  # noqa: E402
 from torchproj.experiments import rig_procam  # noqa: E402
 from torchproj.scene import Scene, load_scene  # noqa: E402
 
-PROJECTOR_COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd"]
-# One colour per (state, projector) cloud, so that near and far, and overlapping clouds, differ.
-CLOUD_COLOURS = ["#d62728", "#1f77b4", "#ff7f0e", "#17becf", "#2ca02c", "#9467bd", "#8c564b", "#e377c2"]
+PROJECTOR_COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2"]
+
+
+def cloud_colour(projector: int, state: int, states: int) -> str:
+    """A (state, projector) cloud's colour: its projector's (as its frustum and rays are drawn), darker in
+    the first state and lighter in each later one, so that states and overlapping clouds differ. A
+    palette of its own per cloud gave a third projector's rays the colour of another's far cloud."""
+    base = np.array([int(PROJECTOR_COLOURS[projector % len(PROJECTOR_COLOURS)][i:i + 2], 16) for i in (1, 3, 5)])
+    t = state / max(states - 1, 1)
+    dark, light = 0.75 * base, base + 0.55 * (255 - base)  # the same hue, shaded and tinted
+    rgb = (1 - t) * dark + t * light
+    return "#" + "".join(f"{int(round(min(v, 255))):02x}" for v in rgb)
 POINTS_PER_CLOUD = 40_000  # drawn per (state, projector); only these are triangulated
 
 
@@ -79,16 +88,18 @@ def draw_correspondences(scene: Scene, clouds: list[dict], out: Path | None, col
     plotter = pv.Plotter(off_screen=not show, window_size=window_size)
     plotter.set_background("white")
     cam = scene.camera
-    plotter.add_mesh(frustum(cam.K, cam.width, cam.height, cam.world_from_cam, 0.3), color="black", line_width=2)
+    devices = {"camera": frustum(cam.K, cam.width, cam.height, cam.world_from_cam, 0.3)}
+    plotter.add_mesh(devices["camera"], color="black", line_width=2)
     plotter.add_point_labels([cam.world_from_cam[:3, 3]], ["camera"], font_size=11, point_size=6, text_color="black",
                              shape_opacity=0.6)
     for j, p in enumerate(scene.projectors):
         prj_colour = PROJECTOR_COLOURS[j % len(PROJECTOR_COLOURS)]
-        plotter.add_mesh(frustum(p.K, p.width, p.height, p.world_from_prj, 0.3), color=prj_colour, line_width=2)
+        devices[p.name] = frustum(p.K, p.width, p.height, p.world_from_prj, 0.3)
+        plotter.add_mesh(devices[p.name], color=prj_colour, line_width=2)
         plotter.add_point_labels([p.centre], [f"projector {p.name}"], font_size=11, point_size=6,
                                  text_color=prj_colour, shape_opacity=0.6)
     geometry = {}
-    for k, c in enumerate(clouds):
+    for c in clouds:
         name = f"{c['state']} / {scene.projectors[c['projector']].name}"
         cloud = pv.PolyData(c["points"])
         cloud["decoding contrast"] = c["contrast"]
@@ -97,19 +108,22 @@ def draw_correspondences(scene: Scene, clouds: list[dict], out: Path | None, col
             plotter.add_mesh(cloud, scalars="decoding contrast", cmap="viridis", point_size=2,
                              scalar_bar_args=side_bar("decoding contrast (white - black)"))
         else:
-            plotter.add_mesh(cloud, color=CLOUD_COLOURS[k % len(CLOUD_COLOURS)], point_size=2, label=name)
+            state = [st.name for st in scene.states].index(c["state"])
+            plotter.add_mesh(cloud, color=cloud_colour(c["projector"], state, len(scene.states)), point_size=2,
+                             label=name)
         # The rays show which pair made a point: the camera's in black, the projector's in its colour.
         for i in rng.choice(len(c["points"]), size=min(rays, len(c["points"])), replace=False):
             x = c["points"][i]
             plotter.add_mesh(pv.Line(c["cam_centre"], x), color="black", line_width=1)
-            plotter.add_mesh(pv.Line(c["prj_centre"], x), color=PROJECTOR_COLOURS[c["projector"] % 4], line_width=1)
+            plotter.add_mesh(pv.Line(c["prj_centre"], x), color=PROJECTOR_COLOURS[c["projector"] % len(PROJECTOR_COLOURS)],
+                             line_width=1)
     if colour != "contrast":
         plotter.add_legend(bcolor="white", face="circle", size=(0.16, 0.03 + 0.03 * len(clouds)), loc="upper left")
     plotter.show_bounds(grid=False, location="outer", xtitle="x (m)", ytitle="y (m)", ztitle="z (m)", color="black",
                         font_size=8)
     plotter.add_text(f"Triangulated correspondences of {scene.name}, world frame (m)", position="upper_edge",
                      font_size=10, color="black")
-    plotter.camera_position = [(1.6, -0.9, -0.9), (0.0, 0.0, 0.7), (0, -1, 0)]
+    frame_rig(plotter, {**geometry, **{f"frustum {name}": lines for name, lines in devices.items()}})
     return finish(plotter, out, show, geometry=geometry)
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import pyvista as pv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, frustum, surface_mesh, written  # noqa: E402
+from _common import finish, frame_rig, frustum, surface_mesh, written  # noqa: E402
 
 from torchproj.scene import Scene, load_scene  # noqa: E402
 
@@ -62,11 +62,7 @@ def draw_rig(scene: Scene, out: Path | None, depth: float | None = None, show: b
                         font_size=max(round(8 * pt), 4))
     plotter.add_text(f"{scene.name}: camera (black), projectors (red), frusta {depth:g} m", position="upper_edge",
                      font_size=round(10 * pt), color="black")
-    # Seen from the devices' right, above and behind (y points down), framed on whatever the scene holds:
-    # a fixed camera cut off rigs of other sizes and the axes' labels.
-    plotter.camera_position = [(1.6, -0.9, -1.6), (0.0, 0.0, 0.0), (0, -1, 0)]
-    plotter.reset_camera(bounds=pv.MultiBlock(geometry).bounds)
-    plotter.camera.zoom(0.95)
+    frame_rig(plotter, geometry)
     return finish(plotter, out, show, geometry=geometry)
 
 
