@@ -481,3 +481,19 @@ def test_projectors_named_like_the_black_file_or_each_other_but_for_case_keep_th
                 assert torch.equal(back.states[state][j][key], value), (state, names[j], key)
     files = [p.name.casefold() for p in (tmp_path / "calib" / "near").iterdir()]
     assert len(files) == len(set(files)) == len(names) + 1
+
+
+def test_a_bundle_kept_in_the_capture_root_is_left_out_of_its_states(tmp_path):
+    """``torchproj calibrate ROOT --out ROOT/calib`` put the bundle where the next calibrate looks for
+    states, which then stopped at "projectors ... differ from calib's". It is left out, and said so."""
+    from torchproj.calib.bundle import _projector_folders
+
+    for state in ("far", "near"):
+        for projector in ("lower", "upper"):
+            (tmp_path / state / projector).mkdir(parents=True)
+    (tmp_path / "calib" / "near").mkdir(parents=True)
+    (tmp_path / "calib" / "bundle.json").write_text("{}")
+    with pytest.warns(UserWarning, match=r"calib: a calibration bundle, not a state's captures: left out"):
+        layout = _projector_folders(tmp_path, {"*": (64, 48)})
+    assert list(layout) == ["far", "near"]
+    assert [name for name, *_ in layout["near"]] == ["lower", "upper"]

@@ -213,6 +213,11 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
                 raise CaptureError(f"{root / name}: state folder not found")
     layout = {}
     for state_dir in sorted(p for p in root.iterdir() if p.is_dir() and (only is None or p.name in only)):
+        if (state_dir / "bundle.json").is_file() and only is None:
+            # ``calibrate ROOT --out ROOT/calib`` puts its bundle where the next calibrate looks for states.
+            warnings.warn(f"{state_dir}: a calibration bundle, not a state's captures: left out (keep bundles "
+                          "outside the capture root, or name the states with --states)", stacklevel=3)
+            continue
         if (state_dir / DEFAULT_NAMES.format(0)).is_file():
             folders = [("projector", state_dir)]
         else:
