@@ -23,7 +23,8 @@ holding the camera's image of every sequence image under the same file name::
         upper/ ...
 
 A state folder that holds ``graycode_00.png`` itself is one projector named ``projector`` (the layout
-of ``shared/data/procam_chessboard``).
+of ``shared/data/procam_chessboard``); one that holds ``bundle.json`` is a calibration bundle kept
+there, not a state, and is left out with a warning.
 
 Bundle (``write_bundle`` / ``load_bundle``), format version 1: ``bundle.json`` (camera size and
 channels, projectors and sizes, states, response curves, decoded fractions, files) and per state
