@@ -284,3 +284,34 @@ def test_index_arrays_are_int32_while_they_fit():
     assert index_dtype(5, 2**31 - 1) == torch.int32 and index_dtype(5, 2**31) == torch.int64
     m = csr_tensor(torch.tensor([0, 1, 2]), torch.tensor([1, 0]), torch.ones(2), (2, 2))
     assert m.crow_indices().dtype == m.col_indices().dtype == torch.int32
+
+
+def test_environment_settings_read_as_people_write_them_and_say_what_they_cannot(monkeypatch):
+    """``TORCHPROJ_COMPILE=true`` was off without a word (only ``1`` turned it on), and
+    ``TORCHPROJ_CACHE_MAX_GB=500MB`` kept 2 GB without one, while ``nan`` removed every entry."""
+    import warnings
+
+    from torchproj.core.checks import _warn_setting, env_number, env_switch
+    from torchproj.core.fused import COMPILE_ENV, compile_enabled
+
+    _warn_setting.cache_clear()
+    for value, on in (("1", True), ("true", True), (" Yes ", True), ("ON", True), ("0", False), ("off", False),
+                      ("", False), ("False", False)):
+        monkeypatch.setenv(COMPILE_ENV, value)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert env_switch(COMPILE_ENV) is on and compile_enabled() is on, value
+    monkeypatch.setenv(COMPILE_ENV, "maybe")
+    with pytest.warns(UserWarning, match=r"TORCHPROJ_COMPILE='maybe' is not a value torchproj reads; taking off"):
+        assert env_switch(COMPILE_ENV) is False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # said once, however often it is read
+        assert compile_enabled() is False
+    name = "TORCHPROJ_TEST_NUMBER"
+    for value, read in (("0.5", 0.5), ("3", 3.0), ("  ", 2.0), ("0", 0.0), ("inf", float("inf"))):
+        monkeypatch.setenv(name, value)
+        assert env_number(name, 2.0) == read
+    for value in ("500MB", "nan", "-1", "-inf"):
+        monkeypatch.setenv(name, value)
+        with pytest.warns(UserWarning, match=rf"{name}='{value}' is not a value torchproj reads; taking 2 \(give a number"):
+            assert env_number(name, 2.0) == 2.0

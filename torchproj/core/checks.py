@@ -6,8 +6,11 @@ the argument and says how to fix it.
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
+import os
+import warnings
 from typing import Sequence
 
 import torch
@@ -21,7 +24,7 @@ from .errors import InputError
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
 __all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
-           "check_number", "check_seed"]
+           "check_number", "check_seed", "env_number", "env_switch"]
 
 
 def check(condition: bool, message: str) -> None:
@@ -43,6 +46,42 @@ def check_seed(value, name: str = "seed", limit: int = 2 ** 63, hint: str = "") 
     check(isinstance(value, numbers.Integral) and not isinstance(value, bool) and 0 <= value < limit,
           f"{name} must be a whole number from 0 to {_power(limit)} - 1{hint}, got {value!r}")
     return int(value)
+
+
+def env_switch(name: str) -> bool:
+    """An environment switch: on for ``1`` (or ``true``, ``yes``, ``on``), off when unset, empty or ``0``
+    (``false``, ``no``, ``off``), any case. Anything else is off, and warned of once: ``TORCHPROJ_COMPILE=
+    true`` had been off without a word, as only ``1`` turned it on."""
+    raw = os.environ.get(name, "")
+    value = raw.strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value not in ("", "0", "false", "no", "off"):
+        _warn_setting(name, raw, "off (set it to 1 to turn it on, or unset it)")
+    return False
+
+
+def env_number(name: str, default: float, minimum: float = 0.0) -> float:
+    """A number from the environment, ``default`` where it is unset or empty (``inf`` is a number: no
+    limit). One that is not a number of at least ``minimum`` gives ``default``, and is warned of once
+    (``TORCHPROJ_CACHE_MAX_GB=500MB`` had kept 2 GB without a word, and ``nan`` removed every entry)."""
+    raw = os.environ.get(name, "")
+    if not raw.strip():
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not value >= minimum:  # NaN too
+        _warn_setting(name, raw, f"{default:g} (give a number of at least {minimum:g})")
+        return default
+    return value
+
+
+@functools.lru_cache(maxsize=None)
+def _warn_setting(name: str, raw: str, taken: str) -> None:
+    """Once per variable and value, however often it is read."""
+    warnings.warn(f"{name}={raw!r} is not a value torchproj reads; taking {taken}", stacklevel=4)
 
 
 def _power(limit: int) -> str:

@@ -25,14 +25,17 @@ import warnings
 
 import torch
 
+from .checks import env_switch
+
 __all__ = ["COMPILE_ENV", "compile_enabled", "fused"]
 
 COMPILE_ENV = "TORCHPROJ_COMPILE"  # "1": compile the fused chains (default off, see the module's docs)
 
 
 def compile_enabled() -> bool:
-    """Whether fused chains are to be compiled: asked for with ``TORCHPROJ_COMPILE=1``."""
-    return os.environ.get(COMPILE_ENV, "0").strip() == "1"
+    """Whether fused chains are to be compiled: asked for with ``TORCHPROJ_COMPILE=1``
+    (:func:`~torchproj.core.checks.env_switch`)."""
+    return env_switch(COMPILE_ENV)
 
 
 def _compiler() -> bool:

@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, env_number
 from ..core.sparse import csr_tensor
 from ..scene.config import Scene
 from ..sim.rig import VirtualRig
@@ -456,10 +456,7 @@ def _write_now(folder: Path, path: Path, payload: dict) -> None:
 
 def _evict(folder: Path, keep: Path) -> None:
     """Remove the least recently used entries past the size cap (never the one just written)."""
-    try:
-        cap = float(os.environ.get(CACHE_MAX_ENV, _DEFAULT_MAX_GB)) * 1e9
-    except ValueError:
-        cap = _DEFAULT_MAX_GB * 1e9
+    cap = env_number(CACHE_MAX_ENV, _DEFAULT_MAX_GB) * 1e9
     # Each entry's size and age read once: another process sharing the folder may remove an entry at
     # any moment (its own cap), and one gone since the listing is simply not counted.
     entries = []
