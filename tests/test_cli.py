@@ -197,6 +197,25 @@ def test_out_never_takes_a_persons_files_and_an_interrupt_exits_130(tmp_path, ca
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "seq"]
 
 
+@pytest.mark.parametrize("screen", ["abc", "1", "1,2,3", "1.5,2", ""])
+def test_capture_refuses_a_screen_corner_it_cannot_read_naming_the_option(screen, tmp_path, capsys):
+    """``torchproj capture --screen abc`` ended in a ValueError traceback, and ``1,2,3`` in OpenCV's TypeError."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["capture", str(tmp_path), "--out", str(tmp_path / "cap"), f"--screen={screen}"])
+    assert stopped.value.code == 2
+    assert "argument --screen: expected X,Y in whole pixels" in capsys.readouterr().err
+    assert not (tmp_path / "cap").exists()
+
+
+def test_a_screen_left_of_the_main_one_is_read_as_written():
+    from torchproj.cli import build_parser
+    from torchproj.cli_options import join_negative_pairs
+
+    args = build_parser().parse_args(join_negative_pairs(["capture", "seq", "--out", "cap", "--screen", "-1920,0"]))
+    assert args.screen == (-1920, 0)
+    assert build_parser().parse_args(["capture", "seq", "--out", "cap"]).screen == (0, 0)
+
+
 def test_out_is_refused_where_it_is_or_holds_what_the_command_reads(tmp_path, capsys):
     """``--out`` replaces a folder torchproj wrote, and an input is often one: ``torchproj solve calib
     --out calib`` replaced the bundle it had just read with its patterns. Refused before any work,

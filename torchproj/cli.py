@@ -127,7 +127,7 @@ def cmd_capture(args) -> int:
 
     with atomic_output(args.out) as stage:
         capture_sequence(args.sequence_dir, stage, settle_s=args.settle, camera_index=args.camera,
-                         screen=tuple(int(v) for v in args.screen.split(",")), frames=args.frames)
+                         screen=args.screen, frames=args.frames)
     print(f"captured the sequence of {args.sequence_dir} into {args.out}")
     return 0
 
@@ -219,16 +219,25 @@ def _live_bench(args):
             device.close()
 
 
+def _corner(text: str) -> tuple[int, int]:
+    """``X,Y``: a projector's screen's top-left corner in the desktop, in whole pixels (left of or above
+    the main screen negative)."""
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in whole pixels (the projector's screen's top-left corner in "
+                                         f"the desktop, e.g. 1920,0), got {text!r}") from None
+    return x, y
+
+
 def _screen(text: str) -> tuple[str, tuple[int, int]]:
     """``NAME=X,Y``: a projector's screen corner in the desktop."""
     name, sep, corner = text.partition("=")
     try:
-        x, y = (int(v) for v in corner.split(","))
-    except ValueError:
-        sep = ""
-    if not (sep and name):
-        raise argparse.ArgumentTypeError(f"expected NAME=X,Y (a projector's screen corner, e.g. upper=1920,0), got {text!r}")
-    return name, (x, y)
+        return name, _corner(corner) if sep and name else _corner("")
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected NAME=X,Y (a projector's screen corner, e.g. upper=1920,0), "
+                                         f"got {text!r}") from None
 
 
 def cmd_decode(args) -> int:
@@ -323,7 +332,7 @@ def _real_rig_commands(sub) -> None:
                  "each image (needs an OpenCV build with a GUI)", out_help="CAPTURE_ROOT/STATE/PROJECTOR to write")
     p.add_argument("sequence_dir", type=Path, help="folder from torchproj sequence")
     p.add_argument("--camera", type=int, default=0, help="OpenCV camera index (default 0)")
-    p.add_argument("--screen", default="0,0", metavar="X,Y", help="top-left corner of the projector's screen in "
+    p.add_argument("--screen", type=_corner, default="0,0", metavar="X,Y", help="top-left corner of the projector's screen in "
                    "the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
     p.add_argument("--frames", type=int, default=1, help="camera frames averaged per image, written as 16-bit PNGs "

@@ -203,7 +203,7 @@ def decoding_options(p) -> None:
     p.add_argument("--fill-holes", type=int, default=16, metavar="N", help="fill holes up to N pixels (0: off)")
 
 
-_PAIR_OPTIONS = ("--bounds", "--gain", "--offset")
+_PAIR_OPTIONS = ("--bounds", "--gain", "--offset", "--screen")  # --screen: a screen left of the main one
 
 
 def join_negative_pairs(argv: list[str]) -> list[str]:
