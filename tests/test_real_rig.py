@@ -302,6 +302,11 @@ def test_capture_averages_frames_into_16_bit_files(tmp_path, capsys):
     assert main(["capture", str(tmp_path / "seq"), "--frames", "0", "--out", str(tmp_path / "cli")]) == 2
     assert "frames must be a whole number of camera frames, at least 1, got 0" in capsys.readouterr().err
     assert not (tmp_path / "cli").exists()
+    # A wait time.sleep refuses with a traceback (negative, NaN) or never ends (inf), refused before any window.
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(InputError, match=r"settle must be seconds in \[0, 60\] \(--settle\)"):
+            capture_sequence(tmp_path / "seq", tmp_path / "bad", RigDisplay(), camera, settle_s=bad)
+    assert not (tmp_path / "bad").exists() and camera.grabs == 4 * len(files)
 
 
 def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):

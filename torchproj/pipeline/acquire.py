@@ -85,6 +85,7 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
             A mean of several is written as a 16-bit PNG, which keeps the levels between one grab's.
     """
     _check_frames(frames)
+    _check_settle(settle_s)
     sequence_dir, out_dir = Path(sequence_dir), Path(out_dir)
     manifest_path = sequence_dir / SEQUENCE_FILE
     if not manifest_path.is_file():
@@ -119,6 +120,13 @@ def _to_screen(image: torch.Tensor) -> np.ndarray:
     return (image.permute(1, 2, 0).squeeze(-1).cpu().numpy() * 255).round().astype(np.uint8)
 
 
+def _check_settle(settle_s) -> None:
+    """Before any window opens: ``time.sleep`` refuses a negative or NaN wait with a traceback, and an
+    infinite one never grabs."""
+    if not (isinstance(settle_s, (int, float)) and not isinstance(settle_s, bool) and 0 <= settle_s <= 60):
+        raise InputError(f"settle must be seconds in [0, 60] (--settle), got {settle_s!r}")
+
+
 def _check_frames(frames) -> None:
     if not (isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
         raise InputError(f"frames must be a whole number of camera frames, at least 1, got {frames!r}")
@@ -151,8 +159,7 @@ class LiveBench:
 
     def __init__(self, displays: dict, camera, *, settle_s: float = 0.2, frames: int = 1, prompt=None):
         _check_frames(frames)
-        if not (isinstance(settle_s, (int, float)) and 0 <= settle_s <= 60):
-            raise InputError(f"settle must be seconds in [0, 60], got {settle_s!r}")
+        _check_settle(settle_s)
         self.displays, self.camera, self.settle_s, self.frames, self.prompt = displays, camera, settle_s, frames, prompt
 
     def photograph(self, patterns: dict[str, torch.Tensor], states: list[str], folder: Path) -> None:
