@@ -211,10 +211,45 @@ def _files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file())
 
 
+def test_bad_capture_options_are_refused_before_a_window_opens(tmp_path, capsys, monkeypatch):
+    """``capture`` needs a screen and a camera, so the fuzzers below left it out, and ``--screen abc`` ended
+    in a traceback, ``--settle -1`` in one mid-sequence. Every option against every bad value, with
+    stand-ins for the window and the camera: refused before either opens, or captured."""
+    import torchproj.pipeline.acquire as acquire
+
+    opened = []
+
+    class Display:
+        def __init__(self, x=0, y=0, name="torchproj"):
+            opened.append((x, y))
+
+        def show(self, image):
+            pass
+
+        def close(self):
+            pass
+
+    class Camera(Display):
+        def grab(self):
+            return np.zeros((6, 8), np.uint8)
+
+    monkeypatch.setattr(acquire, "OpenCVDisplay", Display)
+    monkeypatch.setattr(acquire, "OpenCVCamera", lambda index=0: Camera())
+    assert main(["sequence", "--projector", "64x32", "--out", str(tmp_path / "seq")]) == 0
+
+    def attempt(case, folder):
+        option, value = case
+        before = len(opened)
+        code, err, _ = run_cli(["capture", str(tmp_path / "seq"), "--out", str(folder / "out"), "--settle", "0",
+                                f"{option}={value}"], capsys, folder / "out")
+        assert code == 0 or len(opened) == before, f"{option}={value} refused after a window opened: {err}"
+
+    _each([(o, v) for o in _options("capture") for v in BAD_ARGS], 0, tmp_path, attempt)
+
+
 @pytest.mark.slow
 def test_bad_options_of_every_file_command_are_refused_cleanly(capture_root, tmp_path, capsys):
-    # `position` needs its box scene (a minute per valid run) and `capture` a camera: their options go
-    # through the same types and checks as these commands'.
+    # `position` needs its box scene (a minute per valid run); `capture`'s options are the test above's.
     config = tmp_path / "scene.yaml"
     config.write_text(yaml.safe_dump(tiny_config()))
     base = {"simulate": ["simulate", str(config)], "sequence": ["sequence", "--projector", "128x96"],
