@@ -1,4 +1,5 @@
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -193,6 +194,26 @@ def test_atomic_output_leaves_nothing_on_failure(tmp_path):
         (stage / "report.json").write_text("{}")
     assert (out / "report.json").is_file()
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
+@pytest.mark.parametrize("out", [".", "./", "..", "here/.."])
+def test_the_folder_a_command_runs_in_is_no_output_folder(tmp_path, monkeypatch, out):
+    """``--out .`` in an empty folder staged the new result inside ``.`` (its own parent), then refused it
+    as something torchproj had not written, after all the work; the folder one stands in, or one above
+    it, is refused before any, and a workspace (added to, not replaced) may be it."""
+    from torchproj.core.output import check_output_folder
+
+    here = tmp_path / "empty"
+    (here / "here").mkdir(parents=True)
+    monkeypatch.chdir(here)
+    with pytest.raises(InputError, match=r"is the folder this command runs in.*give a folder of its own"):
+        with atomic_output(out):
+            raise AssertionError("no work before the refusal")
+    assert [p.name for p in here.iterdir()] == ["here"] and [p.name for p in tmp_path.iterdir()] == ["empty"]
+    assert check_output_folder(".", replace=False) == Path(".")
+    with atomic_output("result") as stage:
+        (stage / "report.json").write_text("{}")
+    assert (here / "result" / "report.json").is_file()
 
 
 def test_an_error_about_a_file_of_the_new_result_names_it_as_such(tmp_path):
