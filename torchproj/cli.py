@@ -234,10 +234,11 @@ def _screen(text: str) -> tuple[str, tuple[int, int]]:
     """``NAME=X,Y``: a projector's screen corner in the desktop."""
     name, sep, corner = text.partition("=")
     try:
-        return name, _corner(corner) if sep and name else _corner("")
+        if sep and name:
+            return name, _corner(corner)
     except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"expected NAME=X,Y (a projector's screen corner, e.g. upper=1920,0), "
-                                         f"got {text!r}") from None
+        pass
+    raise argparse.ArgumentTypeError(f"expected NAME=X,Y (a projector's screen corner, e.g. upper=1920,0), got {text!r}")
 
 
 def cmd_decode(args) -> int:
@@ -332,8 +333,8 @@ def _real_rig_commands(sub) -> None:
                  "each image (needs an OpenCV build with a GUI)", out_help="CAPTURE_ROOT/STATE/PROJECTOR to write")
     p.add_argument("sequence_dir", type=Path, help="folder from torchproj sequence")
     p.add_argument("--camera", type=int, default=0, help="OpenCV camera index (default 0)")
-    p.add_argument("--screen", type=_corner, default="0,0", metavar="X,Y", help="top-left corner of the projector's screen in "
-                   "the desktop (default 0,0; e.g. 1920,0 for a second screen)")
+    p.add_argument("--screen", type=_corner, default="0,0", metavar="X,Y", help="top-left corner of the projector's "
+                   "screen in the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
     p.add_argument("--frames", type=int, default=1, help="camera frames averaged per image, written as 16-bit PNGs "
                    "where more than one (default 1; 16 quarter the noise a calibration carries)")
