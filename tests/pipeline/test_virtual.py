@@ -124,6 +124,11 @@ def test_a_state_no_projector_lights_is_refused_before_calibrating(monkeypatch):
     with pytest.raises(InputError, match=r"no projector's light reaches .* lit too faintly for the camera's 8 bits to "
                                          r"register; .* the projectors' power against camera.exposure"):
         virtual.calibrate_virtual(parse_scene(faint))
+    # ... and a camera gamma that takes mid-tones under one level (v**5), with every pose and power right.
+    bent = small_config(camera=(200, 150), projector=(128, 96), gamma=0.2, exposure=0.3)
+    with pytest.raises(InputError, match=r"no projector's light reaches .* against camera.exposure and camera.gamma "
+                                         r"\(0.2: values go as v\*\*5\)"):
+        virtual.calibrate_virtual(parse_scene(bent))
     # One grid point, the corner pixel, which the planes leave dark: the state is lit elsewhere.
     scene = small_scene(camera=(200, 150), projector=(128, 96))
     assert all(level == 0 for level in virtual._light_levels(scene, "cpu", grid=1)[0].values())

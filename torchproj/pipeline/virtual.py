@@ -209,12 +209,16 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD,
         dark = [name for name in dark if all(everywhere[name, p.name] == 0 for p in scene.projectors)]
     if dark:
         others = f" (and state(s) {', '.join(map(repr, dark[1:]))})" if len(dark) > 1 else ""
+        # A camera gamma under 1 takes each value to the power 1 / gamma: 0.2 puts a quarter-white at 1/1000,
+        # under one 8-bit level, and the state reads dark with every pose right.
+        gamma = scene.camera.gamma
+        bent = f" and camera.gamma ({gamma:g}: values go as v**{1 / gamma:.3g})" if gamma < 1 else ""
         raise InputError(
             f"state {dark[0]!r}{others}: no projector's light reaches the camera there (white minus black is 0 at every "
             "pixel, for each projector), so nothing can be decoded or shown: its surfaces are out of the camera's "
             "or every projector's view, hidden behind others, black (albedo 0), or lit too faintly for the camera's "
             f"{scene.camera.bit_depth} bits to register; check their poses and albedo, the camera's pose, and the "
-            "projectors' power against camera.exposure (checked before calibrating; nothing was simulated)")
+            f"projectors' power against camera.exposure{bent} (checked before calibrating; nothing was simulated)")
     # A projector that lights nothing the camera sees, in any state, decodes nothing: its calibration
     # failed after every state was simulated, at a ramp that showed "0 usable levels".
     unlit = [j for j, p in enumerate(scene.projectors) if all(levels[state, p.name] == 0 for state in blacks)]
