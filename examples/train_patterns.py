@@ -27,7 +27,8 @@ from pathlib import Path
 import torch
 
 import torchproj
-from torchproj.core import atomic_output, write_image, write_json
+from torchproj.cli_options import positive_float, positive_int
+from torchproj.core import TorchprojError, atomic_output, check_number, write_image, write_json
 from torchproj.figures import run_overview
 
 
@@ -76,17 +77,25 @@ def train(model, loss_name: str, steps: int, lr: float, l2_weight: float, checkp
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="paper_two_planes", help="a built-in scene or a YAML file")
-    parser.add_argument("--scale", type=float, default=0.5, help="resolution of camera and projectors (default 0.5)")
-    parser.add_argument("--steps", type=int, default=40, help="Adam steps (default 40)")
-    parser.add_argument("--lr", type=float, default=0.02, help="initial learning rate (default 0.02)")
+    parser.add_argument("--scale", type=positive_float, default=0.5,
+                        help="resolution of camera and projectors (default 0.5)")
+    parser.add_argument("--steps", type=positive_int, default=40, help="Adam steps (default 40)")
+    parser.add_argument("--lr", type=positive_float, default=0.02, help="initial learning rate (default 0.02)")
     parser.add_argument("--l2-weight", type=float, default=0.1, help="weight of the relative squared error (0.1)")
     parser.add_argument("--loss", choices=["torchproj", "kornia"], default="torchproj")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                         help="torch device (default: cuda where torch sees a GPU, else cpu)")
     parser.add_argument("--out", type=Path, default=Path("out/train_patterns"))
     args = parser.parse_args(argv)
-    t0 = time.perf_counter()
+    try:
+        check_number(args.l2_weight, "--l2-weight")
+        return train_and_score(args)
+    except TorchprojError as exc:  # a scene, a device or a value refused by name, not a traceback
+        parser.error(str(exc))
 
+
+def train_and_score(args) -> int:
+    t0 = time.perf_counter()
     scene = torchproj.load_scene(args.scene, scale=args.scale)
     calibration = torchproj.calibrate_virtual(scene, args.device)  # on a bench: torchproj.load_bundle("calib")
     targets = torchproj.scene_targets(scene, rig=calibration.rig)

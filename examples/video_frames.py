@@ -27,7 +27,8 @@ from pathlib import Path
 import torch
 
 import torchproj
-from torchproj.core import atomic_output, write_json
+from torchproj.cli_options import positive_float, positive_int
+from torchproj.core import TorchprojError, atomic_output, write_json
 from torchproj.solve import projectable_patterns, solve_target_sets
 from torchproj.transport import retarget_rhs
 
@@ -73,12 +74,20 @@ def frames_figure(shown: list[list], path: Path) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="paper_two_planes", help="a built-in scene with two targets, or a YAML file")
-    parser.add_argument("--scale", type=float, default=0.25, help="resolution of camera and projectors (default 0.25)")
-    parser.add_argument("--frames", type=int, default=8, help="frames of the video (default 8)")
-    parser.add_argument("--steps", type=int, default=30, help="Adam steps of the batched SSIM refinement (default 30)")
+    parser.add_argument("--scale", type=positive_float, default=0.25,
+                        help="resolution of camera and projectors (default 0.25)")
+    parser.add_argument("--frames", type=positive_int, default=8, help="frames of the video (default 8)")
+    parser.add_argument("--steps", type=positive_int, default=30,
+                        help="Adam steps of the batched SSIM refinement (default 30)")
     parser.add_argument("--out", type=Path, default=Path("out/video_frames"))
     args = parser.parse_args(argv)
+    try:
+        return solve_and_score(args)
+    except TorchprojError as exc:  # a scene or a value refused by name, not a traceback
+        parser.error(str(exc))
 
+
+def solve_and_score(args) -> int:
     scene = torchproj.load_scene(args.scene, scale=args.scale)
     calibration = torchproj.calibrate_virtual(scene)
     frames = [torchproj.scene_targets(scene, images, rig=calibration.rig)

@@ -43,3 +43,30 @@ def test_video_frames_example(tmp_path):
         assert r["ssim"] > r["least_squares"]["ssim"], r
         assert r["psnr_db"] > r["least_squares"]["psnr_db"] - 2.0, r
     assert (out / "frames.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def _example(name):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"example_{name}", ROOT / "examples" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("script, option, message", [
+    ("train_patterns", "--steps=0", "argument --steps: must be at least 1, got 0"),
+    ("train_patterns", "--lr=nan", "argument --lr: must be a finite number above 0"),
+    ("train_patterns", "--l2-weight=-1", "--l2-weight must be a finite number >= 0, got -1.0"),
+    ("train_patterns", "--scale=0", "argument --scale: must be a finite number above 0"),
+    ("train_patterns", "--scene=no_such_scene", "config: file 'no_such_scene' not found"),
+    ("train_patterns", "--device=gpu", "device 'gpu' is not a torch device"),
+    ("video_frames", "--frames=0", "argument --frames: must be at least 1, got 0"),
+    ("video_frames", "--scale=9", "scale: must be a number in (0, 4], got 9.0")])
+def test_the_examples_refuse_bad_options_by_name(script, option, message, tmp_path, capsys):
+    """``--steps 0`` ended in a FileNotFoundError for a checkpoint never written, ``--l2-weight -1`` trained on a
+    loss that rewards error, ``--l2-weight nan`` in NaN patterns, and a bad scene or device in a traceback."""
+    with pytest.raises(SystemExit) as stopped:
+        _example(script).main([option, "--out", str(tmp_path / "out")])
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
