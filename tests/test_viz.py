@@ -300,3 +300,19 @@ def test_each_cloud_takes_its_projectors_colour_and_no_other_clouds(viz):
         for (j, _), colour in clouds.items():
             gaps = [min(abs(hue(colour) - h), 1 - abs(hue(colour) - h)) for h in projectors]
             assert int(np.argmin(gaps)) == j and gaps[j] < 0.02, (j, colour)
+
+
+@pytest.mark.parametrize("script, argv, message", [
+    ("rig", ["--depth=-1"], "argument --depth: must be a finite number above 0"),
+    ("rig", ["--depth=nan"], "argument --depth: must be a finite number above 0"),
+    ("rig", ["no_such_scene"], "config: file 'no_such_scene' not found"),
+    ("correspondences", ["RUN", "--rays=-1"], "argument --rays: must be 0-100 rays per cloud, got -1"),
+    ("correspondences", ["RUN", "--rays=5000"], "argument --rays: must be 0-100 rays per cloud, got 5000")])
+def test_the_views_refuse_bad_options_by_name(script, argv, message, tmp_path, capsys):
+    """A frustum of -1 m or NaN was drawn without a word, ``--rays -1`` ended in numpy's traceback and 5000
+    rays (a mesh each) drew for minutes; a misspelt scene was a traceback."""
+    pytest.importorskip("pyvista")
+    with pytest.raises(SystemExit) as stopped:
+        _load(script).main([str(tmp_path) if a == "RUN" else a for a in argv] + ["--out", str(tmp_path / "v.png")])
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "v.png").exists()

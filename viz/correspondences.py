@@ -127,11 +127,25 @@ def draw_correspondences(scene: Scene, clouds: list[dict], out: Path | None, col
     return finish(plotter, out, show, geometry=geometry)
 
 
+MAX_RAYS = 100  # each ray is a mesh of its own: thousands took minutes to draw and hid the clouds
+
+
+def _rays(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not 0 <= value <= MAX_RAYS:
+        raise argparse.ArgumentTypeError(f"must be 0-{MAX_RAYS} rays per cloud, got {value}")
+    return value
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="output folder of torchproj simulate")
     parser.add_argument("--colour", choices=["projector", "contrast"], default="projector")
-    parser.add_argument("--rays", type=int, default=6, help="sampled correspondences drawn as rays, per cloud")
+    parser.add_argument("--rays", type=_rays, default=6,
+                        help=f"sampled correspondences drawn as rays, per cloud (0-{MAX_RAYS}; default 6)")
     parser.add_argument("--points", type=positive_int, default=POINTS_PER_CLOUD,
                         help=f"pairs triangulated and drawn per state and projector (default {POINTS_PER_CLOUD})")
     parser.add_argument("--out", type=Path, help="PNG to write (default RUN_DIR/correspondences.png)")

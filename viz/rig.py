@@ -19,6 +19,8 @@ import pyvista as pv
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import finish, frame_rig, frustum, surface_mesh, written  # noqa: E402
 
+from torchproj.cli_options import positive_float  # noqa: E402
+from torchproj.core import ConfigError  # noqa: E402
 from torchproj.scene import Scene, load_scene  # noqa: E402
 
 STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"]
@@ -70,10 +72,14 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("config", nargs="?", help="YAML file or built-in name (default: paper_two_planes)")
     parser.add_argument("--out", type=Path, default=Path("out/rig.png"))
-    parser.add_argument("--depth", type=float, help="frustum length in metres (default: just past the farthest surface)")
+    parser.add_argument("--depth", type=positive_float,
+                        help="frustum length in metres (default: just past the farthest surface)")
     parser.add_argument("--show", action="store_true", help="open a window (needs a display)")
     args = parser.parse_args(argv)
-    scene = load_scene(args.config)
+    try:
+        scene = load_scene(args.config)
+    except ConfigError as exc:  # a misspelt name or field, said as the command says it
+        parser.error(str(exc))
     draw_rig(scene, args.out, args.depth, args.show).close()
     print(f"wrote {written(args.out)}")
     return 0
