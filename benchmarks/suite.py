@@ -38,6 +38,8 @@ from matplotlib.figure import Figure
 
 from torchproj.pipeline import (CEILING_ITERATIONS, calibrate_virtual, choose_footprint, evaluate_patterns,
                                 light_transport, scene_targets, solve_on_light_transport, true_responses)
+from torchproj.cli_options import positive_int
+from torchproj.core import InputError, check_seed
 from torchproj.pipeline.run import build_operators
 from torchproj.scene import load_scene
 from torchproj.scene.procedural import KINDS, parse_suite_name, procedural_config, suite_names
@@ -220,17 +222,27 @@ def chart(path: Path, rows: list[dict], title: str) -> None:
     fig.savefig(path, dpi=120)
 
 
-def main() -> None:
+def _seed(text: str) -> int:
+    """A seed or an index: a whole number of 0 or more, refused before the first scene rather than at it."""
+    try:
+        return check_seed(int(text), "a suite seed or index")
+    except (ValueError, InputError) as exc:
+        raise argparse.ArgumentTypeError(str(exc) if isinstance(exc, InputError) else f"expected a whole number, "
+                                         f"got {text!r}") from None
+
+
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=1, help="the suite's seed (default 1)")
-    ap.add_argument("--count", type=int, default=20, help="scenes from index --start (default 20)")
-    ap.add_argument("--start", type=int, default=0, help="first scene index (default 0)")
+    ap.add_argument("--seed", type=_seed, default=1, help="the suite's seed (default 1)")
+    ap.add_argument("--count", type=positive_int, default=20, help="scenes from index --start (default 20)")
+    ap.add_argument("--start", type=_seed, default=0, help="first scene index (default 0)")
     ap.add_argument("--size", choices=("small", "full"), default="small")
     ap.add_argument("--scenes", nargs="+", help="these scenes instead (suite names, built-in names or YAML files)")
-    ap.add_argument("--models", nargs="+", default=list(MODELS), help=f"models to measure (default {' '.join(MODELS)})")
+    ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS,
+                    help=f"models to measure (default {' '.join(MODELS)})")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/suite"))
     ap.add_argument("--chart-only", action="store_true", help="redraw suite.png from --out's results.json")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     title = f"Suite seed {args.seed}, {args.size}" if not args.scenes else "Chosen scenes"
     if args.chart_only:
         chart(args.out / "suite.png", json.loads((args.out / "results.json").read_text())["rows"], title)

@@ -91,3 +91,23 @@ def test_outlines_beside_a_surface_seen_as_a_one_pixel_strip(name, target):
     k = [t.name for t in targets].index(target)
     area, top = _scores(cal, targets, "area")[k][0], _scores(cal, targets)[k][0]
     assert top - area <= 0.5, f"{name} {target}: {area:.2f} dB against a ceiling of {top:.2f}"
+
+
+@pytest.mark.parametrize("option, message", [("--seed=-1", "argument --seed: a suite seed or index must be a whole number"),
+                                             ("--count=0", "argument --count: must be at least 1"),
+                                             ("--models=bogus", "argument --models: invalid choice: 'bogus'")])
+def test_the_suite_benchmark_refuses_bad_options_before_its_first_scene(option, message, tmp_path, capsys, monkeypatch):
+    """``--seed -1`` and ``--models bogus`` were refused at the first scene, a calibration in; ``--count 0``
+    wrote an empty table."""
+    import importlib.util
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[2] / "benchmarks"
+    monkeypatch.syspath_prepend(str(folder))
+    spec = importlib.util.spec_from_file_location("suite_benchmark", folder / "suite.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(module, "measure", lambda *a, **k: pytest.fail("measured before the options were checked"))
+    with pytest.raises(SystemExit) as stopped:
+        module.main([option, "--out", str(tmp_path / "suite")])
+    assert stopped.value.code == 2 and message in capsys.readouterr().err and not (tmp_path / "suite").exists()
