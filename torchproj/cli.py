@@ -18,8 +18,8 @@ from pathlib import Path
 
 from . import __version__
 from .cli_options import (BITS_HELP, cache_option, command, config_option, decoding_options, device_options, existing_file,
-                          join_negative_pairs, limits, map_options, named_projector_size, projector_size, solve_options,
-                          solver_options)
+                          join_negative_pairs, limits, map_options, named_projector_size, named_screen_corner,
+                          projector_size, screen_corner, solve_options, solver_options)
 from .core.errors import TorchprojError
 from .core.output import atomic_output, check_inputs_outside, check_output_folder, write_json
 
@@ -219,28 +219,6 @@ def _live_bench(args):
             device.close()
 
 
-def _corner(text: str) -> tuple[int, int]:
-    """``X,Y``: a projector's screen's top-left corner in the desktop, in whole pixels (left of or above
-    the main screen negative)."""
-    try:
-        x, y = (int(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y in whole pixels (the projector's screen's top-left corner in "
-                                         f"the desktop, e.g. 1920,0), got {text!r}") from None
-    return x, y
-
-
-def _screen(text: str) -> tuple[str, tuple[int, int]]:
-    """``NAME=X,Y``: a projector's screen corner in the desktop."""
-    name, sep, corner = text.partition("=")
-    try:
-        if sep and name:
-            return name, _corner(corner)
-    except argparse.ArgumentTypeError:
-        pass
-    raise argparse.ArgumentTypeError(f"expected NAME=X,Y (a projector's screen corner, e.g. upper=1920,0), got {text!r}")
-
-
 def cmd_decode(args) -> int:
     from .calib import decode_folder
 
@@ -333,8 +311,8 @@ def _real_rig_commands(sub) -> None:
                  "each image (needs an OpenCV build with a GUI)", out_help="CAPTURE_ROOT/STATE/PROJECTOR to write")
     p.add_argument("sequence_dir", type=Path, help="folder from torchproj sequence")
     p.add_argument("--camera", type=int, default=0, help="OpenCV camera index (default 0)")
-    p.add_argument("--screen", type=_corner, default="0,0", metavar="X,Y", help="top-left corner of the projector's "
-                   "screen in the desktop (default 0,0; e.g. 1920,0 for a second screen)")
+    p.add_argument("--screen", type=screen_corner, default="0,0", metavar="X,Y", help="top-left corner of the "
+                   "projector's screen in the desktop (default 0,0; e.g. 1920,0 for a second screen)")
     p.add_argument("--settle", type=float, default=0.2, help="seconds between showing and grabbing (default 0.2)")
     p.add_argument("--frames", type=int, default=1, help="camera frames averaged per image, written as 16-bit PNGs "
                    "where more than one (default 1; 16 quarter the noise a calibration carries)")
@@ -377,7 +355,7 @@ def _real_rig_commands(sub) -> None:
                    help="do not fit the light's moves from the photos (nothing moved since calibration)")
     p.add_argument("--camera", type=int, metavar="N", help="live: show the patterns full-screen and photograph each "
                    "state with OpenCV camera N (a prompt asks you to set up each state), the whole loop in one run")
-    p.add_argument("--screen", type=_screen, action="append", metavar="NAME=X,Y",
+    p.add_argument("--screen", type=named_screen_corner, action="append", metavar="NAME=X,Y",
                    help="live: the top-left corner of a projector's screen in the desktop (repeat per projector)")
     p.add_argument("--settle", type=float, default=0.2, help="live: seconds between showing and grabbing (default 0.2)")
     p.add_argument("--frames", type=int, default=1, help="live: camera frames averaged per photo (default 1)")

@@ -60,6 +60,28 @@ def named_projector_size(text: str) -> tuple[str, tuple[int, int]]:
         raise argparse.ArgumentTypeError(f"expected [NAME=]WIDTHxHEIGHT such as lower=1024x768, got {text!r}") from None
 
 
+def screen_corner(text: str) -> tuple[int, int]:
+    """``X,Y``: a projector's screen's top-left corner in the desktop, in whole pixels (left of or above
+    the main screen negative)."""
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in whole pixels (the projector's screen's top-left corner in "
+                                         f"the desktop, e.g. 1920,0), got {text!r}") from None
+    return x, y
+
+
+def named_screen_corner(text: str) -> tuple[str, tuple[int, int]]:
+    """``NAME=X,Y``: a projector's screen corner in the desktop."""
+    name, sep, corner = text.partition("=")
+    try:
+        if sep and name:
+            return name, screen_corner(corner)
+    except argparse.ArgumentTypeError:
+        pass
+    raise argparse.ArgumentTypeError(f"expected NAME=X,Y (a projector's screen corner, e.g. upper=1920,0), got {text!r}")
+
+
 def _pair(text: str, example: str, strict: bool) -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in text.split(","))
