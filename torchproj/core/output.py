@@ -6,7 +6,8 @@ The contract every command that writes ``--out`` keeps (docs/commands.md, "Comma
   file and folder, at any depth, is listed in the manifest (:data:`MANIFEST`) an earlier torchproj
   command left there. A folder holding anything else (a person's captures, notes, a file they added
   inside ``captures/``, an older tool's output) is refused before any work begins, naming what is
-  there; nothing in it is touched.
+  there; nothing in it is touched. So is the folder the command runs in (``--out .``) or one above it,
+  and (:func:`check_inputs_outside`) one that is, or holds, what the command reads.
 - The new result is written beside it and swapped in whole by two renames (the old folder aside,
   the new one in), then the old one is removed: an interruption at any moment (Ctrl-C, SIGTERM, a
   full disk, a file that cannot be removed) leaves the complete old result or the complete new one
