@@ -26,10 +26,12 @@ from torchproj.scene import Scene, load_scene  # noqa: E402
 STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"]
 
 
-def frustum_depth(scene: Scene) -> float:
+def frustum_depth(scene: Scene, meshes: dict | None = None) -> float:
     """How far the frusta reach: just past the farthest surface point any device faces (its depth along
-    that device's axis), so that every surface lies inside the lines that show what lights and sees it."""
-    points = np.vstack([surface_mesh(s).points for s in scene.surfaces.values()])
+    that device's axis), so that every surface lies inside the lines that show what lights and sees it.
+    ``meshes``: each surface's :func:`surface_mesh` by name, where the caller has made them already."""
+    meshes = {name: surface_mesh(s) for name, s in scene.surfaces.items()} if meshes is None else meshes
+    points = np.vstack([mesh.points for mesh in meshes.values()])
     poses = [scene.camera.world_from_cam, *(p.world_from_prj for p in scene.projectors)]
     far = max(float(((points - pose[:3, 3]) @ pose[:3, 2]).max()) for pose in poses)
     return round(min(max(1.05 * far, 0.1), 20.0), 2)
@@ -38,7 +40,9 @@ def frustum_depth(scene: Scene) -> float:
 def draw_rig(scene: Scene, out: Path | None, depth: float | None = None, show: bool = False,
              window_size=(1000, 750)) -> pv.Plotter:
     """``depth``: the frusta's length in metres; None reaches past the farthest surface (:func:`frustum_depth`)."""
-    depth = frustum_depth(scene) if depth is None else depth
+    # Each surface meshed once (a mesh surface is a file read): for the frusta's reach and every state it is in.
+    meshes = {name: surface_mesh(s) for name, s in scene.surfaces.items()}
+    depth = frustum_depth(scene, meshes) if depth is None else depth
     plotter = pv.Plotter(off_screen=not show, window_size=window_size)
     # Text is sized in points, not in parts of the view: scaled with the window so that the title and
     # the axes' labels fit a small one as they fit the default 1000 px.
@@ -55,7 +59,7 @@ def draw_rig(scene: Scene, out: Path | None, depth: float | None = None, show: b
         colour = STATE_COLOURS[i % len(STATE_COLOURS)]
         for name in state.surfaces:
             surf = scene.surfaces[name]
-            mesh = geometry[f"{state.name}_{name}"] = surface_mesh(surf)
+            mesh = geometry[f"{state.name}_{name}"] = meshes[name]
             plotter.add_mesh(mesh, color=colour, opacity=0.45 if surf.transmittance else 0.9, label=f"{state.name}: {name}")
     # The legend in a corner the frusta leave free (it covered their lines), axes in metres and a title.
     plotter.add_legend(bcolor="white", face="rectangle", loc="upper left",
