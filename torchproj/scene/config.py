@@ -514,9 +514,7 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
         targets.append(TargetSpec(name=tf.name("name", f"target{i}"), state=state,
                                   surfaces=None if surfaces is None else list(surfaces), image=image))
         tf.done()
-    names = [t.name for t in targets]
-    if len(set(names)) != len(names):
-        raise ConfigError("targets", f"names must be unique, got {names}")
+    _unique_names("targets", [t.name for t in targets])
     # One surface shows one image at a time: two targets on it in one state ask its pixels for two
     # images, and the solve could only split the difference (a run gave both 14 dB, crosstalk 0.74).
     shown: dict[tuple[str, str], int] = {}
@@ -532,12 +530,16 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
     return targets
 
 
+def _unique_names(where: str, names: list[str]) -> None:
+    if len(set(names)) != len(names):
+        raise ConfigError(where, f"names must be unique, got {names}")
+
+
 def _unique_file_names(where: str, names: list[str]) -> None:
     """Projectors and states name files of the outputs (``patterns/PROJECTOR.png``, ``captures/STATE.png``):
     unique, and unique ignoring case, which macOS's and Windows' file systems ignore (``a.png`` and
     ``A.png`` are one file there: one pattern would be written over the other without a word)."""
-    if len(set(names)) != len(names):
-        raise ConfigError(where, f"names must be unique, got {names}")
+    _unique_names(where, names)
     folded = [n.casefold() for n in names]
     same = sorted({n for n, f in zip(names, folded) if folded.count(f) > 1})
     if same:
