@@ -225,10 +225,13 @@ def chart(path: Path, rows: list[dict], title: str) -> None:
 def _seed(text: str) -> int:
     """A seed or an index: a whole number of 0 or more, refused before the first scene rather than at it."""
     try:
-        return check_seed(int(text), "a suite seed or index")
-    except (ValueError, InputError) as exc:
-        raise argparse.ArgumentTypeError(str(exc) if isinstance(exc, InputError) else f"expected a whole number, "
-                                         f"got {text!r}") from None
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    try:
+        return check_seed(value, "a suite seed or index")
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def main(argv=None) -> None:

@@ -430,8 +430,8 @@ _INPUT_ARGS = {"config": "scene file", "placed": "placed scan", "reference": "re
 def _inputs(args) -> dict[str, Path]:
     """The files and folders ``args`` reads that exist (a built-in scene's name is no path), by what
     names each; ``--targets``' image files among them."""
-    found = {what: Path(getattr(args, dest)) for dest, what in _INPUT_ARGS.items()
-             if getattr(args, dest, None) is not None and Path(getattr(args, dest)).exists()}
+    named = ((what, getattr(args, dest, None)) for dest, what in _INPUT_ARGS.items())
+    found = {what: Path(path) for what, path in named if path is not None and Path(path).exists()}
     for pair in getattr(args, "targets", None) or []:
         image = pair.partition("=")[2] if isinstance(pair, str) else None
         if image and Path(image).exists():

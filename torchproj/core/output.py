@@ -46,11 +46,11 @@ def check_output_folder(out_dir: str | os.PathLike, replace: bool = True) -> Pat
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output folder {out_dir}: is a file; choose a folder (or remove the file)")
-    here = Path.cwd().resolve()
-    if replace and (out_dir.resolve() == here or out_dir.resolve() in here.parents):
+    here, full = Path.cwd().resolve(), out_dir.resolve()
+    if replace and (full == here or full in here.parents):
         # ``--out .``: the new result was staged beside ``.``, which is inside it, and then refused as
         # something torchproj did not write; and a folder being replaced whole is no place to stand.
-        where = "the folder this command runs in" + ("" if out_dir.resolve() == here else ", or one above it")
+        where = "the folder this command runs in" + ("" if full == here else ", or one above it")
         raise InputError(f"output folder {out_dir}: is {where}; torchproj replaces --out whole: give a folder of its "
                          "own (e.g. --out out)")
     if replace and out_dir.is_dir():
