@@ -35,8 +35,9 @@ def test_8_bit_images_are_refused_where_scikit_image_would_read_their_range(metr
 def test_psnr_of_nothing_or_no_range_is_refused():
     with pytest.raises(InputError, match="hold no values"):
         psnr(torch.zeros(1, 0, 4), torch.zeros(1, 0, 4))
-    with pytest.raises(InputError, match="data_range must be positive"):
-        psnr(torch.zeros(1, 2, 2), torch.ones(1, 2, 2), data_range=0)
+    for data_range in (0, "255", float("nan")):
+        with pytest.raises(InputError, match="data_range must be a finite number > 0"):
+            psnr(torch.zeros(1, 2, 2), torch.ones(1, 2, 2), data_range=data_range)
 
 
 def test_model_space_psnr_per_target():
@@ -65,6 +66,30 @@ def test_crosstalk_ignores_colour_balance():
     mask = torch.ones(50, 50, dtype=torch.bool)
     assert crosstalk(a, [b], mask) < 0.05
     assert crosstalk(0.5 * a + 0.5 * b, [b], mask) > 0.6
+
+
+@pytest.mark.parametrize("score", ["crosstalk", "explained_share"])
+def test_masked_scores_refuse_masks_and_images_that_do_not_fit(score):
+    """An integer mask indexed pixels 0 and 1 instead of choosing pixels (crosstalk 0.0 without a word);
+    images of other shapes ended in torch's indexing errors."""
+    from torchproj import metrics
+
+    fn = getattr(metrics, score)
+    names = ("captured", "others") if score == "crosstalk" else ("residual", "regressors")
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(3, 9, 11, generator=g), torch.rand(3, 9, 11, generator=g)
+    mask = torch.ones(9, 11, dtype=torch.bool)
+    assert fn(a, [0.5 * a + 0.5 * b], mask) > 0.3
+    with pytest.raises(InputError, match="mask must be a bool tensor, got torch.int64"):
+        fn(a, [b], mask.long())
+    with pytest.raises(InputError, match=r"mask must have shape \(9, 11\)"):
+        fn(a, [b], mask[:, :5])
+    with pytest.raises(InputError, match=rf"{names[1]}\[1\] \(1, 9, 11\) must have {names[0]}'s shape \(3, 9, 11\)"):
+        fn(a, [b, b[:1]], mask)
+    with pytest.raises(InputError, match=rf"{names[1]} must be a list of images, got Tensor"):
+        fn(a, b, mask)
+    with pytest.raises(InputError, match=rf"{names[0]} must have shape \(C, H, W\)"):
+        fn(a[0], [b[0]], mask)
 
 
 def test_explained_share_is_the_r_squared_of_numpy_least_squares():

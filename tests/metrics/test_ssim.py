@@ -127,6 +127,38 @@ class TestBadInput:
         with pytest.raises(InputError, match="estimate must have shape"):
             SSIMLoss(b, blob())(a[:, :, :-1])
 
+    def test_estimate_of_another_dtype_than_the_loss_reference(self):
+        """A float64 estimate against a float32 loss ended in torch.dot's dtype error."""
+        a, b = images()
+        with pytest.raises(InputError, match=r"estimate is torch.float32 and the loss's reference torch.float64"):
+            SSIMLoss(b, blob())(a.float())
+
+    @pytest.mark.parametrize("data_range", ["1", float("nan"), float("inf"), 0, True])
+    def test_a_data_range_that_is_no_positive_number(self, data_range):
+        a, b = images()
+        with pytest.raises(InputError, match="data_range must be a finite number > 0"):
+            ssim(a, b, blob(), data_range=data_range)
+
+    def test_a_meta_mask(self):
+        """SSIM crops to the mask's pixels, which a meta tensor does not hold (torch's .item() error before)."""
+        a, b = images()
+        with pytest.raises(InputError, match="mask is a meta tensor"):
+            ssim(a.to("meta"), b.to("meta"), blob().to("meta"))
+
+
+def test_images_of_two_precisions_are_scored_in_the_finer():
+    """As psnr scores whatever it is given in float64 (torch.dot refused the pair before)."""
+    a, b = images()
+    assert float(ssim(a.float(), b, blob())) == pytest.approx(float(ssim(a.float().double(), b, blob())), abs=1e-12)
+    assert ssim(b, a.float(), blob()).dtype == torch.float64
+
+
+def test_a_batch_of_no_images_has_no_scores():
+    a, b = images()
+    empty = torch.zeros(0, *a.shape, dtype=a.dtype), torch.zeros(0, *a.shape[1:], dtype=torch.bool)
+    assert ssim(empty[0], empty[0], empty[1]).shape == (0,)
+    assert SSIMLoss(empty[0], empty[1])(empty[0]).shape == (0,)
+
 
 def test_the_loss_has_second_derivatives_and_they_are_autograds():
     """SSIMLoss's closed-form gradient gave no graph under create_graph=True (a Hessian-vector

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_number, check_shape
 
 __all__ = ["psnr", "model_space_psnr", "crosstalk", "explained_share"]
 
@@ -24,12 +24,35 @@ def _check_float_pair(estimate, reference) -> None:
     _check_float(reference, "reference")
 
 
+def _check_range(data_range) -> float:
+    return check_number(data_range, "data_range", 0.0, strict=True)
+
+
+def _check_mask(mask, size: list[int], name: str = "mask") -> None:
+    """A bool mask of ``size``: an integer one would index pixels 0 and 1 instead of choosing pixels."""
+    check_shape(mask, name, size)
+    check(mask.dtype == torch.bool, f"{name} must be a bool tensor, got {mask.dtype}")
+
+
+def _check_masked(first: tuple[str, torch.Tensor], rest: tuple[str, list], mask) -> None:
+    """An image :math:`(C, H, W)`, a list of images shaped like it and a mask of its pixels."""
+    name, image = first
+    _check_float(image, name)
+    sizes = check_shape(image, name, ["C", "H", "W"])
+    listed, images = rest
+    check(isinstance(images, (list, tuple)), f"{listed} must be a list of images, got {type(images).__name__}")
+    for k, other in enumerate(images):
+        _check_float(other, f"{listed}[{k}]")
+        check(other.shape == image.shape, f"{listed}[{k}] {tuple(other.shape)} must have {name}'s shape {tuple(image.shape)}")
+    _check_mask(mask, [sizes["H"], sizes["W"]])
+
+
 def psnr(estimate: torch.Tensor, reference: torch.Tensor, data_range: float = 1.0) -> float:
     """Peak signal-to-noise ratio in dB over all given values: ``10 log10(range^2 / MSE)``."""
     _check_float_pair(estimate, reference)
     check(estimate.shape == reference.shape, f"shapes differ: {tuple(estimate.shape)} vs {tuple(reference.shape)}")
     check(estimate.numel() > 0, "estimate and reference hold no values to score")
-    check(data_range > 0, f"data_range must be positive, got {data_range}")
+    _check_range(data_range)
     mse = float((estimate.double() - reference.double()).pow(2).mean())
     return math.inf if mse == 0 else 10 * math.log10(data_range**2 / mse)
 
@@ -52,7 +75,14 @@ def crosstalk(captured: torch.Tensor, others: list[torch.Tensor], mask: torch.Te
     """How much of other targets' images shows in a capture: the largest absolute Pearson
     correlation, over the mask's pixels (each channel centred on its own mean, then pooled), between
     the capture and each other target's image placed on the same pixels (0: no trace of it; 1: it is
-    fully there)."""
+    fully there).
+
+    Args:
+        captured: :math:`(C, H, W)` float.
+        others: each :math:`(C, H, W)`, as ``captured``.
+        mask: :math:`(H, W)` bool, the pixels compared.
+    """
+    _check_masked(("captured", captured), ("others", others), mask)
     if not others:
         return 0.0
     # Centred per channel: colour images differ in their channel means, and a single mean over all
@@ -83,6 +113,7 @@ def explained_share(residual: torch.Tensor, regressors: list[torch.Tensor], mask
     Returns:
         :math:`1 - \\|r - G\\beta\\|^2 / \\|r\\|^2` in [0, 1] (0 with no regressors or no residual).
     """
+    _check_masked(("residual", residual), ("regressors", regressors), mask)
     r = residual[:, mask].double()
     r = (r - r.mean(1, keepdim=True)).reshape(-1)
     energy = float(r.pow(2).sum())

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..core.checks import check, check_shape
-from .scores import _check_float, _check_float_pair
+from .scores import _check_float, _check_float_pair, _check_mask, _check_range
 
 __all__ = ["ssim_map", "ssim", "SSIMLoss"]
 
@@ -80,7 +80,7 @@ def _local_mean_adjoint(g: torch.Tensor) -> torch.Tensor:
 
 
 def _constants(data_range: float) -> tuple[float, float]:
-    check(data_range > 0, f"data_range must be positive, got {data_range}")
+    _check_range(data_range)
     return (K1 * data_range) ** 2, (K2 * data_range) ** 2
 
 
@@ -184,8 +184,9 @@ def _batched(estimate, reference, mask):
     check_shape(reference, "reference", dims)
     check(tuple(reference.shape) == tuple(estimate.shape), f"estimate {tuple(estimate.shape)} and reference "
                                                            f"{tuple(reference.shape)} differ in shape")
-    check_shape(mask, "mask", (["B"] if batched else []) + [sizes["H"], sizes["W"]])
-    check(mask.dtype == torch.bool, f"mask must be a bool tensor, got {mask.dtype}")
+    _check_mask(mask, (["B"] if batched else []) + [sizes["H"], sizes["W"]])
+    # SSIM crops to the mask's bounding box: a meta tensor has no pixels to find it from.
+    check(mask.device.type != "meta", "mask is a meta tensor: SSIM is scored over the pixels it marks, so it needs their values")
     if not batched:
         return estimate[None], reference[None], mask[None], False
     check(mask.shape[0] == estimate.shape[0], f"mask has {mask.shape[0]} images for a batch of {estimate.shape[0]}")
@@ -234,6 +235,9 @@ class SSIMLoss(nn.Module):
         batch = estimate if self.batched else estimate[None]
         check(tuple(batch.shape) == self.shape, f"estimate must have shape {self.shape if self.batched else self.shape[1:]}"
                                                 f", got {tuple(estimate.shape)}")
+        kept = self.reference_0.dtype if self.crops else batch.dtype
+        check(batch.dtype == kept, f"estimate is {batch.dtype} and the loss's reference {kept}: give the estimate in "
+                                   f"{kept}, or move the loss to {batch.dtype} (.to({batch.dtype}))")
         scores = []
         for b, (y0, y1, x0, x1) in enumerate(self.crops):
             reference = [getattr(self, f"{name}_{b}") for name in ("reference", "mean", "b1", "b2")]
@@ -242,7 +246,7 @@ class SSIMLoss(nn.Module):
             # window sums then run at memory speed.
             scores.append(sum(_MeanSSIM.apply(batch[b, c:c + 1, y0:y1, x0:x1], [r[c:c + 1] for r in reference],
                                               weight[c:c + 1], self.c1, self.c2) for c in range(weight.shape[0])))
-        loss = 1 - torch.stack(scores)
+        loss = 1 - torch.stack(scores) if scores else batch.new_zeros(0)  # a batch of no images: no scores
         return loss if self.batched else loss[0]
 
 
@@ -263,6 +267,8 @@ def ssim(estimate: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor, da
         0-dim tensor, or :math:`(B,)` for a batch.
     """
     est, ref, masks, batched = _batched(estimate, reference, mask)
+    dtype = torch.promote_types(est.dtype, ref.dtype)  # as psnr, which scores in float64 whatever it is given
+    est, ref = est.to(dtype), ref.to(dtype)
     if not ref.requires_grad:
         score = 1 - SSIMLoss(ref, masks, data_range)(est)
         return score if batched else score[0]
@@ -272,5 +278,5 @@ def ssim(estimate: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor, da
         crop = m[y0:y1, x0:x1]
         s = ssim_map(est[b, :, y0:y1, x0:x1], ref[b, :, y0:y1, x0:x1], data_range)
         scores.append((s * crop).sum() / (crop.sum() * s.shape[0]))
-    score = torch.stack(scores)
+    score = torch.stack(scores) if scores else est.new_zeros(0)
     return score if batched else score[0]
