@@ -351,6 +351,12 @@ def test_target_images_by_name_or_file(tmp_path):
     assert target_image(str(tmp_path / "t.png"), 1).shape == (1, 10, 12)
     with pytest.raises(InputError, match="unknown image"):
         target_image("lena", 1)
+    assert target_image(tmp_path / "t.png", 1).shape == (1, 10, 12)  # a Path as a str
+    with pytest.raises(InputError, match="image name must be a scikit-image test image's name or a file path, got int"):
+        target_image(3, 1)  # Path()'s TypeError before
+    for channels in (torch.tensor([1, 3]), True, 2):
+        with pytest.raises(InputError, match="channels must be 1 \\(grey\\) or 3 \\(RGB\\)"):
+            target_image("astronaut", channels)
     (tmp_path / "broken.png").write_bytes(b"not a png")  # a target is saved again, not captured
     with pytest.raises(CaptureError, match=r"broken.png: cannot be read as an image .*save the target image again"):
         target_image(str(tmp_path / "broken.png"), 1)

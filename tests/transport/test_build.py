@@ -257,6 +257,24 @@ class TestBadInput:
             with pytest.raises(InputError, match="'x' mask must be bool, or hold only 0 and 1"):
                 Target("near", image, mask=bad, name="x")
 
+    @pytest.mark.parametrize("field, value, says", [
+        ("name", 3, "target name must be a str, got int"),
+        ("name", torch.zeros(3), "target name must be a str, got Tensor"),
+        ("state", ["near"], "target 'x' state must be the name of a state \\(a str\\), got list"),
+    ])
+    def test_a_name_or_state_that_is_no_str_is_refused_where_the_target_is_made(self, field, value, says):
+        """A list as the state ended in an unhashable-type error at the build, a tensor as the name in a
+        truth-value error."""
+        with pytest.raises(InputError, match=says):
+            Target(**{"state": "near", "image": torch.rand(1, 6, 8), "name": "x", field: value})
+
+    def test_corners_that_are_no_numbers_are_named(self):
+        """torch.as_tensor's TypeError before."""
+        with pytest.raises(InputError, match="target 'x' corners must be 4 \\(x, y\\) camera pixel coordinates, got 'abcd'"):
+            build_transport(synthetic_calibration(), [Target("near", torch.rand(1, 6, 8), corners="abcd", name="x")])
+        with pytest.raises(InputError, match=r"target 'x' corners must have shape \(4, 2\)"):
+            build_transport(synthetic_calibration(), [Target("near", torch.rand(1, 6, 8), corners=[[1, 2]] * 3, name="x")])
+
     def test_one_target_not_in_a_list_is_refused_saying_so(self):
         with pytest.raises(InputError, match="targets must be a list of Target, got Target"):
             build_transport(synthetic_calibration(), targets()[0])

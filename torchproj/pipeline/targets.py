@@ -6,6 +6,8 @@ camera pixels of its surfaces (:class:`~torchproj.transport.Target`).
 
 from __future__ import annotations
 
+import numbers
+import os
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +37,10 @@ def target_image(name: str, channels: int) -> torch.Tensor:
     """
     from skimage import data  # a lazy package: its loaders import on first use
 
-    check(channels in (1, 3), f"channels must be 1 (grey) or 3 (RGB), the camera's, got {channels!r}")
+    check(isinstance(channels, numbers.Integral) and not isinstance(channels, bool) and channels in (1, 3),
+          f"channels must be 1 (grey) or 3 (RGB), the camera's, got {channels!r}")
+    check(isinstance(name, (str, os.PathLike)), f"image name must be a scikit-image test image's name or a file path, "
+                                                f"got {type(name).__name__}")
     if Path(name).suffix:
         img = read_image(name, "save the target image again as PNG, TIFF or JPEG").permute(1, 2, 0).numpy()
     elif (shipped := _shipped_file(name)) is not None:

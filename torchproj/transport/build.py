@@ -341,6 +341,11 @@ class Target:
     name: str = ""
 
     def __post_init__(self):
+        # The names key the calibrations and name the report's rows and files: a list or a tensor there
+        # ended in a hash or truth-value error far from here.
+        check(isinstance(self.name, str), f"target name must be a str, got {type(self.name).__name__}")
+        check(isinstance(self.state, str),
+              f"target {self.name!r} state must be the name of a state (a str), got {type(self.state).__name__}")
         # Every use takes the mask as bool (selection, &, indexing): one of 0/1 values becomes that here,
         # and one of other values is refused: a NaN or a painted 0.5 read as bool is True, the whole
         # camera or a blurred edge taken in.
@@ -377,8 +382,12 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
                                   "stretched over its surfaces' pixels and needs at least 2 x 2")
     H, W = mask.shape
     if target.corners is not None:
-        corners = torch.as_tensor(target.corners, dtype=torch.float32)
-        check_shape(corners, "corners", [4, 2])
+        try:
+            corners = torch.as_tensor(target.corners, dtype=torch.float32)
+        except (TypeError, ValueError, RuntimeError):
+            raise InputError(f"target {target.name!r} corners must be 4 (x, y) camera pixel coordinates, got "
+                             f"{target.corners!r}") from None
+        check_shape(corners, f"target {target.name!r} corners", [4, 2])
         _check_corners(target, corners)
     else:
         ys, xs = torch.nonzero(mask, as_tuple=True)
