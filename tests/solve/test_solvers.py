@@ -291,6 +291,22 @@ def test_iteration_options_of_the_wrong_kind_are_named(problem, solver, option, 
         solve_patterns(problem[0], solver, (0.0, 1.0), **{option: value})
 
 
+@pytest.mark.parametrize("solver", ["fista", "pgd", "adam", "ssim"])
+@pytest.mark.parametrize("x0, says", [(0.5, "x0 must be a torch.Tensor, got float"),
+                                      ([0.5, 0.5], "x0 must be a torch.Tensor, got list")])
+def test_a_start_that_is_no_tensor_is_named(problem, solver, x0, says):
+    """A number or a list as x0 ended in an AttributeError on .shape or .clamp."""
+    from torchproj.solve import solve_ssim
+
+    op = problem[0]
+    solve = (lambda **k: solve_ssim(op, (0.0, 1.0), **k)) if solver == "ssim" else (
+        lambda **k: solve_patterns(op, solver, (0.0, 1.0), **k))
+    with pytest.raises(InputError, match=says):
+        solve(x0=x0)
+    with pytest.raises(InputError, match=r"x0 must have shape \(\d+, \d\) \(columns, channels\), got \(3,\)"):
+        solve(x0=torch.zeros(3))
+
+
 def test_a_whole_number_of_any_integer_type_is_a_count(problem):
     res = solve_patterns(problem[0], "fista", (0.0, 1.0), max_iter=np.int64(7), levels=np.int32(0))
     assert res.iterations <= 7

@@ -19,7 +19,7 @@ from ..core.checks import check, check_finite
 from ..transport.build import DEFAULT_FOOTPRINT, StateCalibration, Target, build_operators
 from ..transport.operator import TransportOperator
 from .compensate import projectable_patterns
-from .solvers import check_bounds, solve_fista
+from .solvers import check_bounds, check_patterns_shape, solve_fista
 
 __all__ = ["ProjectionModel", "calibration_parts"]
 
@@ -129,14 +129,6 @@ def image_operator(op):
     check(op.row_pixel is not None, "the operator's rows are merged and mix camera pixels: build it with "
                                     "build_transport(..., merge=False) for an image-space model")
     return op
-
-
-def check_patterns_shape(op, patterns: torch.Tensor, name: str = "start") -> None:
-    """``patterns`` :math:`(N_{cols}, C)` for the (image) operator ``op``."""
-    shape = (op.shape[1], op.channels)
-    check(isinstance(patterns, torch.Tensor), f"{name} must be a torch.Tensor, got {type(patterns).__name__}")
-    check(tuple(patterns.shape) == shape, f"{name} must have shape {shape} (columns, channels), got "
-                                          f"{tuple(patterns.shape)}")
 
 
 def _least_squares(op, bounds, smoothness: float | None = None) -> torch.Tensor:

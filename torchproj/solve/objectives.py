@@ -286,6 +286,7 @@ def solve_ssim(op: TransportOperator | list[TransportOperator], bounds=(0.0, 1.0
     op = _one_operator(op)
     if x0 is None:
         x0 = _least_squares(op, (lo, hi))
+    check_patterns_shape(op, x0, "x0")  # before the clamp, which a number or a list would fail in
     x0 = x0.clamp(lo, hi)
     loss_of = ImageLoss(op, x0, l2_weight, psnr_drop, offset=offset)
     model = ProjectionModel(op, (lo, hi), start=x0)

@@ -89,10 +89,18 @@ def to_projectable(p: torch.Tensor, bounds: tuple[float, float], outside: str = 
     return p.clamp(0, 1) if outside == "clip" else (p - lo) / (hi - lo)
 
 
+def check_patterns_shape(op, patterns: torch.Tensor, name: str = "start") -> None:
+    """``patterns`` :math:`(N_{cols}, C)` for the (image) operator ``op``."""
+    shape = (op.shape[1], op.channels)
+    check(isinstance(patterns, torch.Tensor), f"{name} must be a torch.Tensor, got {type(patterns).__name__}")
+    check(tuple(patterns.shape) == shape, f"{name} must have shape {shape} (columns, channels), got "
+                                          f"{tuple(patterns.shape)}")
+
+
 def _start(op: TransportOperator, x0: torch.Tensor | None, lo: float, hi: float) -> torch.Tensor:
     if x0 is None:
         return torch.full((op.shape[1], op.channels), 0.5 * (lo + hi), dtype=op.val.dtype, device=op.val.device)
-    check(x0.shape == (op.shape[1], op.channels), f"x0 must have shape {(op.shape[1], op.channels)}, got {tuple(x0.shape)}")
+    check_patterns_shape(op, x0, "x0")
     check_finite(x0, "x0")
     return x0.to(op.val.device, op.val.dtype).clamp(lo, hi)
 
