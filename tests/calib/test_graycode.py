@@ -96,6 +96,13 @@ def test_bad_thresholds_and_sizes_are_named():
         decoded.above(300)
     with pytest.raises(InputError, match="projector_size must be \\(width, height\\), got \\(64,\\)"):
         decode_gray(pats[:-2], pats[-2], pats[-1], (64,))
+    # A float or a pair of the wrong length ended in "'float' object is not iterable" or an unpacking error.
+    for bits in (2.5, (4,), (4, 4, 4), (4, 2.5), "4", True):
+        with pytest.raises(InputError, match=r"bits must be a whole number, or a pair \(kx, ky\) of them, one per axis"):
+            decode_gray(pats[:-2], pats[-2], pats[-1], (64, 48), bits=bits)
+        with pytest.raises(InputError, match=r"bits must be a whole number, or a pair"):
+            graycode_patterns(64, 48, bits=bits)
+    assert graycode_patterns(64, 48, bits=(np.int64(3), 2)).shape == graycode_patterns(64, 48, bits=(3, 2)).shape
 
 
 def test_a_pixel_whose_captures_are_nan_is_not_decoded():

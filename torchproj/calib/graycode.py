@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import operator
 import warnings
 from dataclasses import dataclass
@@ -85,10 +86,14 @@ def sequence_bits(width: int, height: int, bits: int | tuple[int, int] | None = 
     nx, ny = graycode_bits(width, height)
     if bits is None:
         return nx, ny
-    kx, ky = (bits, bits) if isinstance(bits, int) else (int(b) for b in bits)
+    one = isinstance(bits, numbers.Integral) and not isinstance(bits, bool)
+    pair = (bits, bits) if one else tuple(bits) if isinstance(bits, (tuple, list)) else ()
+    check(len(pair) == 2 and all(isinstance(b, numbers.Integral) and not isinstance(b, bool) for b in pair),
+          f"bits must be a whole number, or a pair (kx, ky) of them, one per axis, got {bits!r}")
+    kx, ky = (int(b) for b in pair)
     check(kx >= min(2, nx) and ky >= min(2, ny),
           f"bits must be at least 2 Gray-code bits per axis (a homography needs two block edges per axis), got {bits}")
-    if isinstance(bits, int):
+    if one:
         # One number is what a user asks (--bits K): one that covers the whole sequence would silently
         # calibrate as if shortened, through a homography, for nothing.
         check(kx < max(nx, ny), f"bits {bits} shows the whole Gray-code sequence of a {width}x{height} projector "
