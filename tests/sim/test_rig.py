@@ -238,6 +238,17 @@ def test_bad_patterns_get_clear_errors():
     for seed in (1.5, -1, 2 ** 70, True):
         with pytest.raises(InputError, match="seed must be a whole number"):
             rig.capture("near", {}, seed=seed)
+    # A list ended in an AttributeError; light past white or black, or NaN, was shown all the same; a
+    # projector given by name and by index took the last of the two without a word.
+    with pytest.raises(InputError, match="patterns must be a dict of projector name .*, got list"):
+        rig.capture("near", [torch.ones(1, 1, 192, 256)])
+    for bad, says in [(1.5, r"\[0, 1.5\]"), (-0.5, r"\[-0.5, 0\]"), (float("nan"), r"\[nan, nan\]")]:
+        light = torch.zeros(1, 1, 192, 256)
+        light[0, 0, 5, 5] = bad
+        with pytest.raises(InputError, match=rf"patterns\['upper'\] must be light in \[0, 1\] .*got values in {says}"):
+            rig.capture("near", {"upper": light})
+    with pytest.raises(InputError, match="patterns give projector 'upper' twice"):
+        rig.capture("near", {"upper": torch.ones(1, 1, 192, 256), 0: torch.zeros(1, 1, 192, 256)})
 
 
 def test_distorted_camera_rays_land_where_opencv_projects_them():

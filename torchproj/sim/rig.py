@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -598,6 +599,8 @@ class VirtualRig:
         """Patterns by projector index, checked, and how many images each projector shows."""
         scene = self.scene
         index = {p.name: j for j, p in enumerate(scene.projectors)}
+        check(isinstance(patterns, Mapping), "patterns must be a dict of projector name (or index) -> (N, C, H, W) "
+                                             f"light, got {type(patterns).__name__}")
         by_index = {}
         for key, pat in patterns.items():
             check(key in index or (isinstance(key, int) and 0 <= key < len(scene.projectors)),
@@ -608,6 +611,12 @@ class VirtualRig:
             check(pat.shape[1] in (1, 3), f"patterns[{key!r}] must have 1 or 3 channels, got {pat.shape[1]}")
             check(pat.is_floating_point(), f"patterns[{key!r}] must be float light in [0, 1], got {pat.dtype} (8-bit "
                                            "images: divide by 255)")
+            # A projector shows from its black to its white: a value past them (or NaN) is light no
+            # projector gives, which the simulator would have shown all the same.
+            lo, hi = (float(v) for v in torch.aminmax(pat.detach())) if pat.numel() else (0.0, 0.0)
+            check(lo >= 0 and hi <= 1, f"patterns[{key!r}] must be light in [0, 1] (the projector's black to its white), "
+                                       f"got values in [{lo:.3g}, {hi:.3g}]")
+            check(j not in by_index, f"patterns give projector {scene.projectors[j].name!r} twice (by name and by index)")
             by_index[j] = pat.to(self.device, torch.float32)
         sizes = {p.shape[0] for p in by_index.values()}
         check(len(sizes) <= 1, f"every projector must show the same number of images, got {sorted(sizes)}")
