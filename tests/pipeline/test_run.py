@@ -134,6 +134,29 @@ def test_bad_bounds_are_refused_before_any_work(config, tmp_path, capsys):
     assert "LO < HI" in capsys.readouterr().err and not out.exists()
 
 
+@pytest.mark.parametrize("option, value, says", [
+    ("images", 3, r"images must be a list of one \(C, h, w\) image per target \(2\), got int"),
+    ("images", [torch.rand(1, 8, 8)], r"give one target image per target \(2\), got 1"),
+    ("max_iter", 1.5, "max_iter must be a whole number >= 1, got 1.5"),
+    ("max_iter", float("nan"), "max_iter must be a whole number >= 1, got nan"),
+    ("refine_relax", "x", r"refine_relax must be in \(0, 1\], got 'x'"),
+    ("solver", ["fista"], r"unknown solver \['fista'\]"),
+    ("objective", ["ssim"], r"objective must be one of .*, got \['ssim'\]"),
+    ("oracle", ["geometry"], r"oracle must be one of .*, got \['geometry'\]"),
+    ("solver_options", [("lr", 1)], "solver_options must be a dict of the solver's keywords, got list"),
+])
+def test_run_options_of_the_wrong_kind_are_refused_before_calibrating(calibrated, option, value, says, monkeypatch):
+    """The Python face of `torchproj run`: a list of images of the wrong count was refused after the
+    calibration, a number in its place, a list as the solver's name, a string as refine_relax or a list
+    as solver_options ended in TypeErrors; max_iter=1.5 ran 1 iteration and NaN ended in int()'s error."""
+    import torchproj.pipeline.run as run
+
+    scene, _ = calibrated
+    monkeypatch.setattr(run, "calibrate_virtual", lambda *a, **k: pytest.fail("calibrated before the options were checked"))
+    with pytest.raises(InputError, match=says):
+        run_virtual(scene, **{option: value})
+
+
 def _small(name, tmp_path_factory, **camera):
     path = tmp_path_factory.mktemp(name) / f"{name}.yaml"
     path.write_text(yaml.safe_dump(dict(small_config(name, **camera), name=name)))

@@ -7,6 +7,7 @@ the solver only knows what calibration recovered, so calibration errors show in 
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ from ..core.errors import InputError
 from ..scene.config import Scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
-from ..solve.compensate import ILL_POSED_MESSAGE, iteration_limit, resolve_smoothness, unexplained
+from ..solve.compensate import ILL_POSED_MESSAGE, check_solver_options, iteration_limit, resolve_smoothness, unexplained
 from ..solve.gain_offset import check_gain_offset
 from ..solve.refine import refine_patterns
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, Target, build_transport, select_maps
@@ -30,7 +31,7 @@ from .footprint import AUTO, check_footprint, choose_footprint
 from .register import Reregister
 from .shown import rig_measure, shown_world
 from .scoring import EVALUATION, TargetScore, evaluate_patterns, score_image
-from .targets import scene_images, scene_targets
+from .targets import checked_images, scene_targets
 from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, keep_normal_matrices,
                     read_geometry, read_normal_matrices, scene_as_calibrated, smoothed_key, transport_key,
                     writing_behind)
@@ -184,7 +185,9 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
     smoothness = _check_smoothness(solver, smoothness, oracle, gain_offset)
     check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
     check_footprint(footprint)
-    images = scene_images(scene) if images is None else images  # a missing image file is refused before the work
+    check_solver_options(solver_options)
+    iteration_limit(max_iter, solver)  # max_iter checked before the calibration, not at the solve
+    images = checked_images(scene, images)  # a missing image file, or one image too few, is refused before the work
     check_shown_light(scene, device)
     t_total = time.perf_counter()
     # Cache entries are written on a background thread while the run goes on (1.2 GB on the default
@@ -321,9 +324,10 @@ def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps,
     check(not refine or gain_offset is None, "the loop refines the images as they are: drop --gain/--offset or --refine")
     check(isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_REFINE,
           f"refine_frames must be a whole number of captures in 1..{MAX_REFINE}, got {frames!r}")
-    check(0 < relax <= 1, f"refine_relax must be in (0, 1], got {relax!r}")
+    check(isinstance(relax, numbers.Real) and not isinstance(relax, bool) and 0 < relax <= 1,
+          f"refine_relax must be in (0, 1], got {relax!r}")
     bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)
-    oracle = {True: "geometry", False: None, None: None}.get(oracle, oracle)
+    oracle = {True: "geometry", False: None}.get(oracle, oracle) if isinstance(oracle, (bool, str)) else oracle
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")
     exact = oracle == "transport"
     check(not exact or gain_offset is None, "the transport oracle solves the targets as they are: drop --gain/--offset")

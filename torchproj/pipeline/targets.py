@@ -110,6 +110,22 @@ def scene_images(scene: Scene) -> list[torch.Tensor]:
     return images
 
 
+def checked_images(scene: Scene, images: list[torch.Tensor] | None) -> list[torch.Tensor]:
+    """``images`` (None: :func:`scene_images`) as a list of one checked library image per target."""
+    specs = scene.target_specs()
+    if images is None:
+        return scene_images(scene)
+    try:
+        images = list(images)
+    except TypeError:
+        raise InputError(f"images must be a list of one (C, h, w) image per target ({len(specs)}), got "
+                         f"{type(images).__name__}") from None
+    check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
+    for spec, img in zip(specs, images):
+        check_image(img, f"target {spec.name!r} image")
+    return images
+
+
 def scene_targets(scene: Scene, images: list[torch.Tensor] | None = None, rig=None) -> list[Target]:
     """The scene's targets (:meth:`~torchproj.scene.Scene.target_specs`) with their images and masks.
 
@@ -123,10 +139,7 @@ def scene_targets(scene: Scene, images: list[torch.Tensor] | None = None, rig=No
         one :class:`~torchproj.transport.Target` per target, masks on the CPU.
     """
     specs = scene.target_specs()
-    images = scene_images(scene) if images is None else list(images)
-    check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
-    for spec, img in zip(specs, images):
-        check_image(img, f"target {spec.name!r} image")
+    images = checked_images(scene, images)
     check(rig is not None or all(s.surfaces is None for s in specs),
           "targets that name surfaces need the virtual rig for their camera masks: pass rig=")
     return [Target(spec.state, img.to(torch.float32), name=spec.name,

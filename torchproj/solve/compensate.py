@@ -5,11 +5,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
+from collections.abc import Mapping
 
 import torch
 
 from ..calib.response import ResponseCurve
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_count, check_shape
 from ..core.errors import InputError
 
 __all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
@@ -104,7 +105,7 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str 
     from .eo import CHAINS
     from .solvers import check_bounds, check_outside
 
-    check(solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    check(isinstance(solver, str) and solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
     check_outside(outside)
     check(chains in CHAINS, f"chains must be one of {list(CHAINS)}, got {chains!r}")
     check(solver != "eo" or chains != "epipolar" or projectors == 2,
@@ -138,8 +139,13 @@ def iteration_limit(max_iter: int | None, solver: str = "fista") -> dict:
     (:data:`PIPELINE_ITERATIONS`), or leaves LF and EO their own."""
     if max_iter is None:
         return {"max_iter": PIPELINE_ITERATIONS[solver]} if solver in PIPELINE_ITERATIONS else {}
-    check(int(max_iter) >= 1, f"max_iter must be >= 1, got {max_iter}")
-    return {"max_iter": int(max_iter)}
+    return {"max_iter": check_count(max_iter, "max_iter")}
+
+
+def check_solver_options(solver_options) -> None:
+    """Further keywords for the solver: a dict (or None)."""
+    check(solver_options is None or isinstance(solver_options, Mapping),
+          f"solver_options must be a dict of the solver's keywords, got {type(solver_options).__name__}")
 
 
 def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[ResponseCurve], *, calibrations=None,
@@ -184,6 +190,7 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
     from .objectives import image_objective, solve_ssim
 
     image = image_objective(objective)
+    check_solver_options(solver_options)
     limit = {**iteration_limit(max_iter, solver), **(solver_options or {})}
 
     def solve(one):

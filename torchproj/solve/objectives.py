@@ -70,7 +70,7 @@ def image_objective(name="l2", l2_weight: float | None = None, psnr_drop: float 
     """
     if name is None or isinstance(name, ImageObjective):
         return name
-    check(name in OBJECTIVES, f"objective must be one of {list(OBJECTIVES)}, got {name!r}")
+    check(isinstance(name, str) and name in OBJECTIVES, f"objective must be one of {list(OBJECTIVES)}, got {name!r}")
     if name == "l2":
         check(l2_weight is None, "l2_weight weighs the squared error against SSIM: give it with objective 'ssim' or "
                                  "'mixed'")
