@@ -194,6 +194,32 @@ def test_bad_capture_folders_are_named(capture_root, tmp_path, monkeypatch):
         calibrate_folders(frozen, {"*": (256, 192)})
 
 
+@pytest.mark.parametrize("options, says", [
+    ({"black_threshold": float("nan")}, "black_threshold must be a finite number >= 0, got nan"),
+    ({"ramp_steps": 0}, r"ramp_steps \(--ramp-steps, the ramp's bars\) must be a whole number >= 2, got 0"),
+    ({"ramp_steps": 1.5}, "ramp_steps .* must be a whole number >= 2, got 1.5"),
+    ({"plane_tolerance": "x"}, r"plane_tolerance \(projector pixels\) must be a finite number > 0, got 'x'"),
+    ({"plane_tolerance": -1}, "plane_tolerance .* must be a finite number > 0, got -1"),
+    ({"crease_ratio": "x"}, r"crease_ratio must be >= 1 \(1: the best-fitting window\), got 'x'"),
+    ({"curve_ratio": float("nan")}, "curve_ratio must be >= 1 .*, got nan"),
+    ({"dim_threshold": None}, r"dim_threshold must be >= 0 \(8-bit units\), got None"),
+    ({"sizes": 256}, "sizes must be a dict of projector name -> \\(width, height\\), got int"),
+    ({"sizes": {"*": (256.5, 192)}}, "projector width must be a whole number of cells, at least 1, got 256.5"),
+    ({"sizes": {"*": (256,)}}, r"sizes\['\*'\] must be \(width, height\), got \(256,\)"),
+    ({"states": "near"}, "states must be a list of state folder names, got 'near'"),
+])
+def test_calibration_options_of_the_wrong_kind_are_named_before_any_folder_is_read(capture_root, options, says,
+                                                                                 monkeypatch):
+    """The Python face of `torchproj calibrate`: a ramp of 0 bars ended in a ZeroDivisionError, strings in
+    TypeErrors, a NaN shadow threshold was not read at all (min() passed the dim one), and the plane
+    tolerance of a full sequence was never read, so any value passed; (256.5, 192) was taken as 256."""
+    import torchproj.calib.bundle as bundle
+
+    monkeypatch.setattr(bundle, "read_graycode_folder", lambda *a, **k: pytest.fail("read before the options were checked"))
+    with pytest.raises(InputError, match=says):
+        calibrate_folders(capture_root, **{"sizes": {"*": (256, 192)}, **options})
+
+
 def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path, capsys):
     calib = tmp_path / "calib"
     assert main(["calibrate", str(capture_root), "--projector", "256x192", "--out", str(calib)]) == 0

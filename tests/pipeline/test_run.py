@@ -157,6 +157,14 @@ def test_run_options_of_the_wrong_kind_are_refused_before_calibrating(calibrated
         run_virtual(scene, **{option: value})
 
 
+def test_a_plane_tolerance_that_is_no_positive_number_is_refused_though_a_full_sequence_never_reads_it(calibrated):
+    from torchproj.pipeline import calibrate_virtual
+
+    for bad in (float("nan"), -1, "1"):
+        with pytest.raises(InputError, match="plane_tolerance .* must be a finite number > 0"):
+            calibrate_virtual(calibrated[0], plane_tolerance=bad)
+
+
 def _small(name, tmp_path_factory, **camera):
     path = tmp_path_factory.mktemp(name) / f"{name}.yaml"
     path.write_text(yaml.safe_dump(dict(small_config(name, **camera), name=name)))

@@ -53,22 +53,23 @@ import os
 import shutil
 import warnings
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..core.checks import SIZE_LIMIT, check_count
+from ..core.checks import SIZE_LIMIT, check, check_count
 from ..core.conventions import MAX_MIXING_CONDITION, to_numpy
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
 from .edges import EdgePixels
 from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, read_graycode_folder, sequence_paths
-from .graycode import CellShares, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
-from .pipeline import (ProjectorCalibration, calibrate_projector, check_decoded, warn_if_few_decoded, warn_if_noisy,
-                       warn_if_saturated)
+from .graycode import CellShares, check_projector_size, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
+from .pipeline import (ProjectorCalibration, calibrate_projector, check_calibration_options, check_decoded, warn_if_few_decoded,
+                       warn_if_noisy, warn_if_saturated)
 from .response import RAMP_STEPS, ResponseCurve, primary_patterns, ramp_pattern
 
 __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
@@ -234,7 +235,7 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
                 size, shown = meta.get("projector"), meta.get("bits")
                 size = _size(size, f"{manifest}: 'projector'")
             elif sizes and (name in sizes or "*" in sizes):
-                size = sizes.get(name, sizes.get("*"))
+                size = check_projector_size(sizes.get(name, sizes.get("*")), f"sizes[{name if name in sizes else '*'!r}]")
             else:
                 raise CaptureError(f"{folder}: no {SEQUENCE_FILE} says the projector's size; give it with "
                                    f"--projector WxH (all projectors) or --projector {name}=WxH")
@@ -276,6 +277,11 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     The response of each projector comes from the first state whose folder holds ramps that show
     enough of their bars (a small object in one state may see only a few).
     """
+    check(sizes is None or isinstance(sizes, Mapping),
+          f"sizes must be a dict of projector name -> (width, height), got {type(sizes).__name__}")
+    check(states is None or (isinstance(states, (list, tuple)) and all(isinstance(s, str) for s in states)),
+          f"states must be a list of state folder names, got {states!r}")
+    check_calibration_options(options)  # before minutes of decoding, and whatever sequence a folder holds
     root = Path(root)
     layout = _projector_folders(root, sizes, states, bits)
     first = next(iter(layout.values()))

@@ -64,6 +64,13 @@ def _check_projector_size(width, height) -> None:
               f"projector {name} must be a whole number of cells, at least 1, got {value!r}")
 
 
+def check_projector_size(size, name: str = "projector_size") -> tuple[int, int]:
+    """A projector's ``(width, height)`` in whole cells."""
+    check(isinstance(size, (tuple, list)) and len(size) == 2, f"{name} must be (width, height), got {size!r}")
+    _check_projector_size(*size)
+    return operator.index(size[0]), operator.index(size[1])
+
+
 def graycode_bits(width: int, height: int) -> tuple[int, int]:
     """Number of column and row bits OpenCV uses for a projector of this size."""
     _check_projector_size(width, height)
@@ -334,6 +341,14 @@ def _open_cells(value: torch.Tensor, first_bad: torch.Tensor, bad: torch.Tensor,
     return centre, torch.where(known, width, 0)
 
 
+def check_ratio(value, name: str, one: str) -> float:
+    """How many times better one fit must be than another to be taken: at least 1 (``one`` says what 1
+    means), ``math.inf`` for never."""
+    check(isinstance(value, numbers.Real) and not isinstance(value, bool) and value >= 1,
+          f"{name} must be >= 1 ({one}), got {value!r}")
+    return float(value)
+
+
 def _check_threshold(value, name: str) -> float:
     """A threshold on a difference of captures, in 8-bit units: at most 255 apart, so a threshold there
     keeps no pixel, which was then reported as a projector that lit nothing."""
@@ -366,9 +381,7 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
         check(isinstance(image, torch.Tensor) and image.is_floating_point(),
               f"{name} must be float captures in [0, 1] (8-bit images over 255), got "
               f"{image.dtype if isinstance(image, torch.Tensor) else type(image).__name__}")
-    check(isinstance(projector_size, (tuple, list)) and len(projector_size) == 2,
-          f"projector_size must be (width, height), got {projector_size!r}")
-    width, height = projector_size
+    width, height = check_projector_size(projector_size)
     nx, ny = graycode_bits(width, height)
     kx, ky = sequence_bits(width, height, bits)
     white_threshold = _check_threshold(white_threshold, "white_threshold")
@@ -1098,8 +1111,8 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
         :math:`(H, W, 2)` refined coordinates, NaN where invalid.
     """
     check(window % 2 == 1 and window >= 3, f"window must be an odd number >= 3, got {window}")
-    check(crease_ratio >= 1, f"crease_ratio must be >= 1 (1: the best-fitting window), got {crease_ratio}")
-    check(curve_ratio >= 1, f"curve_ratio must be >= 1 (1: the better-fitting of plane and quadratic), got {curve_ratio}")
+    check_ratio(crease_ratio, "crease_ratio", "1: the best-fitting window")
+    check_ratio(curve_ratio, "curve_ratio", "1: the better-fitting of plane and quadratic")
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
     check_shape(valid, "valid", list(prj_xy.shape[:2]))
     height, width = valid.shape

@@ -2,18 +2,19 @@
 
 from __future__ import annotations
 
+import numbers
 import time
 import warnings
 from dataclasses import dataclass, replace
 
 import torch
 
-from ..core.checks import check, check_count
+from ..core.checks import check, check_count, check_number
 from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
-from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _refine_again, band_pixels, capture_noise, cell_shares, checker_shares,
-                       decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast,
+from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _check_threshold, _refine_again, band_pixels, capture_noise, cell_shares, checker_shares,
+                       check_ratio, decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast,
                        stripe_shares)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import depth_edges, fill_holes, inverse_map, map_slope
@@ -190,6 +191,7 @@ def calibrate_projector(capture: GraycodeCapture, projector_size: tuple[int, int
             (an object that covers a few of the 32 bars). False: give no response and say why
             (``response_note``), for a rig whose other states' ramps fit this projector's response.
     """
+    check_calibration_options(dict(ramp_steps=ramp_steps))  # the others where the map is made
     m = _forward_map(capture, projector_size, white_threshold=white_threshold, black_threshold=black_threshold,
                      dim_threshold=dim_threshold, subpixel=subpixel, max_hole=max_hole, bits=bits,
                      plane_tolerance=plane_tolerance, crease_ratio=crease_ratio, curve_ratio=curve_ratio)
@@ -283,13 +285,35 @@ class _ForwardMap:
     timings_s: dict
 
 
+def check_calibration_options(options: dict) -> None:
+    """The numbers among :func:`calibrate_projector`'s ``options`` (by name), checked before any capture
+    is read or decoded. Each is read late, some only in some sequences (the plane tolerance only in a
+    shortened one), and a NaN shadow threshold was not read at all."""
+    checks = {
+        "white_threshold": lambda v: _check_threshold(v, "white_threshold"),
+        "black_threshold": lambda v: _check_threshold(v, "black_threshold"),
+        # At or above the shadow threshold (inf too), no dim pixel is read.
+        "dim_threshold": lambda v: check(isinstance(v, numbers.Real) and not isinstance(v, bool) and v >= 0,
+                                         f"dim_threshold must be >= 0 (8-bit units), got {v!r}"),
+        "max_hole": lambda v: check_count(v, "max_hole (--fill-holes, the largest hole filled, pixels)", 0),
+        "ramp_steps": lambda v: check_count(v, "ramp_steps (--ramp-steps, the ramp's bars)", 2),
+        "plane_tolerance": lambda v: check_number(v, "plane_tolerance (projector pixels)", 0, strict=True),
+        "crease_ratio": lambda v: check_ratio(v, "crease_ratio", "1: the best-fitting window"),
+        "curve_ratio": lambda v: check_ratio(v, "curve_ratio", "1: the better-fitting of plane and quadratic"),
+    }
+    for name, value in options.items():
+        if name in checks:
+            checks[name](value)
+
+
 def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, white_threshold: float,
                  black_threshold: float, dim_threshold: float, subpixel: bool, max_hole: int,
                  bits: int | tuple[int, int] | None, plane_tolerance: float, crease_ratio: float,
                  curve_ratio: float = CURVE_RATIO) -> _ForwardMap:
-    max_hole = check_count(max_hole, "max_hole (--fill-holes, the largest hole filled, pixels)", 0)
+    check_calibration_options(dict(white_threshold=white_threshold, black_threshold=black_threshold,
+                                   dim_threshold=dim_threshold, max_hole=max_hole, plane_tolerance=plane_tolerance,
+                                   crease_ratio=crease_ratio, curve_ratio=curve_ratio))
     timings = {}
-    check(dim_threshold >= 0, f"dim_threshold must be >= 0 (8-bit units), got {dim_threshold}")
     t0 = time.perf_counter()
     full = sequence_bits(*projector_size, bits) == graycode_bits(*projector_size)
     # One decoding down to the dim threshold; the lit pixels' is the same with the shadow threshold.

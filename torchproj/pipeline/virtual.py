@@ -18,6 +18,7 @@ import torch
 from ..calib import (DIM_THRESHOLD, SATURATED, SATURATED_SHARE, GraycodeCapture, ResponseCurve, calibrate_projector,
                      checker_patterns, graycode_bits, graycode_patterns, primary_patterns, ramp_pattern, sequence_bits,
                      warn_if_few_decoded, warn_if_noisy, warn_if_saturated)
+from ..calib.pipeline import check_calibration_options
 from ..calib.response import RAMP_STEPS
 from ..core.checks import check
 from ..core.choices import BLACK_THRESHOLD
@@ -373,6 +374,7 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
     from ..core.progress import progress_bar
 
     scene = rig.scene
+    check_calibration_options(dict(plane_tolerance=plane_tolerance))  # read only where bits shorten the sequence
     for j, proj in enumerate(scene.projectors):
         # The ramp gives each bar a cell at least; a narrower projector would fail at its ramp after
         # the whole calibration was simulated.
