@@ -621,3 +621,11 @@ def test_the_step_bound_holds_where_a_smoothness_penalty_puts_negative_entries_i
         top = float(torch.linalg.eigvalsh((dense + dense.T) / 2)[-1])
         assert not ne._nonnegative()
         assert top <= ne.lipschitz() <= 1.1 * top
+
+
+@pytest.mark.parametrize("product, name", [("A", "p"), ("A_adjoint", "r"), ("objective", "p"), ("gradient", "p")])
+def test_a_product_of_something_that_is_no_tensor_is_named(op, product, name):
+    """A number, a list or None ended in an AttributeError on .dim()."""
+    for bad, kind in [(0.5, "float"), ([0.5], "list"), (None, "NoneType")]:
+        with pytest.raises(InputError, match=f"{name} must be a torch.Tensor, got {kind}"):
+            getattr(op, product)(bad)

@@ -280,7 +280,7 @@ class TransportOperator(nn.Module):
 
     # -------------------------------------------------------------------------------- products
     def _check_vector(self, x: torch.Tensor, name: str, n: int) -> torch.Tensor:
-        if x.dim() == 1:
+        if isinstance(x, torch.Tensor) and x.dim() == 1:  # anything else is named by check_shape
             x = x[:, None]
         check_shape(x, name, [n, "C"])
         if torch.compiler.is_compiling():
