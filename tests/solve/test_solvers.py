@@ -307,6 +307,26 @@ def test_a_start_that_is_no_tensor_is_named(problem, solver, x0, says):
         solve(x0=torch.zeros(3))
 
 
+def test_make_patterns_names_a_solver_or_responses_of_the_wrong_kind_before_solving(problem, monkeypatch):
+    """A list as the solver's name ended in an unhashable-type error; responses that are no list of
+    curves in a TypeError or an AttributeError on .mixing, after the solve."""
+    import sys
+
+    from torchproj.solve import make_patterns
+
+    compensate_module = sys.modules["torchproj.solve.compensate"]  # the package's `compensate` is the function
+
+    op = problem[0]
+    curves = [ResponseCurve(torch.ones(1), torch.ones(1), torch.zeros(1))] * len(op.projector_sizes)
+    monkeypatch.setattr(compensate_module, "resolve_smoothness", lambda *a: pytest.fail("solved before the check"))
+    with pytest.raises(InputError, match=r"unknown solver \['fista'\]; choose from"):
+        make_patterns(op, ["fista"], (0.0, 1.0), curves)
+    for responses, says in [(None, "got NoneType"), (curves[0], "got ResponseCurve"), ([0.5] * len(curves), r"got list of \['float'\]"),
+                            (curves[:-1], f"got {len(curves)} projectors' images but {len(curves) - 1} response curves")]:
+        with pytest.raises(InputError, match=says):
+            make_patterns(op, "fista", (0.0, 1.0), responses)
+
+
 def test_a_whole_number_of_any_integer_type_is_a_count(problem):
     res = solve_patterns(problem[0], "fista", (0.0, 1.0), max_iter=np.int64(7), levels=np.int32(0))
     assert res.iterations <= 7

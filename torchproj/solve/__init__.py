@@ -14,11 +14,18 @@ from .solvers import (LF_NORMALISE, OUTSIDE, ClampedAdam, SolveResult, check_bou
 SOLVERS = {"lf": solve_lf, "eo": solve_eo, "pgd": solve_pgd, "fista": solve_fista, "adam": solve_adam}
 
 
+def check_solver(method) -> None:
+    """``method`` one of :data:`SOLVERS`' names (a list or a dict in its place is named, not unhashable)."""
+    from ..core.checks import check
+
+    check(isinstance(method, str) and method in SOLVERS, f"unknown solver {method!r}; choose from {sorted(SOLVERS)}")
+
+
 def solve_patterns(op, method: str = "fista", bounds=(0.0, 1.0), **kwargs) -> SolveResult:
     """Solve with a named method (``lf``, ``eo``, ``pgd``, ``fista``, ``adam``); see each ``solve_*``."""
     from ..core.checks import check
 
-    check(method in SOLVERS, f"unknown solver {method!r}; choose from {sorted(SOLVERS)}")
+    check_solver(method)
     import inspect
 
     # Named here, not as Python's "got an unexpected keyword argument" from inside the solver (a

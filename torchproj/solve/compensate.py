@@ -16,6 +16,14 @@ from ..core.errors import InputError
 __all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
 
 
+def check_responses(responses, projectors: int) -> None:
+    """One :class:`~torchproj.calib.ResponseCurve` per projector, in a list."""
+    check(isinstance(responses, (list, tuple)) and all(isinstance(r, ResponseCurve) for r in responses),
+          f"responses must be a list of one ResponseCurve per projector, got {type(responses).__name__}"
+          + (f" of {sorted({type(r).__name__ for r in responses})}" if isinstance(responses, (list, tuple)) else ""))
+    check(len(responses) == projectors, f"got {projectors} projectors' images but {len(responses)} response curves")
+
+
 def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> list[torch.Tensor]:
     """Turn linear relative light per projector into the 8-bit values to send to it.
 
@@ -27,7 +35,7 @@ def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> li
     Returns:
         per projector, :math:`(C, H_j, W_j)` uint8 pattern images.
     """
-    check(len(images) == len(responses), f"got {len(images)} images but {len(responses)} response curves")
+    check_responses(responses, len(images))
     out = []
     for j, (img, resp) in enumerate(zip(images, responses)):
         check_shape(img, f"images[{j}]", ["C", "H", "W"])
@@ -101,11 +109,11 @@ def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str 
     Bounds: HI in (0, 255] (a projector gives no more than its white), LO in [-255, HI) (below 0 as
     the paper's ``EO_-100^255``, whose values are brought into range afterwards).
     """
-    from . import SOLVERS
+    from . import check_solver
     from .eo import CHAINS
     from .solvers import check_bounds, check_outside
 
-    check(isinstance(solver, str) and solver in SOLVERS, f"unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    check_solver(solver)
     check_outside(outside)
     check(chains in CHAINS, f"chains must be one of {list(CHAINS)}, got {chains!r}")
     check(solver != "eo" or chains != "epipolar" or projectors == 2,
@@ -184,11 +192,14 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         ``info["start"]`` is the solver's own result), per projector the linear light
         :math:`(C, H_j, W_j)` in [0, 1] it should emit, and the uint8 patterns to send it.
     """
-    from . import solve_patterns
+    from . import check_solver, solve_patterns
     from .eo import solve_eo
     from .mixing import solve_through_mixing
     from .objectives import image_objective, solve_ssim
 
+    check_solver(solver)
+    ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    check_responses(responses, len(ops[0].projector_sizes))  # before the solve, not after it
     image = image_objective(objective)
     check_solver_options(solver_options)
     limit = {**iteration_limit(max_iter, solver), **(solver_options or {})}
@@ -198,7 +209,6 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
             return solve_eo(one, bounds, chains=chains, calibrations=calibrations, progress=progress, **limit)
         return solve_patterns(one, solver, bounds, progress=progress, **limit)
 
-    ops = list(op) if isinstance(op, (list, tuple)) else [op]
     smoothness = resolve_smoothness(solver, smoothness)
     if len(ops) > 1:
         check(len({o.shape[1] for o in ops}) == 1 and all(o.channels == 1 for o in ops),
