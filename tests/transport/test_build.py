@@ -284,6 +284,12 @@ class TestBadInput:
         with pytest.raises(InputError, match="'x' image is 1x1 pixels; .* needs at least 2 x 2"):
             build_transport(synthetic_calibration(), [Target("near", torch.rand(1, 1, 1), name="x")])
 
+    @pytest.mark.parametrize("scale", ["1", float("inf"), True, [1.0]])
+    def test_a_scale_that_is_no_finite_number_is_named(self, scale):
+        """A string or a list ended in a TypeError on '>', and inf made every target value infinite."""
+        with pytest.raises(InputError, match="scale must be a finite number > 0"):
+            build_transport(synthetic_calibration(), targets(), scale=scale)
+
     def test_non_finite_weights(self):
         cals = synthetic_calibration()
         cals["near"].weight[0][3, 3] = float("inf")

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 from kornia.geometry.transform import get_perspective_transform, warp_perspective
 
-from ..core.checks import check, check_device, check_finite, check_image, check_shape
+from ..core.checks import check, check_device, check_finite, check_image, check_number, check_shape
 from ..core.conventions import round_to_pixel
 from ..core.errors import InputError
 from ..calib.maps import map_slope, pixel_square
@@ -1238,8 +1238,7 @@ def _scale(vals: torch.Tensor, scale: float | None) -> float:
     """The camera value asked for a target value of 1 (:func:`build_transport`'s ``scale``)."""
     if scale is None:
         scale = 0.5 * float(vals.sum(1).median())
-    check(scale > 0, f"scale must be positive, got {scale}")
-    return scale
+    return check_number(scale, "scale", 0.0, strict=True)
 
 
 def _assemble(cols: torch.Tensor, vals: torch.Tensor, sizes: list[tuple[int, int]]):
