@@ -104,10 +104,15 @@ def test_targets_of_another_camera_or_kind_are_named_and_a_numpy_seed_is_a_seed(
     model = ProjectionModel.from_calibration(cal, targets)
     patterns = model.to_patterns()
     other = [dataclasses.replace(targets[0], mask=torch.ones(10, 10, dtype=torch.bool)), targets[1]]
+    # patterns of None ended in len()'s TypeError, states that are no dict of the targets' states in
+    # indexing errors or a KeyError.
     for given, options, says in [(other, {}, "'near' mask must have shape"), (targets[0], {}, "list of Target"),
-                                 (targets, {"scale": "1"}, "scale must be a finite number > 0")]:
+                                 (targets, {"scale": "1"}, "scale must be a finite number > 0"),
+                                 (targets, {"states": [1]}, "states must be a dict of state name -> StateCalibration, got list"),
+                                 (targets, {"states": {}}, r"no calibration of the targets' states \['far', 'near'\]; calibrated: \[\]"),
+                                 (targets, {"patterns": None}, r"patterns must be a list of one image per projector \(2\), got NoneType")]:
         with pytest.raises(InputError, match=says):
-            evaluate_patterns(cal, patterns, given, **{"scale": model.scale, **options})
+            evaluate_patterns(cal, **{"patterns": patterns, "targets": given, "scale": model.scale, **options})
     by_numpy = evaluate_patterns(cal, patterns, targets, scale=model.scale, seed=np.int64(4)).targets
     by_int = evaluate_patterns(cal, patterns, targets, scale=model.scale, seed=4).targets
     assert [t.psnr_db for t in by_numpy] == [t.psnr_db for t in by_int]

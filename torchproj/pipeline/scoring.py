@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -140,6 +141,8 @@ def as_light(patterns: list[torch.Tensor], projectors: int, device) -> dict[int,
         patterns: per projector (``projectors`` of them), :math:`(C, H_j, W_j)` uint8 levels (what
             :func:`~torchproj.solve.make_patterns` gives) or float light in [0, 1].
     """
+    check(isinstance(patterns, (list, tuple)), f"patterns must be a list of one image per projector ({projectors}), "
+                                               f"got {type(patterns).__name__}")
     check(len(patterns) == projectors, f"give one pattern per projector ({projectors}), got {len(patterns)}")
     shown = {}
     for j, pattern in enumerate(patterns):
@@ -191,6 +194,9 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     # State k's noise is drawn from seed + k, within the rig's 2**63.
     seed = None if seed is None else check_seed(seed, limit=2 ** 62, hint=" (or None: the rig's own noise draws)")
     check_targets(targets)
+    check(isinstance(states, Mapping), f"states must be a dict of state name -> StateCalibration, got {type(states).__name__}")
+    missing = sorted({t.state for t in targets} - set(states))
+    check(not missing, f"no calibration of the targets' states {missing}; calibrated: {sorted(states)}")
     for target in (t for t in targets if t.mask is not None):  # as build_transport checks them
         check_shape(target.mask, f"target {target.name!r} mask", [scene.camera.height, scene.camera.width])
     captures = {state: calibration.rig.capture(state, shown, noise=noise, seed=None if seed is None else seed + k)[0].cpu()
