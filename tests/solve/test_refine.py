@@ -134,6 +134,10 @@ def test_an_image_objective_refines_on_the_capture(op):
     ({"iterations": -1}, "iterations"), ({"relax": 0}, "relax"), ({"relax": 1.5}, "relax"),
     ({"responses": None}, "response curves"), ({"solver_iterations": 0}, "solver_iterations"),
     ({"solver_iterations": 2.5}, "solver_iterations must be a whole number"),
+    # A string ended in a TypeError on '<', one curve for two projectors or a number as remodel only
+    # after the first capture.
+    ({"relax": "x"}, r"relax must be in \(0, 1\], got 'x'"), ({"responses": RESPONSES[:1]}, "1 response curves"),
+    ({"remodel": 3}, "remodel must be None or a function that gives the operator again, got int"),
 ])
 def test_bad_loop_options_are_refused_before_any_capture(op, kwargs, message):
     def measure(images):
@@ -141,6 +145,12 @@ def test_bad_loop_options_are_refused_before_any_capture(op, kwargs, message):
     options = {"responses": RESPONSES, **kwargs}
     with pytest.raises(InputError, match=message):
         refine_patterns(op, torch.zeros(op.shape[1], 1), measure, **options)
+
+
+def test_a_measure_that_is_no_function_is_named(op):
+    """A capture's rows given in its place ended in "'Tensor' object is not callable"."""
+    with pytest.raises(InputError, match="measure must be a function of the patterns .*, got Tensor"):
+        refine_patterns(op, torch.zeros(op.shape[1], 1), torch.zeros(op.shape[0], 1), responses=RESPONSES)
 
 
 def test_a_capture_that_is_not_light_is_named_by_the_loop(op):

@@ -7,7 +7,6 @@ the solver only knows what calibration recovered, so calibration errors show in 
 from __future__ import annotations
 
 import dataclasses
-import numbers
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -23,7 +22,7 @@ from ..solve import (SolveResult, check_solve_options, image_objective, make_pat
                      solve_gain_offset)
 from ..solve.compensate import ILL_POSED_MESSAGE, check_solver_options, iteration_limit, resolve_smoothness, unexplained
 from ..solve.gain_offset import check_gain_offset
-from ..solve.refine import refine_patterns
+from ..solve.refine import check_relax, refine_patterns
 from ..transport import COLOUR_WEIGHTS, DEFAULT_FOOTPRINT, MAPS, Target, build_transport, select_maps
 from ..transport.build import build_operators, used_colour_weights
 from .ceiling import check_linear_camera, light_transport, solve_on_light_transport
@@ -324,8 +323,7 @@ def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps,
     check(not refine or gain_offset is None, "the loop refines the images as they are: drop --gain/--offset or --refine")
     check(isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_REFINE,
           f"refine_frames must be a whole number of captures in 1..{MAX_REFINE}, got {frames!r}")
-    check(isinstance(relax, numbers.Real) and not isinstance(relax, bool) and 0 < relax <= 1,
-          f"refine_relax must be in (0, 1], got {relax!r}")
+    check_relax(relax, "refine_relax")
     bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)
     oracle = {True: "geometry", False: None}.get(oracle, oracle) if isinstance(oracle, (bool, str)) else oracle
     check(oracle in (None, *ORACLES), f"oracle must be one of {list(ORACLES)}, got {oracle!r}")

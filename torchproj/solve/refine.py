@@ -38,6 +38,7 @@ paper solves once on its calibrated ``A``.
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -46,7 +47,7 @@ import torch
 
 from ..core.checks import check, check_count, check_finite, check_shape
 from ..core.progress import progress_bar
-from .compensate import projectable_patterns
+from .compensate import check_responses, projectable_patterns
 from .model import _one_operator
 from .objectives import ImageLoss, image_objective, solve_ssim
 from .solvers import check_bounds, solve_fista
@@ -148,6 +149,13 @@ def carry_patterns(p: torch.Tensor, old, new) -> torch.Tensor:
     return out
 
 
+def check_relax(relax, name: str = "relax") -> float:
+    """The share of each new defect the loop takes: in (0, 1]."""
+    check(isinstance(relax, numbers.Real) and not isinstance(relax, bool) and 0 < relax <= 1,
+          f"{name} must be in (0, 1], got {relax!r}")
+    return float(relax)
+
+
 def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tensor]], torch.Tensor],
                     bounds=(0.0, 1.0), responses=None, *, iterations: int = 4, objective="l2", relax: float = 1.0,
                     solver_iterations: int = REFINE_SOLVER_ITERATIONS, outside: str = "clip",
@@ -181,9 +189,14 @@ def refine_patterns(op, start: torch.Tensor, measure: Callable[[list[torch.Tenso
     ops = _operators(op)
     lo, hi = check_bounds(bounds)
     iterations = check_count(iterations, "iterations", 0)
-    check(0 < relax <= 1, f"relax must be in (0, 1], got {relax}")
+    relax = check_relax(relax)
     solver_iterations = check_count(solver_iterations, "solver_iterations")
     check(responses is not None, "give the projectors' response curves: the loop shows 8-bit patterns")
+    check_responses(responses, len(ops[0].projector_sizes))
+    check(callable(measure), f"measure must be a function of the patterns that returns the captured rows, got "
+                             f"{type(measure).__name__}")
+    check(remodel is None or callable(remodel), f"remodel must be None or a function that gives the operator "
+                                                f"again, got {type(remodel).__name__}")
     check_shape(start, "start", [ops[0].shape[1], len(ops) if len(ops) > 1 else "C"])
     check_finite(start, "start")
     image = image_objective(objective)
