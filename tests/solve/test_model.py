@@ -319,8 +319,12 @@ def test_a_psnr_budget_holds_every_target_where_a_summed_loss_trades_one_away():
         torch.testing.assert_close(budget.psnr_change(model()), -10 * torch.log10(budget.ratio(model())))
     assert float(free[1]) < -3  # the failure: target 1 given away
     assert float(held.min()) > -1.3  # within the budget (a soft hinge: a little past it)
-    with pytest.raises(InputError, match="psnr_drop and weight must be >= 0"):
-        PSNRBudget(torch.zeros(1, 1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool), torch.zeros(1, 1, 4, 4), -1)
+    # None (no limit elsewhere), a string or inf ended in TypeErrors or a budget nothing could break.
+    for drop in (-1, None, "1", float("inf")):
+        with pytest.raises(InputError, match=f"psnr_drop must be a finite number of dB >= 0, got {drop!r}"):
+            PSNRBudget(torch.zeros(1, 1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool), torch.zeros(1, 1, 4, 4), drop)
+    with pytest.raises(InputError, match="weight must be a finite number >= 0, got -1"):
+        PSNRBudget(torch.zeros(1, 1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool), torch.zeros(1, 1, 4, 4), 1.0, -1)
 
 
 def test_one_operator_per_colour_channel_predicts_each_channel_with_its_own():

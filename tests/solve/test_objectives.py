@@ -108,6 +108,20 @@ class TestBadInput:
             image_objective("ssim", psnr_drop=-2.0)
 
     @pytest.mark.parametrize("option, value, says", [
+        ("l2_weight", "0.1", "l2_weight must be a finite number >= 0, got '0.1'"),  # float() read it
+        ("psnr_drop", "1", r"psnr_drop must be a finite number of dB >= 0 \(or None: no limit\), got '1'"),
+        ("psnr_drop", float("inf"), "psnr_drop must be a finite number of dB >= 0 .*, got inf"),  # the loss took it
+    ])
+    def test_objective_and_loss_options_that_are_no_numbers(self, option, value, says):
+        """A string as psnr_drop ended in a TypeError on '>=' (the objective and the loss each had a check of
+        their own, and the loss took inf)."""
+        op = build_transport(synthetic_calibration(shape=(40, 50)), targets(), merge=False, scale=1.0)
+        with pytest.raises(InputError, match=says):
+            image_objective("ssim", **{option: value})
+        with pytest.raises(InputError, match=says):
+            ImageLoss(op, torch.zeros(op.shape[1], 1), **{option: value})
+
+    @pytest.mark.parametrize("option, value, says", [
         ("l2_weight", float("inf"), "l2_weight must be a finite number >= 0, got inf"),  # crashed in the loss
         ("lr", float("inf"), "lr must be a finite number > 0, got inf"),  # ran, and returned the start
         ("max_iter", 2.5, "max_iter must be a whole number >= 1, got 2.5"),

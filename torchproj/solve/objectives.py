@@ -20,6 +20,7 @@ alternatives in ``benchmarks/objectives.py --study``; the paper optimises least 
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from dataclasses import dataclass
 
@@ -61,6 +62,17 @@ class ImageObjective:
     iterations: int = 30
 
 
+def check_psnr_drop(psnr_drop, optional: bool = True) -> float | None:
+    """The dB of PSNR each target may lose against its start: a finite number >= 0 (None: no limit,
+    where ``optional``)."""
+    if psnr_drop is None and optional:
+        return None
+    check(isinstance(psnr_drop, numbers.Real) and not isinstance(psnr_drop, bool) and math.isfinite(psnr_drop)
+          and psnr_drop >= 0, f"psnr_drop must be a finite number of dB >= 0{' (or None: no limit)' if optional else ''}, "
+                              f"got {psnr_drop!r}")
+    return float(psnr_drop)
+
+
 def image_objective(name="l2", l2_weight: float | None = None, psnr_drop: float | None = PSNR_DROP_DB,
                     iterations: int = 30) -> ImageObjective | None:
     """An objective by name (``l2``, ``ssim``, ``mixed``) with its defaults, or as given.
@@ -75,10 +87,8 @@ def image_objective(name="l2", l2_weight: float | None = None, psnr_drop: float 
         check(l2_weight is None, "l2_weight weighs the squared error against SSIM: give it with objective 'ssim' or "
                                  "'mixed'")
         return None
-    weight = OBJECTIVES[name] if l2_weight is None else float(l2_weight)
-    check(weight >= 0 and math.isfinite(weight), f"l2_weight must be a finite number >= 0, got {l2_weight}")
-    check(psnr_drop is None or (psnr_drop >= 0 and math.isfinite(psnr_drop)),
-          f"psnr_drop must be a finite number of dB >= 0, got {psnr_drop}")
+    weight = OBJECTIVES[name] if l2_weight is None else check_number(l2_weight, "l2_weight")
+    psnr_drop = check_psnr_drop(psnr_drop)
     check(iterations >= 1, f"the SSIM objective needs at least 1 iteration, got {iterations}")
     return ImageObjective(name, weight, psnr_drop, int(iterations))
 
@@ -145,8 +155,7 @@ class PSNRBudget(nn.Module):
         check_shape(targets, "targets", ["K", "C", "H", "W"])
         check_shape(mask, "mask", [targets.shape[0], targets.shape[2], targets.shape[3]])
         check_shape(reference, "reference", list(targets.shape))
-        check(psnr_drop >= 0 and weight >= 0, f"psnr_drop and weight must be >= 0, got {psnr_drop} and {weight}")
-        self.psnr_drop, self.weight = float(psnr_drop), float(weight)
+        self.psnr_drop, self.weight = check_psnr_drop(psnr_drop, optional=False), check_number(weight, "weight")
         self.register_buffer("targets", targets.detach())
         self.register_buffer("weights", mask[:, None].to(targets.dtype))
         self.register_buffer("reference_error", self.squared_error(reference.detach()).clamp_min(1e-12))
@@ -197,7 +206,7 @@ class ImageLoss(nn.Module):
                  offset: torch.Tensor | None = None):
         super().__init__()
         l2_weight = check_number(l2_weight, "l2_weight")
-        check(psnr_drop is None or psnr_drop >= 0, f"psnr_drop must be >= 0 dB (or None), got {psnr_drop}")
+        psnr_drop = check_psnr_drop(psnr_drop)
         # The start may lie anywhere a solve's box allows (EO_-100^255's below 0): a model of it, whose
         # box is [0, 1] unless told, refused such a start; only the targets and masks are needed.
         op = image_operator(op)
