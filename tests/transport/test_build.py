@@ -278,6 +278,9 @@ class TestBadInput:
     def test_one_target_not_in_a_list_is_refused_saying_so(self):
         with pytest.raises(InputError, match="targets must be a list of Target, got Target"):
             build_transport(synthetic_calibration(), targets()[0])
+        # A tensor of images in the targets' place ended in a truth-value error where the model is made.
+        with pytest.raises(InputError, match="targets must be a list of Target, got Tensor"):
+            has_colour_weights(synthetic_calibration(), torch.rand(2, 1, 6, 8))
 
     def test_a_one_pixel_target_image_is_refused_as_too_small(self):
         """Its corners meet in one point, which no warp stretches over a surface."""
