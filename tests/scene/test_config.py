@@ -160,6 +160,20 @@ def test_missing_config_file_is_clear():
         load_scene("no_such_scene")
 
 
+@pytest.mark.parametrize("source", [3, b"paper_two_planes", ["paper_two_planes"]])
+def test_a_scene_that_is_no_name_or_path_is_named(source):
+    """Path()'s TypeError before."""
+    with pytest.raises(ConfigError, match=f"config: must be a YAML file's path or a scene's name, got {type(source).__name__}"):
+        load_scene(source)
+
+
+@pytest.mark.parametrize("limit", ["1e9", None, True])
+def test_a_size_limit_that_is_no_number_is_named(limit):
+    """A string or None ended in a TypeError on '<'; True was a limit of one ray."""
+    with pytest.raises(ConfigError, match="size_limit: must be a finite number above 0"):
+        load_scene("paper_two_planes", size_limit=limit)
+
+
 def test_valid_config_is_not_mutated():
     data = small_config()
     before = copy.deepcopy(data)
@@ -247,7 +261,7 @@ def test_a_scaled_scene_is_the_same_rig_with_fewer_pixels():
     assert quarter.surfaces.keys() == full.surfaces.keys()
 
 
-@pytest.mark.parametrize("scale", [0, -1, 10, "half"])
+@pytest.mark.parametrize("scale", [0, -1, 10, "half", True])
 def test_a_scale_out_of_range_is_refused(scale):
     with pytest.raises(ConfigError, match="scale: must be a number in"):
         load_scene("paper_two_planes", scale=scale)

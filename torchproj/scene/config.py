@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import math
+import numbers
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -615,7 +616,7 @@ def _check_size(scene: Scene, limit: float) -> None:
     """Refuse, before any work, a rig whose ray casting or patterns would not fit in time or memory."""
     fix = "or raise the limit: --size-limit N, or load_scene(size_limit=N)"
     # A NaN limit would compare false everywhere and silently switch the check off.
-    if not 0 < limit < float("inf"):
+    if not (isinstance(limit, numbers.Real) and not isinstance(limit, bool) and 0 < limit < float("inf")):
         raise ConfigError("size_limit", f"must be a finite number above 0, got {limit!r}", "e.g. --size-limit 1e9")
     cam = scene.camera
     rays = cam.width * cam.height * cam.supersampling ** 2
@@ -652,7 +653,7 @@ def scale_config(data: dict, scale: float | None = None, *, camera: tuple[int, i
         scale: factor for every device's resolution (rounded to whole pixels, at least 8).
         camera, projector: ``(width, height)`` to give the camera or every projector instead.
     """
-    if scale is not None and not (isinstance(scale, (int, float)) and 0 < scale <= 4):
+    if scale is not None and not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and 0 < scale <= 4):
         raise ConfigError("scale", f"must be a number in (0, 4], got {scale!r}")
     data = copy.deepcopy(data)
     projectors = data.get("projectors") if isinstance(data.get("projectors"), list) else []
@@ -739,6 +740,9 @@ def load_scene(path: str | os.PathLike | None = None, scale: float | None = None
     """
     if path is None:
         path = builtin_config()
+    if not isinstance(path, (str, os.PathLike)):
+        raise ConfigError("config", f"must be a YAML file's path or a scene's name, got {type(path).__name__}",
+                          f"give a path, a built-in name ({list(BUILTIN_SCENES)}) or suite-SEED-INDEX")
     from .procedural import parse_suite_name, procedural_config  # here: the generator builds on this module
 
     suite = parse_suite_name(path) if isinstance(path, str) else None
