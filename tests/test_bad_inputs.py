@@ -301,6 +301,19 @@ def test_damaged_bundles_are_refused_cleanly(capture_root, tmp_path, capsys):
     _each(cases, 3, tmp_path, attempt)
 
 
+def test_a_bundle_is_read_from_its_own_file_and_a_folder_that_is_no_path_is_named(capture_root):
+    """load_bundle(".../bundle.json") said "not a calibration bundle (no bundle.json)"; a number or bytes
+    ended in Path()'s TypeError."""
+    from torchproj.calib import load_bundle
+    from torchproj.core import InputError
+
+    folder = capture_root / "bundle"
+    assert list(load_bundle(folder / "bundle.json").states) == list(load_bundle(folder).states)
+    for bad in (3, bytes(folder)):
+        with pytest.raises(InputError, match=f"folder must be a bundle folder's path, got {type(bad).__name__}"):
+            load_bundle(bad)
+
+
 def test_output_that_is_a_file_or_under_one_is_refused_before_work(tmp_path, capsys):
     config = tmp_path / "scene.yaml"
     config.write_text(yaml.safe_dump(tiny_config()))

@@ -429,7 +429,10 @@ def load_bundle(folder: str | os.PathLike) -> CalibrationBundle:
     Every file is checked as it is read: a :class:`CaptureError` names the file (and the field of
     ``bundle.json``) that is missing, truncated, edited out of shape or physically impossible.
     """
+    check(isinstance(folder, (str, os.PathLike)), f"folder must be a bundle folder's path, got {type(folder).__name__}")
     folder = Path(folder)
+    if folder.name == "bundle.json" and folder.is_file():  # the bundle's own file given for its folder
+        folder = folder.parent
     path = folder / "bundle.json"
     if not path.is_file():
         raise CaptureError(f"{folder}: not a calibration bundle (no bundle.json); make one with torchproj calibrate")
