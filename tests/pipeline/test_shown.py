@@ -36,6 +36,31 @@ def test_the_shown_world_is_the_changed_one_and_the_calibration_is_kept(calibrat
     assert float(world.black["near"].mean()) > float(calibration.black["near"].mean()) + 0.01
 
 
+def test_a_scene_name_or_anything_else_where_a_scene_or_a_calibration_goes_is_named(calibration):
+    """run_virtual("paper_two_planes") is what a newcomer types first: it ended in "'str' object has no
+    attribute 'projectors'", as None in a calibration's place did in AttributeErrors."""
+    from torchproj import VirtualRig, scene_targets
+    from torchproj.pipeline import rig_measure
+    from torchproj.solve import ProjectionModel
+
+    for call in (run_virtual, calibrate_virtual, VirtualRig, scene_targets, lambda s: shown_world(calibration, s)):
+        with pytest.raises(InputError, match=r"scene must be a Scene, got str: load it with "
+                                             r"torchproj.load_scene\('paper_two_planes'\)"):
+            call("paper_two_planes")
+    with pytest.raises(InputError, match="scene must be a Scene, got NoneType: load one with torchproj.load_scene"):
+        run_virtual(None)
+    targets = scene_targets(calibration.rig.scene, rig=calibration.rig)
+    op = ProjectionModel.from_calibration(calibration, targets, start=None).operator
+    with pytest.raises(InputError, match="cal must be a VirtualCalibration .*, got NoneType"):
+        shown_world(None)
+    with pytest.raises(InputError, match="world must be a VirtualCalibration .*, got Scene"):
+        rig_measure(calibration.rig.scene, op, targets)
+    with pytest.raises(InputError, match="op must be a TransportOperator, or one per colour channel, got str"):
+        rig_measure(calibration, "op", targets)
+    with pytest.raises(InputError, match="targets must be a list of Target, got NoneType"):
+        rig_measure(calibration, op, None)
+
+
 def test_a_brighter_projector_is_won_back_to_the_shown_worlds_ceiling(calibration):
     scene = parse_scene(config({"projectors": {"upper": {"gain": 1.3}}}), name="small")
     result = run_virtual(scene, calibration=calibration, refine=4, ceiling=True, progress=False)

@@ -17,7 +17,7 @@ import torch
 from ..calib import SATURATED_SHARE, sequence_bits
 from ..core.checks import check
 from ..core.errors import InputError
-from ..scene.config import Scene
+from ..scene.config import Scene, check_scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
 from ..solve.compensate import ILL_POSED_MESSAGE, check_solver_options, iteration_limit, resolve_smoothness, unexplained
@@ -179,6 +179,7 @@ def run_virtual(scene: Scene, *, solver: str = "fista", bounds_8bit=(0, 255), im
             transport built from a cached calibration is kept beside it, and ``transport_cache``
             says the same of it.
     """
+    check_scene(scene)
     oracle, bounds, image = _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps, ceiling,
                                        outside, chains, (refine, refine_frames, refine_relax))
     smoothness = _check_smoothness(solver, smoothness, oracle, gain_offset)

@@ -13,9 +13,11 @@ import dataclasses
 
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_count
+from ..scene.config import check_scene
 from ..scene.show import shown_scene
-from ..transport import Target
+from ..transport import Target, TransportOperator
+from ..transport.build import check_targets
 from .scoring import as_light
 from .virtual import VirtualCalibration, quiet_rig, true_responses
 
@@ -32,7 +34,8 @@ def shown_world(cal: VirtualCalibration, scene=None, prepare=None) -> VirtualCal
     ``prepare``: called with the new world's rig before it captures anything (a run gives it the
     rays an earlier run cast there, :func:`~torchproj.pipeline.cache.read_geometry`).
     """
-    scene = cal.rig.scene if scene is None else scene
+    _check_world(cal, "cal")
+    scene = cal.rig.scene if scene is None else check_scene(scene)
     if scene.show is None:
         return cal
     rig = quiet_rig(shown_scene(scene), cal.rig.device)
@@ -40,6 +43,11 @@ def shown_world(cal: VirtualCalibration, scene=None, prepare=None) -> VirtualCal
         prepare(rig)
     black = {state: rig.capture(state, {})[0].cpu() for state in cal.black}
     return dataclasses.replace(cal, rig=rig, black=black, responses=true_responses(rig.scene))
+
+
+def _check_world(world, name: str) -> None:
+    check(isinstance(world, VirtualCalibration), f"{name} must be a VirtualCalibration (calibrate_virtual's, or "
+                                                 f"shown_world's), got {type(world).__name__}")
 
 
 class CapturedRows:
@@ -53,6 +61,9 @@ class CapturedRows:
 
     def __init__(self, op, targets: list[Target]):
         ops = list(op) if isinstance(op, (list, tuple)) else [op]
+        check(len(ops) > 0 and all(isinstance(o, TransportOperator) for o in ops),
+              f"op must be a TransportOperator, or one per colour channel, got {type(op).__name__}")
+        check_targets(targets)
         self.op = ops[0]
         check(self.op.row_pixel is not None, "the loop measures camera pixels: build the operator with merge=False")
         self.channels = len(ops) if len(ops) > 1 else self.op.rhs.shape[1]
@@ -95,7 +106,8 @@ def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: in
         ``measure(images) -> (N_rows, C)``: camera values above the state's black frame at each row's
         pixel; ``measure.captures`` counts the captures taken per state.
     """
-    check(isinstance(frames, int) and frames >= 1, f"frames must be a whole number >= 1, got {frames!r}")
+    _check_world(world, "world")
+    frames = check_count(frames, "frames")
     read = CapturedRows(op, targets)
     black = world.black if noise else {state: world.rig.capture(state, {}, noise=False, quantise=False)[0].cpu()
                                        for state in read.rows_of}

@@ -16,7 +16,7 @@ import torch
 from ..core.checks import check, check_image
 from ..core.errors import InputError
 from ..core.imageio import read_image
-from ..scene.config import Scene
+from ..scene.config import Scene, check_scene
 from ..transport import Target
 
 __all__ = ["DEFAULT_IMAGES", "default_images", "scene_images", "scene_targets", "target_image"]
@@ -138,7 +138,7 @@ def scene_targets(scene: Scene, images: list[torch.Tensor] | None = None, rig=No
     Returns:
         one :class:`~torchproj.transport.Target` per target, masks on the CPU.
     """
-    specs = scene.target_specs()
+    specs = check_scene(scene).target_specs()
     images = checked_images(scene, images)
     check(rig is not None or all(s.surfaces is None for s in specs),
           "targets that name surfaces need the virtual rig for their camera masks: pass rig=")

@@ -24,7 +24,7 @@ from ..core.checks import check
 from ..core.choices import BLACK_THRESHOLD
 from ..core.conventions import to_numpy
 from ..core.errors import InputError
-from ..scene.config import Scene
+from ..scene.config import Scene, check_scene
 from ..sim.rig import VirtualRig
 from ..transport import StateCalibration
 
@@ -298,6 +298,7 @@ def calibrate_virtual(scene: Scene, device="cpu", progress=None, oracle: bool = 
             (40/255, as ``calibrate_projector``). It shows how much quality calibration costs; it is
             not available on a real rig.
     """
+    check_scene(scene)
     if oracle:
         check(bits is None, "oracle calibration takes the exact geometry: it shows no Gray code to shorten; drop "
                             "--bits or --oracle")

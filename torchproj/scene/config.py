@@ -26,7 +26,7 @@ import yaml
 
 from ..core.checks import SIZE_LIMIT
 from ..core.conventions import DEFAULT_COLOUR_MIXING, MAX_MIXING_CONDITION
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, InputError
 from .fields import Fields, vector
 from .pose import parse_pose
 from .show import ShowChanges, parse_show
@@ -724,6 +724,15 @@ def _read_yaml(path: Path):
         raise  # the limits above, already worded
     except ValueError as exc:  # an integer past Python's digit limit
         raise ConfigError(str(path), f"holds a value YAML cannot read: {str(exc).splitlines()[0]}") from None
+
+
+def check_scene(scene, name: str = "scene") -> Scene:
+    """``scene`` a :class:`Scene`: a name or a path in its place is pointed to :func:`load_scene`."""
+    if not isinstance(scene, Scene):
+        how = (f"load it with torchproj.load_scene({str(scene)!r})" if isinstance(scene, (str, os.PathLike))
+               else "load one with torchproj.load_scene")
+        raise InputError(f"{name} must be a Scene, got {type(scene).__name__}: {how}")
+    return scene
 
 
 def load_scene(path: str | os.PathLike | None = None, scale: float | None = None,

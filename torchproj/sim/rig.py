@@ -32,7 +32,7 @@ from ..core.checks import check, check_device, check_seed, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
 from ..core.lens import DISC_POINTS, GOLDEN_ANGLE, disc_points
 from ..core.sparse import csr_tensor
-from ..scene.config import SAMPLE_SPACING, Projector, Scene, Surface, supersampling_for
+from ..scene.config import SAMPLE_SPACING, Projector, Scene, Surface, check_scene, supersampling_for
 from .bounce import Bounce, cast_bounce
 from .camera import apply_camera
 from .primitives import make_caster
@@ -257,7 +257,7 @@ class VirtualRig:
     """
 
     def __init__(self, scene: Scene, device="cpu"):
-        self.scene = scene
+        self.scene = check_scene(scene)
         self.device = check_device(device)
         self.generator = torch.Generator(device=self.device).manual_seed(scene.seed)
         self._geometry: dict[str, StateGeometry] = {}
