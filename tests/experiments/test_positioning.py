@@ -332,6 +332,27 @@ def test_position_refuses_bad_settings(box_scene):
             evaluate_positioning(box_scene, seed=seed)
 
 
+
+@pytest.mark.parametrize("option, value, says", [
+    ("trials", 1.5, "trials must be a whole number >= 1, got 1.5"), ("trials", True, "trials must be a whole number"),
+    ("spread_mm", "20", r"spread_mm \(mm\) must be a finite number >= 0, got '20'"),
+    ("spread_deg", None, r"spread_deg \(degrees\) must be a finite number >= 0, got None"),
+    ("max_evaluations", float("inf"), "max_evaluations must be a whole number >= 10, got inf"),
+    ("profile_mm", 0, r"profile_mm \(the feedback chart's range, mm\) must be a finite number > 0, got 0"),
+    ("profile_steps", -1, r"profile_steps .* must be a whole number >= 1, got -1"),
+    ("max_iter", 1.5, "max_iter must be a whole number >= 1, got 1.5"),
+])
+def test_position_settings_of_the_wrong_kind_are_refused_before_calibrating(box_scene, option, value, says, monkeypatch):
+    """The Python face of `torchproj position`: trials of 1.5 or inf, a max_evaluations of inf, any chart
+    range or sample count and any max_iter were taken, until the work (or the chart, after it) failed on
+    them; a string or None as a spread ended in a TypeError on '>='."""
+    import torchproj.experiments.positioning as positioning
+
+    monkeypatch.setattr(positioning, "calibrate_virtual", lambda *a, **k: pytest.fail("calibrated before the check"))
+    with pytest.raises(InputError, match=says):
+        evaluate_positioning(box_scene, **{option: value})
+
+
 def _fake_decode(folder, points):
     folder.mkdir(parents=True)
     np.savez_compressed(folder / "correspondence.npz", points=points.astype(np.float32))

@@ -32,15 +32,16 @@ import torch
 from ..calib import scan_map
 from ..pipeline import simulate_calibration
 from ..calib.triangulate import ProCamCalibration, triangulate
-from ..core.checks import check, check_seed
+from ..core.checks import check, check_count, check_number, check_seed
 from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import CaptureError, ConfigError, InputError
-from ..scene.config import Scene, State, Surface
+from ..scene.config import Scene, State, Surface, check_scene
 from ..scene.pose import rotation_from_rotvec
 from ..sim.rig import VirtualRig
 from ..metrics import psnr
 from ..solve import check_solve_options
+from ..solve.compensate import iteration_limit
 from ..pipeline import VirtualCalibration, calibrate_virtual, run_virtual
 
 __all__ = ["PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance", "evaluate_positioning",
@@ -407,14 +408,17 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
             shown and eo's chains, as :func:`~torchproj.pipeline.run_virtual`
             (the paper's own test used ``eo`` with ``(0, 255)``, ``EO_0^255``).
     """
-    check(trials >= 1, f"trials must be at least 1, got {trials}")
+    check_scene(scene)
+    trials = check_count(trials, "trials")
     # Each position and trial draws its captures' and scans' noise from seeds derived from this one
     # (1000 (seed + 1) (k + 1) and on), which must stay within the rig's 2**63.
     seed = check_seed(seed, limit=2 ** 32)
     check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)  # before calibrating
-    check(spread_mm >= 0 and spread_deg >= 0, f"spread_mm and spread_deg must be numbers >= 0 (mm, degrees), got "
-                                               f"{spread_mm!r} and {spread_deg!r}")  # NaN fails too
-    check(max_evaluations >= 10, f"max_evaluations must be at least 10, got {max_evaluations}")
+    spread_mm, spread_deg = check_number(spread_mm, "spread_mm (mm)"), check_number(spread_deg, "spread_deg (degrees)")
+    max_evaluations = check_count(max_evaluations, "max_evaluations", 10)
+    profile_mm = check_number(profile_mm, "profile_mm (the feedback chart's range, mm)", strict=True)
+    profile_steps = check_count(profile_steps, "profile_steps (the feedback chart's samples each side)")
+    iteration_limit(max_iter)  # checked before calibrating, not at the solve
     check(feedback_stride is None or (isinstance(feedback_stride, int) and not isinstance(feedback_stride, bool)
                                       and feedback_stride >= 1),
           f"feedback_stride must be a whole number of pixels, at least 1 (or None: chosen per target), got "
