@@ -204,14 +204,17 @@ def test_a_target_image_of_one_pixel_is_refused_naming_it(tmp_path):
     assert target_image(str(tmp_path / "pair.png"), 3).shape == (3, 2, 2)
 
 
-def test_a_constant_target_is_warned_about_and_its_report_row_says_why(quarter_rig, tmp_path):
+@pytest.mark.parametrize("level", [0.0, 1.0])
+def test_a_constant_target_is_warned_about_and_its_report_row_says_why(quarter_rig, tmp_path, level):
+    """A white target was not warned about: the warp blended its outline with the black outside it, and
+    the pixels there, up to 0.1% darker, made it more than one value."""
     import json
     import math
 
     from torchproj.core import write_json
 
     scene, cal = quarter_rig
-    images = [torch.zeros(1, 30, 40), target_image("camera", 1)]
+    images = [torch.full((1, 30, 40), level), target_image("camera", 1)]
     targets = scene_targets(scene, images, rig=cal.rig)
     model = ProjectionModel.from_calibration(cal, targets)
     with pytest.warns(UserWarning, match=r"target '.*': its image is one value over its \d+ pixels") as caught:

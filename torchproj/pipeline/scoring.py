@@ -36,6 +36,12 @@ EVALUATION = ("captured image minus the state's black capture, divided by the ta
               "its baseline")
 
 
+def one_value(values: torch.Tensor, covered: torch.Tensor) -> bool:
+    """Whether target values :math:`(C, H, W)` are one value over the ``covered`` pixels (or none)."""
+    values = values[:, covered]
+    return values.numel() == 0 or bool(values.max() - values.min() <= 1e-6)
+
+
 def affine_psnr(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Tensor) -> float:
     """PSNR after the gain and offset that best bring the estimate onto the values (least squares, one
     pair per target over all channels): the structure of a capture, its brightness taken out.
@@ -44,6 +50,8 @@ def affine_psnr(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Ten
         estimate, values: :math:`(C, H, W)` in target units.
         covered: :math:`(H, W)` bool.
     """
+    if one_value(values, covered):
+        return math.inf  # any capture's gain 0 and offset the value: exact, where lstsq rounds to ~260 dB
     x, y = estimate[:, covered].reshape(-1).double(), values[:, covered].reshape(-1).double()
     design = torch.stack([x, torch.ones_like(x)], 1)
     gain_offset = torch.linalg.lstsq(design, y[:, None]).solution
@@ -93,8 +101,7 @@ class TargetScore:
     @property
     def constant_target(self) -> bool:
         """Whether the target is one value over its scored pixels: a score of brightness alone."""
-        values = self.values[:, self.covered]
-        return values.numel() == 0 or bool(values.max() - values.min() <= 1e-6)
+        return one_value(self.values, self.covered)
 
     def notes(self) -> dict:
         """Why a score of this row is degenerate: field -> reason (empty for an ordinary target).

@@ -407,7 +407,11 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
           f"target {target.name!r}: its corners {corners.tolist()} place the image on none of the lit camera pixels "
           f"of state {target.state!r} (camera pixel coordinates, x right and y down, within {W}x{H})")
     _check_room(target, covered)
-    return warped[:-1].clamp(0, 1), covered
+    # At the image's outline the warp blends it with the zeros outside, by the share the last channel
+    # (ones, warped alike) keeps: divided by that share, a covered pixel holds the image's own values (a
+    # white image stays 1 there, not up to 0.1% darker and so no longer "one value").
+    values = torch.where(covered, warped[:-1] / warped[-1].clamp_min(1e-6), warped[:-1])
+    return values.clamp(0, 1), covered
 
 
 def check_targets(targets) -> None:
