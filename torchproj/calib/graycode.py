@@ -42,7 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_number, check_shape
+from ..core.checks import check, check_number, check_shape, is_number
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _recompute_near, depth_edges
 
@@ -344,7 +344,7 @@ def _open_cells(value: torch.Tensor, first_bad: torch.Tensor, bad: torch.Tensor,
 def check_ratio(value, name: str, one: str) -> float:
     """How many times better one fit must be than another to be taken: at least 1 (``one`` says what 1
     means), ``math.inf`` for never."""
-    check(isinstance(value, numbers.Real) and not isinstance(value, bool) and value >= 1,
+    check(is_number(value) and value >= 1,
           f"{name} must be >= 1 ({one}), got {value!r}")
     return float(value)
 

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import numbers
 import time
 import warnings
 from dataclasses import dataclass, replace
 
 import torch
 
-from ..core.checks import check, check_count, check_number
+from ..core.checks import check, check_count, check_number, is_number
 from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
@@ -293,7 +292,7 @@ def check_calibration_options(options: dict) -> None:
         "white_threshold": lambda v: _check_threshold(v, "white_threshold"),
         "black_threshold": lambda v: _check_threshold(v, "black_threshold"),
         # At or above the shadow threshold (inf too), no dim pixel is read.
-        "dim_threshold": lambda v: check(isinstance(v, numbers.Real) and not isinstance(v, bool) and v >= 0,
+        "dim_threshold": lambda v: check(is_number(v) and v >= 0,
                                          f"dim_threshold must be >= 0 (8-bit units), got {v!r}"),
         "max_hole": lambda v: check_count(v, "max_hole (--fill-holes, the largest hole filled, pixels)", 0),
         "ramp_steps": lambda v: check_count(v, "ramp_steps (--ramp-steps, the ramp's bars)", 2),

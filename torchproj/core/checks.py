@@ -89,9 +89,14 @@ def _power(limit: int) -> str:
     return f"2**{limit.bit_length() - 1}" if limit & (limit - 1) == 0 else str(limit)
 
 
+def is_number(value) -> bool:
+    """Whether ``value`` is a real number (a bool is not, though Python counts True as 1); NaN and inf are."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def check_number(value, name: str, minimum: float = 0.0, *, strict: bool = False) -> float:
     """``value`` as a float: a finite real number at least ``minimum`` (above it where ``strict``)."""
-    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) and (
+    ok = is_number(value) and math.isfinite(value) and (
         value > minimum if strict else value >= minimum)
     check(ok, f"{name} must be a finite number {'>' if strict else '>='} {minimum:g}, got {value!r}")
     return float(value)

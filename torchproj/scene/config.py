@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import copy
 import math
-import numbers
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -24,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..core.checks import SIZE_LIMIT
+from ..core.checks import SIZE_LIMIT, is_number
 from ..core.conventions import DEFAULT_COLOUR_MIXING, MAX_MIXING_CONDITION
 from ..core.errors import ConfigError, InputError
 from .fields import Fields, vector
@@ -616,7 +615,7 @@ def _check_size(scene: Scene, limit: float) -> None:
     """Refuse, before any work, a rig whose ray casting or patterns would not fit in time or memory."""
     fix = "or raise the limit: --size-limit N, or load_scene(size_limit=N)"
     # A NaN limit would compare false everywhere and silently switch the check off.
-    if not (isinstance(limit, numbers.Real) and not isinstance(limit, bool) and 0 < limit < float("inf")):
+    if not (is_number(limit) and 0 < limit < float("inf")):
         raise ConfigError("size_limit", f"must be a finite number above 0, got {limit!r}", "e.g. --size-limit 1e9")
     cam = scene.camera
     rays = cam.width * cam.height * cam.supersampling ** 2

@@ -20,14 +20,13 @@ alternatives in ``benchmarks/objectives.py --study``; the paper optimises least 
 from __future__ import annotations
 
 import math
-import numbers
 import time
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from ..core.checks import check, check_count, check_number, check_shape
+from ..core.checks import check, check_count, check_number, check_shape, is_number
 from ..core.progress import progress_bar
 from ..metrics import SSIMLoss
 from ..transport.operator import TransportOperator
@@ -67,7 +66,7 @@ def check_psnr_drop(psnr_drop, optional: bool = True) -> float | None:
     where ``optional``)."""
     if psnr_drop is None and optional:
         return None
-    check(isinstance(psnr_drop, numbers.Real) and not isinstance(psnr_drop, bool) and math.isfinite(psnr_drop)
+    check(is_number(psnr_drop) and math.isfinite(psnr_drop)
           and psnr_drop >= 0, f"psnr_drop must be a finite number of dB >= 0{' (or None: no limit)' if optional else ''}, "
                               f"got {psnr_drop!r}")
     return float(psnr_drop)

@@ -38,14 +38,13 @@ paper solves once on its calibrated ``A``.
 from __future__ import annotations
 
 import math
-import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
 
-from ..core.checks import check, check_count, check_finite, check_shape
+from ..core.checks import check, check_count, check_finite, check_shape, is_number
 from ..core.progress import progress_bar
 from .compensate import check_responses, projectable_patterns
 from .model import _one_operator
@@ -151,7 +150,7 @@ def carry_patterns(p: torch.Tensor, old, new) -> torch.Tensor:
 
 def check_relax(relax, name: str = "relax") -> float:
     """The share of each new defect the loop takes: in (0, 1]."""
-    check(isinstance(relax, numbers.Real) and not isinstance(relax, bool) and 0 < relax <= 1,
+    check(is_number(relax) and 0 < relax <= 1,
           f"{name} must be in (0, 1], got {relax!r}")
     return float(relax)
 
