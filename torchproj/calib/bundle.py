@@ -282,6 +282,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     check(states is None or (isinstance(states, (list, tuple)) and all(isinstance(s, str) for s in states)),
           f"states must be a list of state folder names, got {states!r}")
     check_calibration_options(options)  # before minutes of decoding, and whatever sequence a folder holds
+    check(isinstance(root, (str, os.PathLike)), f"root must be the capture root's path, got {type(root).__name__}")
     root = Path(root)
     layout = _projector_folders(root, sizes, states, bits)
     first = next(iter(layout.values()))

@@ -307,6 +307,8 @@ class VirtualRig:
     # ------------------------------------------------------------------------------- casting
     def geometry(self, state: str) -> StateGeometry:
         """Cast the state's geometry (once; later calls return the cached result)."""
+        if not isinstance(state, str):
+            self.scene.state(state)  # refused there, naming the states (a list is no key to look up)
         if state not in self._geometry:
             self._geometry[state] = self._cast(state)
         if state not in self._spacing_checked:

@@ -42,7 +42,7 @@ from ..core.progress import progress_bar
 from ..core.sparse import csr_tensor, spmm
 from ..transport.build import StateCalibration
 from ..transport.operator import TransportOperator, _blockwise_sum, entry_rows
-from .solvers import SolveResult, _beside, _clamp_, _stop, check_bounds, coarse_start
+from .solvers import SolveResult, _beside, _clamp_, _stop, check_bounds, check_operator, coarse_start
 
 __all__ = ["CHAINS", "fundamental_between_projectors", "epipolar_bands", "epipolar_chains", "component_chains",
            "solve_eo"]
@@ -325,6 +325,7 @@ def solve_eo(op: TransportOperator, bounds=(0.0, 1.0), *, chains: str | torch.Te
         the share of ``A^T A``'s weight that couples two blocks (what the paper's split drops and the
         sweeps keep) and the coarse levels' iterations.
     """
+    check_operator(op)
     lo, hi = check_bounds(bounds)
     max_iter, inner_iter = check_count(max_iter, "max_iter"), check_count(inner_iter, "inner_iter")
     levels, tol = check_count(levels, "levels", 0), check_number(tol, "tol")

@@ -89,6 +89,11 @@ def to_projectable(p: torch.Tensor, bounds: tuple[float, float], outside: str = 
     return p.clamp(0, 1) if outside == "clip" else (p - lo) / (hi - lo)
 
 
+def check_operator(op) -> None:
+    """``op`` a :class:`~torchproj.transport.TransportOperator`, what every solver iterates on."""
+    check(isinstance(op, TransportOperator), f"op must be a TransportOperator (build_transport's), got {type(op).__name__}")
+
+
 def check_patterns_shape(op, patterns: torch.Tensor, name: str = "start") -> None:
     """``patterns`` :math:`(N_{cols}, C)` for the (image) operator ``op``."""
     shape = (op.shape[1], op.channels)
@@ -169,6 +174,7 @@ def solve_target_sets(op: TransportOperator, rhs_sets: list[torch.Tensor], bound
     Returns:
         per set its :math:`(N_{cols}, C)` values, and the joint :class:`SolveResult`.
     """
+    check_operator(op)
     check(isinstance(rhs_sets, (list, tuple)) and all(isinstance(r, torch.Tensor) for r in rhs_sets),
           f"rhs_sets must be a list of (N_rows, C) tensors, one per set, got {type(rhs_sets).__name__}"
           + (" (a stacked batch: give list(rhs_sets))" if isinstance(rhs_sets, torch.Tensor) else ""))
@@ -186,6 +192,7 @@ _COARSE_MAX_ITER = 100
 
 
 def _proximal(op, bounds, max_iter, tol, x0, precondition, levels, progress, accelerate, form="auto"):
+    check_operator(op)
     lo, hi = check_bounds(bounds)
     max_iter, levels = check_count(max_iter, "max_iter"), check_count(levels, "levels", 0)
     tol = check_number(tol, "tol")
@@ -495,6 +502,7 @@ def solve_adam(op: TransportOperator, bounds=(0.0, 1.0), *, lr: float = 0.02, ma
     Warns when the objective ends a window of ``rise_window`` iterations higher than it started:
     the learning rate is too large for this problem.
     """
+    check_operator(op)
     lo, hi = check_bounds(bounds)
     max_iter, tol = check_count(max_iter, "max_iter"), check_number(tol, "tol")
     lr, rise_window = check_number(lr, "lr", strict=True), check_count(rise_window, "rise_window")
@@ -552,6 +560,7 @@ def solve_lf(op: TransportOperator, bounds=(0.0, 1.0), *, max_iter: int = 20000,
 
     ``info`` gives the residual reached and the unnormalised solution's range.
     """
+    check_operator(op)
     lo, hi = check_bounds(bounds)
     check(normalise in LF_NORMALISE, f"normalise must be one of {list(LF_NORMALISE)}, got {normalise!r}")
     max_iter, tol = check_count(max_iter, "max_iter"), check_number(tol, "tol")

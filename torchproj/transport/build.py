@@ -25,6 +25,7 @@ objective equal to the unmerged one.
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 
 from dataclasses import dataclass
 
@@ -1167,6 +1168,9 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     """Every target's rows (:func:`build_transport`'s checks, in the user's terms); with ``colour`` also
     each row's per-channel ratios (every state needs :attr:`StateCalibration.colour_weight`)."""
     check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
+    check(isinstance(calibrations, Mapping) and all(isinstance(c, StateCalibration) for c in calibrations.values()),
+          f"calibrations must be a dict of state name -> StateCalibration, got {type(calibrations).__name__}"
+          + (" (give its .states)" if hasattr(calibrations, "states") else ""))
     n_ch = _target_channels(targets)
     sizes = camera = None
     checked = set()
