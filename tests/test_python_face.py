@@ -16,7 +16,7 @@ import torch
 import torchproj as tp
 from torchproj.core import TorchprojError
 
-from .helpers import SIZES, small_scene, synthetic_calibration, targets
+from .helpers import SIZES, calibrate_once, small_scene, synthetic_calibration, targets
 
 # What a slip of the keyboard or the wrong variable gives: nothing, text, containers, NaN, a bool, a
 # negative number, a tensor of several values.
@@ -102,6 +102,35 @@ def test_the_calibration_and_scene_face_names_values_of_the_wrong_kind(tmp_path)
                          "refine", "refine_frames", "refine_relax", "smoothness"]),
         "VirtualRig.capture": (lambda **k: tp.VirtualRig(scene).capture(**{"state": "near", "patterns": {}, **k}),
                                ["state", "patterns", "seed"]),
+    }
+    failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names)]
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+
+
+def test_the_virtual_rig_face_names_values_of_the_wrong_kind():
+    from torchproj.experiments import evaluate_positioning
+
+    scene = small_scene(camera=(160, 120), projector=(64, 48))
+    cal = calibrate_once(scene)
+    tgts = tp.scene_targets(scene, rig=cal.rig)
+    model = tp.ProjectionModel.from_calibration(cal, tgts, start=None)
+    patterns, op = model.to_patterns(), model.operator
+    calls = {
+        "evaluate_patterns": (lambda **k: tp.evaluate_patterns(**{"calibration": cal, "patterns": patterns, "targets": tgts,
+                                                                  "scale": model.scale, "paper": False, **k}),
+                              ["calibration", "patterns", "targets", "scale", "states", "seed"]),
+        "from_calibration": (lambda **k: tp.ProjectionModel.from_calibration(**{"calibration": cal, "targets": tgts,
+                                                                               "start": None, **k}),
+                             # scale and a start tensor are read with the operator (0.4 s a call): build_transport's
+                             # and ProjectionModel's fuzz above has them.
+                             ["calibration", "targets", "bounds", "footprint", "colour_weights", "smoothness"]),
+        "shown_world": (lambda **k: tp.shown_world(**{"cal": cal, **k}), ["cal", "scene"]),
+        "rig_measure": (lambda **k: tp.rig_measure(**{"world": cal, "op": op, "targets": tgts, **k}),
+                        ["world", "op", "targets", "frames"]),
+        # Values it takes would place boxes for a minute: a scene of planes is refused after them, at once.
+        "evaluate_positioning": (lambda **k: evaluate_positioning(**{"scene": scene, **k}),
+                                 ["scene", "trials", "spread_mm", "spread_deg", "seed", "max_evaluations", "profile_mm",
+                                  "profile_steps", "max_iter", "solver"]),
     }
     failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names)]
     assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)

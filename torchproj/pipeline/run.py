@@ -34,7 +34,7 @@ from .targets import checked_images, scene_targets
 from .cache import (NOT_KEPT, cached_calibration, cached_transport, calibration_key, keep_geometry, keep_normal_matrices,
                     read_geometry, read_normal_matrices, scene_as_calibrated, smoothed_key, transport_key,
                     writing_behind)
-from .virtual import VirtualCalibration, calibrate_virtual, check_shown_light, true_responses
+from .virtual import VirtualCalibration, calibrate_virtual, check_shown_light, check_virtual_calibration, true_responses
 
 __all__ = ["CEILING_ITERATIONS", "ORACLES", "RunResult", "image_objective_report", "run_markdown", "run_virtual"]
 
@@ -84,8 +84,7 @@ class RunResult:
 def _check_calibration_of(calibration, scene: Scene) -> None:
     """A calibration given to a run must be of the run's scene as calibrated: one of another scene (another
     size, another rig) was solved and scored in its own world, and the report named the scene given."""
-    check(isinstance(calibration, VirtualCalibration),
-          f"calibration must be a VirtualCalibration (calibrate_virtual's), got {type(calibration).__name__}")
+    check_virtual_calibration(calibration)
     if scene_as_calibrated(calibration.rig.scene) != scene_as_calibrated(scene):
         theirs, ours = calibration.rig.scene, scene
         raise InputError(f"the calibration is of scene {theirs.name!r} (camera {theirs.camera.width}x"

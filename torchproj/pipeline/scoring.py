@@ -19,6 +19,7 @@ from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
 from ..transport.build import check_targets, kept_target_on_camera  # the targets' warps, kept by the model's build
+from .virtual import check_virtual_calibration
 
 __all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "affine_psnr", "evaluate_patterns", "ghost_images",
            "score_image"]
@@ -194,6 +195,7 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
             target. Which projector and how the image reaches its cells are our choices: the paper
             says only that it "projected the original image on the plane".
     """
+    check_virtual_calibration(calibration)
     states = calibration.states if states is None else states
     scene = calibration.rig.scene
     shown = as_light(patterns, len(scene.projectors), calibration.rig.device)

@@ -19,7 +19,7 @@ from ..scene.show import shown_scene
 from ..transport import Target, TransportOperator
 from ..transport.build import check_targets
 from .scoring import as_light
-from .virtual import VirtualCalibration, quiet_rig, true_responses
+from .virtual import VirtualCalibration, check_virtual_calibration, quiet_rig, true_responses
 
 __all__ = ["CapturedRows", "rig_measure", "shown_world"]
 
@@ -34,7 +34,7 @@ def shown_world(cal: VirtualCalibration, scene=None, prepare=None) -> VirtualCal
     ``prepare``: called with the new world's rig before it captures anything (a run gives it the
     rays an earlier run cast there, :func:`~torchproj.pipeline.cache.read_geometry`).
     """
-    _check_world(cal, "cal")
+    check_virtual_calibration(cal, "cal")
     scene = cal.rig.scene if scene is None else check_scene(scene)
     if scene.show is None:
         return cal
@@ -43,11 +43,6 @@ def shown_world(cal: VirtualCalibration, scene=None, prepare=None) -> VirtualCal
         prepare(rig)
     black = {state: rig.capture(state, {})[0].cpu() for state in cal.black}
     return dataclasses.replace(cal, rig=rig, black=black, responses=true_responses(rig.scene))
-
-
-def _check_world(world, name: str) -> None:
-    check(isinstance(world, VirtualCalibration), f"{name} must be a VirtualCalibration (calibrate_virtual's, or "
-                                                 f"shown_world's), got {type(world).__name__}")
 
 
 class CapturedRows:
@@ -106,7 +101,7 @@ def rig_measure(world: VirtualCalibration, op, targets: list[Target], frames: in
         ``measure(images) -> (N_rows, C)``: camera values above the state's black frame at each row's
         pixel; ``measure.captures`` counts the captures taken per state.
     """
-    _check_world(world, "world")
+    check_virtual_calibration(world, "world")
     frames = check_count(frames, "frames")
     read = CapturedRows(op, targets)
     black = world.black if noise else {state: world.rig.capture(state, {}, noise=False, quantise=False)[0].cpu()

@@ -121,6 +121,12 @@ class VirtualCalibration:
     white_clipped: dict | None = None
 
 
+def check_virtual_calibration(value, name: str = "calibration") -> None:
+    """``value`` a :class:`VirtualCalibration`: what the virtual rig's runs, scores and loops read."""
+    check(isinstance(value, VirtualCalibration), f"{name} must be a VirtualCalibration (calibrate_virtual's or "
+                                                 f"shown_world's), got {type(value).__name__}")
+
+
 DECODE_THRESHOLD = BLACK_THRESHOLD / 255  # calibrate_projector's shadow mask, in camera values: below it, not decoded
 # Camera pixels per axis at which white_levels samples each state: enough to find a surface's brightest part.
 LIGHT_CHECK_GRID = 64

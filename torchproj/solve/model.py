@@ -235,12 +235,13 @@ class ProjectionModel(nn.Module):
         from .compensate import resolve_smoothness
 
         check(colour_weights in COLOUR_WEIGHTS, f"colour_weights must be one of {list(COLOUR_WEIGHTS)}, got {colour_weights!r}")
+        check(not isinstance(start, str) or start == "l2", f"start must be 'l2', None or a tensor, got {start!r}")
+        check_bounds(bounds)  # before the operator is built, not after
         smoothness = resolve_smoothness("fista", smoothness)
         states, responses = calibration_parts(calibration)
         op = _one_operator(build_operators(states, targets, footprint=footprint, merge=False, colour_weights=colour_weights,
                                            scale=scale, device=device))
         if isinstance(start, str):
-            check(start == "l2", f"start must be 'l2', None or a tensor, got {start!r}")
             start = _least_squares(op, bounds, smoothness)
         return cls(op, bounds, responses, start)
 
