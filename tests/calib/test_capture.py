@@ -86,6 +86,37 @@ def test_corrupt_file(folder):
         read_graycode_folder(folder, (64, 48))
 
 
+@pytest.mark.parametrize("names", ["graycode.png", "{", "img_{x}.png"])
+def test_a_template_without_the_index_writes_nothing(tmp_path, names):
+    """write_graycode_folder(names="graycode.png") wrote every image of the sequence to one file, the last
+    one left: a folder no read could take back."""
+    with pytest.raises(CaptureError, match="not a file name template with one number field"):
+        write_graycode_folder(tmp_path / "cap", written(), names=names)
+    assert not (tmp_path / "cap").exists()
+
+
+def test_folders_captures_and_sizes_of_the_wrong_kind_are_named(folder, tmp_path):
+    """Path()'s TypeError, an AttributeError on .patterns and an unpacking error before."""
+    from torchproj.calib import calibrate_projector, scan_map
+    from torchproj.core import InputError
+
+    with pytest.raises(InputError, match="folder must be a capture folder's path, got int"):
+        read_graycode_folder(3, (64, 48))
+    with pytest.raises(InputError, match="folder must be a capture folder's path, got NoneType"):
+        write_graycode_folder(None, written())
+    with pytest.raises(InputError, match="capture must be a GraycodeCapture, got list"):
+        write_graycode_folder(tmp_path / "w", [written()])
+    with pytest.raises(InputError, match="bits must be 8 or 16, got tensor"):
+        write_graycode_folder(tmp_path / "w", written(), bits=torch.tensor([8, 16]))
+    with pytest.raises(InputError, match=r"projector_size must be \(width, height\), got 64"):
+        read_graycode_folder(folder, 64)
+    for call in (calibrate_projector, scan_map):
+        with pytest.raises(InputError, match="capture must be a GraycodeCapture .*, got str"):
+            call(str(folder), (64, 48))
+        with pytest.raises(InputError, match=r"projector_size must be \(width, height\), got None"):
+            call(read_graycode_folder(folder, (64, 48)), None)
+
+
 def test_missing_folder(tmp_path):
     with pytest.raises(CaptureError, match="capture folder not found"):
         read_graycode_folder(tmp_path / "nope", (64, 48))

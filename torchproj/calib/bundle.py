@@ -60,7 +60,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.checks import SIZE_LIMIT, check, check_count
+from ..core.checks import SIZE_LIMIT, check, check_count, check_path
 from ..core.conventions import MAX_MIXING_CONDITION, to_numpy
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
@@ -282,7 +282,7 @@ def calibrate_folders(root: str | os.PathLike, sizes: dict[str, tuple[int, int]]
     check(states is None or (isinstance(states, (list, tuple)) and all(isinstance(s, str) for s in states)),
           f"states must be a list of state folder names, got {states!r}")
     check_calibration_options(options)  # before minutes of decoding, and whatever sequence a folder holds
-    check(isinstance(root, (str, os.PathLike)), f"root must be the capture root's path, got {type(root).__name__}")
+    check_path(root, "root", "the capture root")
     root = Path(root)
     layout = _projector_folders(root, sizes, states, bits)
     first = next(iter(layout.values()))
@@ -430,7 +430,7 @@ def load_bundle(folder: str | os.PathLike) -> CalibrationBundle:
     Every file is checked as it is read: a :class:`CaptureError` names the file (and the field of
     ``bundle.json``) that is missing, truncated, edited out of shape or physically impossible.
     """
-    check(isinstance(folder, (str, os.PathLike)), f"folder must be a bundle folder's path, got {type(folder).__name__}")
+    check_path(folder, "folder", "a bundle folder")
     folder = Path(folder)
     if folder.name == "bundle.json" and folder.is_file():  # the bundle's own file given for its folder
         folder = folder.parent

@@ -18,9 +18,10 @@ from pathlib import Path
 
 import torch
 
+from ..core.checks import check, check_path
 from ..core.errors import CaptureError
 from ..core.imageio import read_image, write_image
-from .graycode import sequence_bits
+from .graycode import check_projector_size, sequence_bits
 
 __all__ = ["GraycodeCapture", "read_graycode_folder", "sequence_paths", "write_graycode_folder", "DEFAULT_NAMES",
            "RAMP_NAMES", "CHECKER_NAMES", "PRIMARY_NAMES"]
@@ -66,7 +67,7 @@ def sequence_paths(folder: str | os.PathLike, projector_size: tuple[int, int], n
     folder = Path(folder)
     if not folder.is_dir():
         raise CaptureError(f"{folder}: capture folder not found")
-    nx, ny = sequence_bits(*projector_size, bits)
+    nx, ny = sequence_bits(*check_projector_size(projector_size), bits)
     count = 2 * (nx + ny) + 2
     paths = [folder / name for name in _file_names(names, count)]
     missing = [p.name for p in paths if not p.is_file()]
@@ -100,6 +101,7 @@ def read_graycode_folder(folder: str | os.PathLike, projector_size: tuple[int, i
         CaptureError: naming the file and what to do, for a missing folder or image, an unreadable
             file, images of different sizes, or a white capture that shows no projector light.
     """
+    check_path(folder, "folder", "a capture folder")
     folder = Path(folder)  # a path given as text, as the signature allows
     paths = sequence_paths(folder, projector_size, names, bits)
     # PNG decoding releases the GIL: read on a few threads.
@@ -172,11 +174,14 @@ def _numbered_files(folder: Path, names: str) -> set[str]:
 def write_graycode_folder(folder: str | os.PathLike, capture: GraycodeCapture, bits: int = 8,
                           names: str = DEFAULT_NAMES) -> None:
     """Write a capture in the folder layout :func:`read_graycode_folder` reads."""
+    check_path(folder, "folder", "a capture folder")
+    check(isinstance(capture, GraycodeCapture), f"capture must be a GraycodeCapture, got {type(capture).__name__}")
+    images = list(capture.patterns) + [capture.white, capture.black]
+    files = _file_names(names, len(images))  # a template without the index wrote every image to one file
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    images = list(capture.patterns) + [capture.white, capture.black]
-    for i, img in enumerate(images):
-        write_image(folder / names.format(i), img, bits)
+    for file, img in zip(files, images):
+        write_image(folder / file, img, bits)
     for files, shots in ((RAMP_NAMES, capture.ramp), (CHECKER_NAMES, capture.checker),
                          (PRIMARY_NAMES, capture.primaries)):
         if shots is not None:

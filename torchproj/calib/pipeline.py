@@ -13,7 +13,7 @@ from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from .capture import GraycodeCapture
 from .graycode import (CREASE_RATIO, CURVE_RATIO, WIDE_SHARE, CellShares, GrayDecoding, _check_threshold, _refine_again, band_pixels, capture_noise, cell_shares, checker_shares,
-                       check_ratio, decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast,
+                       check_projector_size, check_ratio, decode_gray, graycode_bits, refine_subpixel, sequence_bits, stripe_contrast,
                        stripe_shares)
 from .homography import HomographyFit, check_plane, fit_homography, homography_map
 from .maps import depth_edges, fill_holes, inverse_map, map_slope
@@ -309,6 +309,9 @@ def _forward_map(capture: GraycodeCapture, projector_size: tuple[int, int], *, w
                  black_threshold: float, dim_threshold: float, subpixel: bool, max_hole: int,
                  bits: int | tuple[int, int] | None, plane_tolerance: float, crease_ratio: float,
                  curve_ratio: float = CURVE_RATIO) -> _ForwardMap:
+    check(isinstance(capture, GraycodeCapture), f"capture must be a GraycodeCapture (read_graycode_folder's), got "
+                                                f"{type(capture).__name__}")
+    projector_size = check_projector_size(projector_size)
     check_calibration_options(dict(white_threshold=white_threshold, black_threshold=black_threshold,
                                    dim_threshold=dim_threshold, max_hole=max_hole, plane_tolerance=plane_tolerance,
                                    crease_ratio=crease_ratio, curve_ratio=curve_ratio))

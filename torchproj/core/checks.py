@@ -89,6 +89,11 @@ def _power(limit: int) -> str:
     return f"2**{limit.bit_length() - 1}" if limit & (limit - 1) == 0 else str(limit)
 
 
+def check_path(value, name: str, what: str) -> None:
+    """``value`` a path (a str or an ``os.PathLike``): ``what`` says whose, for the message."""
+    check(isinstance(value, (str, os.PathLike)), f"{name} must be {what}'s path, got {type(value).__name__}")
+
+
 def is_number(value) -> bool:
     """Whether ``value`` is a real number (a bool is not, though Python counts True as 1); NaN and inf are."""
     return isinstance(value, numbers.Real) and not isinstance(value, bool)

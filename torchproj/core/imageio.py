@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import torch
 
-from .errors import CaptureError
+from .errors import CaptureError, InputError
 
 __all__ = ["read_image", "write_image", "to_uint"]
 
@@ -67,8 +67,8 @@ def to_uint(image: torch.Tensor, bits: int = 8) -> np.ndarray:
 
 def write_image(path: str | os.PathLike, image: torch.Tensor, bits: int = 8) -> None:
     """Write a float ``(C, H, W)`` image in [0, 1] as an 8- or 16-bit file (format from the suffix)."""
-    if bits not in (8, 16):
-        raise ValueError(f"bits must be 8 or 16, got {bits}")
+    if not (isinstance(bits, int) and not isinstance(bits, bool) and bits in (8, 16)):
+        raise InputError(f"bits must be 8 or 16, got {bits!r}")
     arr = to_uint(image, bits)
     if arr.ndim == 3:
         arr = arr[:, :, ::-1]
