@@ -60,7 +60,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.checks import SIZE_LIMIT, check, check_count, check_path
+from ..core.checks import SIZE_LIMIT, check, check_count, check_path, is_whole
 from ..core.conventions import MAX_MIXING_CONDITION, to_numpy
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
@@ -531,7 +531,7 @@ def _check_parts(arrays: dict, camera: tuple[int, int], size: tuple[int, int], p
 def _size(value, where: str) -> tuple[int, int]:
     """``[width, height]`` of a device, in whole pixels and within :data:`~torchproj.core.checks.SIZE_LIMIT`."""
     if (not isinstance(value, list) or len(value) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
+            or not all(is_whole(v) and v > 0 for v in value)
             or value[0] * value[1] > SIZE_LIMIT):
         raise CaptureError(f"{where} must be [width, height] in whole pixels (at most {SIZE_LIMIT:.0e} of them), got "
                            f"{value!r}; write or calibrate it again")

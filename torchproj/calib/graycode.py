@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 import operator
 import warnings
 from dataclasses import dataclass
@@ -42,7 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_number, check_shape, is_number
+from ..core.checks import check, check_number, check_shape, is_number, is_whole
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _recompute_near, depth_edges
 
@@ -93,9 +92,9 @@ def sequence_bits(width: int, height: int, bits: int | tuple[int, int] | None = 
     nx, ny = graycode_bits(width, height)
     if bits is None:
         return nx, ny
-    one = isinstance(bits, numbers.Integral) and not isinstance(bits, bool)
+    one = is_whole(bits)
     pair = (bits, bits) if one else tuple(bits) if isinstance(bits, (tuple, list)) else ()
-    check(len(pair) == 2 and all(isinstance(b, numbers.Integral) and not isinstance(b, bool) for b in pair),
+    check(len(pair) == 2 and all(is_whole(b) for b in pair),
           f"bits must be a whole number, or a pair (kx, ky) of them, one per axis, got {bits!r}")
     kx, ky = (int(b) for b in pair)
     check(kx >= min(2, nx) and ky >= min(2, ny),

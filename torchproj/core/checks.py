@@ -33,9 +33,15 @@ def check(condition: bool, message: str) -> None:
         raise InputError(message)
 
 
+def is_whole(value) -> bool:
+    """Whether ``value`` is a whole number of any integer type (numpy's too): not a bool, though Python
+    counts True as 1, and not a float such as 2.0."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def check_count(value, name: str, minimum: int = 1) -> int:
     """``value`` as an int: a whole number (not a bool, not a float such as 2.5) of at least ``minimum``."""
-    check(isinstance(value, numbers.Integral) and not isinstance(value, bool) and value >= minimum,
+    check(is_whole(value) and value >= minimum,
           f"{name} must be a whole number >= {minimum}, got {value!r}")
     return int(value)
 
@@ -43,7 +49,7 @@ def check_count(value, name: str, minimum: int = 1) -> int:
 def check_seed(value, name: str = "seed", limit: int = 2 ** 63, hint: str = "") -> int:
     """``value`` as an int: a whole number from 0 to ``limit - 1`` (torch's and numpy's generators take
     no negative seed, torch none of 2**63 or more). ``hint`` follows the range in the message."""
-    check(isinstance(value, numbers.Integral) and not isinstance(value, bool) and 0 <= value < limit,
+    check(is_whole(value) and 0 <= value < limit,
           f"{name} must be a whole number from 0 to {_power(limit)} - 1{hint}, got {value!r}")
     return int(value)
 

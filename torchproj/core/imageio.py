@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import torch
 
+from .checks import is_whole
 from .errors import CaptureError, InputError
 
 __all__ = ["read_image", "write_image", "to_uint"]
@@ -67,7 +68,7 @@ def to_uint(image: torch.Tensor, bits: int = 8) -> np.ndarray:
 
 def write_image(path: str | os.PathLike, image: torch.Tensor, bits: int = 8) -> None:
     """Write a float ``(C, H, W)`` image in [0, 1] as an 8- or 16-bit file (format from the suffix)."""
-    if not (isinstance(bits, int) and not isinstance(bits, bool) and bits in (8, 16)):
+    if not (is_whole(bits) and bits in (8, 16)):
         raise InputError(f"bits must be 8 or 16, got {bits!r}")
     arr = to_uint(image, bits)
     if arr.ndim == 3:

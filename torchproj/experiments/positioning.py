@@ -32,7 +32,7 @@ import torch
 from ..calib import scan_map
 from ..pipeline import simulate_calibration
 from ..calib.triangulate import ProCamCalibration, triangulate
-from ..core.checks import check, check_count, check_number, check_seed
+from ..core.checks import check, check_count, check_number, check_seed, is_whole
 from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import CaptureError, ConfigError, InputError
@@ -419,8 +419,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     profile_mm = check_number(profile_mm, "profile_mm (the feedback chart's range, mm)", strict=True)
     profile_steps = check_count(profile_steps, "profile_steps (the feedback chart's samples each side)")
     iteration_limit(max_iter)  # checked before calibrating, not at the solve
-    check(feedback_stride is None or (isinstance(feedback_stride, int) and not isinstance(feedback_stride, bool)
-                                      and feedback_stride >= 1),
+    check(feedback_stride is None or (is_whole(feedback_stride) and feedback_stride >= 1),
           f"feedback_stride must be a whole number of pixels, at least 1 (or None: chosen per target), got "
           f"{feedback_stride!r}")
     positions = _positions(scene)

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 
+from ..core.checks import is_whole
 from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..calib.bundle import SEQUENCE_FILE
@@ -128,7 +129,7 @@ def _check_settle(settle_s) -> None:
 
 
 def _check_frames(frames) -> None:
-    if not (isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
+    if not (is_whole(frames) and frames >= 1):
         raise InputError(f"frames must be a whole number of camera frames, at least 1, got {frames!r}")
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from ..calib import SATURATED_SHARE, sequence_bits
-from ..core.checks import check
+from ..core.checks import check, is_whole
 from ..core.errors import InputError
 from ..scene.config import Scene, check_scene
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
@@ -318,10 +318,10 @@ def _check_run(scene, solver, oracle, gain_offset, objective, bounds_8bit, maps,
     None), the bounds in linear light and the image objective (None for least squares). ``loop``:
     ``(refine, refine_frames, refine_relax)``."""
     refine, frames, relax = loop
-    check(isinstance(refine, int) and not isinstance(refine, bool) and 0 <= refine <= MAX_REFINE,
+    check(is_whole(refine) and 0 <= refine <= MAX_REFINE,
           f"refine must be a whole number of updates in 0..{MAX_REFINE}, got {refine!r}")
     check(not refine or gain_offset is None, "the loop refines the images as they are: drop --gain/--offset or --refine")
-    check(isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_REFINE,
+    check(is_whole(frames) and 1 <= frames <= MAX_REFINE,
           f"refine_frames must be a whole number of captures in 1..{MAX_REFINE}, got {frames!r}")
     check_relax(relax, "refine_relax")
     bounds = check_solve_options(solver, bounds_8bit, len(scene.projectors), outside, chains)

@@ -6,14 +6,13 @@ camera pixels of its surfaces (:class:`~torchproj.transport.Target`).
 
 from __future__ import annotations
 
-import numbers
 import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..core.checks import check, check_image
+from ..core.checks import check, check_image, is_whole
 from ..core.errors import InputError
 from ..core.imageio import read_image
 from ..scene.config import Scene, check_scene
@@ -37,7 +36,7 @@ def target_image(name: str, channels: int) -> torch.Tensor:
     """
     from skimage import data  # a lazy package: its loaders import on first use
 
-    check(isinstance(channels, numbers.Integral) and not isinstance(channels, bool) and channels in (1, 3),
+    check(is_whole(channels) and channels in (1, 3),
           f"channels must be 1 (grey) or 3 (RGB), the camera's, got {channels!r}")
     check(isinstance(name, (str, os.PathLike)), f"image name must be a scikit-image test image's name or a file path, "
                                                 f"got {type(name).__name__}")

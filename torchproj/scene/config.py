@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..core.checks import SIZE_LIMIT, is_number
+from ..core.checks import SIZE_LIMIT, is_number, is_whole
 from ..core.conventions import DEFAULT_COLOUR_MIXING, MAX_MIXING_CONDITION
 from ..core.errors import ConfigError, InputError
 from .fields import Fields, vector
@@ -290,7 +290,7 @@ def _resolution(f: Fields, key: str = "resolution") -> tuple[int, int]:
         except ValueError:
             pass
     if (not isinstance(value, list) or len(value) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)):
+            or not all(is_whole(v) and v > 0 for v in value)):
         raise ConfigError(f.where(key), f"must be [width, height] in whole pixels, got {f.data[key]!r}")
     return value[0], value[1]
 
