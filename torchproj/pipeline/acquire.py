@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core.checks import is_whole
+from ..core.checks import is_number, is_whole
 from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..calib.bundle import SEQUENCE_FILE
@@ -124,7 +124,7 @@ def _to_screen(image: torch.Tensor) -> np.ndarray:
 def _check_settle(settle_s) -> None:
     """Before any window opens: ``time.sleep`` refuses a negative or NaN wait with a traceback, and an
     infinite one never grabs."""
-    if not (isinstance(settle_s, (int, float)) and not isinstance(settle_s, bool) and 0 <= settle_s <= 60):
+    if not (is_number(settle_s) and 0 <= settle_s <= 60):
         raise InputError(f"settle must be seconds in [0, 60] (--settle), got {settle_s!r}")
 
 

@@ -652,7 +652,7 @@ def scale_config(data: dict, scale: float | None = None, *, camera: tuple[int, i
         scale: factor for every device's resolution (rounded to whole pixels, at least 8).
         camera, projector: ``(width, height)`` to give the camera or every projector instead.
     """
-    if scale is not None and not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and 0 < scale <= 4):
+    if scale is not None and not (is_number(scale) and 0 < scale <= 4):
         raise ConfigError("scale", f"must be a number in (0, 4], got {scale!r}")
     data = copy.deepcopy(data)
     projectors = data.get("projectors") if isinstance(data.get("projectors"), list) else []

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 import torch
 
 from ..calib.response import ResponseCurve
-from ..core.checks import check, check_count, check_shape
+from ..core.checks import check, check_count, check_shape, is_number
 from ..core.errors import InputError
 
 __all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
@@ -91,7 +91,7 @@ def resolve_smoothness(solver: str, smoothness: float | None) -> float:
     paper = solver in ("lf", "eo")
     if smoothness is None:
         return 0.0 if paper else DEFAULT_SMOOTHNESS
-    check(isinstance(smoothness, (int, float)) and not isinstance(smoothness, bool) and math.isfinite(smoothness)
+    check(is_number(smoothness) and math.isfinite(smoothness)
           and smoothness >= 0, f"smoothness must be a number >= 0 (0: none), got {smoothness!r}")
     check(smoothness == 0 or not paper,
           f"smoothness is for the least-squares solvers (fista, pgd, adam); {solver}, the paper's method, takes none: "

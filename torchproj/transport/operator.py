@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..core.checks import check, check_finite, check_shape
+from ..core.checks import check, check_finite, check_shape, is_number
 from ..core.sparse import csr_from_coo, csr_tensor, index_dtype, spmm
 
 __all__ = ["TransportOperator", "normal_form", "gram_matrix", "NormalEquations", "ProductNormalEquations", "csr_from_coo", "cell_blocks"]
@@ -551,7 +551,7 @@ class TransportOperator(nn.Module):
         Args:
             weight: ``lam`` over ``scale`` squared, >= 0; 0 returns this operator.
         """
-        check(isinstance(weight, (int, float)) and not isinstance(weight, bool) and math.isfinite(weight)
+        check(is_number(weight) and math.isfinite(weight)
               and weight >= 0, f"smoothness weight must be a number >= 0 (0: none), got {weight!r}")
         if weight == 0:
             return self
