@@ -111,9 +111,9 @@ def scene_images(scene: Scene) -> list[torch.Tensor]:
 
 def checked_images(scene: Scene, images: list[torch.Tensor] | None) -> list[torch.Tensor]:
     """``images`` (None: :func:`scene_images`) as a list of one checked library image per target."""
-    specs = scene.target_specs()
     if images is None:
         return scene_images(scene)
+    specs = scene.target_specs()
     try:
         images = list(images)
     except TypeError:

@@ -1317,7 +1317,9 @@ def build_transport(calibrations: dict[str, StateCalibration], targets: list[Tar
 def has_colour_weights(calibrations: dict[str, StateCalibration], targets: list[Target]) -> bool:
     """Whether :func:`build_channel_transports` applies: colour targets, and every target's state
     calibrated with a white minus black per channel of each projector."""
-    n_ch = 1 if isinstance(targets, (list, tuple)) and not targets else _target_channels(targets)  # others named there
+    if isinstance(targets, (list, tuple)) and not targets:
+        return False  # no target asks for colour; anything but a list is named by _target_channels
+    n_ch = _target_channels(targets)
     return n_ch > 1 and all(
         t.state in calibrations and calibrations[t.state].colour_weight is not None
         and all(c.shape[0] == n_ch for c in calibrations[t.state].colour_weight) for t in targets)
