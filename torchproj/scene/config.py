@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..core.checks import SIZE_LIMIT, is_number, is_whole
+from ..core.checks import SIZE_LIMIT, check, check_path, is_number, is_whole
 from ..core.conventions import DEFAULT_COLOUR_MIXING, MAX_MIXING_CONDITION
 from ..core.errors import ConfigError, InputError
 from .fields import Fields, vector
@@ -566,6 +566,7 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     ``size_limit``: the most camera rays per state (pixels x supersampling^2) and cells per projector
     accepted (:data:`SIZE_LIMIT`).
     """
+    check_path(base_dir, "base_dir", "the folder a config's relative file names are read from")
     base_dir = Path(base_dir)
     top = Fields(data, "")
     projectors_raw = top.raw("projectors")
@@ -654,6 +655,12 @@ def scale_config(data: dict, scale: float | None = None, *, camera: tuple[int, i
     """
     if scale is not None and not (is_number(scale) and 0 < scale <= 4):
         raise ConfigError("scale", f"must be a number in (0, 4], got {scale!r}")
+    check(isinstance(data, dict), f"data must be a scene's YAML data (a dict, as yaml.safe_load reads a config), "
+                                  f"got {type(data).__name__}")
+    for name, size in (("camera", camera), ("projector", projector)):
+        check(size is None or (isinstance(size, (tuple, list)) and len(size) == 2
+                               and all(is_whole(v) and v > 0 for v in size)),
+              f"{name} must be (width, height) in whole pixels, got {size!r}")
     data = copy.deepcopy(data)
     projectors = data.get("projectors") if isinstance(data.get("projectors"), list) else []
     devices = [("camera", data.get("camera"), camera)] + [(f"projectors[{i}]", p, projector)

@@ -81,6 +81,7 @@ def suite_names(seed: int = 0, count: int = 20, size: str = "small", start: int 
     """The names of ``count`` suite scenes of ``seed`` from index ``start``."""
     _check_seed(seed, "seed")
     _check_seed(count, "count")
+    _check_seed(start, "start")
     _check_size(size)
     return [_name(seed, i, size) for i in range(start, start + count)]
 

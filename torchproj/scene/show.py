@@ -149,7 +149,9 @@ def shown_scene(scene):
 
     A scene without ``show`` is returned as it is (the world it was calibrated in).
     """
-    changes: ShowChanges | None = scene.show
+    from .config import check_scene  # config reads a scene's show section with this module
+
+    changes: ShowChanges | None = check_scene(scene).show
     if changes is None:
         return scene
     projectors = []
