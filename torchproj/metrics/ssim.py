@@ -96,6 +96,7 @@ def ssim_map(estimate: torch.Tensor, reference: torch.Tensor, data_range: float 
     Returns:
         :math:`(*, H, W)`.
     """
+    _check_float_pair(estimate, reference)
     check(estimate.shape == reference.shape, f"estimate and reference differ in shape: {tuple(estimate.shape)} vs "
                                              f"{tuple(reference.shape)}")
     check(estimate.dim() >= 2 and min(estimate.shape[-2:]) >= WINDOW,
