@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import functools
 import math
-import operator
 import warnings
 from dataclasses import dataclass
 
@@ -41,33 +40,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_number, check_shape, is_number, is_whole
+from ..core.checks import check, check_count, check_number, check_shape, is_number, is_whole
 from ..core.choices import BLACK_THRESHOLD
-from .maps import _recompute_near, depth_edges
+from .maps import _check_projector_size, _recompute_near, check_projector_size, depth_edges
 
 __all__ = ["CREASE_RATIO", "CURVE_RATIO", "STRIPE_MARGIN", "STRIPE_TOLERANCE", "WIDE_SHARE", "CellShares", "GrayDecoding", "band_pixels", "capture_noise", "cell_means", "cell_shares", "checker_patterns",
            "checker_shares", "graycode_patterns", "graycode_bits", "sequence_bits", "decode_gray", "refine_subpixel",
            "stripe_contrast", "stripe_shares"]
 
 _EPS = 1e-3  # half a quantisation step is 0.5: this only guards float round-off of integer data
-
-
-def _check_projector_size(width, height) -> None:
-    """A projector's ``width`` and ``height``: whole numbers of cells, at least one each."""
-    for name, value in (("width", width), ("height", height)):
-        try:
-            whole = operator.index(value)
-        except TypeError:
-            whole = None
-        check(whole is not None and whole >= 1 and not isinstance(value, bool),
-              f"projector {name} must be a whole number of cells, at least 1, got {value!r}")
-
-
-def check_projector_size(size, name: str = "projector_size") -> tuple[int, int]:
-    """A projector's ``(width, height)`` in whole cells."""
-    check(isinstance(size, (tuple, list)) and len(size) == 2, f"{name} must be (width, height), got {size!r}")
-    _check_projector_size(*size)
-    return operator.index(size[0]), operator.index(size[1])
 
 
 def graycode_bits(width: int, height: int) -> tuple[int, int]:
@@ -268,6 +249,18 @@ def _check_cells(cells: torch.Tensor, camera) -> None:
     check(not cells.is_floating_point(), f"cells must be integer cell indices, got {cells.dtype}")
 
 
+def _check_captures(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor) -> None:
+    """Captures as every reader of them takes them: float tensors (their sizes each reader checks
+    against what it needs)."""
+    for name, image in (("patterns", patterns), ("white", white), ("black", black)):
+        check(isinstance(image, torch.Tensor) and image.is_floating_point(),
+              f"{name} must be float captures in [0, 1] (8-bit images over 255), got "
+              f"{image.dtype if isinstance(image, torch.Tensor) else type(image).__name__}")
+    check(white.dim() in (2, 3) and white.shape == black.shape,
+          f"white and black must be (H, W) or (C, H, W) captures of one size, got {tuple(white.shape)} and "
+          f"{tuple(black.shape)}")
+
+
 def check_full_sequence(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_xy: torch.Tensor,
                         projector_size: tuple[int, int], who: str, why: str = "") -> tuple[int, int, torch.Tensor]:
     """What the estimators that read the captures beyond the decoder check first (:func:`~torchproj.calib.measure_blur`,
@@ -277,7 +270,8 @@ def check_full_sequence(patterns: torch.Tensor, white: torch.Tensor, black: torc
     Returns:
         the column and row bits ``(nx, ny)`` and the grey white minus black :math:`(H, W)` float.
     """
-    width, height = projector_size
+    _check_captures(patterns, white, black)
+    width, height = check_projector_size(projector_size)
     nx, ny = graycode_bits(width, height)
     stack = patterns.dim() in (3, 4)
     check(stack and patterns.shape[0] == 2 * (nx + ny),
@@ -376,10 +370,7 @@ def decode_gray(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
         a :class:`GrayDecoding`; with a shortened sequence, ``prj_xy`` holds the centre of the cells
         of the decoded block that lie inside the projector image.
     """
-    for name, image in (("patterns", patterns), ("white", white), ("black", black)):
-        check(isinstance(image, torch.Tensor) and image.is_floating_point(),
-              f"{name} must be float captures in [0, 1] (8-bit images over 255), got "
-              f"{image.dtype if isinstance(image, torch.Tensor) else type(image).__name__}")
+    _check_captures(patterns, white, black)
     width, height = check_projector_size(projector_size)
     nx, ny = graycode_bits(width, height)
     kx, ky = sequence_bits(width, height, bits)
@@ -556,6 +547,8 @@ def cell_shares(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor
         cells: optional :math:`(H, W, 2)` integer cells ``(x, y)`` to measure each pixel's shares
             about, -1 where none; None: each fully decoded pixel's decoded cell.
     """
+    check(isinstance(decoding, GrayDecoding), f"decoding must be decode_gray's GrayDecoding of these captures, got "
+                                              f"{type(decoding).__name__}")
     check(decoding.block == (1, 1), "cell shares need the full Gray-code sequence (decoding.block is "
                                     f"{decoding.block}): a shortened one shows no stripe at the cells' edges")
     nx, ny, contrast = check_full_sequence(patterns, white, black, decoding.prj_xy, projector_size, "cell_shares")
@@ -590,6 +583,8 @@ def band_pixels(prj_xy: torch.Tensor, reach: int = 2, depth: torch.Tensor | None
     know: where a pixel may see two surfaces, or one surface and nothing, and its light falls where
     no parallelogram about its own coordinate puts it. ``depth``: :math:`(H, W)`
     ``depth_edges(prj_xy)`` where the caller has it; None: computed here."""
+    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    check_count(reach, "reach (pixels)", 0)
     known = torch.isfinite(prj_xy).all(-1)
     depth = depth_edges(prj_xy) if depth is None else depth
     check_shape(depth, "depth", list(known.shape))
@@ -681,6 +676,8 @@ def capture_noise(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tens
         the median share, or NaN where no pixel is lit. A colour camera's channels are read as their
         mean, as the decoder reads them: each channel alone carries more noise than their mean.
     """
+    _check_captures(patterns, white, black)
+    check_count(pixels, "pixels (read evenly over the camera)")
     check(patterns.dim() in (3, 4) and patterns.shape[0] % 2 == 0 and patterns.shape[0] >= 4,
           f"patterns must be two or more pattern/inverse pairs (2K, [C,] H, W), got {tuple(patterns.shape)}")
     contrast = _contrast(white, black).reshape(-1)
@@ -1109,11 +1106,16 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     Returns:
         :math:`(H, W, 2)` refined coordinates, NaN where invalid.
     """
-    check(window % 2 == 1 and window >= 3, f"window must be an odd number >= 3, got {window}")
+    check(is_whole(window) and window % 2 == 1 and window >= 3, f"window must be an odd whole number >= 3, got {window!r}")
+    check(is_number(min_fill) and 0 <= min_fill <= 1, f"min_fill must be a share of the window from 0 to 1, got {min_fill!r}")
+    # inf: any fit is taken, however far it lands from the pixel's own value.
+    check(is_number(max_shift) and max_shift > 0, f"max_shift must be a number of projector pixels > 0, got {max_shift!r}")
     check_ratio(crease_ratio, "crease_ratio", "1: the best-fitting window")
     check_ratio(curve_ratio, "curve_ratio", "1: the better-fitting of plane and quadratic")
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
     check_shape(valid, "valid", list(prj_xy.shape[:2]))
+    if spread is not None:
+        check_shape(spread, "spread", [*prj_xy.shape[:2], 2])
     height, width = valid.shape
     planes, misfit, count = _window_planes(torch.nan_to_num(prj_xy), valid, window)
     enough = count >= min_fill * window * window

@@ -24,8 +24,9 @@ import torch
 from kornia.geometry.homography import find_homography_dlt_iterated
 from kornia.geometry.linalg import transform_points
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_count, check_number, check_shape, is_whole
 from ..core.conventions import pixel_grid
+from .maps import check_projector_size
 
 __all__ = ["HomographyFit", "check_plane", "fit_homography", "homography_map"]
 
@@ -88,9 +89,12 @@ def fit_homography(prj_xy: torch.Tensor, *, block: tuple[int, int] = (1, 1), max
         a :class:`HomographyFit`.
     """
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
-    check(max_points >= 4, f"max_points must be >= 4, got {max_points}")
+    check_count(max_points, "max_points", 4)
+    check_count(iterations, "iterations", 1)
+    check_number(soft_threshold, "soft_threshold (pixels)", 0, strict=True)
+    check(isinstance(block, (tuple, list)) and len(block) == 2 and all(is_whole(b) and b >= 1 for b in block),
+          f"block must be (cells along x, cells along y), whole numbers >= 1, got {block!r}")
     bx, by = (int(b) for b in block)
-    check(bx >= 1 and by >= 1, f"block must be at least one cell per axis, got {block}")
     ok = torch.isfinite(prj_xy).all(-1)
     n = int(ok.sum())
     check(n >= 4, f"a homography needs at least 4 decoded pixels, this map has {n}")
@@ -253,7 +257,7 @@ def homography_map(matrix: torch.Tensor, mask: torch.Tensor, projector_size: tup
     """
     check_shape(mask, "mask", ["H", "W"])
     check_shape(matrix, "matrix", [3, 3])
-    width, height = projector_size
+    width, height = check_projector_size(projector_size)
     out = torch.full((*mask.shape, 2), float("nan"), dtype=torch.float32, device=mask.device)
     cam = pixel_grid(*mask.shape, device=mask.device, dtype=torch.float64)[mask]
     xy = transform_points(matrix.to(mask.device, torch.float64)[None], cam[None])[0]

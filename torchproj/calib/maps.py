@@ -7,13 +7,33 @@ coordinates per projector cell; NaN marks "no correspondence" in both.
 
 from __future__ import annotations
 
+import operator
+
 import numpy as np
 import torch
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_count, check_shape
 from ..core.conventions import pixel_grid, round_to_pixel
 
 __all__ = ["EDGE_EXCESS", "EDGE_JUMP", "EDGE_STEP", "inverse_map", "fill_holes", "map_slope", "depth_edges", "pixel_square"]
+
+
+def _check_projector_size(width, height) -> None:
+    """A projector's ``width`` and ``height``: whole numbers of cells, at least one each."""
+    for name, value in (("width", width), ("height", height)):
+        try:
+            whole = operator.index(value)
+        except TypeError:
+            whole = None
+        check(whole is not None and whole >= 1 and not isinstance(value, bool),
+              f"projector {name} must be a whole number of cells, at least 1, got {value!r}")
+
+
+def check_projector_size(size, name: str = "projector_size") -> tuple[int, int]:
+    """A projector's ``(width, height)`` in whole cells."""
+    check(isinstance(size, (tuple, list)) and len(size) == 2, f"{name} must be (width, height), got {size!r}")
+    _check_projector_size(*size)
+    return operator.index(size[0]), operator.index(size[1])
 
 
 def inverse_map(prj_xy: torch.Tensor, projector_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -28,7 +48,7 @@ def inverse_map(prj_xy: torch.Tensor, projector_size: tuple[int, int]) -> tuple[
         cell) and ``count`` :math:`(H_p, W_p)` how many camera pixels did.
     """
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
-    width, height = projector_size
+    width, height = check_projector_size(projector_size)
     h, w = prj_xy.shape[:2]
     ok = torch.isfinite(prj_xy).all(-1)
     cell = round_to_pixel(prj_xy[ok])
@@ -60,7 +80,7 @@ def fill_holes(values: torch.Tensor, max_area: int = 16) -> torch.Tensor:
         :math:`(H, W, D)` map with the small holes filled.
     """
     check_shape(values, "values", ["H", "W", "D"])
-    check(max_area >= 0, f"max_area must be >= 0, got {max_area}")
+    check_count(max_area, "max_area (the largest hole filled, entries)", 0)
     from scipy import ndimage  # imported here: a run from the cache fills no holes and need not import it
 
     missing = ~torch.isfinite(values).all(-1)

@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..core.checks import check, check_finite, check_shape
+from ..core.checks import check, check_count, check_finite, check_number, check_shape
 from ..core.errors import InputError
 from ..core.conventions import to_numpy
+from .maps import _check_projector_size
 
 __all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
 
@@ -35,7 +36,9 @@ def ramp_pattern(width: int, height: int, steps: int = RAMP_STEPS, mirrored: boo
     Returns:
         :math:`(1, 1, H, W)` pattern. The ramp and its mirror add up to exactly 1 everywhere.
     """
-    check(2 <= steps <= width, f"steps must be between 2 and the width {width}, got {steps}")
+    _check_projector_size(width, height)
+    check_count(steps, "steps (the ramp's bars)", 2)
+    check(steps <= width, f"steps must be between 2 and the width {width}, got {steps}")
     level = torch.div(torch.arange(width) * steps, width, rounding_mode="floor").float() / (steps - 1)
     if mirrored:
         level = 1 - level
@@ -125,6 +128,7 @@ class ResponseCurve:
 def primary_patterns(width: int, height: int) -> torch.Tensor:
     """Full-field red, green and blue, :math:`(3, 3, H, W)`: what a colour camera's channels see of
     each primary alone gives the projector's colour mixing (:func:`fit_colour_mixing`)."""
+    _check_projector_size(width, height)
     return torch.eye(3)[:, :, None, None].expand(3, 3, height, width).clone()
 
 
@@ -155,6 +159,10 @@ def fit_colour_mixing(primaries: torch.Tensor, white: torch.Tensor, black: torch
     """
     check_shape(primaries, "primaries", [3, 3, "H", "W"])
     check_shape(white, "white", [3, primaries.shape[2], primaries.shape[3]])
+    check_shape(black, "black", list(white.shape))
+    if lit is not None:
+        check_shape(lit, "lit", list(white.shape[1:]))
+        check(lit.dtype == torch.bool, f"lit must be a bool tensor, got {lit.dtype}")
     span = (white - black).float()
     ok = (span >= _MIXING_CONTRAST).all(0)
     if lit is not None:
@@ -195,6 +203,10 @@ def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, p
     check_shape(white, "white", [sizes["C"], sizes["H"], sizes["W"]])
     check_shape(black, "black", [sizes["C"], sizes["H"], sizes["W"]])
     check_shape(prj_x, "prj_x", [sizes["H"], sizes["W"]])
+    _check_projector_size(projector_width, 1)
+    check_count(steps, "steps (the ramp's bars)", 2)
+    check_number(margin, "margin (projector pixels)")
+    check_number(min_contrast, "min_contrast (white - black, in [0, 1])")
     bar = projector_width / steps
     # A margin of 1.5 cells either side of a 3-cell bar left no pixel of any bar: a 96-column
     # projector failed calibration for want of a ramp, however well lit.
