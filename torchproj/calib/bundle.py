@@ -87,6 +87,8 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
         bits: show only the first pattern pairs per axis (:func:`~torchproj.calib.sequence_bits`),
             for planar scenes; None: the full sequence.
     """
+    check_path(folder, "folder", "the sequence folder")
+    nx, ny = sequence_bits(width, height, bits)  # the sizes' and bits' kinds, before anything is written
     folder = Path(folder)
     if not (2 <= width and 2 <= height):
         raise InputError(f"projector {width}x{height}: a Gray code needs at least 2 x 2 cells; check the projector's "
@@ -97,7 +99,6 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
                          f"resolution, or give at most {width} ramp steps")
     folder.mkdir(parents=True, exist_ok=True)
     gray = graycode_patterns(width, height, bits)
-    nx, ny = sequence_bits(width, height, bits)
     entries = []
     for i, img in enumerate(gray):
         if i < 2 * (nx + ny):

@@ -19,7 +19,7 @@ import torch
 from kornia.geometry.calibration import undistort_points
 from kornia.geometry.epipolar import triangulate_points
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_count, check_number, check_path, check_seed, check_shape
 from ..core.errors import CaptureError
 
 __all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "triangulate_map", "fit_plane", "largest_plane",
@@ -157,8 +157,11 @@ def largest_plane(points: torch.Tensor, threshold: float, trials: int = 500, see
         noise (a dent deeper than it is then off the plane).
     """
     check_shape(points, "points", ["N", 3])
-    check(points.shape[0] >= 3 and threshold > 0, f"need 3 points or more and a positive threshold, got "
-                                                  f"{points.shape[0]} and {threshold}")
+    check(points.shape[0] >= 3, f"a plane needs 3 points or more, got {points.shape[0]}")
+    check_number(threshold, "threshold (the points' units)", 0, strict=True)
+    check_count(trials, "trials")
+    check_seed(seed)
+    check_count(sample, "sample (points the trials are scored on)", 3)
     g = torch.Generator().manual_seed(seed)
     scored = points[torch.randperm(points.shape[0], generator=g)[:sample]]
     three = points[torch.randint(points.shape[0], (trials, 3), generator=g)]
@@ -177,9 +180,24 @@ def largest_plane(points: torch.Tensor, threshold: float, trials: int = 500, see
     return centroid, normal, residuals, residuals.abs() < threshold
 
 
+def _array(values, dtype, name: str, rows: int | None = None) -> np.ndarray:
+    """``values`` as an :math:`(N, 3)` array of ``dtype`` (``rows`` of them where given)."""
+    try:
+        array = np.asarray(values, dtype=dtype)
+    except (TypeError, ValueError, OverflowError):
+        array = None
+    check(array is not None and array.ndim == 2 and array.shape[1] == 3 and rows in (None, len(array)),
+          f"{name} must be ({'N' if rows is None else rows}, 3) numbers, got "
+          f"{type(values).__name__}{'' if array is None else f' of shape {array.shape}'}")
+    return array
+
+
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
     """Write an ASCII-header binary PLY point cloud (``points`` (N, 3); ``colors`` (N, 3) uint8)."""
-    points = np.asarray(points, dtype=np.float32)
+    # An int is a file descriptor to open(): write_ply(True, ...) wrote the cloud to standard output.
+    check_path(path, "path", "the point cloud")
+    check(not os.path.isdir(path), f"path {str(path)!r} is a folder: give the point cloud's file name (cloud.ply)")
+    points = _array(points, np.float32, "points")
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}",
               "property float x", "property float y", "property float z"]
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -190,7 +208,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     data = np.empty(len(points), dtype=fields)
     data["x"], data["y"], data["z"] = points.T
     if colors is not None:
-        colors = np.asarray(colors, dtype=np.uint8)
+        colors = _array(colors, np.uint8, "colors", len(points))
         data["r"], data["g"], data["b"] = colors.T
     with open(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode())
