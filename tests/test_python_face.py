@@ -134,3 +134,91 @@ def test_the_virtual_rig_face_names_values_of_the_wrong_kind():
     }
     failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names)]
     assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+
+
+def test_the_scene_and_bench_helpers_name_values_of_the_wrong_kind(tmp_path, monkeypatch):
+    """The functions of the subpackages a bench script or a scene generator calls, below the top-level face."""
+    import numpy as np
+    import yaml
+
+    from torchproj import calib, metrics, scene as sc
+
+    monkeypatch.chdir(tmp_path)  # a value such as "x" is a path too: what it writes lands here
+    size = (16, 8)
+    shown = tp.graycode_patterns(*size)
+    # A camera of two pixels per cell: every bit readable.
+    images = shown.repeat_interleave(2, -1).repeat_interleave(2, -2)
+    capture = dict(patterns=images[:-2], white=images[-2], black=images[-1])
+    decoding = tp.decode_gray(**capture, projector_size=size)
+    prj_xy = decoding.prj_xy.float()
+    points = torch.randn(200, 3) * torch.tensor([1.0, 1.0, 0.01]) + torch.tensor([0.0, 0.0, 1.0])
+    config = yaml.safe_load(sc.builtin_config().read_text())
+    image = torch.rand(1, 1, 20, 20)
+    calls = {
+        "look_at": (lambda **k: sc.look_at(**{"position": (0, 0, -1), "target": (0, 0, 1), **k}), ["position", "target", "up"]),
+        "rotation_from_rotvec": (lambda **k: sc.rotation_from_rotvec(**{"rotvec": (0, 0.1, 0), **k}), ["rotvec"]),
+        "rotation_from_euler_deg": (lambda **k: sc.rotation_from_euler_deg(**{"angles": (0, 1, 2), **k}), ["angles"]),
+        "scale_config": (lambda **k: sc.scale_config(**{"data": config, "scale": 0.5, **k}), ["data", "scale", "camera", "projector"]),
+        "parse_scene": (lambda **k: sc.parse_scene(**{"data": sc.procedural_config(1, 0), **k}), ["data", "base_dir", "size_limit"]),
+        "shown_scene": (lambda **k: sc.shown_scene(**k), ["scene"]),
+        "suite_names": (lambda **k: sc.suite_names(**{"count": 2, **k}), ["seed", "count", "size", "start"]),
+        "ssim_map": (lambda **k: metrics.ssim_map(**{"estimate": image, "reference": image, **k}), ["estimate", "reference", "data_range"]),
+        "write_sequence": (lambda **k: calib.write_sequence(**{"folder": tmp_path / "seq", "width": 16, "height": 8, "ramp_steps": 4, **k}),
+                           ["folder", "width", "height", "ramp_steps", "bits"]),
+        "primary_patterns": (lambda **k: calib.primary_patterns(**{"width": 16, "height": 8, **k}), ["width", "height"]),
+        "ramp_pattern": (lambda **k: calib.ramp_pattern(**{"width": 16, "height": 8, "steps": 4, **k}), ["width", "height", "steps"]),
+        "fit_homography": (lambda **k: calib.fit_homography(**{"prj_xy": prj_xy, **k}),
+                           ["prj_xy", "block", "max_points", "soft_threshold", "iterations"]),
+        "homography_map": (lambda **k: calib.homography_map(**{"matrix": torch.eye(3), "mask": decoding.valid, "projector_size": size, **k}),
+                           ["matrix", "mask", "projector_size"]),
+        "inverse_map": (lambda **k: calib.inverse_map(**{"prj_xy": prj_xy, "projector_size": size, **k}), ["prj_xy", "projector_size"]),
+        "fill_holes": (lambda **k: calib.fill_holes(**{"values": prj_xy, **k}), ["values", "max_area"]),
+        "refine_subpixel": (lambda **k: calib.refine_subpixel(**{"prj_xy": prj_xy, "valid": decoding.valid, **k}),
+                            ["prj_xy", "valid", "window", "min_fill", "max_shift", "spread"]),
+        "band_pixels": (lambda **k: calib.band_pixels(**{"prj_xy": prj_xy, **k}), ["prj_xy", "reach"]),
+        "cell_shares": (lambda **k: calib.cell_shares(**{**capture, "decoding": decoding, "projector_size": size, **k}),
+                        ["patterns", "white", "black", "decoding", "projector_size"]),
+        "capture_noise": (lambda **k: calib.capture_noise(**{**capture, **k}), ["patterns", "white", "black", "pixels"]),
+        "measure_ramp": (lambda **k: calib.measure_ramp(**{"ramp": capture["white"], "white": capture["white"], "black": capture["black"],
+                                                           "prj_x": prj_xy[..., 0], "projector_width": 16, "steps": 4, **k}),
+                         ["ramp", "prj_x", "projector_width", "steps", "margin", "min_contrast"]),
+        "fit_colour_mixing": (lambda **k: calib.fit_colour_mixing(**{"primaries": torch.rand(3, 3, 16, 32), "white": torch.rand(3, 16, 32) + 0.5,
+                                                                     "black": torch.zeros(3, 16, 32), **k}), ["primaries", "white", "black", "lit"]),
+        "largest_plane": (lambda **k: calib.largest_plane(**{"points": points, "threshold": 0.05, "trials": 20, **k}),
+                          ["points", "threshold", "trials", "seed", "sample"]),
+        "write_ply": (lambda **k: calib.write_ply(**{"path": tmp_path / "cloud.ply", "points": points.numpy(), **k}),
+                      ["path", "points", "colors"]),
+    }
+    wrong = WRONG + [1.5, float("inf"), 0, (), np.float32(0.5)]
+    failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names, wrong)]
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+
+
+def test_what_the_helpers_took_without_a_word(tmp_path, capfd):
+    from torchproj import calib, scene as sc
+
+    # Names past the suite's first scene read back; suite-1--1 read as nothing.
+    with pytest.raises(TorchprojError, match="start"):
+        sc.suite_names(1, 2, start=-1)
+    assert sc.suite_names(1, 2, start=3) == ["suite-1-3", "suite-1-4"]
+    # A pose of NaN, or looking at itself, was a rotation of NaN.
+    for call in (lambda: sc.look_at((0, 0, 1), (0, 0, 1)), lambda: sc.look_at((0, 0, float("nan")), (0, 1, 0)),
+                 lambda: sc.rotation_from_euler_deg((float("nan"), 0, 0)), lambda: sc.rotation_from_rotvec((1, 0, 0, 0))):
+        with pytest.raises(TorchprojError):
+            call()
+    # A camera of 1.5 pixels reached the config, to be refused there under another name.
+    with pytest.raises(TorchprojError, match="camera"):
+        sc.scale_config({"camera": {"resolution": [64, 48], "focal": 50.0}}, camera=(1.5, 5))
+    # An int path is a file descriptor to open(): True wrote the cloud to standard output.
+    with pytest.raises(TorchprojError, match="path"):
+        calib.write_ply(True, torch.zeros(4, 3).numpy())
+    assert capfd.readouterr().out == ""
+    # Bits of the wrong kind were refused after the sequence's folder was made.
+    with pytest.raises(TorchprojError, match="bits"):
+        calib.write_sequence(tmp_path / "seq", 16, 8, ramp_steps=4, bits=1.5)
+    assert not (tmp_path / "seq").exists()
+    # A refinement window of 1.5 pixels, and a fill of a window over 1, were taken.
+    prj_xy, valid = torch.zeros(12, 12, 2), torch.ones(12, 12, dtype=torch.bool)
+    for options in ({"window": 7.0 + 0.5}, {"min_fill": 1.5}, {"max_shift": 0}):
+        with pytest.raises(TorchprojError, match=next(iter(options))):
+            calib.refine_subpixel(prj_xy, valid, **options)
