@@ -19,7 +19,7 @@ import torch
 from kornia.geometry.calibration import undistort_points
 from kornia.geometry.epipolar import triangulate_points
 
-from ..core.checks import check, check_count, check_number, check_path, check_seed, check_shape
+from ..core.checks import check, check_array, check_count, check_number, check_path, check_seed, check_shape
 from ..core.errors import CaptureError
 
 __all__ = ["ProCamCalibration", "read_opencv_calibration", "triangulate", "triangulate_map", "fit_plane", "largest_plane",
@@ -180,24 +180,12 @@ def largest_plane(points: torch.Tensor, threshold: float, trials: int = 500, see
     return centroid, normal, residuals, residuals.abs() < threshold
 
 
-def _array(values, dtype, name: str, rows: int | None = None) -> np.ndarray:
-    """``values`` as an :math:`(N, 3)` array of ``dtype`` (``rows`` of them where given)."""
-    try:
-        array = np.asarray(values, dtype=dtype)
-    except (TypeError, ValueError, OverflowError):
-        array = None
-    check(array is not None and array.ndim == 2 and array.shape[1] == 3 and rows in (None, len(array)),
-          f"{name} must be ({'N' if rows is None else rows}, 3) numbers, got "
-          f"{type(values).__name__}{'' if array is None else f' of shape {array.shape}'}")
-    return array
-
-
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
     """Write an ASCII-header binary PLY point cloud (``points`` (N, 3); ``colors`` (N, 3) uint8)."""
     # An int is a file descriptor to open(): write_ply(True, ...) wrote the cloud to standard output.
     check_path(path, "path", "the point cloud")
     check(not os.path.isdir(path), f"path {str(path)!r} is a folder: give the point cloud's file name (cloud.ply)")
-    points = _array(points, np.float32, "points")
+    points = check_array(points, "points", (None, 3), np.float32)
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}",
               "property float x", "property float y", "property float z"]
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -208,7 +196,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     data = np.empty(len(points), dtype=fields)
     data["x"], data["y"], data["z"] = points.T
     if colors is not None:
-        colors = _array(colors, np.uint8, "colors", len(points))
+        colors = check_array(colors, "colors", (len(points), 3), np.uint8)
         data["r"], data["g"], data["b"] = colors.T
     with open(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode())

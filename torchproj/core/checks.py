@@ -13,6 +13,7 @@ import os
 import warnings
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from .errors import InputError
@@ -23,7 +24,7 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
+__all__ = ["SIZE_LIMIT", "check_array", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
            "check_number", "check_seed", "env_number", "env_switch"]
 
 
@@ -93,6 +94,22 @@ def _warn_setting(name: str, raw: str, taken: str) -> None:
 def _power(limit: int) -> str:
     """``2**k`` where ``limit`` is a power of two, else the number."""
     return f"2**{limit.bit_length() - 1}" if limit & (limit - 1) == 0 else str(limit)
+
+
+def check_array(values, name: str, shape: Sequence[int | None], dtype=np.float64, finite: bool = False) -> np.ndarray:
+    """``values`` (an array, a tensor on the CPU, nested lists) as a numpy array of ``dtype`` and ``shape``
+    (None: any size along that axis), its values finite where ``finite``: what the functions that
+    compute in numpy (poses, point clouds) take."""
+    try:
+        array = np.asarray(values, dtype=dtype)
+    except (TypeError, ValueError, OverflowError, RuntimeError):
+        array = None
+    fits = array is not None and array.ndim == len(shape) and all(n in (None, s) for n, s in zip(shape, array.shape))
+    wanted = "(" + ", ".join("N" if n is None else str(n) for n in shape) + (",)" if len(shape) == 1 else ")")
+    check(fits, f"{name} must be {wanted} numbers, got {type(values).__name__}"
+                + ("" if array is None else f" of shape {tuple(array.shape)}"))
+    check(not finite or bool(np.isfinite(array).all()), f"{name} must be finite, got {values!r}")
+    return array
 
 
 def check_path(value, name: str, what: str) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.checks import check
+from ..core.checks import check, check_array
 from ..core.errors import ConfigError
 from .fields import Fields
 
@@ -18,21 +18,9 @@ __all__ = ["parse_pose", "look_at", "rotation_from_rotvec", "rotation_from_euler
 _ORIENTATIONS = ("look_at", "rotation", "rotvec", "euler_deg")
 
 
-def _vector(value, name: str) -> np.ndarray:
-    """``value`` as three finite numbers (a config's are checked as it is read, :func:`parse_pose`; a
-    script's here)."""
-    try:
-        vector = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        vector = None
-    check(vector is not None and vector.shape == (3,) and bool(np.isfinite(vector).all()),
-          f"{name} must be three finite numbers, got {value!r}")
-    return vector
-
-
 def rotation_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues' formula: axis-angle (radians) to a 3x3 rotation."""
-    rotvec = _vector(rotvec, "rotvec (axis times angle, radians)")
+    rotvec = check_array(rotvec, "rotvec (axis times angle, radians)", (3,), finite=True)
     theta = float(np.linalg.norm(rotvec))
     if theta < 1e-12:
         return np.eye(3)
@@ -43,7 +31,7 @@ def rotation_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
 
 def rotation_from_euler_deg(angles: np.ndarray) -> np.ndarray:
     """Rotations about x, then y, then z (degrees), composed as ``Rz @ Ry @ Rx``."""
-    rx, ry, rz = np.deg2rad(_vector(angles, "angles (degrees about x, y, z)"))
+    rx, ry, rz = np.deg2rad(check_array(angles, "angles (degrees about x, y, z)", (3,), finite=True))
     return (
         rotation_from_rotvec(np.array([0, 0, rz]))
         @ rotation_from_rotvec(np.array([0, ry, 0]))
@@ -57,10 +45,10 @@ def look_at(position, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     ``up`` is the world direction that should appear up in the device's image (its -y axis).
     Returns None when the viewing direction is parallel to ``up`` (no unique answer).
     """
-    z = _vector(target, "target") - _vector(position, "position")
+    z = check_array(target, "target", (3,), finite=True) - check_array(position, "position", (3,), finite=True)
     check(np.linalg.norm(z) >= 1e-9, f"target {target!r} is the position itself: look at another point")
     z /= np.linalg.norm(z)
-    x = np.cross(z, _vector(up, "up"))
+    x = np.cross(z, check_array(up, "up", (3,), finite=True))
     if np.linalg.norm(x) < 1e-9:
         return None
     x /= np.linalg.norm(x)
