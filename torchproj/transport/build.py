@@ -377,6 +377,9 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
         ``values`` :math:`(C, H, W)` and ``covered`` :math:`(H, W)`: mask pixels the warped image
         reaches.
     """
+    check(isinstance(target, Target), f"target must be a Target, got {type(target).__name__}")
+    check_shape(mask, "mask", ["H", "W"])
+    check(mask.dtype == torch.bool, f"mask must be a bool tensor of the camera's pixels, got {mask.dtype}")
     sizes = check_image(target.image, f"target {target.name!r} image")
     h_img, w_img = sizes["H"], sizes["W"]
     check(min(h_img, w_img) >= 2, f"target {target.name!r} image is {w_img}x{h_img} pixels; a target image is "
@@ -413,6 +416,14 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
     # white image stays 1 there, not up to 0.1% darker and so no longer "one value").
     values = torch.where(covered, warped[:-1] / warped[-1].clamp_min(1e-6), warped[:-1])
     return values.clamp(0, 1), covered
+
+
+def check_calibrations(calibrations, name: str = "calibrations") -> None:
+    """``calibrations`` a dict of state name -> :class:`StateCalibration`; a whole calibration in its
+    place (a bundle's, the virtual rig's) is pointed to its ``.states``."""
+    check(isinstance(calibrations, Mapping) and all(isinstance(c, StateCalibration) for c in calibrations.values()),
+          f"{name} must be a dict of state name -> StateCalibration, got {type(calibrations).__name__}"
+          + (" (give its .states)" if hasattr(calibrations, "states") else ""))
 
 
 def check_targets(targets) -> None:
@@ -501,6 +512,7 @@ def group_rows(columns: torch.Tensor) -> tuple[torch.Tensor, int]:
     Returns:
         ``group`` :math:`(N,)` group index of each row, and the number of groups.
     """
+    check_shape(columns, "columns", ["N", "S"])
     order = torch.arange(columns.shape[0], device=columns.device)
     for k in range(columns.shape[1] - 1, -1, -1):  # stable sorts from the last key to the first
         order = order[torch.sort(columns[order, k], stable=True).indices]
@@ -1168,9 +1180,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     """Every target's rows (:func:`build_transport`'s checks, in the user's terms); with ``colour`` also
     each row's per-channel ratios (every state needs :attr:`StateCalibration.colour_weight`)."""
     check(footprint in FOOTPRINTS, f"footprint must be one of {list(FOOTPRINTS)}, got {footprint!r}")
-    check(isinstance(calibrations, Mapping) and all(isinstance(c, StateCalibration) for c in calibrations.values()),
-          f"calibrations must be a dict of state name -> StateCalibration, got {type(calibrations).__name__}"
-          + (" (give its .states)" if hasattr(calibrations, "states") else ""))
+    check_calibrations(calibrations)
     n_ch = _target_channels(targets)
     sizes = camera = None
     checked = set()
@@ -1397,12 +1407,17 @@ def retarget_rhs(op, calibrations: dict[str, StateCalibration], targets: list[Ta
     Returns:
         :math:`(N_{rows}, C)`, C the images' channels.
     """
+    check(isinstance(op, TransportOperator), f"op must be a TransportOperator (build_transport's), got {type(op).__name__}")
+    check_calibrations(calibrations)
+    check_targets(targets)
     check(op.row_pixel is not None, "new images on an operator's rows need rows that are camera pixels: build it "
                                     "with merge=False")
     check(len(targets) == op.target_count, f"give one image per target of the operator ({op.target_count}), got "
                                            f"{len(targets)}")
     rhs = torch.empty(op.shape[0], _target_channels(targets), dtype=op.rhs.dtype)
     for k, target in enumerate(targets):
+        check(target.state in calibrations, f"target {target.name or k!r} names state {target.state!r}, which was not "
+                                            f"calibrated; calibrated states: {sorted(calibrations)}")
         lit = calibrations[target.state].lit()
         mask = lit if target.mask is None else target.mask.to(device=lit.device, dtype=torch.bool) & lit
         values, covered = target_on_camera(target, mask)

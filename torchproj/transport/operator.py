@@ -1168,6 +1168,7 @@ def normal_form(op: "TransportOperator") -> str:
     0.35 M cells, Q 5.5 times A's nonzeros) 2.5 s against 1.5 s. Rows of one or two cells (the nearest
     footprint) keep ``Q`` sparse: there it wins everywhere (``python benchmarks/normal_forms.py``).
     """
+    check(isinstance(op, TransportOperator), f"op must be a TransportOperator (build_transport's), got {type(op).__name__}")
     if getattr(op, "form", None) is not None:  # an operator made from another iterates as that one
         return op.form
     width = op.crow.diff().double()
