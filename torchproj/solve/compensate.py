@@ -35,6 +35,8 @@ def compensate(images: list[torch.Tensor], responses: list[ResponseCurve]) -> li
     Returns:
         per projector, :math:`(C, H_j, W_j)` uint8 pattern images.
     """
+    check(isinstance(images, (list, tuple)), f"images must be a list of (C, H, W) light per projector, got "
+                                             f"{type(images).__name__}")
     check_responses(responses, len(images))
     out = []
     for j, (img, resp) in enumerate(zip(images, responses)):
@@ -276,7 +278,10 @@ def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], respo
         ``(light, patterns)``: per projector :math:`(C, H_j, W_j)` linear light in [0, 1] (on the
         CPU; cells that are not variables stay black), and the uint8 images (:func:`compensate`).
     """
-    from .solvers import to_projectable
+    from .solvers import check_operator, to_projectable
 
+    check_operator(op)
+    # Columns per channel: a colour rig's per-channel operators share the grey one's columns.
+    check_shape(p, "p", [op.shape[1], "C"])
     light = [img.cpu() for img in op.to_images(to_projectable(p.detach(), bounds, outside).clamp(0, 1))]
     return light, compensate(light, responses)

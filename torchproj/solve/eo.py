@@ -37,10 +37,10 @@ import numpy as np
 import torch
 from kornia.geometry.epipolar import find_fundamental
 
-from ..core.checks import check, check_count, check_number
+from ..core.checks import check, check_count, check_number, is_whole
 from ..core.progress import progress_bar
 from ..core.sparse import csr_tensor, spmm
-from ..transport.build import StateCalibration
+from ..transport.build import StateCalibration, check_calibrations
 from ..transport.operator import TransportOperator, _blockwise_sum, entry_rows
 from .solvers import SolveResult, _beside, _clamp_, _stop, check_bounds, check_operator, coarse_start
 
@@ -59,6 +59,12 @@ def fundamental_between_projectors(calibrations: dict[str, StateCalibration], fi
     Returns:
         :math:`(3, 3)` float64.
     """
+    check_calibrations(calibrations)
+    count = len(next(iter(calibrations.values())).prj_xy) if calibrations else 0
+    for name, j in (("first", first), ("second", second)):
+        check(is_whole(j) and 0 <= j < count, f"{name} must be a projector's index from 0 to {count - 1}, got {j!r}")
+    check(first != second, f"first and second must be two projectors, got {first} twice")
+    check_count(max_points, "max_points", 8)
     p1, p2 = [], []
     pixels = sum(cal.prj_xy[first][..., 0].numel() for cal in calibrations.values())
     stride = max(1, pixels // (8 * max_points))  # a grid of pixels, well over max_points of them, is plenty
@@ -130,6 +136,7 @@ def epipolar_bands(op: TransportOperator, F: torch.Tensor, band: float = 1.0) ->
 
 def component_chains(op: TransportOperator) -> torch.Tensor:
     """Chain index of every column: connected components of the column graph of ``A^T A`` (scipy)."""
+    check_operator(op)
     return _within(op, torch.zeros(op.shape[1], dtype=torch.int64, device=op.col.device))
 
 

@@ -17,10 +17,10 @@ import time
 
 import torch
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_count, check_shape
 from ..core.errors import InputError
 from ..transport.operator import TransportOperator
-from .solvers import SolveResult, check_bounds, solve_fista
+from .solvers import SolveResult, check_bounds, check_operator, solve_fista
 
 __all__ = ["solve_gain_offset"]
 
@@ -88,11 +88,13 @@ def solve_gain_offset(op: TransportOperator, flat: torch.Tensor, bounds=(0.0, 1.
         :class:`SolveResult` whose ``patterns`` are :math:`(N_{cols}, C)`, with ``info["gain"]`` and
         ``info["offset"]`` (one per target) and ``info["operator"]``, the operator of the final targets.
     """
+    check_operator(op)
     lo, hi = check_bounds(bounds)
     (g_lo, g_hi), (o_lo, o_hi) = check_gain_offset(gain, offset)
     check_shape(flat, "flat", [op.shape[0], op.channels])
     check(bool((op.constant == 0).all()), "op must be built with merge=False: merged rows fix the targets")
-    check(outer >= 1, f"outer must be >= 1, got {outer}")
+    check_count(outer, "outer (rounds of gain and offset)")
+    check_count(max_iter, "max_iter")
     t0 = time.perf_counter()
     image, ones = op.rhs, flat.to(op.rhs)
     target = op.row_target

@@ -88,8 +88,7 @@ def image_objective(name="l2", l2_weight: float | None = None, psnr_drop: float 
         return None
     weight = OBJECTIVES[name] if l2_weight is None else check_number(l2_weight, "l2_weight")
     psnr_drop = check_psnr_drop(psnr_drop)
-    check(iterations >= 1, f"the SSIM objective needs at least 1 iteration, got {iterations}")
-    return ImageObjective(name, weight, psnr_drop, int(iterations))
+    return ImageObjective(name, weight, psnr_drop, check_count(iterations, "iterations (of the SSIM objective)"))
 
 
 def _squared_error(op: TransportOperator):
@@ -119,6 +118,9 @@ def psnr_hinge(ratio: torch.Tensor, psnr_drop: float, weight: float = _HINGE) ->
     """``weight * relu(10 log10(ratio) - psnr_drop)^2``: zero while a target's squared error is at most
     ``10^(psnr_drop / 10)`` times its reference's (it has lost at most ``psnr_drop`` dB of PSNR),
     the square of the excess in dB beyond (element-wise, any shape)."""
+    check(isinstance(ratio, torch.Tensor), f"ratio must be a torch.Tensor, got {type(ratio).__name__}")
+    psnr_drop = check_psnr_drop(psnr_drop, optional=False)
+    check_number(weight, "weight")
     # Clamped inside the logarithm: at an error of exactly 0 its slope is infinite, and times the
     # hinge's zero that would be NaN.
     return weight * torch.relu(10 * torch.log10(ratio.clamp_min(1e-12)) - psnr_drop) ** 2

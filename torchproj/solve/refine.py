@@ -46,6 +46,7 @@ import torch
 
 from ..core.checks import check, check_count, check_finite, check_shape, is_number
 from ..core.progress import progress_bar
+from ..transport.operator import TransportOperator
 from .compensate import check_responses, projectable_patterns
 from .model import _one_operator
 from .objectives import ImageLoss, image_objective, solve_ssim
@@ -92,6 +93,8 @@ class RefineResult:
 
 def _operators(op) -> list:
     ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    check(len(ops) > 0 and all(isinstance(o, TransportOperator) for o in ops),
+          f"op must be a TransportOperator (build_transport's), or one per colour channel, got {type(op).__name__}")
     check(all(o.row_pixel is not None for o in ops), "the loop compares captured camera pixels with the model's rows: "
                                                      "build the operator with merge=False")
     check(len({(o.shape, o.target_count) for o in ops}) == 1,
@@ -129,6 +132,7 @@ def captured_loss(op, measured: torch.Tensor) -> tuple[float, list[float]]:
         predicted) and per target the PSNR of ``m / scale`` against its target values.
     """
     ops = _operators(op)
+    check_shape(measured, "measured", [ops[0].shape[0], len(ops) if len(ops) > 1 else "C"])
     err = (measured.double() - _targets(ops).double()).pow(2)
     first = ops[0]
     per_target = torch.zeros(first.target_count, dtype=torch.float64, device=err.device)
