@@ -32,7 +32,7 @@ import torch
 from ..calib import scan_map
 from ..pipeline import simulate_calibration
 from ..calib.triangulate import ProCamCalibration, triangulate
-from ..core.checks import check, check_count, check_number, check_seed, is_whole
+from ..core.checks import check, check_array, check_count, check_number, check_path, check_seed, is_number, is_whole
 from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import CaptureError, ConfigError, InputError
@@ -65,14 +65,25 @@ def _moved(pose: np.ndarray, displacement: np.ndarray) -> np.ndarray:
 def random_pose_near(goal: np.ndarray, spread_m: float, spread_deg: float, rng: np.random.Generator) -> np.ndarray:
     """A start pose: each coordinate of the centre within ``spread_m`` of the goal's, and turned by
     up to ``spread_deg`` about a random axis through the centre."""
+    goal = _pose(goal, "goal")
+    check_number(spread_m, "spread_m (metres)")
+    check_number(spread_deg, "spread_deg (degrees)")
+    check(isinstance(rng, np.random.Generator), f"rng must be a numpy Generator (np.random.default_rng(seed)), got "
+                                                f"{type(rng).__name__}")
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     angle = math.radians(spread_deg) * rng.uniform(-1, 1)
     return _moved(goal, np.r_[rng.uniform(-spread_m, spread_m, 3), axis * angle])
 
 
+def _pose(pose, name: str) -> np.ndarray:
+    """A :math:`(4, 4)` ``world_from_local`` of finite numbers."""
+    return check_array(pose, f"{name} (a 4x4 world_from_local pose)", (4, 4), finite=True)
+
+
 def pose_error(pose: np.ndarray, goal: np.ndarray) -> dict:
     """Translation of the centre (mm, world axes, and its length) and rotation angle (degrees)."""
+    pose, goal = _pose(pose, "pose"), _pose(goal, "goal")
     t = (pose[:3, 3] - goal[:3, 3]) * 1000
     cos = (np.trace(goal[:3, :3].T @ pose[:3, :3]) - 1) / 2
     return {"translation_mm": [round(float(v), 3) for v in t], "distance_mm": round(float(np.linalg.norm(t)), 3),
@@ -85,6 +96,10 @@ def box_surface_distance(points: np.ndarray, world_from_local: np.ndarray, size,
     Outside the box it is the distance to the nearest point of the box; inside, to the nearest face.
     ``signed``: negative inside (a scanned face pushed past the goal's), positive outside (short of it).
     """
+    points = check_array(points, "points", (None, 3))
+    world_from_local = _pose(world_from_local, "world_from_local")
+    size = check_array(size, "size (the box's sides)", (3,), finite=True)
+    check(bool((size > 0).all()), f"size must be the box's three sides, each > 0, got {size.tolist()}")
     local = (points - world_from_local[:3, 3]) @ world_from_local[:3, :3]
     q = np.abs(local) - np.asarray(size, dtype=np.float64) / 2
     outside = np.linalg.norm(np.maximum(q, 0), axis=1)
@@ -284,6 +299,7 @@ def scan_distance(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
     object at its goal pose rather than a model."""
     from scipy.spatial import cKDTree
 
+    points, reference = check_array(points, "points", (None, 3)), check_array(reference, "reference", (None, 3))
     check(len(points) > 0 and len(reference) > 0, "both scans need points (decode with --calibration)")
     return cKDTree(reference).query(points, k=1)[0]
 
@@ -587,8 +603,10 @@ def placement_error(placed, reference, distance: float, mask=None) -> dict:
     """
     from ..core.imageio import read_image
 
-    if not (distance > 0 and math.isfinite(distance)):
-        raise InputError(f"--distance must be the object-projector distance (> 0), got {distance:g}")
+    if not (is_number(distance) and distance > 0 and math.isfinite(distance)):
+        raise InputError(f"--distance must be the object-projector distance (> 0), got {distance!r}")
+    check_path(placed, "placed", "a torchproj decode folder")
+    check_path(reference, "reference", "a torchproj decode folder")
     keep = None if mask is None else to_numpy(read_image(mask).mean(0)) > 0.5
     placed_points = _scan_points(Path(placed), keep)
     reference_points = _scan_points(Path(reference), keep)

@@ -44,14 +44,14 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_number
 from ..core.conventions import round_to_pixel
 from ..core.sparse import spmm
 from ..solve import solve_fista
 from ..solve.compensate import iteration_limit
 from ..transport import FOOTPRINTS, StateCalibration, Target, TransportOperator, build_transport, csr_from_coo
 # build_transport's own rows and scale, before assembly: the screen needs nearest's rows, not its operator
-from ..transport.build import _scale, _target_rows, check_targets
+from ..transport.build import _scale, _target_rows, check_calibrations, check_targets
 
 __all__ = ["AUTO", "AUTO_TOLERANCE_DB", "SCREEN_BACK_PROJECTION", "SCREEN_ITERATIONS", "FootprintChoice", "check_footprint", "choose_footprint"]
 
@@ -136,8 +136,8 @@ def choose_footprint(states: dict[str, StateCalibration], targets: list[Target],
         bounds: the solver's box, linear light.
         tolerance_db: the expected PSNR loss (dB, >= 0) a cheaper model may have on any target.
     """
-    check(isinstance(tolerance_db, (int, float)) and math.isfinite(tolerance_db) and tolerance_db >= 0,
-          f"tolerance_db must be a number >= 0 (dB), got {tolerance_db!r}")
+    check_number(tolerance_db, "tolerance_db (dB)")
+    check_calibrations(states, "states")
     check_targets(targets)
     t0 = time.perf_counter()
     used = {t.state for t in targets}

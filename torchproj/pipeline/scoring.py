@@ -43,6 +43,14 @@ def one_value(values: torch.Tensor, covered: torch.Tensor) -> bool:
     return values.numel() == 0 or bool(values.max() - values.min() <= 1e-6)
 
 
+def _check_scored(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Tensor) -> None:
+    """What :func:`affine_psnr` and :func:`score_image` read: two :math:`(C, H, W)` images, a bool mask."""
+    sizes = check_shape(values, "values", ["C", "H", "W"])
+    check_shape(estimate, "estimate", [sizes["C"], sizes["H"], sizes["W"]])
+    check_shape(covered, "covered", [sizes["H"], sizes["W"]])
+    check(covered.dtype == torch.bool, f"covered must be a bool tensor, got {covered.dtype}")
+
+
 def affine_psnr(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Tensor) -> float:
     """PSNR after the gain and offset that best bring the estimate onto the values (least squares, one
     pair per target over all channels): the structure of a capture, its brightness taken out.
@@ -51,6 +59,7 @@ def affine_psnr(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Ten
         estimate, values: :math:`(C, H, W)` in target units.
         covered: :math:`(H, W)` bool.
     """
+    _check_scored(estimate, values, covered)
     if one_value(values, covered):
         return math.inf  # any capture's gain 0 and offset the value: exact, where lstsq rounds to ~260 dB
     x, y = estimate[:, covered].reshape(-1).double(), values[:, covered].reshape(-1).double()
@@ -66,6 +75,7 @@ def score_image(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Ten
         estimate, values: :math:`(C, H, W)` in target units.
         covered: :math:`(H, W)` bool.
     """
+    _check_scored(estimate, values, covered)
     # SSIM lies in [-1, 1]; an image equal to its target can come out a rounding error past 1.
     return {"psnr_db": psnr(estimate[:, covered], values[:, covered]),
             "ssim": min(1.0, max(-1.0, float(ssim(estimate.double(), values.double(), covered))))}

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.checks import check, check_image, is_whole
+from ..core.checks import check, check_count, check_image, is_whole
 from ..core.errors import InputError
 from ..core.imageio import read_image
 from ..scene.config import Scene, check_scene
@@ -93,6 +93,7 @@ def _shipped_file(name: str) -> Path | None:
 
 def default_images(count: int, channels: int) -> list[torch.Tensor]:
     """Test images that ship with scikit-image, one per target: :math:`(C, h, w)` in [0, 1]."""
+    check_count(count, "count (of default images)", 0)
     check(count <= len(DEFAULT_IMAGES), f"at most {len(DEFAULT_IMAGES)} default images; give your own targets")
     return [target_image(name, channels) for name in DEFAULT_IMAGES[:count]]
 

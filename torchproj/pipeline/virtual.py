@@ -20,7 +20,7 @@ from ..calib import (DIM_THRESHOLD, SATURATED, SATURATED_SHARE, GraycodeCapture,
                      warn_if_few_decoded, warn_if_noisy, warn_if_saturated)
 from ..calib.pipeline import check_calibration_options
 from ..calib.response import RAMP_STEPS
-from ..core.checks import check
+from ..core.checks import check, check_shape
 from ..core.choices import BLACK_THRESHOLD
 from ..core.conventions import to_numpy
 from ..core.errors import InputError
@@ -80,6 +80,8 @@ class DecodingAccuracy:
 
 def decoding_accuracy(decoded: torch.Tensor, truth: torch.Tensor) -> DecodingAccuracy:
     """Compare decoded :math:`(H, W, 2)` projector coordinates with the true ones (NaN = unlit)."""
+    sizes = check_shape(truth, "truth", ["H", "W", 2])
+    check_shape(decoded, "decoded", [sizes["H"], sizes["W"], 2])
     lit = torch.isfinite(truth).all(-1)
     valid = torch.isfinite(decoded).all(-1)
     both = lit & valid
