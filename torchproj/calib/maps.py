@@ -178,7 +178,10 @@ def map_slope(prj_xy: torch.Tensor, like: tuple[torch.Tensor, torch.Tensor] | No
     values in the same order.
     """
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    check_shape(prj_xy, "prj_xy", ["H", "W", 2])
     if like is not None:
+        check(isinstance(like, (tuple, list)) and len(like) == 2, "like must be (another map, its map_slope), got "
+                                                                 f"{type(like).__name__}")
         return _slope_like(prj_xy, *like)
     slope = torch.full((*prj_xy.shape[:2], 2, 2), float("nan"), dtype=prj_xy.dtype, device=prj_xy.device)
     for axis, dim in ((0, 1), (1, 0)):  # x runs along dim 1 (columns), y along dim 0 (rows)

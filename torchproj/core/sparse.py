@@ -6,6 +6,8 @@ import warnings
 
 import torch
 
+from .checks import check, check_shape, is_whole
+
 __all__ = ["csr_from_coo", "csr_tensor", "index_dtype", "spmm"]
 
 _INT32_LIMIT = 2**31 - 1
@@ -72,7 +74,20 @@ def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None,
 
 def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     """A CSR matrix from COO triplets (duplicates summed, columns sorted within each row)."""
+    check(isinstance(shape, (tuple, list)) and len(shape) == 2 and all(is_whole(n) and n >= 0 for n in shape),
+          f"shape must be (rows, columns), whole numbers >= 0, got {shape!r}")
+    sizes = check_shape(vals, "vals", ["N"])
+    for name, index in (("rows", rows), ("cols", cols)):
+        check_shape(index, name, [sizes["N"]])
+        check(not index.is_floating_point() and index.dtype != torch.bool, f"{name} must be integer indices, got {index.dtype}")
     n_rows, n_cols = shape
+    # A column past the last lands in the next row's key without a word: one pass each (a few ms on a
+    # full-size build's entries, against the sort below).
+    for name, index, size in (("rows", rows, n_rows), ("cols", cols, n_cols)):
+        if index.numel():
+            low, high = torch.aminmax(index)
+            check(int(low) >= 0 and int(high) < size, f"{name} must index 0 to {size - 1} (shape {tuple(shape)}), "
+                                                       f"got {int(low)} to {int(high)}")
     key = rows * n_cols + cols
     key, inverse = torch.unique(key, return_inverse=True)
     merged = torch.zeros(key.shape[0], dtype=vals.dtype, device=vals.device).index_add_(0, inverse, vals)
