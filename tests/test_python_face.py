@@ -222,3 +222,63 @@ def test_what_the_helpers_took_without_a_word(tmp_path, capfd):
     for options in ({"window": 7.0 + 0.5}, {"min_fill": 1.5}, {"max_shift": 0}):
         with pytest.raises(TorchprojError, match=next(iter(options))):
             calib.refine_subpixel(prj_xy, valid, **options)
+
+
+def test_the_solving_and_positioning_helpers_name_values_of_the_wrong_kind(problem, tmp_path):
+    """The subpackages' functions beside the solvers: the captured loss, the projectable patterns, the
+    epipolar geometry, the footprint's choice, the scores and the positioning's poses."""
+    import numpy as np
+
+    from torchproj import experiments as ex, pipeline as pl, solve as so, transport as tr
+    from torchproj.core import sparse
+
+    cals, tgts, op, curves = problem
+    p = torch.rand(op.shape[1], 1)
+    image, covered = torch.rand(1, 8, 8), torch.ones(8, 8, dtype=torch.bool)
+    rng = np.random.default_rng(0)
+    calls = {
+        "captured_loss": (lambda **k: so.captured_loss(**{"op": op, "measured": op.A(p), **k}), ["op", "measured"]),
+        "projectable_patterns": (lambda **k: so.projectable_patterns(**{"op": op, "p": p, "bounds": (0, 1), "responses": curves, **k}),
+                                 ["op", "p", "bounds", "responses"]),
+        "compensate": (lambda **k: so.compensate(**{"images": [torch.rand(1, 4, 4)] * 2, "responses": curves, **k}), ["images"]),
+        "psnr_hinge": (lambda **k: so.psnr_hinge(**{"ratio": torch.rand(3), "psnr_drop": 1.0, **k}), ["ratio", "psnr_drop", "weight"]),
+        "image_objective": (lambda **k: so.image_objective(**{"name": "ssim", **k}), ["iterations"]),
+        "component_chains": (lambda **k: so.component_chains(**k), ["op"]),
+        "fundamental_between_projectors": (lambda **k: so.fundamental_between_projectors(**{"calibrations": cals, **k}),
+                                           ["calibrations", "first", "second", "max_points"]),
+        "solve_gain_offset": (lambda **k: so.solve_gain_offset(**{"op": op, "flat": torch.rand(op.shape[0], 1), "max_iter": 3,
+                                                                  "outer": 1, **k}), ["op", "outer", "max_iter"]),
+        "csr_from_coo": (lambda **k: sparse.csr_from_coo(**{"rows": torch.tensor([0, 1]), "cols": torch.tensor([1, 0]),
+                                                            "vals": torch.ones(2), "shape": (2, 2), **k}), ["rows", "cols", "vals", "shape"]),
+        "group_rows": (lambda **k: tr.group_rows(**k), ["columns"]),
+        "normal_form": (lambda **k: tr.normal_form(**k), ["op"]),
+        "map_slope": (lambda **k: tr.map_slope(**{"prj_xy": cals["near"].prj_xy[0], **k}), ["prj_xy", "like"]),
+        "retarget_rhs": (lambda **k: tr.retarget_rhs(**{"op": op, "calibrations": cals, "targets": tgts, **k}),
+                         ["op", "calibrations", "targets"]),
+        "target_on_camera": (lambda **k: tr.target_on_camera(**{"target": tgts[0], "mask": torch.ones(15, 20, dtype=torch.bool), **k}),
+                             ["target", "mask"]),
+        "choose_footprint": (lambda **k: pl.choose_footprint(**{"states": cals, "targets": tgts, **k}), ["states", "tolerance_db"]),
+        "default_images": (lambda **k: pl.default_images(**{"count": 2, "channels": 1, **k}), ["count", "channels"]),
+        "affine_psnr": (lambda **k: pl.affine_psnr(**{"estimate": image, "values": image, "covered": covered, **k}),
+                        ["estimate", "values", "covered"]),
+        "score_image": (lambda **k: pl.score_image(**{"estimate": image, "values": image, "covered": covered, **k}),
+                        ["estimate", "values", "covered"]),
+        "decoding_accuracy": (lambda **k: pl.decoding_accuracy(**{"decoded": torch.rand(8, 8, 2), "truth": torch.rand(8, 8, 2), **k}),
+                              ["decoded", "truth"]),
+        "pose_error": (lambda **k: ex.pose_error(**{"pose": np.eye(4), "goal": np.eye(4), **k}), ["pose", "goal"]),
+        "scan_distance": (lambda **k: ex.scan_distance(**{"points": rng.random((10, 3)), "reference": rng.random((12, 3)), **k}),
+                          ["points", "reference"]),
+        "box_surface_distance": (lambda **k: ex.box_surface_distance(**{"points": rng.random((10, 3)), "world_from_local": np.eye(4),
+                                                                        "size": (1, 1, 1), **k}), ["points", "world_from_local", "size"]),
+        "random_pose_near": (lambda **k: ex.random_pose_near(**{"goal": np.eye(4), "spread_m": 0.01, "spread_deg": 1.0, "rng": rng, **k}),
+                             ["goal", "spread_m", "spread_deg", "rng"]),
+        "placement_error": (lambda **k: ex.placement_error(**{"placed": tmp_path, "reference": tmp_path, "distance": 0.5, **k}),
+                            ["placed", "reference", "distance"]),
+    }
+    failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names)]
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+    # A column past the last landed in the next row; the same projector twice made an epipolar geometry of nothing.
+    with pytest.raises(TorchprojError, match="cols"):
+        sparse.csr_from_coo(torch.tensor([0, 0]), torch.tensor([0, 2]), torch.ones(2), (2, 2))
+    with pytest.raises(TorchprojError, match="two projectors"):
+        so.fundamental_between_projectors(cals, 0, 0)
