@@ -227,7 +227,7 @@ def test_colour_camera_and_colour_patterns():
 
 def test_bad_patterns_get_clear_errors():
     rig = VirtualRig(small_scene())
-    with pytest.raises(InputError, match="unknown projector 'left'"):
+    with pytest.raises(InputError, match="no projector 'left'"):
         rig.capture("near", {"left": torch.ones(1, 1, 192, 256)})
     with pytest.raises(InputError, match=r"patterns\['upper'\] must have shape \(N, C, 192, 256\)"):
         rig.capture("near", {"upper": torch.ones(1, 1, 100, 256)})

@@ -266,6 +266,13 @@ class Scene:
             lines.append(f"  shown after calibration with changes: {self.show.as_dict()}")
         return "\n".join(lines)
 
+    def projector_index(self, key) -> int:
+        """The index of projector ``key``, given by name or by index."""
+        names = [p.name for p in self.projectors]
+        check(key in names or (is_whole(key) and 0 <= key < len(names)),
+              f"no projector {key!r}: give one of {names} or an index from 0 to {len(names) - 1}")
+        return names.index(key) if key in names else int(key)
+
     def target_specs(self) -> list[TargetSpec]:
         """The scene's targets, or one per state (all its surfaces) when the config names none."""
         return self.targets or [TargetSpec(name=st.name, state=st.name) for st in self.states]

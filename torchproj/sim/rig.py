@@ -247,6 +247,12 @@ def _warn_if_cast_undersampled(scene: Scene, state: str, geometry: StateGeometry
                   f"samples fall); set camera.supersampling to {need} or more", stacklevel=4)
 
 
+def check_rig(rig, name: str = "rig") -> None:
+    """``rig`` a :class:`VirtualRig` (``VirtualRig(scene)``, or a virtual calibration's ``.rig``)."""
+    check(isinstance(rig, VirtualRig), f"{name} must be a VirtualRig (VirtualRig(scene), or a calibration's .rig), "
+                                       f"got {type(rig).__name__}")
+
+
 class VirtualRig:
     """A simulated rig for a :class:`~torchproj.scene.Scene`.
 
@@ -600,14 +606,11 @@ class VirtualRig:
     def _check_patterns(self, patterns: dict) -> tuple[dict[int, torch.Tensor], int]:
         """Patterns by projector index, checked, and how many images each projector shows."""
         scene = self.scene
-        index = {p.name: j for j, p in enumerate(scene.projectors)}
         check(isinstance(patterns, Mapping), "patterns must be a dict of projector name (or index) -> (N, C, H, W) "
                                              f"light, got {type(patterns).__name__}")
         by_index = {}
         for key, pat in patterns.items():
-            check(key in index or (isinstance(key, int) and 0 <= key < len(scene.projectors)),
-                  f"patterns names unknown projector {key!r}; known: {list(index)}")
-            j = index.get(key, key)
+            j = scene.projector_index(key)
             proj = scene.projectors[j]
             check_shape(pat, f"patterns[{key!r}]", ["N", "C", proj.height, proj.width])
             check(pat.shape[1] in (1, 3), f"patterns[{key!r}] must have 1 or 3 channels, got {pat.shape[1]}")
