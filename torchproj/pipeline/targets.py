@@ -100,7 +100,7 @@ def default_images(count: int, channels: int) -> list[torch.Tensor]:
 
 def scene_images(scene: Scene) -> list[torch.Tensor]:
     """One image per target of the scene: the config's choice, else the next default image."""
-    specs = scene.target_specs()
+    specs = check_scene(scene).target_specs()
     defaults = iter(name for name in DEFAULT_IMAGES if name not in {t.image for t in specs})
     images = []
     for spec in specs:

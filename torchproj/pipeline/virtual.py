@@ -20,12 +20,12 @@ from ..calib import (DIM_THRESHOLD, SATURATED, SATURATED_SHARE, GraycodeCapture,
                      warn_if_few_decoded, warn_if_noisy, warn_if_saturated)
 from ..calib.pipeline import check_calibration_options
 from ..calib.response import RAMP_STEPS
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_number, check_path, check_shape
 from ..core.choices import BLACK_THRESHOLD
 from ..core.conventions import to_numpy
 from ..core.errors import InputError
 from ..scene.config import Scene, check_scene
-from ..sim.rig import VirtualRig
+from ..sim.rig import VirtualRig, check_rig
 from ..transport import StateCalibration
 
 __all__ = ["DECODE_THRESHOLD", "DecodingAccuracy", "VirtualCalibration", "calibrate_rig", "calibrate_virtual",
@@ -43,7 +43,8 @@ def simulate_calibration(rig: VirtualRig, state: str, projector: int | str, ramp
     (:func:`~torchproj.calib.primary_patterns`): what ``torchproj sequence`` writes. The other
     projectors stay on showing black, as on a real bench.
     """
-    index = projector if isinstance(projector, int) else [p.name for p in rig.scene.projectors].index(projector)
+    check_rig(rig)
+    index = rig.scene.projector_index(projector)
     proj = rig.scene.projectors[index]
     extra = [ramp_pattern(proj.width, proj.height, ramp_steps), ramp_pattern(proj.width, proj.height, ramp_steps, mirrored=True)]
     full = sequence_bits(proj.width, proj.height, bits) == graycode_bits(proj.width, proj.height)
@@ -166,6 +167,8 @@ def _light_levels(scene: Scene, device, threshold: float = DECODE_THRESHOLD, sta
     ``grid`` None: every camera pixel; ``whites`` False: the black captures only (the first and
     third dicts empty); ``quiet``: without the rig's warning about the camera's samples (a check
     before the work, whose own rig gives it), else with it (the levels asked for alone)."""
+    check_scene(scene)
+    check_number(threshold, "threshold (white minus black, in [0, 1])")
     cam = scene.camera
     rig = quiet_rig(scene, device) if quiet else VirtualRig(scene, device=device)
     pixels = None
@@ -274,9 +277,9 @@ def check_shown_light(scene: Scene, device="cpu", grid: int = LIGHT_CHECK_GRID) 
 def describe_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD) -> str:
     """Lines for ``torchproj scene``: each state's brightest white level per projector against the
     decoder's threshold (:func:`white_levels`)."""
+    levels, _, clipped = _light_levels(scene, device, threshold, quiet=False)
     lines = [f"white level per state and projector (brightest pixel, white minus black, of 255; decoding needs "
              f"{threshold * 255:.0f}; saturation at 255):"]
-    levels, _, clipped = _light_levels(scene, device, threshold, quiet=False)
     for state in scene.states:
         cells = []
         for proj in scene.projectors:
@@ -382,6 +385,7 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
     """
     from ..core.progress import progress_bar
 
+    check_rig(rig)
     scene = rig.scene
     check_calibration_options(dict(plane_tolerance=plane_tolerance))  # read only where bits shorten the sequence
     for j, proj in enumerate(scene.projectors):
@@ -423,6 +427,7 @@ def calibrate_rig(rig: VirtualRig, *, bits: int | None = None, plane_tolerance: 
 
 def true_responses(scene) -> list[ResponseCurve]:
     """The scene's projectors' own response curves and colour mixings (the simulator's truth, not a fit)."""
+    check_scene(scene)
     return [ResponseCurve(torch.tensor([p.response_a]), torch.tensor(p.response_b), torch.tensor([p.black_level]),
                           None if p.colour_mixing is None else _shares(torch.tensor(p.colour_mixing)))
             for p in scene.projectors]
@@ -472,6 +477,8 @@ def check_calibration(rig: VirtualRig, state: str, projector: int, capture: Gray
         ``(report, figure_row)``: the ``report.json`` entry, and the row of
         :func:`torchproj.figures.calibration_summary`.
     """
+    check_rig(rig)
+    projector = rig.scene.projector_index(projector)
     proj = rig.scene.projectors[projector]
     truth = rig.geometry(state).prj_xy[projector]
     counts = calibration.decoding.counts()
@@ -511,6 +518,7 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
     from ..core.output import write_json
     from ..figures import calibration_summary
 
+    check_path(folder, "folder", "the simulation's output folder")
     t_start = time.perf_counter()
     folder = Path(folder)
     rig = VirtualRig(scene, device=device)
