@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ..core.checks import check, check_shape
 from ..core.fused import fused
 from ..scene.config import Camera
 
@@ -32,6 +33,12 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
         :math:`(N, C, H, W)` values in [0, 1] on the quantisation grid ``k / (2^bits - 1)`` (a
         mean of ``frames`` values of it for a camera of several).
     """
+    check_shape(radiance, "radiance", ["N", "C", "H", "W"])
+    check(isinstance(camera, Camera), f"camera must be a scene's Camera (scene.camera), got {type(camera).__name__}")
+    check(generator is None or isinstance(generator, torch.Generator),
+          f"generator must be a torch.Generator, or None for no noise, got {type(generator).__name__}")
+    if out is not None:
+        check_shape(out, "out", list(radiance.shape))
     peak = (1 << camera.bit_depth) - 1
     out = torch.empty_like(radiance) if out is None else out
     noisy = generator is not None and (camera.full_well > 0 or camera.read_noise > 0)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..core.checks import check, check_device
 from ..scene.config import Surface
 
 __all__ = ["Caster", "make_caster"]
@@ -178,4 +179,5 @@ _CASTERS = {"rectangle": _Rectangle, "plane": _Rectangle, "sphere": _Ellipsoid, 
 
 def make_caster(surface: Surface, device="cpu", dtype=torch.float32) -> Caster:
     """The ray caster for a surface (analytic in torch, or Embree for meshes)."""
-    return _CASTERS[surface.type](surface, device, dtype)
+    check(isinstance(surface, Surface), f"surface must be a scene's Surface (scene.surfaces), got {type(surface).__name__}")
+    return _CASTERS[surface.type](surface, check_device(device), dtype)
