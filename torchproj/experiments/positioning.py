@@ -187,6 +187,14 @@ def place_by_feedback(feedback, start: np.ndarray, *, step_m: float, step_deg: f
         the coarse feedback's values, on its own scale: k is the number of ``coarse``'s calls, at most
         ``coarse_looks(max_evaluations)``, fewer where its simplex closes first).
     """
+    for name, given in (("feedback", feedback), ("coarse", coarse)):
+        check(callable(given) or (name == "coarse" and given is None),
+              f"{name} must be a function of a pose (higher is better), got {type(given).__name__}")
+    start = _pose(start, "start")
+    check_number(step_m, "step_m (metres)", strict=True)
+    check_number(step_deg, "step_deg (degrees)", strict=True)
+    check_count(max_evaluations, "max_evaluations")
+    check_number(tolerance_m, "tolerance_m (metres)")
     scale = np.r_[np.full(3, step_m), np.full(3, math.radians(step_deg))]
     history: list[float] = []
     if coarse is None:
@@ -224,7 +232,7 @@ def feedback_stride_for(region: torch.Tensor, pixels: int = FINE_PIXELS) -> int:
 def rig_procam(scene: Scene, j: int) -> ProCamCalibration:
     """The exact camera-projector calibration of a virtual rig (camera and projector ``j``), for
     :func:`~torchproj.calib.triangulate`: what a perfect stereo calibration would give."""
-    cam, proj = scene.camera, scene.projectors[j]
+    cam, proj = check_scene(scene).camera, scene.projectors[scene.projector_index(j)]
     prj_from_cam = np.linalg.inv(proj.world_from_prj) @ cam.world_from_cam
     dist = torch.tensor(list(cam.distortion) or [0.0] * 5, dtype=torch.float64)
     return ProCamCalibration(cam_K=torch.as_tensor(cam.K, dtype=torch.float64), cam_dist=dist,
@@ -308,6 +316,9 @@ def scan_distance(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
 def feedback_profile(feedback, goal: np.ndarray, offsets_m: np.ndarray) -> dict:
     """Feedback with the box moved from the goal along depth (world z), across (world x) and
     vertically (world y)."""
+    check(callable(feedback), f"feedback must be a function of a pose (higher is better), got {type(feedback).__name__}")
+    goal = _pose(goal, "goal")
+    offsets_m = check_array(offsets_m, "offsets_m (metres)", (None,), finite=True)
     out = {"offsets_mm": (np.asarray(offsets_m) * 1000).round(3).tolist()}
     for key, axis in (("depth", 2), ("across", 0), ("vertical", 1)):
         values = []
