@@ -282,3 +282,40 @@ def test_the_solving_and_positioning_helpers_name_values_of_the_wrong_kind(probl
         sparse.csr_from_coo(torch.tensor([0, 0]), torch.tensor([0, 2]), torch.ones(2), (2, 2))
     with pytest.raises(TorchprojError, match="two projectors"):
         so.fundamental_between_projectors(cals, 0, 0)
+
+
+def test_the_virtual_rig_helpers_name_values_of_the_wrong_kind(tmp_path, monkeypatch):
+    """The rig's own helpers: a capture sequence, the light levels, the camera model, a caster, the
+    exact procam calibration and the placement's search."""
+    import numpy as np
+
+    monkeypatch.chdir(tmp_path)  # "x" is a folder name: the simulation it asks for is written here
+
+    from torchproj import experiments as ex, pipeline as pl, sim
+
+    scene = small_scene(camera=(160, 120), projector=(64, 48))
+    rig = calibrate_once(scene).rig
+    calls = {
+        "simulate_calibration": (lambda **k: pl.simulate_calibration(**{"rig": rig, "state": "near", "projector": 0, **k}),
+                                 ["rig", "projector"]),
+        "calibrate_rig": (lambda **k: pl.calibrate_rig(**{"rig": rig, **k}), ["rig"]),
+        "white_levels": (lambda **k: pl.white_levels(**k), ["scene"]),
+        "describe_light": (lambda **k: pl.describe_light(**{"scene": scene, **k}), ["scene", "threshold"]),
+        "true_responses": (lambda **k: pl.true_responses(**k), ["scene"]),
+        "scene_images": (lambda **k: pl.scene_images(**k), ["scene"]),
+        "simulate_scene": (lambda **k: pl.simulate_scene(**{"scene": scene, **k}), ["folder"]),
+        "rig_procam": (lambda **k: ex.rig_procam(**{"scene": scene, "j": 0, **k}), ["scene", "j"]),
+        "make_caster": (lambda **k: sim.make_caster(**{"surface": next(iter(scene.surfaces.values())), **k}), ["surface", "device"]),
+        "apply_camera": (lambda **k: sim.apply_camera(**{"radiance": torch.rand(1, 1, 8, 8), "camera": scene.camera,
+                                                         "generator": torch.Generator(), **k}), ["radiance", "camera", "generator", "out"]),
+        "place_by_feedback": (lambda **k: ex.place_by_feedback(**{"feedback": lambda pose: 1.0, "start": np.eye(4), "step_m": 0.001,
+                                                                  "step_deg": 0.1, "max_evaluations": 5, **k}),
+                              ["feedback", "start", "step_m", "step_deg", "max_evaluations", "tolerance_m", "coarse"]),
+        "feedback_profile": (lambda **k: ex.feedback_profile(**{"feedback": lambda pose: 1.0, "goal": np.eye(4),
+                                                                "offsets_m": np.array([0.0, 0.01]), **k}), ["feedback", "goal", "offsets_m"]),
+    }
+    failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names)]
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+    # A projector past the last, given to the rig's own calibration sequence, was an IndexError.
+    with pytest.raises(TorchprojError, match="no projector 5"):
+        pl.simulate_calibration(rig, "near", 5)
