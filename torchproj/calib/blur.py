@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_count, check_number, check_shape, is_whole
 from ..core.lens import disc_points
 from .graycode import _grey, check_full_sequence, stripe_signs
 from .maps import map_slope, pixel_square
@@ -57,14 +57,15 @@ def measure_blur(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tenso
         :math:`(H, W)` float32 diameters (0 = sharp), NaN where the map is unknown or no sample
         near it could be judged.
     """
-    width, height = projector_size
     nx, ny, contrast = check_full_sequence(patterns, white, black, prj_xy, projector_size, "measure_blur",
                                            " (a shortened sequence, --bits, lacks the finest stripes that show the blur)")
+    width, height = projector_size
     grey = _grey(patterns)
     H, W = contrast.shape
     finest = min(_FINEST, nx, ny) if finest is None else finest
-    check(1 <= finest <= min(nx, ny), f"finest must be 1..{min(nx, ny)}, got {finest}")
-    check(step >= 1, f"step must be >= 1, got {step}")
+    check(is_whole(finest) and 1 <= finest <= min(nx, ny), f"finest must be 1..{min(nx, ny)}, got {finest!r}")
+    check_count(step, "step (camera pixels between samples)")
+    check_number(min_contrast, "min_contrast (white - black, in [0, 1])")
     slope = map_slope(prj_xy) if slope is None else slope
     check_shape(slope, "slope", [H, W, 2, 2])
     # Samples on a grid, at pixel centres, where everything the prediction needs is known.

@@ -117,8 +117,8 @@ def find_edge_pixels(patterns: torch.Tensor, white: torch.Tensor, black: torch.T
         the :class:`EdgePixels`: every lit pixel beside a depth edge, and every lit unmapped one with
         a mapped pixel within two pixels.
     """
-    width, height = projector_size
     nx, ny, contrast = check_full_sequence(patterns, white, black, prj_xy, projector_size, "find_edge_pixels")
+    width, height = projector_size
     H, W = contrast.shape
     device = prj_xy.device
 

@@ -598,6 +598,15 @@ def stripe_shares(patterns: torch.Tensor, span: torch.Tensor, pixels: torch.Tens
     minus black ``span`` :math:`(H, W)`) on the cells each of the full sequence's ``bits = (x, y)``
     pattern pairs shows white in its first image, ``x`` pairs first: ``(1 + d) / 2`` of the pair's
     difference ``d`` in units of ``span``, clipped to [0, 1] (:attr:`CellShares.band_white`)."""
+    sizes = check_shape(span, "span", ["H", "W"])
+    check_shape(pixels, "pixels", ["M"])
+    check(not pixels.is_floating_point() and pixels.dtype != torch.bool, f"pixels must be flat pixel indices, got {pixels.dtype}")
+    check(isinstance(bits, (tuple, list)) and len(bits) == 2 and all(is_whole(b) and b >= 0 for b in bits),
+          f"bits must be (column bits, row bits), whole numbers, got {bits!r}")
+    check(isinstance(patterns, torch.Tensor) and patterns.dim() in (3, 4) and patterns.shape[0] >= 2 * sum(bits)
+          and tuple(patterns.shape[-2:]) == (sizes["H"], sizes["W"]),
+          f"patterns must hold the {2 * sum(bits)} pattern/inverse captures of {bits} bits at the span's size, got "
+          f"{tuple(patterns.shape) if isinstance(patterns, torch.Tensor) else type(patterns).__name__}")
     out = torch.empty(pixels.numel(), bits[0] + bits[1], device=pixels.device)
     first = -torch.ones(pixels.numel(), device=pixels.device)  # the first image lights the cells in question
     width = span.reshape(-1)[pixels].clamp_min(_EPS)
@@ -722,8 +731,10 @@ def stripe_contrast(patterns: torch.Tensor, white: torch.Tensor, black: torch.Te
     Returns:
         :math:`(C, H, W)` float32 (C = 1 for grey captures): mean lit minus mean dark reading.
     """
+    check_shape(cells, "cells", ["H", "W", 2])
     nx, ny, contrast = check_full_sequence(patterns, white, black, cells.float(), projector_size, "stripe_contrast")
     _check_cells(cells, contrast.shape)
+    check_count(margin, "margin (cells between a pixel's cell and a stripe's edge)", 0)
     raw = _channels(white) - _channels(black)  # (C, H, W)
     total = raw.clone()  # white minus black summed over the frames that show it
     grey_black = _grey_image(black).float()
@@ -798,6 +809,7 @@ def checker_shares(pair: torch.Tensor, white: torch.Tensor, black: torch.Tensor,
     Returns:
         :math:`(H, W)` float32 in [0, 1], NaN where the pixel has no cell.
     """
+    _check_captures(pair, white, black)
     check_shape(pair, "checker pair", [2, *white.shape])
     _check_cells(cells, white.shape[-2:])
     span = _contrast(white, black).clamp_min(_EPS)

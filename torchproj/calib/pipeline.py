@@ -48,10 +48,16 @@ SATURATED = 254.5 / 255
 SATURATED_SHARE = 0.05
 
 
+def _check_share(value, name: str) -> None:
+    """A share a calibration measured (NaN where nothing was lit to measure it), or None."""
+    check(value is None or is_number(value), f"{name} must be a share (a number) or None, got {value!r}")
+
+
 def warn_if_saturated(saturated: float | None, where: str, fix: str = "lower the camera's exposure (or the "
                       "projector's brightness) and capture again") -> None:
     """Warn, naming ``where`` and the ``fix``, when more than :data:`SATURATED_SHARE` of the lit pixels'
     white capture is clipped (:attr:`ProjectorCalibration.saturated`)."""
+    _check_share(saturated, "saturated")
     if saturated is not None and saturated > SATURATED_SHARE:
         warnings.warn(f"{where}: the white capture is clipped at {saturated:.0%} of the pixels the projector "
                       f"lights (over {SATURATED_SHARE:.0%}): there every row's weight (white minus black) and the "
@@ -72,6 +78,8 @@ def warn_if_noisy(noise: float | None, saturated: float | None, where: str, fram
     """Warn, naming ``where`` and how to average ``frames``, when the captures' noise
     (:attr:`ProjectorCalibration.capture_noise`) passes :data:`NOISY_CAPTURES`, unless clipped whites
     (:func:`warn_if_saturated`) explain it."""
+    _check_share(noise, "noise")
+    _check_share(saturated, "saturated")
     if noise is None or not noise > NOISY_CAPTURES or (saturated is not None and saturated > SATURATED_SHARE):
         return
     warnings.warn(f"{where}: the captures' noise is {noise:.1%} of white minus black (over {NOISY_CAPTURES:.0%}; how "
@@ -82,6 +90,7 @@ def warn_if_noisy(noise: float | None, saturated: float | None, where: str, fram
 
 def warn_if_few_decoded(decoding: GrayDecoding, where: str) -> float:
     """Warn, naming ``where`` and the likely causes, when few of the lit pixels decoded; returns the share."""
+    check(isinstance(decoding, GrayDecoding), f"decoding must be decode_gray's GrayDecoding, got {type(decoding).__name__}")
     share = decoding.lit_located_fraction
     if share < FEW_DECODED:
         warnings.warn(f"{where}: only {share:.0%} of the pixels the projector lights decoded, fully or partly (under "

@@ -39,6 +39,7 @@ class ProCamCalibration:
 
 def read_opencv_calibration(path: str | os.PathLike) -> ProCamCalibration:
     """Read a camera-projector calibration written by OpenCV's FileStorage (XML or YAML)."""
+    check_path(path, "path", "the calibration file")
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: calibration file not found")
@@ -86,6 +87,11 @@ def _normalised(points: torch.Tensor, K: torch.Tensor, dist: torch.Tensor) -> to
                             new_K=eye, num_iters=20)[0]
 
 
+def _check_procam(calib) -> None:
+    check(isinstance(calib, ProCamCalibration), f"calib must be a ProCamCalibration (read_opencv_calibration's), got "
+                                                f"{type(calib).__name__}")
+
+
 def triangulate(cam_xy: torch.Tensor, prj_xy: torch.Tensor, calib: ProCamCalibration) -> torch.Tensor:
     """Triangulate camera-projector correspondences (linear DLT, kornia).
 
@@ -99,6 +105,7 @@ def triangulate(cam_xy: torch.Tensor, prj_xy: torch.Tensor, calib: ProCamCalibra
     """
     check_shape(cam_xy, "cam_xy", ["N", 2])
     check_shape(prj_xy, "prj_xy", ["N", 2])
+    _check_procam(calib)
     cam_n = _normalised(cam_xy.double(), calib.cam_K, calib.cam_dist)
     prj_n = _normalised(prj_xy.double(), calib.prj_K, calib.prj_dist)
     # The calibration (a file's few numbers) is on the host; the points may be on a GPU.
@@ -111,6 +118,7 @@ def triangulate_map(prj_xy: torch.Tensor, calib: ProCamCalibration) -> torch.Ten
     """Triangulate every decoded camera pixel: :math:`(H, W, 2)` projector coordinates (NaN where not
     decoded) -> :math:`(H, W, 3)` float32 points in the camera frame, NaN where not decoded."""
     check_shape(prj_xy, "prj_xy", ["H", "W", 2])
+    _check_procam(calib)
     ok = torch.isfinite(prj_xy).all(-1)
     ys, xs = torch.nonzero(ok, as_tuple=True)
     points = torch.full(ok.shape + (3,), float("nan"))
