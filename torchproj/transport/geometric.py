@@ -33,6 +33,9 @@ def _rays(pixels: torch.Tensor, K, world_from_dev) -> tuple[torch.Tensor, torch.
 
 def triangulate_rays(o1, d1, o2, d2) -> torch.Tensor:
     """Midpoint of the shortest segment between rays ``o1 + s d1`` and ``o2 + t d2`` (N, 3 each)."""
+    sizes = check_shape(o1, "o1", ["N", 3])
+    for name, value in (("d1", d1), ("o2", o2), ("d2", d2)):
+        check_shape(value, name, [sizes["N"], 3])
     w = o1 - o2
     a, b, c = (d1 * d1).sum(-1), (d1 * d2).sum(-1), (d2 * d2).sum(-1)
     d, e = (d1 * w).sum(-1), (d2 * w).sum(-1)

@@ -12,6 +12,8 @@ import dataclasses
 import torch
 
 from ..calib.homography import HomographyFit, check_plane, fit_homography, homography_map
+from ..core.checks import check, check_number
+from .build import check_calibrations
 
 __all__ = ["HomographyFit", "MAPS", "fit_homography", "homography_map", "planar_calibration", "select_maps"]
 
@@ -38,8 +40,14 @@ def planar_calibration(states: dict, tolerance: float = 1.0, names: list[str] | 
         state name -> planar :class:`~torchproj.transport.StateCalibration`, and state name -> one
         :class:`HomographyFit` per projector.
     """
+    check_calibrations(states, "states")
+    check_number(tolerance, "tolerance (projector pixels)", 0, strict=True)
+    check(names is None or (isinstance(names, (list, tuple)) and all(isinstance(n, str) for n in names)),
+          f"names must be the projectors' names (a list of str), or None, got {names!r}")
     planar, fits = {}, {}
     for name, state in states.items():
+        check(names is None or len(names) == len(state.prj_xy), f"names must name the {len(state.prj_xy)} projectors, "
+                                                                 f"got {len(names or [])}")
         fits[name] = [fit_homography(xy, **fit_options) for xy in state.prj_xy]
         for j, fit in enumerate(fits[name]):
             check_plane(fit, tolerance, f"state {name!r}, projector {j if names is None else repr(names[j])}",
