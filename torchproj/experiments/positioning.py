@@ -251,7 +251,12 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
         ``points`` :math:`(N, 3)` world points (metres) and ``projector`` :math:`(N,)` the index of
         the projector each came from.
     """
-    placed = _posed(surface, pose, "scanned")
+    check_scene(scene)
+    check(isinstance(surface, Surface) and surface.type == "box",
+          f"surface must be a box Surface (a scene's box, scene.surfaces[name]), got "
+          f"{getattr(surface, 'type', type(surface).__name__)!r}")
+    check_seed(seed)
+    placed = _posed(surface, _pose(pose, "pose"), "scanned")
     cam = scene.camera
     x0, y0, window = _box_window(cam, placed)
     scan_scene = dataclasses.replace(scene, camera=window, surfaces={"scanned": placed},
