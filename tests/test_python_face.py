@@ -10,6 +10,8 @@ truth is all that is read (``progress``, ``merge``, ``noise``) and callbacks a u
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -136,7 +138,17 @@ def test_the_virtual_rig_face_names_values_of_the_wrong_kind():
     assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
 
 
-def test_the_scene_and_bench_helpers_name_values_of_the_wrong_kind(tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def gray_capture():
+    """A 16 x 8 projector's Gray code seen by a camera of two pixels per cell (every bit readable): its
+    size, the capture and its decoding."""
+    size = (16, 8)
+    images = tp.graycode_patterns(*size).repeat_interleave(2, -1).repeat_interleave(2, -2)
+    capture = dict(patterns=images[:-2], white=images[-2], black=images[-1])
+    return size, capture, tp.decode_gray(**capture, projector_size=size)
+
+
+def test_the_scene_and_bench_helpers_name_values_of_the_wrong_kind(tmp_path, monkeypatch, gray_capture):
     """The functions of the subpackages a bench script or a scene generator calls, below the top-level face."""
     import numpy as np
     import yaml
@@ -144,12 +156,7 @@ def test_the_scene_and_bench_helpers_name_values_of_the_wrong_kind(tmp_path, mon
     from torchproj import calib, metrics, scene as sc
 
     monkeypatch.chdir(tmp_path)  # a value such as "x" is a path too: what it writes lands here
-    size = (16, 8)
-    shown = tp.graycode_patterns(*size)
-    # A camera of two pixels per cell: every bit readable.
-    images = shown.repeat_interleave(2, -1).repeat_interleave(2, -2)
-    capture = dict(patterns=images[:-2], white=images[-2], black=images[-1])
-    decoding = tp.decode_gray(**capture, projector_size=size)
+    size, capture, decoding = gray_capture
     prj_xy = decoding.prj_xy.float()
     points = torch.randn(200, 3) * torch.tensor([1.0, 1.0, 0.01]) + torch.tensor([0.0, 0.0, 1.0])
     config = yaml.safe_load(sc.builtin_config().read_text())
@@ -319,3 +326,54 @@ def test_the_virtual_rig_helpers_name_values_of_the_wrong_kind(tmp_path, monkeyp
     # A projector past the last, given to the rig's own calibration sequence, was an IndexError.
     with pytest.raises(TorchprojError, match="no projector 5"):
         pl.simulate_calibration(rig, "near", 5)
+
+
+def test_the_estimators_and_geometry_helpers_name_values_of_the_wrong_kind(gray_capture, tmp_path):
+    """What the calibration reads beyond the decoder (stripes, edges, blur), the warnings it gives, the
+    triangulation and the planar maps, the exact light's rows."""
+    from torchproj import calib, experiments as ex, pipeline as pl, transport as tr
+
+    size, capture, decoding = gray_capture
+    prj_xy = decoding.prj_xy.float()
+    cells = torch.where(decoding.valid[..., None], prj_xy.round(), -1).to(torch.int32)
+    scene = small_scene(camera=(160, 120), projector=(64, 48))
+    cal = calibrate_once(scene)
+    tgts = tp.scene_targets(scene, rig=cal.rig)
+    procam = ex.rig_procam(scene, 0)
+    pixels = torch.tensor([0, 5])
+    ray = torch.tensor([[0.0, 0, 1]])
+    calls = {
+        "stripe_contrast": (lambda **k: calib.stripe_contrast(**{**capture, "cells": cells, "projector_size": size, **k}),
+                            ["patterns", "cells", "projector_size", "margin"]),
+        "stripe_shares": (lambda **k: calib.stripe_shares(**{"patterns": capture["patterns"], "span": torch.ones(16, 32),
+                                                             "pixels": pixels, "bits": (4, 3), **k}), ["patterns", "span", "pixels", "bits"]),
+        "checker_shares": (lambda **k: calib.checker_shares(**{"pair": torch.rand(2, 1, 16, 32), "white": capture["white"],
+                                                               "black": capture["black"], "cells": cells, **k}), ["pair", "white", "black", "cells"]),
+        "find_edge_pixels": (lambda **k: calib.find_edge_pixels(**{**capture, "prj_xy": prj_xy, "projector_size": size, **k}),
+                             ["prj_xy", "projector_size", "slope", "depth"]),
+        "measure_blur": (lambda **k: calib.measure_blur(**{**capture, "prj_xy": prj_xy, "projector_size": size, **k}),
+                         ["prj_xy", "projector_size", "finest", "step", "min_contrast", "slope"]),
+        "triangulate": (lambda **k: calib.triangulate(**{"cam_xy": torch.rand(5, 2), "prj_xy": torch.rand(5, 2), "calib": procam, **k}),
+                        ["cam_xy", "prj_xy", "calib"]),
+        "triangulate_map": (lambda **k: calib.triangulate_map(**{"prj_xy": prj_xy, "calib": procam, **k}), ["prj_xy", "calib"]),
+        "read_opencv_calibration": (lambda **k: calib.read_opencv_calibration(**k), ["path"]),
+        "warn_if_few_decoded": (lambda **k: calib.warn_if_few_decoded(**{"decoding": decoding, "where": "here", **k}), ["decoding"]),
+        "warn_if_noisy": (lambda **k: calib.warn_if_noisy(**{"noise": 0.01, "saturated": 0.0, "where": "here", "frames": "1", **k}),
+                          ["noise", "saturated"]),
+        "warn_if_saturated": (lambda **k: calib.warn_if_saturated(**{"saturated": 0.0, "where": "here", **k}), ["saturated"]),
+        "planar_calibration": (lambda **k: tr.planar_calibration(**{"states": cal.states, **k}), ["states", "tolerance", "names"]),
+        "cell_blocks": (lambda **k: tr.cell_blocks(**{"column_projector": torch.tensor([0, 0, 1]), "column_cell": torch.tensor([0, 1, 0]),
+                                                      "projector_sizes": [(2, 1), (2, 1)], **k}),
+                        ["column_projector", "column_cell", "projector_sizes"]),
+        "triangulate_rays": (lambda **k: tr.triangulate_rays(**{"o1": torch.zeros(1, 3), "d1": ray, "o2": ray, "d2": ray, **k}),
+                             ["o1", "d1", "o2", "d2"]),
+        "light_transport": (lambda **k: pl.light_transport(**{"rig": cal.rig, "targets": tgts,
+                                                              "rows": tp.build_transport(cal.states, tgts, merge=False), **k}),
+                            ["rig", "targets", "rows"]),
+        "scan_surface": (lambda **k: ex.scan_surface(**{"scene": scene, "surface": next(iter(scene.surfaces.values())), "pose": torch.eye(4), **k}),
+                         ["scene", "surface", "pose", "seed"]),
+    }
+    with warnings.catch_warnings():  # the warnings' own values (an infinite noise) are warned of, as they should be
+        warnings.simplefilter("ignore")
+        failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names)]
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
