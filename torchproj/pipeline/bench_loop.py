@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from ..core.checks import check
+from ..core.checks import check, check_path, is_whole
 from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..core.output import write_json
@@ -77,9 +77,17 @@ def refine_bundle(bundle, targets: list, folder, *, iterations: int = 4, solver:
         the report: ``waiting`` (the step whose photos are wanted, and which) or ``done``, and per
         captured step its loss and PSNR per target.
     """
+    # The loop's options are kept in its folder by name, so that a later turn can tell it is the same
+    # loop: the bundle by its folder, each target by its STATE=IMAGE text.
+    check_path(bundle, "bundle", "a calibration bundle folder (torchproj calibrate's --out)")
+    check_path(folder, "folder", "the loop's working folder")
+    check(isinstance(targets, (list, tuple)) and all(isinstance(t, str) or (isinstance(t, (list, tuple)) and len(t) == 2
+                                                                             and all(isinstance(v, str) for v in t))
+                                                     for t in targets),
+          f"targets must be STATE=IMAGE strings or (state, image name) pairs, the loop keeps them by name; got {targets!r}")
     folder = Path(folder)
-    check(isinstance(iterations, int) and 0 <= iterations <= 100, f"iterations must be a whole number in [0, 100], "
-                                                                   f"got {iterations!r}")
+    check(is_whole(iterations) and 0 <= iterations <= 100, f"iterations must be a whole number in [0, 100], "
+                                                           f"got {iterations!r}")
     options = {"bundle": str(Path(bundle).resolve()), "targets": [str(t) for t in targets], "iterations": iterations,
                "solver": solver, "bounds_8bit": list(bounds_8bit), "objective": str(objective), "maps": maps,
                "footprint": footprint, "plane_tolerance": plane_tolerance, "colour_weights": colour_weights,

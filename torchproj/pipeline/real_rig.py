@@ -56,16 +56,32 @@ class BundleSolution:
 
 
 def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
+    """Each of ``wanted`` as a :class:`Target` of the bundle's: a ``"STATE=IMAGE"`` string, a ``(state,
+    image)`` pair (an image file, a scikit-image name or a :math:`(C, H, W)` tensor) or a Target."""
     states = set(bundle.states)
+    check(isinstance(wanted, (list, tuple)) and len(wanted) > 0,
+          f"targets must be a list of STATE=IMAGE strings, (state, image) pairs or Targets, got {wanted!r}")
     targets = []
     for item in wanted:
-        state, sep, image = item.partition("=") if isinstance(item, str) else (item[0], "=", item[1])
-        check(bool(sep and state and image), f"target {item!r}: expected STATE=IMAGE (an image file or a "
-                                             "scikit-image name)")
-        check(state in states, f"target {state}={image}: the bundle has no state {state!r}; its states: {sorted(states)}")
+        if isinstance(item, Target):
+            state, image = item.state, None
+        else:
+            if isinstance(item, str):
+                state, sep, image = item.partition("=")
+            elif isinstance(item, (tuple, list)) and len(item) == 2:
+                (state, image), sep = item, "="
+            else:
+                state = sep = image = ""
+            check(bool(sep and isinstance(state, str) and state and (isinstance(image, torch.Tensor) or image)),
+                  f"target {item!r}: expected STATE=IMAGE (an image file or a scikit-image name), a (state, image) "
+                  "pair or a Target")
+        label = f"{state}={image}" if isinstance(image, str) else f"for state {state!r}"
+        check(state in states, f"target {label}: the bundle has no state {state!r}; its states: {sorted(states)}")
         check(all(t.state != state for t in targets),
-              f"target {state}={image}: state {state!r} already has a target; give one per state")
-        targets.append(Target(state, target_image(image, bundle.channels), name=state))
+              f"target {label}: state {state!r} already has a target; give one per state")
+        targets.append(item if isinstance(item, Target) else
+                       Target(state, image, name=state) if isinstance(image, torch.Tensor) else
+                       Target(state, target_image(image, bundle.channels), name=state))
     return targets
 
 
@@ -115,8 +131,9 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
 
     Args:
         bundle: a :class:`~torchproj.calib.CalibrationBundle` or its folder (``torchproj calibrate``).
-        targets: ``"STATE=IMAGE"`` strings or ``(state, image)`` pairs: an image file or a
-            scikit-image test-image name per state.
+        targets: ``"STATE=IMAGE"`` strings, ``(state, image)`` pairs (an image file, a scikit-image
+            test-image name or a :math:`(C, H, W)` tensor) or :class:`~torchproj.transport.Target`\ s,
+            one per state.
         solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
         device, outside, chains, colour_weights, smoothness: as :func:`~torchproj.pipeline.run_virtual`; the
         predicted views use the weights the solve used.
