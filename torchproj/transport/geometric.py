@@ -17,8 +17,9 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import unproject_points
 
-from ..core.checks import check, check_shape
+from ..core.checks import check, check_array, check_shape, is_whole
 from ..core.conventions import pixel_grid
+from ..scene.config import Camera, Projector
 
 __all__ = ["triangulate_rays", "point_map", "normal_map", "geometric_weights"]
 
@@ -56,7 +57,14 @@ def point_map(prj_xy: Sequence[torch.Tensor], camera, projectors) -> torch.Tenso
     Returns:
         :math:`(H, W, 3)` float64 points, NaN where no projector decoded the pixel.
     """
-    check(len(prj_xy) == len(projectors), f"got {len(prj_xy)} maps for {len(projectors)} projectors")
+    check(isinstance(camera, Camera), f"camera must be a scene's Camera (scene.camera), got {type(camera).__name__}")
+    check(isinstance(projectors, (list, tuple)) and len(projectors) > 0 and all(isinstance(p, Projector) for p in projectors),
+          f"projectors must be a scene's projectors (scene.projectors), got {type(projectors).__name__}")
+    check(isinstance(prj_xy, (list, tuple)) and len(prj_xy) == len(projectors),
+          f"prj_xy must be one map per projector ({len(projectors)}), got {type(prj_xy).__name__}")
+    sizes = check_shape(prj_xy[0], "prj_xy[0]", ["H", "W", 2])
+    for j, m in enumerate(prj_xy[1:], 1):
+        check_shape(m, f"prj_xy[{j}]", [sizes["H"], sizes["W"], 2])
     h, w = prj_xy[0].shape[:2]
     points = torch.full((h * w, 3), float("nan"), dtype=torch.float64)
     done = torch.zeros(h * w, dtype=torch.bool)
@@ -80,6 +88,9 @@ def normal_map(points: torch.Tensor, camera_centre, window: int = 5) -> torch.Te
     cross product is the normal. NaN where the neighbourhood is incomplete (edges, holes).
     """
     check_shape(points, "points", ["H", "W", 3])
+    check(is_whole(window) and window >= 3 and window % 2 == 1, f"window must be an odd whole number >= 3, got {window!r}")
+    camera_centre = check_array(camera_centre, "camera_centre", (3,), finite=True)
+    points = points.double()  # the filter's weights are float64: a float32 map met them as a type error
     valid = torch.isfinite(points).all(-1)
     p = torch.nan_to_num(points).permute(2, 0, 1)[None]  # 1x3xHxW
     m = valid.double()[None, None]
