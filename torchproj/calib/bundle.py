@@ -395,6 +395,9 @@ def _map_stems(names: list[str]) -> list[str]:
 
 def write_bundle(folder: str | os.PathLike, bundle: CalibrationBundle, procam_calibration=None) -> None:
     """Write a bundle into ``folder`` (module docstring: the format)."""
+    check_path(folder, "folder", "the bundle folder")
+    check(isinstance(bundle, CalibrationBundle), f"bundle must be a CalibrationBundle (calibrate_folders' or load_bundle's), "
+                                                 f"got {type(bundle).__name__}")
     folder = Path(folder)
     files = {}
     stems = _map_stems([name for name, _, _ in bundle.projectors])

@@ -504,7 +504,7 @@ def decode_folder(capture_dir, projector: tuple[int, int], *, calibration=None, 
 
     procam = read_opencv_calibration(calibration) if calibration is not None else None
     t0 = time.perf_counter()
-    capture = read_graycode_folder(capture_dir, projector, names=names or DEFAULT_NAMES, bits=bits)
+    capture = read_graycode_folder(capture_dir, projector, names=DEFAULT_NAMES if names is None else names, bits=bits)
     t_read = time.perf_counter() - t0
     cal = calibrate_projector(capture, projector, white_threshold=white_threshold, black_threshold=black_threshold,
                               subpixel=subpixel, max_hole=fill_holes, bits=bits, plane_tolerance=plane_tolerance)

@@ -195,12 +195,16 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         :math:`(C, H_j, W_j)` in [0, 1] it should emit, and the uint8 patterns to send it.
     """
     from . import check_solver, solve_patterns
+    from .solvers import check_operator
     from .eo import solve_eo
     from .mixing import solve_through_mixing
     from .objectives import image_objective, solve_ssim
 
     check_solver(solver)
     ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    check(len(ops) > 0, "op must be a TransportOperator, or one per colour channel, got an empty list")
+    for one in ops:
+        check_operator(one)
     check_responses(responses, len(ops[0].projector_sizes))  # before the solve, not after it
     image = image_objective(objective)
     check_solver_options(solver_options)

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from kornia.geometry.epipolar import find_fundamental
 
-from ..core.checks import check, check_count, check_number, is_whole
+from ..core.checks import check, check_count, check_number, check_shape, is_whole
 from ..core.progress import progress_bar
 from ..core.sparse import csr_tensor, spmm
 from ..transport.build import StateCalibration, check_calibrations
@@ -110,6 +110,8 @@ def epipolar_bands(op: TransportOperator, F: torch.Tensor, band: float = 1.0) ->
     Returns:
         :math:`(N_{cols},)` int64 band index.
     """
+    check_operator(op)
+    check_shape(F, "F", [3, 3])
     check(len(op.projector_sizes) == 2, "epipolar chains need exactly two projectors; use chains='components'")
     # NaN, 0 or inf would round every line to one integer past int64's reach: one band of everything.
     band = check_number(band, "band", strict=True)
