@@ -340,6 +340,8 @@ def test_the_estimators_and_geometry_helpers_name_values_of_the_wrong_kind(gray_
     cal = calibrate_once(scene)
     tgts = tp.scene_targets(scene, rig=cal.rig)
     procam = ex.rig_procam(scene, 0)
+    rows = tp.build_transport(cal.states, tgts, merge=False)
+    fundamental = tp.solve.fundamental_between_projectors(cal.states)
     pixels = torch.tensor([0, 5])
     ray = torch.tensor([[0.0, 0, 1]])
     calls = {
@@ -372,8 +374,27 @@ def test_the_estimators_and_geometry_helpers_name_values_of_the_wrong_kind(gray_
                             ["rig", "targets", "rows"]),
         "scan_surface": (lambda **k: ex.scan_surface(**{"scene": scene, "surface": next(iter(scene.surfaces.values())), "pose": torch.eye(4), **k}),
                          ["scene", "surface", "pose", "seed"]),
+        "epipolar_bands": (lambda **k: tp.solve.epipolar_bands(**{"op": rows, "F": fundamental, **k}), ["op", "F", "band"]),
+        "make_patterns": (lambda **k: tp.make_patterns(**{"op": rows, "solver": "fista", "bounds": (0, 1),
+                                                          "responses": pl.true_responses(scene), "max_iter": 2, **k}), ["op"]),
+        "point_map": (lambda **k: tr.point_map(**{"prj_xy": cal.states["near"].prj_xy, "camera": scene.camera,
+                                                  "projectors": scene.projectors, **k}), ["prj_xy", "camera", "projectors"]),
+        "geometric_weights": (lambda **k: tr.geometric_weights(**{"prj_xy": cal.states["near"].prj_xy, "camera": scene.camera,
+                                                                  "projectors": scene.projectors, **k}), ["window"]),
+        "normal_map": (lambda **k: tr.normal_map(**{"points": torch.rand(20, 20, 3), "camera_centre": (0, 0, 0), **k}),
+                       ["points", "camera_centre", "window"]),
     }
     with warnings.catch_warnings():  # the warnings' own values (an infinite noise) are warned of, as they should be
         warnings.simplefilter("ignore")
         failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names)]
     assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+
+
+def test_a_float32_point_map_has_the_normals_of_its_float64_copy():
+    from torchproj.transport import normal_map
+
+    ys, xs = torch.meshgrid(torch.arange(12.0), torch.arange(16.0), indexing="ij")
+    points = torch.stack([xs, ys, 0.3 * xs + 0.1 * ys + 5], -1).double()  # a tilted plane
+    wide = normal_map(points, (0.0, 0.0, -10.0))
+    assert torch.allclose(normal_map(points.float(), (0.0, 0.0, -10.0)), wide, atol=1e-6, equal_nan=True)
+    assert bool(torch.isfinite(wide).any())

@@ -45,6 +45,14 @@ def capture_root(scene, tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def bench(capture_root, tmp_path_factory):
+    """The captures calibrated from their folders, as ``torchproj calibrate`` writes a bundle."""
+    calib = tmp_path_factory.mktemp("bench") / "calib"
+    assert main(["calibrate", str(capture_root), "--projector", "256x192", "--out", str(calib)]) == 0
+    return calib
+
+
 def test_sequence_is_what_the_virtual_rig_shows(scene, tmp_path):
     assert main(["sequence", "--projector", "256x192", "--out", str(tmp_path / "seq")]) == 0
     manifest = json.loads((tmp_path / "seq" / "sequence.json").read_text())
@@ -220,9 +228,8 @@ def test_calibration_options_of_the_wrong_kind_are_named_before_any_folder_is_re
         calibrate_folders(capture_root, **{"sizes": {"*": (256, 192)}, **options})
 
 
-def test_solve_refuses_unknown_states_and_writes_nothing(capture_root, tmp_path, capsys):
-    calib = tmp_path / "calib"
-    assert main(["calibrate", str(capture_root), "--projector", "256x192", "--out", str(calib)]) == 0
+def test_solve_refuses_unknown_states_and_writes_nothing(bench, tmp_path, capsys):
+    calib = bench
     out = tmp_path / "solved"
     assert main(["solve", str(calib), "--targets", "middle=astronaut", "--out", str(out)]) == 2
     assert "no state 'middle'" in capsys.readouterr().err and not out.exists()
@@ -528,3 +535,35 @@ def test_a_bundle_kept_in_the_capture_root_is_left_out_of_its_states(tmp_path):
         layout = _projector_folders(tmp_path, {"*": (64, 48)})
     assert list(layout) == ["far", "near"]
     assert [name for name, *_ in layout["near"]] == ["lower", "upper"]
+
+
+def test_a_script_solves_a_bundle_for_tensors_and_targets_as_for_names(bench, tmp_path):
+    """solve_bundle's targets from a script: (state, tensor) pairs and Targets solve as the names of the
+    same images do; what is none of these is refused naming it, and the file-based loop, which keeps
+    its targets by name, says so."""
+    from torchproj.pipeline import refine_bundle, solve_bundle
+    from torchproj.pipeline.targets import target_image
+    from torchproj.transport import Target
+
+    bundle = load_bundle(bench)
+    by_name = solve_bundle(bundle, ["far=astronaut", "near=camera"], max_iter=20)
+    images = {state: target_image(name, bundle.channels) for state, name in (("far", "astronaut"), ("near", "camera"))}
+    by_tensor = solve_bundle(bundle, [("far", images["far"]), ("near", images["near"])], max_iter=20)
+    by_target = solve_bundle(bundle, [Target("far", images["far"]), Target("near", images["near"], name="near")], max_iter=20)
+    for other in (by_tensor, by_target):
+        for name, pattern in by_name.patterns.items():
+            assert torch.equal(other.patterns[name], pattern), name
+    for bad in ([("far",)], [3], "far=astronaut", [("far", None)]):
+        with pytest.raises(InputError, match="target"):
+            solve_bundle(bundle, bad, max_iter=2)
+    with pytest.raises(InputError, match="by name"):
+        refine_bundle(bench, [("far", images["far"])], tmp_path / "loop")
+    with pytest.raises(InputError, match="bundle folder"):
+        refine_bundle(bundle, ["far=astronaut"], tmp_path / "loop")
+    assert not (tmp_path / "loop").exists()
+    from torchproj.calib import write_bundle
+
+    for folder, given in ((None, bundle), (tmp_path / "copy", "bundle")):
+        with pytest.raises(InputError, match="folder|bundle"):
+            write_bundle(folder, given)
+    assert not (tmp_path / "copy").exists()
