@@ -84,6 +84,11 @@ def test_too_few_block_edges_are_refused():
     blocks = block_map(TRUE_H, (240, 320), (256, 192), (128, 96))  # one bit per axis: one edge each
     with pytest.raises(InputError, match="1 column and 1 row edges, a homography needs at least 2"):
         fit_homography(blocks, block=(128, 96))
+    # A surface inside one block shows no edge at all: the start's fit on its one centre is degenerate,
+    # and the count, not the degenerate fit, says what to do.
+    one = torch.where(torch.isfinite(blocks), torch.tensor([64.0, 48.0]), blocks)
+    with pytest.raises(InputError, match="0 column and 0 row edges.*--bits"):
+        fit_homography(one, block=(128, 96))
 
 
 def test_sequence_bits_and_the_shortened_patterns():

@@ -98,22 +98,25 @@ def fit_homography(prj_xy: torch.Tensor, *, block: tuple[int, int] = (1, 1), max
     ok = torch.isfinite(prj_xy).all(-1)
     n = int(ok.sum())
     check(n >= 4, f"a homography needs at least 4 decoded pixels, this map has {n}")
+    if (bx, by) != (1, 1):
+        edge, (ex, ey) = _block_edges(_drop_isolated(prj_xy))
+        # Each block edge is a line of known projector x (or y); a homography needs two of each
+        # (four lines, no three through one point) to be pinned down. Counted before the start's fit,
+        # which a map of a few blocks leaves degenerate: the count says what to do about it.
+        check(ex >= 2 and ey >= 2, f"the decoded blocks show {ex} column and {ey} row edges, a homography needs at "
+                                   "least 2 of each: show more bits of the Gray-code sequence (--bits)")
     cam = pixel_grid(*prj_xy.shape[:2], device=prj_xy.device, dtype=torch.float64)[ok]
     prj = prj_xy[ok].double()
     pick = _spread(n, max_points, prj_xy.device)
     matrix = find_homography_dlt_iterated(cam[pick][None], prj[pick][None], prj.new_ones(1, len(pick)),
                                           soft_inl_th=max(soft_threshold, bx, by), n_iter=iterations)[0]
     check(bool(torch.isfinite(matrix).all()), "the homography fit failed (degenerate correspondences: are the decoded "
-                                              "pixels on a line?)")
+                                              "pixels on a line?)" + ("" if (bx, by) == (1, 1) else
+                                                                      "; show more bits of the Gray-code sequence (--bits)"))
     if (bx, by) == (1, 1):
         error = (transform_points(matrix[None], cam[None])[0] - prj).norm(dim=-1)
         fitted_on = len(pick)
     else:
-        edge, (ex, ey) = _block_edges(_drop_isolated(prj_xy))
-        # Each block edge is a line of known projector x (or y); a homography needs two of each
-        # (four lines, no three through one point) to be pinned down.
-        check(ex >= 2 and ey >= 2, f"the decoded blocks show {ex} column and {ey} row edges, a homography needs at "
-                                   "least 2 of each: show more bits of the Gray-code sequence (--bits)")
         cam, prj = cam[edge[ok]], prj[edge[ok]]
         half = torch.tensor([bx / 2, by / 2], dtype=torch.float64, device=prj.device)
         pick = _spread(len(cam), max_points, prj.device)
