@@ -112,3 +112,31 @@ def test_a_run_with_its_ceiling_says_an_ill_posed_scene_once(stressed):
         report = run_virtual(_scene("no baseline"), calibration=cal, ceiling=True, progress=False, max_iter=100).report
     assert all("ceiling" in t for t in report["targets"])
     assert len([w for w in caught if "unexplained" in str(w.message)]) == 1
+
+
+def test_a_solve_held_from_the_optimum_by_its_own_options_says_so(stressed):
+    """The warning reads the share as the scene's where the solve reached the bounded optimum; where the
+    solve's own options kept it away (the paper's LF, bounds of a sliver of the range, an iteration limit
+    it stopped at while still improving, a smoothness far past the default) it names them, and the
+    default run says nothing of them. ``torchproj run --solver lf`` on the default scene had been told
+    its scene may be ill-posed."""
+    from torchproj.solve.compensate import solve_limits
+    from torchproj.solve.solvers import SolveResult
+
+    def result(iterations=40, converged=True, history=(), **info):
+        return SolveResult(torch.zeros(3, 1), iterations, 1.0, history=list(history), converged=converged, info=info)
+
+    assert solve_limits("fista", (0.0, 1.0), result(), iterations_given=False) == []
+    assert solve_limits("eo", (-100 / 255, 1.0), result(), iterations_given=True) == []
+    assert "lf" in solve_limits("lf", (0.0, 1.0), result(), False)[0]
+    assert "254..255" in solve_limits("fista", (254 / 255, 1.0), result(), False)[0]
+    falling = result(2, False, [(0.0, 9.0), (0.1, 5.0)])
+    assert "iteration limit (2)" in solve_limits("fista", (0.0, 1.0), falling, True)[0]
+    assert solve_limits("fista", (0.0, 1.0), falling, False) == []  # the pipeline's own limit is no option of the user's
+    levelled = result(200, False, [(0.01 * k, 5.0 + 1e-4 * (200 - k)) for k in range(200)])
+    assert solve_limits("fista", (0.0, 1.0), levelled, True) == []
+    assert "smoothness" in solve_limits("fista", (0.0, 1.0), result(smoothness=1.0), False)[0]
+    # An ill-posed scene's solve stopped by a limit it had levelled off under is still the scene's.
+    op, cal = stressed["no baseline"]
+    messages = _warnings_of(op, cal)
+    assert messages and "The scene may be ill-posed" in messages[0]

@@ -11,6 +11,7 @@ import torch
 
 from ..calib.response import ResponseCurve
 from ..core.checks import check, check_count, check_shape, is_number
+from ..core.choices import DEFAULT_SMOOTHNESS
 from ..core.errors import InputError
 
 __all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
@@ -66,21 +67,54 @@ def unexplained(ops, p: torch.Tensor) -> float:
 ILL_POSED_MESSAGE = "the patterns leave"  # how warn_if_ill_posed's warning starts (a filter matches it)
 
 
-def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WARNING) -> float:
+def warn_if_ill_posed(op, patterns: torch.Tensor, limit: float = UNEXPLAINED_WARNING, limits: list[str] = ()) -> float:
     """Warn when the patterns leave more than ``limit`` of the targets' energy unexplained.
 
     Shipped scenes stay under 0.07 (``benchmarks/stability.py``); past 0.1 the targets cannot be shown
     apart: no projector baseline, targets asking opposite light along the same rays, more targets
-    than the projectors can carry, or a calibration drowned in noise. Returns the share. ``op`` may
-    be one operator per colour channel (:func:`unexplained`).
+    than the projectors can carry, or a calibration drowned in noise. That reading holds for the
+    bounded least-squares optimum the threshold was set on: where the solve's own options kept it
+    from that optimum (``limits``, :func:`solve_limits`), the warning names them first. Returns the
+    share. ``op`` may be one operator per colour channel (:func:`unexplained`).
     """
     share = unexplained(op, patterns)
     if share > limit:
+        scene = ("projectors too close together, targets too close in depth or asking opposite light along the same "
+                 "rays, more targets than the projectors can carry, or a noisy calibration")
+        why = (f"This solve's own options keep it from the optimum: {'; '.join(limits)}. With them at their defaults, "
+               f"a share this high would say the scene is ill-posed ({scene})" if limits else
+               f"The scene may be ill-posed: {scene}")
         warnings.warn(f"{ILL_POSED_MESSAGE} {share:.0%} of the targets' energy unexplained (over {limit:.0%}): expect "
-                      "faint images and crosstalk. The scene may be ill-posed: projectors too close together, targets "
-                      "too close in depth or asking opposite light along the same rays, more targets than the "
-                      "projectors can carry, or a noisy calibration", stacklevel=3)
+                      f"faint images and crosstalk. {why}", stacklevel=3)
     return share
+
+
+def solve_limits(solver: str, bounds: tuple[float, float], result, iterations_given: bool) -> list[str]:
+    """What in a solve's own options keeps its patterns from the bounded least-squares optimum, in
+    the user's words: the paper's LF baseline, bounds narrower than a projector's black to white,
+    an iteration limit the solve stopped at, a smoothness weight far past the default.
+    ``torchproj run --solver lf`` on the default scene had been told its scene may be ill-posed."""
+    lo, hi = bounds
+    limits = []
+    if solver == "lf":
+        limits.append("lf scales the unbounded least squares into the bounds (the paper's baseline), far from the "
+                      "bounded optimum fista finds")
+    if hi - lo < 1:
+        limits.append(f"the bounds {lo * 255:g}..{hi * 255:g} (8-bit) span {hi - lo:.1%} of each projector's black to "
+                      "white")
+    # Stopped by the limit while the objective still fell by a percent over the last tenth of its
+    # iterations: more would have gone further. (An ill-posed scene's solve that stops at the limit
+    # has long levelled off, and its share is the scene's.)
+    history = [objective for _, objective in result.history]
+    tail = history[min(int(len(history) * 0.9), len(history) - 2)] if len(history) >= 2 else None
+    if iterations_given and not result.converged and tail is not None and tail - history[-1] > 0.01 * abs(history[-1]):
+        limits.append(f"the solver stopped at its iteration limit ({result.iterations}) while still improving")
+    # A penalty that dominates keeps the patterns flat, and then costs little itself: its weight says it.
+    weight = result.info.get("smoothness", 0.0)
+    if weight > 10 * DEFAULT_SMOOTHNESS:
+        limits.append(f"a smoothness weight of {weight:g} ({weight / DEFAULT_SMOOTHNESS:.0f} times the default "
+                      f"{DEFAULT_SMOOTHNESS:g}) flattens the patterns")
+    return limits
 
 
 def resolve_smoothness(solver: str, smoothness: float | None) -> float:
@@ -88,8 +122,6 @@ def resolve_smoothness(solver: str, smoothness: float | None) -> float:
     :data:`~torchproj.core.choices.DEFAULT_SMOOTHNESS` for the least-squares solvers (fista, pgd,
     adam) and 0 for the paper's ``lf`` and ``eo``, which take none
     (:meth:`~torchproj.transport.TransportOperator.with_smoothness`)."""
-    from ..core.choices import DEFAULT_SMOOTHNESS
-
     paper = solver in ("lf", "eo")
     if smoothness is None:
         return 0.0 if paper else DEFAULT_SMOOTHNESS
@@ -238,7 +270,8 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
                                      info={**result.info, "smoothness": smoothness, "penalised_objective": result.objective})
     # Whether the targets can be shown apart at all is a property of the least-squares optimum (the
     # threshold is calibrated on it); an image objective departs from it on purpose.
-    warn_if_ill_posed(ops, result.patterns)
+    warn_if_ill_posed(ops, result.patterns, limits=solve_limits(solver, bounds, result,
+                                                             max_iter is not None or "max_iter" in (solver_options or {})))
     mixings = [r.mixing for r in responses]
     # A mixing that is the identity couples nothing: the channels' answer is already the optimum (a
     # colour camera calibrated on a rig without mixing measures exactly that, and the 200 coupled
