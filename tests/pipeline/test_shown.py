@@ -55,7 +55,7 @@ def test_a_scene_name_or_anything_else_where_a_scene_or_a_calibration_goes_is_na
         shown_world(None)
     with pytest.raises(InputError, match="world must be a VirtualCalibration .*, got Scene"):
         rig_measure(calibration.rig.scene, op, targets)
-    with pytest.raises(InputError, match="op must be a TransportOperator, or one per colour channel, got str"):
+    with pytest.raises(InputError, match="op must be a TransportOperator .*, or a list of one per colour channel, got str"):
         rig_measure(calibration, "op", targets)
     with pytest.raises(InputError, match="targets must be a list of Target, got NoneType"):
         rig_measure(calibration, op, None)

@@ -27,6 +27,7 @@ from ..core.checks import check
 from ..sim.rig import check_rig
 from ..transport import Target, TransportOperator, csr_from_coo
 from ..transport.build import check_targets
+from ..transport.operator import check_operator
 from .shown import CapturedRows, rig_measure
 
 __all__ = ["check_linear_camera", "light_transport", "solve_on_light_transport"]
@@ -75,8 +76,7 @@ def light_transport(rig, targets: list[Target], rows: TransportOperator) -> list
     """
     check_rig(rig)
     check_targets(targets)
-    check(isinstance(rows, TransportOperator), f"rows must be a TransportOperator (build_transport's, merge=False), got "
-                                               f"{type(rows).__name__}")
+    check_operator(rows, "rows")
     scene = rig.scene
     check(rows.row_pixel is not None, "the exact light transport needs an operator whose rows are camera pixels: "
                                       "build it with merge=False")

@@ -16,8 +16,9 @@ import torch
 from ..core.checks import check, check_count
 from ..scene.config import check_scene
 from ..scene.show import shown_scene
-from ..transport import Target, TransportOperator
+from ..transport import Target
 from ..transport.build import check_targets
+from ..transport.operator import check_operators
 from .scoring import as_light
 from .virtual import VirtualCalibration, check_virtual_calibration, quiet_rig, true_responses
 
@@ -55,9 +56,7 @@ class CapturedRows:
     """
 
     def __init__(self, op, targets: list[Target]):
-        ops = list(op) if isinstance(op, (list, tuple)) else [op]
-        check(len(ops) > 0 and all(isinstance(o, TransportOperator) for o in ops),
-              f"op must be a TransportOperator, or one per colour channel, got {type(op).__name__}")
+        ops = check_operators(op)
         check_targets(targets)
         self.op = ops[0]
         check(self.op.row_pixel is not None, "the loop measures camera pixels: build the operator with merge=False")

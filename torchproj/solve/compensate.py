@@ -12,6 +12,7 @@ import torch
 from ..calib.response import ResponseCurve
 from ..core.checks import check, check_count, check_shape, is_number
 from ..core.choices import DEFAULT_SMOOTHNESS
+from ..transport.operator import check_operator, check_operators
 from ..core.errors import InputError
 
 __all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
@@ -227,16 +228,12 @@ def make_patterns(op, solver: str, bounds: tuple[float, float], responses: list[
         :math:`(C, H_j, W_j)` in [0, 1] it should emit, and the uint8 patterns to send it.
     """
     from . import check_solver, solve_patterns
-    from .solvers import check_operator
     from .eo import solve_eo
     from .mixing import solve_through_mixing
     from .objectives import image_objective, solve_ssim
 
     check_solver(solver)
-    ops = list(op) if isinstance(op, (list, tuple)) else [op]
-    check(len(ops) > 0, "op must be a TransportOperator, or one per colour channel, got an empty list")
-    for one in ops:
-        check_operator(one)
+    ops = check_operators(op)
     check_responses(responses, len(ops[0].projector_sizes))  # before the solve, not after it
     image = image_objective(objective)
     check_solver_options(solver_options)
@@ -315,7 +312,7 @@ def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], respo
         ``(light, patterns)``: per projector :math:`(C, H_j, W_j)` linear light in [0, 1] (on the
         CPU; cells that are not variables stay black), and the uint8 images (:func:`compensate`).
     """
-    from .solvers import check_operator, to_projectable
+    from .solvers import to_projectable
 
     check_operator(op)
     # Columns per channel: a colour rig's per-channel operators share the grey one's columns.

@@ -46,7 +46,7 @@ import torch
 
 from ..core.checks import check, check_count, check_finite, check_shape, is_number
 from ..core.progress import progress_bar
-from ..transport.operator import TransportOperator
+from ..transport.operator import check_operators
 from .compensate import check_responses, projectable_patterns
 from .model import _one_operator
 from .objectives import ImageLoss, image_objective, solve_ssim
@@ -92,9 +92,7 @@ class RefineResult:
 
 
 def _operators(op) -> list:
-    ops = list(op) if isinstance(op, (list, tuple)) else [op]
-    check(len(ops) > 0 and all(isinstance(o, TransportOperator) for o in ops),
-          f"op must be a TransportOperator (build_transport's), or one per colour channel, got {type(op).__name__}")
+    ops = check_operators(op)
     check(all(o.row_pixel is not None for o in ops), "the loop compares captured camera pixels with the model's rows: "
                                                      "build the operator with merge=False")
     check(len({(o.shape, o.target_count) for o in ops}) == 1,

@@ -22,7 +22,7 @@ from ..core.checks import check, check_count, check_finite, check_number, check_
 from ..core.errors import InputError
 from ..core.fused import fused
 from ..core.progress import progress_bar
-from ..transport.operator import SUM_RUN, TransportOperator
+from ..transport.operator import SUM_RUN, TransportOperator, check_operator
 
 __all__ = ["OUTSIDE", "LF_NORMALISE", "SolveResult", "ClampedAdam", "solve_pgd", "solve_fista", "solve_adam", "solve_lf", "solve_target_sets", "to_projectable",
            "check_bounds"]
@@ -87,11 +87,6 @@ def to_projectable(p: torch.Tensor, bounds: tuple[float, float], outside: str = 
     if lo >= 0 and hi <= 1:
         return p
     return p.clamp(0, 1) if outside == "clip" else (p - lo) / (hi - lo)
-
-
-def check_operator(op) -> None:
-    """``op`` a :class:`~torchproj.transport.TransportOperator`, what every solver iterates on."""
-    check(isinstance(op, TransportOperator), f"op must be a TransportOperator (build_transport's), got {type(op).__name__}")
 
 
 def check_patterns_shape(op, patterns: torch.Tensor, name: str = "start") -> None:

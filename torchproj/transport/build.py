@@ -42,7 +42,7 @@ from ..calib.graycode import WIDE_SHARE, CellShares, graycode_bits, stripe_signs
 from ..core.lens import disc_points, points_for_diameter
 from ..core.sparse import csr_tensor, index_dtype
 from ..metrics.ssim import WINDOW
-from .operator import TransportOperator
+from .operator import TransportOperator, check_operator
 
 __all__ = ["BLUR_MIN", "COLOUR_WEIGHTS", "DEFAULT_FOOTPRINT", "FOOTPRINTS", "Target", "StateCalibration", "target_on_camera",
            "build_transport", "build_channel_transports", "group_rows", "has_colour_weights", "map_slope",
@@ -1407,7 +1407,7 @@ def retarget_rhs(op, calibrations: dict[str, StateCalibration], targets: list[Ta
     Returns:
         :math:`(N_{rows}, C)`, C the images' channels.
     """
-    check(isinstance(op, TransportOperator), f"op must be a TransportOperator (build_transport's), got {type(op).__name__}")
+    check_operator(op)
     check_calibrations(calibrations)
     check_targets(targets)
     check(op.row_pixel is not None, "new images on an operator's rows need rows that are camera pixels: build it "

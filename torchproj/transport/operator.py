@@ -1163,6 +1163,22 @@ def gram_matrix(A: torch.Tensor, At: torch.Tensor | None = None, parts: int | No
     return csr_tensor(crow_q, col_q, val_q, (n, n))
 
 
+def check_operator(op, name: str = "op") -> None:
+    """``op`` a :class:`TransportOperator` (:func:`~torchproj.transport.build_transport`'s)."""
+    check(isinstance(op, TransportOperator), f"{name} must be a TransportOperator (build_transport's), got "
+                                             f"{type(op).__name__}")
+
+
+def check_operators(op, name: str = "op") -> list:
+    """``op`` one :class:`TransportOperator`, or a list of one per colour channel
+    (:func:`~torchproj.transport.build_channel_transports`), as a list."""
+    ops = list(op) if isinstance(op, (list, tuple)) else [op]
+    check(len(ops) > 0 and all(isinstance(o, TransportOperator) for o in ops),
+          f"{name} must be a TransportOperator (build_transport's), or a list of one per colour channel, got "
+          f"{type(op).__name__}{' (empty)' if isinstance(op, (list, tuple)) and not op else ''}")
+    return ops
+
+
 def normal_form(op: "TransportOperator") -> str:
     """The form of the normal equations the gradient solvers iterate on for ``op``
     (:meth:`TransportOperator.normal_equations`' ``"auto"``): ``"products"`` where its rows are
@@ -1180,7 +1196,7 @@ def normal_form(op: "TransportOperator") -> str:
     0.35 M cells, Q 5.5 times A's nonzeros) 2.5 s against 1.5 s. Rows of one or two cells (the nearest
     footprint) keep ``Q`` sparse: there it wins everywhere (``python benchmarks/normal_forms.py``).
     """
-    check(isinstance(op, TransportOperator), f"op must be a TransportOperator (build_transport's), got {type(op).__name__}")
+    check_operator(op)
     if getattr(op, "form", None) is not None:  # an operator made from another iterates as that one
         return op.form
     width = op.crow.diff().double()
