@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_count, check_number, check_shape, is_number, is_whole
+from ..core.checks import check, check_count, check_number, check_pair, check_shape, is_number, is_whole
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _check_projector_size, _recompute_near, check_projector_size, depth_edges
 
@@ -601,8 +601,7 @@ def stripe_shares(patterns: torch.Tensor, span: torch.Tensor, pixels: torch.Tens
     sizes = check_shape(span, "span", ["H", "W"])
     check_shape(pixels, "pixels", ["M"])
     check(not pixels.is_floating_point() and pixels.dtype != torch.bool, f"pixels must be flat pixel indices, got {pixels.dtype}")
-    check(isinstance(bits, (tuple, list)) and len(bits) == 2 and all(is_whole(b) and b >= 0 for b in bits),
-          f"bits must be (column bits, row bits), whole numbers, got {bits!r}")
+    bits = check_pair(bits, "bits", "(column bits, row bits)")
     check(isinstance(patterns, torch.Tensor) and patterns.dim() in (3, 4) and patterns.shape[0] >= 2 * sum(bits)
           and tuple(patterns.shape[-2:]) == (sizes["H"], sizes["W"]),
           f"patterns must hold the {2 * sum(bits)} pattern/inverse captures of {bits} bits at the span's size, got "

@@ -24,7 +24,7 @@ import torch
 from kornia.geometry.homography import find_homography_dlt_iterated
 from kornia.geometry.linalg import transform_points
 
-from ..core.checks import check, check_count, check_number, check_shape, is_whole
+from ..core.checks import check, check_count, check_number, check_pair, check_shape
 from ..core.conventions import pixel_grid
 from .maps import check_projector_size
 
@@ -92,9 +92,7 @@ def fit_homography(prj_xy: torch.Tensor, *, block: tuple[int, int] = (1, 1), max
     check_count(max_points, "max_points", 4)
     check_count(iterations, "iterations", 1)
     check_number(soft_threshold, "soft_threshold (pixels)", 0, strict=True)
-    check(isinstance(block, (tuple, list)) and len(block) == 2 and all(is_whole(b) and b >= 1 for b in block),
-          f"block must be (cells along x, cells along y), whole numbers >= 1, got {block!r}")
-    bx, by = (int(b) for b in block)
+    bx, by = check_pair(block, "block", "(cells along x, cells along y)", 1)
     ok = torch.isfinite(prj_xy).all(-1)
     n = int(ok.sum())
     check(n >= 4, f"a homography needs at least 4 decoded pixels, this map has {n}")

@@ -24,7 +24,7 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "check_array", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
+__all__ = ["SIZE_LIMIT", "check_array", "check_pair", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
            "check_number", "check_seed", "env_number", "env_switch"]
 
 
@@ -45,6 +45,14 @@ def check_count(value, name: str, minimum: int = 1) -> int:
     check(is_whole(value) and value >= minimum,
           f"{name} must be a whole number >= {minimum}, got {value!r}")
     return int(value)
+
+
+def check_pair(value, name: str, what: str, minimum: int = 0) -> tuple[int, int]:
+    """``value`` as two whole numbers of at least ``minimum`` (a list or tuple): ``what`` says which two,
+    for the message (``"(width, height)"``)."""
+    check(isinstance(value, (tuple, list)) and len(value) == 2 and all(is_whole(v) and v >= minimum for v in value),
+          f"{name} must be {what}, whole numbers >= {minimum}, got {value!r}")
+    return int(value[0]), int(value[1])
 
 
 def check_seed(value, name: str = "seed", limit: int = 2 ** 63, hint: str = "") -> int:

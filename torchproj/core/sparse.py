@@ -6,7 +6,7 @@ import warnings
 
 import torch
 
-from .checks import check, check_shape, is_whole
+from .checks import check, check_pair, check_shape
 
 __all__ = ["csr_from_coo", "csr_tensor", "index_dtype", "spmm"]
 
@@ -74,8 +74,7 @@ def spmm(matrix: torch.Tensor, x: torch.Tensor, out: torch.Tensor | None = None,
 
 def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     """A CSR matrix from COO triplets (duplicates summed, columns sorted within each row)."""
-    check(isinstance(shape, (tuple, list)) and len(shape) == 2 and all(is_whole(n) and n >= 0 for n in shape),
-          f"shape must be (rows, columns), whole numbers >= 0, got {shape!r}")
+    shape = check_pair(shape, "shape", "(rows, columns)")
     sizes = check_shape(vals, "vals", ["N"])
     for name, index in (("rows", rows), ("cols", cols)):
         check_shape(index, name, [sizes["N"]])

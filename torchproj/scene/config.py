@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..core.checks import SIZE_LIMIT, check, check_path, is_number, is_whole
+from ..core.checks import SIZE_LIMIT, check, check_pair, check_path, is_number, is_whole
 from ..core.conventions import DEFAULT_COLOUR_MIXING, MAX_MIXING_CONDITION
 from ..core.errors import ConfigError, InputError
 from .fields import Fields, vector
@@ -664,10 +664,8 @@ def scale_config(data: dict, scale: float | None = None, *, camera: tuple[int, i
         raise ConfigError("scale", f"must be a number in (0, 4], got {scale!r}")
     check(isinstance(data, dict), f"data must be a scene's YAML data (a dict, as yaml.safe_load reads a config), "
                                   f"got {type(data).__name__}")
-    for name, size in (("camera", camera), ("projector", projector)):
-        check(size is None or (isinstance(size, (tuple, list)) and len(size) == 2
-                               and all(is_whole(v) and v > 0 for v in size)),
-              f"{name} must be (width, height) in whole pixels, got {size!r}")
+    camera, projector = (None if size is None else check_pair(size, name, "(width, height) in pixels", 1)
+                         for name, size in (("camera", camera), ("projector", projector)))
     data = copy.deepcopy(data)
     projectors = data.get("projectors") if isinstance(data.get("projectors"), list) else []
     devices = [("camera", data.get("camera"), camera)] + [(f"projectors[{i}]", p, projector)
