@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_count, check_number, check_pair, check_shape, is_number, is_whole
+from ..core.checks import check, check_count, check_indices, check_number, check_pair, check_shape, is_number, is_whole
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _check_projector_size, _recompute_near, check_projector_size, depth_edges
 
@@ -245,8 +245,7 @@ def _pair_share(shown: torch.Tensor, span: torch.Tensor, mine: torch.Tensor) -> 
 
 def _check_cells(cells: torch.Tensor, camera) -> None:
     """Cells given per camera pixel: :math:`(H, W, 2)` integer indices."""
-    check_shape(cells, "cells", [*camera, 2])
-    check(not cells.is_floating_point(), f"cells must be integer cell indices, got {cells.dtype}")
+    check_indices(cells, "cells", [*camera, 2])
 
 
 def _check_captures(patterns: torch.Tensor, white: torch.Tensor, black: torch.Tensor) -> None:
@@ -599,8 +598,7 @@ def stripe_shares(patterns: torch.Tensor, span: torch.Tensor, pixels: torch.Tens
     pattern pairs shows white in its first image, ``x`` pairs first: ``(1 + d) / 2`` of the pair's
     difference ``d`` in units of ``span``, clipped to [0, 1] (:attr:`CellShares.band_white`)."""
     sizes = check_shape(span, "span", ["H", "W"])
-    check_shape(pixels, "pixels", ["M"])
-    check(not pixels.is_floating_point() and pixels.dtype != torch.bool, f"pixels must be flat pixel indices, got {pixels.dtype}")
+    check_indices(pixels, "pixels (flat camera pixels)", ["M"])
     bits = check_pair(bits, "bits", "(column bits, row bits)")
     check(isinstance(patterns, torch.Tensor) and patterns.dim() in (3, 4) and patterns.shape[0] >= 2 * sum(bits)
           and tuple(patterns.shape[-2:]) == (sizes["H"], sizes["W"]),

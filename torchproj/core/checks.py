@@ -24,7 +24,7 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "check_array", "check_pair", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
+__all__ = ["SIZE_LIMIT", "check_array", "check_indices", "check_pair", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
            "check_number", "check_seed", "env_number", "env_switch"]
 
 
@@ -45,6 +45,15 @@ def check_count(value, name: str, minimum: int = 1) -> int:
     check(is_whole(value) and value >= minimum,
           f"{name} must be a whole number >= {minimum}, got {value!r}")
     return int(value)
+
+
+def check_indices(tensor: torch.Tensor, name: str, dims: Sequence[str | int]) -> dict[str, int]:
+    """:func:`check_shape`, and integer values: indices into something (a float or bool tensor would
+    be read as values or as a mask instead)."""
+    sizes = check_shape(tensor, name, dims)
+    check(not tensor.is_floating_point() and tensor.dtype != torch.bool and not tensor.is_complex(),
+          f"{name} must be integer indices, got {tensor.dtype}")
+    return sizes
 
 
 def check_pair(value, name: str, what: str, minimum: int = 0) -> tuple[int, int]:

@@ -6,7 +6,7 @@ import warnings
 
 import torch
 
-from .checks import check, check_pair, check_shape
+from .checks import check, check_indices, check_pair, check_shape
 
 __all__ = ["csr_from_coo", "csr_tensor", "index_dtype", "spmm"]
 
@@ -77,8 +77,7 @@ def csr_from_coo(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, sha
     shape = check_pair(shape, "shape", "(rows, columns)")
     sizes = check_shape(vals, "vals", ["N"])
     for name, index in (("rows", rows), ("cols", cols)):
-        check_shape(index, name, [sizes["N"]])
-        check(not index.is_floating_point() and index.dtype != torch.bool, f"{name} must be integer indices, got {index.dtype}")
+        check_indices(index, name, [sizes["N"]])
     n_rows, n_cols = shape
     # A column past the last lands in the next row's key without a word: one pass each (a few ms on a
     # full-size build's entries, against the sort below).

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from ..calib.maps import check_projector_size
-from ..core.checks import check, check_finite, check_shape, is_number
+from ..core.checks import check, check_finite, check_indices, check_shape, is_number
 from ..core.sparse import csr_from_coo, csr_tensor, index_dtype, spmm
 
 __all__ = ["TransportOperator", "normal_form", "gram_matrix", "NormalEquations", "ProductNormalEquations", "csr_from_coo", "cell_blocks"]
@@ -45,13 +45,11 @@ def cell_blocks(column_projector: torch.Tensor, column_cell: torch.Tensor, proje
         its flat cell index on the half-resolution grid and those grids' ``(width, height)``
         (odd sizes round up).
     """
-    sizes = check_shape(column_projector, "column_projector", ["N"])
-    check_shape(column_cell, "column_cell", [sizes["N"]])
+    sizes = check_indices(column_projector, "column_projector", ["N"])
+    check_indices(column_cell, "column_cell", [sizes["N"]])
     check(isinstance(projector_sizes, (list, tuple)), f"projector_sizes must be a list of (width, height), got "
                                                       f"{type(projector_sizes).__name__}")
     projector_sizes = [check_projector_size(size, f"projector_sizes[{j}]") for j, size in enumerate(projector_sizes)]
-    for name, index in (("column_projector", column_projector), ("column_cell", column_cell)):
-        check(not index.is_floating_point() and index.dtype != torch.bool, f"{name} must be integer indices, got {index.dtype}")
     if sizes["N"]:
         low, high = (int(v) for v in torch.aminmax(column_projector))
         check(low >= 0 and high < len(projector_sizes), f"column_projector must index the {len(projector_sizes)} "
