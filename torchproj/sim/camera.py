@@ -10,6 +10,8 @@ from ..scene.config import Camera
 
 __all__ = ["apply_camera"]
 
+_SENSOR_FIELDS = ("exposure", "full_well", "read_noise", "gamma", "bit_depth", "frames")
+
 
 def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Generator | None,
                  quantise: bool = True, out: torch.Tensor | None = None) -> torch.Tensor:
@@ -34,7 +36,9 @@ def apply_camera(radiance: torch.Tensor, camera: Camera, generator: torch.Genera
         mean of ``frames`` values of it for a camera of several).
     """
     check_shape(radiance, "radiance", ["N", "C", "H", "W"])
-    check(isinstance(camera, Camera), f"camera must be a scene's Camera (scene.camera), got {type(camera).__name__}")
+    # What the sensor reads of a camera: a scene's Camera has them, and so may a stand-in of the caller's.
+    check(all(hasattr(camera, a) for a in _SENSOR_FIELDS), f"camera must be a scene's Camera (scene.camera), or hold "
+                                                           f"its {', '.join(_SENSOR_FIELDS)}; got {type(camera).__name__}")
     check(generator is None or isinstance(generator, torch.Generator),
           f"generator must be a torch.Generator, or None for no noise, got {type(generator).__name__}")
     if out is not None:
