@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..core.checks import check, check_count, check_finite, check_number, check_shape
+from ..core.checks import check, check_count, check_finite, check_mask, check_number, check_shape
 from ..core.errors import InputError
 from ..core.conventions import to_numpy
 from .maps import _check_projector_size
@@ -161,8 +161,7 @@ def fit_colour_mixing(primaries: torch.Tensor, white: torch.Tensor, black: torch
     check_shape(white, "white", [3, primaries.shape[2], primaries.shape[3]])
     check_shape(black, "black", list(white.shape))
     if lit is not None:
-        check_shape(lit, "lit", list(white.shape[1:]))
-        check(lit.dtype == torch.bool, f"lit must be a bool tensor, got {lit.dtype}")
+        check_mask(lit, "lit", list(white.shape[1:]))
     span = (white - black).float()
     ok = (span >= _MIXING_CONTRAST).all(0)
     if lit is not None:

@@ -24,7 +24,7 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "check_array", "check_indices", "check_pair", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
+__all__ = ["SIZE_LIMIT", "check_array", "check_indices", "check_mask", "check_pair", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
            "check_number", "check_seed", "env_number", "env_switch"]
 
 
@@ -53,6 +53,14 @@ def check_indices(tensor: torch.Tensor, name: str, dims: Sequence[str | int]) ->
     sizes = check_shape(tensor, name, dims)
     check(not tensor.is_floating_point() and tensor.dtype != torch.bool and not tensor.is_complex(),
           f"{name} must be integer indices, got {tensor.dtype}")
+    return sizes
+
+
+def check_mask(mask: torch.Tensor, name: str, dims: Sequence[str | int]) -> dict[str, int]:
+    """:func:`check_shape`, and bool: a mask of pixels (an integer one would index pixels 0 and 1
+    instead of choosing pixels)."""
+    sizes = check_shape(mask, name, dims)
+    check(mask.dtype == torch.bool, f"{name} must be a bool tensor, got {mask.dtype}")
     return sizes
 
 

@@ -165,6 +165,10 @@ def _nelder_mead(feedback, start: np.ndarray, origin: np.ndarray, scale: np.ndar
     return origin + x * scale
 
 
+def _check_feedback(feedback, name: str = "feedback") -> None:
+    check(callable(feedback), f"{name} must be a function of a pose (higher is better), got {type(feedback).__name__}")
+
+
 def place_by_feedback(feedback, start: np.ndarray, *, step_m: float, step_deg: float, max_evaluations: int = 200,
                       tolerance_m: float = 2e-4, coarse=None) -> tuple[np.ndarray, list[float]]:
     """Move a box from ``start`` to where ``feedback(pose)`` (higher is better) peaks.
@@ -187,9 +191,9 @@ def place_by_feedback(feedback, start: np.ndarray, *, step_m: float, step_deg: f
         the coarse feedback's values, on its own scale: k is the number of ``coarse``'s calls, at most
         ``coarse_looks(max_evaluations)``, fewer where its simplex closes first).
     """
-    for name, given in (("feedback", feedback), ("coarse", coarse)):
-        check(callable(given) or (name == "coarse" and given is None),
-              f"{name} must be a function of a pose (higher is better), got {type(given).__name__}")
+    _check_feedback(feedback)
+    if coarse is not None:
+        _check_feedback(coarse, "coarse")
     start = _pose(start, "start")
     check_number(step_m, "step_m (metres)", strict=True)
     check_number(step_deg, "step_deg (degrees)", strict=True)
@@ -321,7 +325,7 @@ def scan_distance(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
 def feedback_profile(feedback, goal: np.ndarray, offsets_m: np.ndarray) -> dict:
     """Feedback with the box moved from the goal along depth (world z), across (world x) and
     vertically (world y)."""
-    check(callable(feedback), f"feedback must be a function of a pose (higher is better), got {type(feedback).__name__}")
+    _check_feedback(feedback)
     goal = _pose(goal, "goal")
     offsets_m = check_array(offsets_m, "offsets_m (metres)", (None,), finite=True)
     out = {"offsets_mm": (np.asarray(offsets_m) * 1000).round(3).tolist()}

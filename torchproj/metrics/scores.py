@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ..core.checks import check, check_number, check_shape
+from ..core.checks import check, check_mask, check_number, check_shape
 
 __all__ = ["psnr", "model_space_psnr", "crosstalk", "explained_share"]
 
@@ -28,12 +28,6 @@ def _check_range(data_range) -> float:
     return check_number(data_range, "data_range", 0.0, strict=True)
 
 
-def _check_mask(mask, size: list[int], name: str = "mask") -> None:
-    """A bool mask of ``size``: an integer one would index pixels 0 and 1 instead of choosing pixels."""
-    check_shape(mask, name, size)
-    check(mask.dtype == torch.bool, f"{name} must be a bool tensor, got {mask.dtype}")
-
-
 def _check_masked(first: tuple[str, torch.Tensor], rest: tuple[str, list], mask) -> None:
     """An image :math:`(C, H, W)`, a list of images shaped like it and a mask of its pixels."""
     name, image = first
@@ -44,7 +38,7 @@ def _check_masked(first: tuple[str, torch.Tensor], rest: tuple[str, list], mask)
     for k, other in enumerate(images):
         _check_float(other, f"{listed}[{k}]")
         check(other.shape == image.shape, f"{listed}[{k}] {tuple(other.shape)} must have {name}'s shape {tuple(image.shape)}")
-    _check_mask(mask, [sizes["H"], sizes["W"]])
+    check_mask(mask, "mask", [sizes["H"], sizes["W"]])
 
 
 def psnr(estimate: torch.Tensor, reference: torch.Tensor, data_range: float = 1.0) -> float:

@@ -28,8 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..core.checks import check, check_shape
-from .scores import _check_float, _check_float_pair, _check_mask, _check_range
+from ..core.checks import check, check_mask, check_shape
+from .scores import _check_float, _check_float_pair, _check_range
 
 __all__ = ["ssim_map", "ssim", "SSIMLoss"]
 
@@ -185,7 +185,7 @@ def _batched(estimate, reference, mask):
     check_shape(reference, "reference", dims)
     check(tuple(reference.shape) == tuple(estimate.shape), f"estimate {tuple(estimate.shape)} and reference "
                                                            f"{tuple(reference.shape)} differ in shape")
-    _check_mask(mask, (["B"] if batched else []) + [sizes["H"], sizes["W"]])
+    check_mask(mask, "mask", (["B"] if batched else []) + [sizes["H"], sizes["W"]])
     # SSIM crops to the mask's bounding box: a meta tensor has no pixels to find it from.
     check(mask.device.type != "meta", "mask is a meta tensor: SSIM is scored over the pixels it marks, so it needs their values")
     if not batched:

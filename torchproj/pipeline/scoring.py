@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import check, check_image, check_number, check_seed, check_shape
+from ..core.checks import check, check_image, check_mask, check_number, check_seed, check_shape
 from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
@@ -47,8 +47,7 @@ def _check_scored(estimate: torch.Tensor, values: torch.Tensor, covered: torch.T
     """What :func:`affine_psnr` and :func:`score_image` read: two :math:`(C, H, W)` images, a bool mask."""
     sizes = check_shape(values, "values", ["C", "H", "W"])
     check_shape(estimate, "estimate", [sizes["C"], sizes["H"], sizes["W"]])
-    check_shape(covered, "covered", [sizes["H"], sizes["W"]])
-    check(covered.dtype == torch.bool, f"covered must be a bool tensor, got {covered.dtype}")
+    check_mask(covered, "covered", [sizes["H"], sizes["W"]])
 
 
 def affine_psnr(estimate: torch.Tensor, values: torch.Tensor, covered: torch.Tensor) -> float:

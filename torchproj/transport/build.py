@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import torch
 from kornia.geometry.transform import get_perspective_transform, warp_perspective
 
-from ..core.checks import check, check_device, check_finite, check_image, check_number, check_shape
+from ..core.checks import check, check_device, check_finite, check_image, check_mask, check_number, check_shape
 from ..core.conventions import round_to_pixel
 from ..core.errors import InputError
 from ..calib.maps import map_slope, pixel_square
@@ -378,8 +378,7 @@ def target_on_camera(target: Target, mask: torch.Tensor) -> tuple[torch.Tensor, 
         reaches.
     """
     check(isinstance(target, Target), f"target must be a Target, got {type(target).__name__}")
-    check_shape(mask, "mask", ["H", "W"])
-    check(mask.dtype == torch.bool, f"mask must be a bool tensor of the camera's pixels, got {mask.dtype}")
+    check_mask(mask, "mask (the camera's pixels)", ["H", "W"])
     sizes = check_image(target.image, f"target {target.name!r} image")
     h_img, w_img = sizes["H"], sizes["W"]
     check(min(h_img, w_img) >= 2, f"target {target.name!r} image is {w_img}x{h_img} pixels; a target image is "
