@@ -728,9 +728,8 @@ def stripe_contrast(patterns: torch.Tensor, white: torch.Tensor, black: torch.Te
     Returns:
         :math:`(C, H, W)` float32 (C = 1 for grey captures): mean lit minus mean dark reading.
     """
-    check_shape(cells, "cells", ["H", "W", 2])
+    _check_cells(cells, ("H", "W"))  # the captures' size, which check_full_sequence holds them to
     nx, ny, contrast = check_full_sequence(patterns, white, black, cells.float(), projector_size, "stripe_contrast")
-    _check_cells(cells, contrast.shape)
     check_count(margin, "margin (cells between a pixel's cell and a stripe's edge)", 0)
     raw = _channels(white) - _channels(black)  # (C, H, W)
     total = raw.clone()  # white minus black summed over the frames that show it
