@@ -119,8 +119,12 @@ def psnr_hinge(ratio: torch.Tensor, psnr_drop: float, weight: float = _HINGE) ->
     ``10^(psnr_drop / 10)`` times its reference's (it has lost at most ``psnr_drop`` dB of PSNR),
     the square of the excess in dB beyond (element-wise, any shape)."""
     check(isinstance(ratio, torch.Tensor), f"ratio must be a torch.Tensor, got {type(ratio).__name__}")
-    psnr_drop = check_psnr_drop(psnr_drop, optional=False)
-    check_number(weight, "weight")
+    return _psnr_hinge(ratio, check_psnr_drop(psnr_drop, optional=False), check_number(weight, "weight"))
+
+
+def _psnr_hinge(ratio: torch.Tensor, psnr_drop: float, weight: float = _HINGE) -> torch.Tensor:
+    """:func:`psnr_hinge` for the losses that checked their budget once, when made: they take it on
+    every iteration."""
     # Clamped inside the logarithm: at an error of exactly 0 its slope is infinite, and times the
     # hinge's zero that would be NaN.
     return weight * torch.relu(10 * torch.log10(ratio.clamp_min(1e-12)) - psnr_drop) ** 2
@@ -172,7 +176,7 @@ class PSNRBudget(nn.Module):
 
     def hinge(self, ratio: torch.Tensor) -> torch.Tensor:
         """The budget's penalty for ratios :meth:`ratio` already gave (a loop that uses both)."""
-        return psnr_hinge(ratio, self.psnr_drop, self.weight)
+        return _psnr_hinge(ratio, self.psnr_drop, self.weight)
 
     def psnr_change(self, prediction: torch.Tensor) -> torch.Tensor:
         """Each target's PSNR change against the reference, dB: :math:`(..., K)`."""
@@ -247,7 +251,7 @@ class ImageLoss(nn.Module):
         if self.psnr_drop is not None:
             # Clamped inside the logarithm: at an error of exactly 0 its slope is infinite, and times
             # the hinge's zero that would be NaN.
-            per_target = per_target + psnr_hinge(ratio, self.psnr_drop)
+            per_target = per_target + _psnr_hinge(ratio, self.psnr_drop)
         return per_target.mean()
 
     @torch.no_grad()
