@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 from collections.abc import Mapping
 
 import torch
 
 from ..calib.response import ResponseCurve
-from ..core.checks import check, check_count, check_shape, is_number
+from ..core.checks import check, check_count, check_shape
 from ..core.choices import DEFAULT_SMOOTHNESS
-from ..transport.operator import check_operator, check_operators
 from ..core.errors import InputError
+from ..transport.operator import check_operator, check_operators, check_smoothness
 
 __all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
 
@@ -126,12 +125,11 @@ def resolve_smoothness(solver: str, smoothness: float | None) -> float:
     paper = solver in ("lf", "eo")
     if smoothness is None:
         return 0.0 if paper else DEFAULT_SMOOTHNESS
-    check(is_number(smoothness) and math.isfinite(smoothness)
-          and smoothness >= 0, f"smoothness must be a number >= 0 (0: none), got {smoothness!r}")
+    smoothness = check_smoothness(smoothness, "smoothness")
     check(smoothness == 0 or not paper,
           f"smoothness is for the least-squares solvers (fista, pgd, adam); {solver}, the paper's method, takes none: "
           "leave smoothness out (or 0), or choose fista")
-    return float(smoothness)
+    return smoothness
 
 
 def check_solve_options(solver: str, bounds_8bit, projectors: int, outside: str = "clip",

@@ -561,8 +561,7 @@ class TransportOperator(nn.Module):
         Args:
             weight: ``lam`` over ``scale`` squared, >= 0; 0 returns this operator.
         """
-        check(is_number(weight) and math.isfinite(weight)
-              and weight >= 0, f"smoothness weight must be a number >= 0 (0: none), got {weight!r}")
+        check_smoothness(weight)
         if weight == 0:
             return self
         # What the kept operator was made from: moved, converted or given other targets since, it is stale.
@@ -1159,6 +1158,13 @@ def gram_matrix(A: torch.Tensor, At: torch.Tensor | None = None, parts: int | No
         col_q[starts[k]:starts[k + 1]] = torch.from_numpy(q.indices)
         val_q[starts[k]:starts[k + 1]] = torch.from_numpy(q.data)
     return csr_tensor(crow_q, col_q, val_q, (n, n))
+
+
+def check_smoothness(weight, name: str = "smoothness weight") -> float:
+    """A smoothness weight (:meth:`TransportOperator.with_smoothness`): a finite number >= 0, 0 for none."""
+    check(is_number(weight) and math.isfinite(weight) and weight >= 0,
+          f"{name} must be a number >= 0 (0: none), got {weight!r}")
+    return float(weight)
 
 
 def check_operator(op, name: str = "op") -> None:
