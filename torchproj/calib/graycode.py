@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check, check_count, check_indices, check_number, check_pair, check_shape, is_number, is_whole
+from ..core.checks import check, check_count, check_indices, check_number, check_pair, check_shape, check_window, is_number, is_whole
 from ..core.choices import BLACK_THRESHOLD
 from .maps import _check_projector_size, _recompute_near, check_projector_size, depth_edges
 
@@ -1114,7 +1114,7 @@ def refine_subpixel(prj_xy: torch.Tensor, valid: torch.Tensor, window: int = 7,
     Returns:
         :math:`(H, W, 2)` refined coordinates, NaN where invalid.
     """
-    check(is_whole(window) and window % 2 == 1 and window >= 3, f"window must be an odd whole number >= 3, got {window!r}")
+    check_window(window)
     check(is_number(min_fill) and 0 <= min_fill <= 1, f"min_fill must be a share of the window from 0 to 1, got {min_fill!r}")
     # inf: any fit is taken, however far it lands from the pixel's own value.
     check(is_number(max_shift) and max_shift > 0, f"max_shift must be a number of projector pixels > 0, got {max_shift!r}")

@@ -24,7 +24,7 @@ from .errors import InputError
 # otherwise run for hours or fail in the allocator. Raise it with load_scene(size_limit=) or --size-limit.
 from .choices import SIZE_LIMIT  # noqa: E402  (10^8; there, for the command's parser)
 
-__all__ = ["SIZE_LIMIT", "check_array", "check_indices", "check_mask", "check_pair", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
+__all__ = ["SIZE_LIMIT", "check_array", "check_indices", "check_mask", "check_pair", "check_window", "check_shape", "check_finite", "check_image", "check", "check_count", "check_device",
            "check_number", "check_seed", "env_number", "env_switch"]
 
 
@@ -62,6 +62,12 @@ def check_mask(mask: torch.Tensor, name: str, dims: Sequence[str | int]) -> dict
     sizes = check_shape(mask, name, dims)
     check(mask.dtype == torch.bool, f"{name} must be a bool tensor, got {mask.dtype}")
     return sizes
+
+
+def check_window(window, name: str = "window") -> int:
+    """A window of pixels centred on each pixel: an odd whole number >= 3."""
+    check(is_whole(window) and window % 2 == 1 and window >= 3, f"{name} must be an odd whole number >= 3, got {window!r}")
+    return int(window)
 
 
 def check_pair(value, name: str, what: str, minimum: int = 0) -> tuple[int, int]:

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import unproject_points
 
-from ..core.checks import check, check_array, check_shape, is_whole
+from ..core.checks import check, check_array, check_shape, check_window
 from ..core.conventions import pixel_grid
 from ..scene.config import Camera, Projector
 
@@ -88,7 +88,7 @@ def normal_map(points: torch.Tensor, camera_centre, window: int = 5) -> torch.Te
     cross product is the normal. NaN where the neighbourhood is incomplete (edges, holes).
     """
     check_shape(points, "points", ["H", "W", 3])
-    check(is_whole(window) and window >= 3 and window % 2 == 1, f"window must be an odd whole number >= 3, got {window!r}")
+    check_window(window)
     camera_centre = check_array(camera_centre, "camera_centre", (3,), finite=True)
     points = points.double()  # the filter's weights are float64: a float32 map met them as a type error
     valid = torch.isfinite(points).all(-1)
