@@ -124,3 +124,21 @@ def test_the_commands_parser_imports_no_torch_and_offers_the_librarys_choices():
     assert tuple(solve.SOLVERS) == choices.SOLVER_NAMES
     assert solve.OBJECTIVES is choices.OBJECTIVES and transport.FOOTPRINTS is choices.FOOTPRINTS
     assert pipeline.ORACLES is choices.ORACLES and calib.DIM_THRESHOLD == choices.DIM_THRESHOLD
+
+
+def test_every_module_compiles_without_a_warning():
+    """A string escape Python does not know (a docstring's ``\\ s``) compiles with a SyntaxWarning
+    (a DeprecationWarning before 3.12), shown to a user of every process that compiles the module
+    afresh (one that writes no bytecode) and an error in a later Python."""
+    import warnings
+    from pathlib import Path
+
+    failures = []
+    for path in sorted(Path(torchproj.__file__).parent.rglob("*.py")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            try:
+                compile(path.read_text(encoding="utf-8"), str(path), "exec")
+            except (SyntaxError, SyntaxWarning, DeprecationWarning) as exc:
+                failures.append(f"{path.name}: {exc}")
+    assert not failures, "\n".join(failures)

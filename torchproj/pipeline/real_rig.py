@@ -132,7 +132,7 @@ def solve_bundle(bundle, targets: list, *, solver: str = "fista", bounds_8bit=(0
     Args:
         bundle: a :class:`~torchproj.calib.CalibrationBundle` or its folder (``torchproj calibrate``).
         targets: ``"STATE=IMAGE"`` strings, ``(state, image)`` pairs (an image file, a scikit-image
-            test-image name or a :math:`(C, H, W)` tensor) or :class:`~torchproj.transport.Target`\ s,
+            test-image name or a :math:`(C, H, W)` tensor) or :class:`~torchproj.transport.Target` objects,
             one per state.
         solver, bounds_8bit, objective, maps, footprint, plane_tolerance, max_iter,
         device, outside, chains, colour_weights, smoothness: as :func:`~torchproj.pipeline.run_virtual`; the
