@@ -162,6 +162,36 @@ def test_colour_mixing_is_measured_as_shares_of_white_and_undone_by_compensation
     assert primary_patterns(4, 2)[1, :, 0, 0].tolist() == [0.0, 1.0, 0.0]
 
 
+
+def test_a_grey_camera_writing_colour_files_is_told_so_not_a_singular_matrix(tmp_path):
+    """A grey camera that saves its frames as colour files sees each primary alike in all three channels:
+    the mixing's rows are equal, and its inverse (the primaries' curves from the grey ramp) ended in
+    torch's "linalg.inv: ... the input matrix is singular" from inside the calibration. It is refused
+    naming the cause and the fix, and through a capture folder naming the folder; a mixing given to a
+    response curve in Python is checked as a bundle's is."""
+    from torchproj.calib import ResponseCurve, calibrate_folders, fit_colour_mixing, write_graycode_folder
+    from torchproj.core import CaptureError
+
+    data = small_config("colour_two_planes", camera=(160, 120), projector=(64, 48))
+    cap = simulate_calibration(VirtualRig(parse_scene(data)), "near", 0)
+    grey = {name: (image.mean(-3, keepdim=True).expand_as(image).clone() if isinstance(image, torch.Tensor) else
+                   [i.mean(-3, keepdim=True).expand_as(i).clone() for i in image] if isinstance(image, list) else image)
+            for name, image in vars(cap).items()}
+    grey = type(cap)(**grey)
+    assert grey.primaries.shape == (3, 3, 120, 160) and torch.equal(grey.white[0], grey.white[2])
+    says = "the camera's channels do not tell the projector's primaries apart"
+    with pytest.raises(InputError, match=says):
+        fit_colour_mixing(grey.primaries, grey.white, grey.black)
+    with pytest.raises(InputError, match="save its captures in grey"):
+        calibrate_projector(grey, (64, 48))
+    write_graycode_folder(tmp_path / "near" / "upper", grey, bits=8)
+    with pytest.raises(CaptureError, match=f"upper: {says}"):
+        calibrate_folders(tmp_path, {"*": (64, 48)})
+    for mixing in (torch.ones(3, 3) / 3, torch.rand(2), -torch.eye(3), [[1, 0, 0]] * 3):
+        with pytest.raises(InputError, match=r"response mixing must be a \(3, 3\) tensor of shares >= 0"):
+            ResponseCurve(1.0, 2.2, 0.0, mixing)
+    assert torch.equal(ResponseCurve(1.0, 2.2, 0.0, torch.eye(3)).mixing, torch.eye(3))
+
 def _narrow_far_plane(states):
     """The paper's rig, small, with a far plane a few of the ramp's 32 bars wide."""
     config = small_config(camera=(200, 150), projector=(128, 96))

@@ -61,7 +61,7 @@ import numpy as np
 import torch
 
 from ..core.checks import SIZE_LIMIT, check, check_count, check_path, is_whole
-from ..core.conventions import MAX_MIXING_CONDITION, to_numpy
+from ..core.conventions import to_numpy
 from ..core.errors import CaptureError, InputError
 from ..core.progress import progress_bar
 from ..core.imageio import write_image
@@ -70,7 +70,7 @@ from .capture import CHECKER_NAMES, DEFAULT_NAMES, PRIMARY_NAMES, RAMP_NAMES, re
 from .graycode import CellShares, check_projector_size, checker_patterns, graycode_bits, graycode_patterns, sequence_bits
 from .pipeline import (ProjectorCalibration, calibrate_projector, check_calibration_options, check_decoded, warn_if_few_decoded,
                        warn_if_noisy, warn_if_saturated)
-from .response import RAMP_STEPS, ResponseCurve, primary_patterns, ramp_pattern
+from .response import RAMP_STEPS, ResponseCurve, primary_patterns, ramp_pattern, tells_primaries_apart
 
 __all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
            "write_sequence"]
@@ -601,8 +601,7 @@ def _response(values: dict, where: str) -> ResponseCurve:
             mixing = torch.tensor(mixing, dtype=torch.float32)
         except (RuntimeError, TypeError, ValueError):
             mixing = torch.zeros(0)
-        if (mixing.shape != (3, 3) or not bool(torch.isfinite(mixing).all()) or bool((mixing < 0).any())
-                or float(torch.linalg.cond(mixing.double())) > MAX_MIXING_CONDITION):
+        if not tells_primaries_apart(mixing):
             raise CaptureError(f"{where}: mixing must be 3 rows of 3 shares >= 0 that tell the primaries apart, got "
                                f"{values.get('mixing')}; was it edited? Calibrate again")
     return ResponseCurve(a, b, c, mixing)

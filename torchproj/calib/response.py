@@ -18,10 +18,10 @@ import torch
 
 from ..core.checks import check, check_count, check_finite, check_mask, check_number, check_shape
 from ..core.errors import InputError
-from ..core.conventions import to_numpy
+from ..core.conventions import MAX_MIXING_CONDITION, to_numpy
 from .maps import _check_projector_size
 
-__all__ = ["ResponseCurve", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
+__all__ = ["ResponseCurve", "check_mixing", "fit_colour_mixing", "fit_response", "measure_ramp", "primary_patterns", "ramp_pattern"]
 
 
 # Bars of the photometric ramp ``torchproj sequence`` and the virtual rig show, the levels ``a x^b + c`` is
@@ -79,6 +79,8 @@ class ResponseCurve:
         check(bool((self.a > 0).all()) and bool((self.b > 0).all()),
               f"y = a x^b + c needs a > 0 and b > 0 (a projector's light rises with its input), got "
               f"a={self.a.tolist()}, b={self.b.tolist()}")
+        if self.mixing is not None:
+            check_mixing(self.mixing, "response mixing")
 
     def _params(self, x: torch.Tensor):
         """a, b, c shaped to broadcast over ``x``'s channels, on its device (a curve fitted where the
@@ -132,6 +134,24 @@ def primary_patterns(width: int, height: int) -> torch.Tensor:
     return torch.eye(3)[:, :, None, None].expand(3, 3, height, width).clone()
 
 
+def tells_primaries_apart(mixing) -> bool:
+    """Whether ``mixing`` is a :math:`(3, 3)` tensor of finite shares >= 0 whose inverse a solve can
+    take: its condition number at most :data:`~torchproj.core.conventions.MAX_MIXING_CONDITION`."""
+    return (isinstance(mixing, torch.Tensor) and mixing.shape == (3, 3) and not mixing.is_complex()
+            and bool(torch.isfinite(mixing).all()) and not bool((mixing < 0).any())
+            and float(torch.linalg.cond(mixing.double())) <= MAX_MIXING_CONDITION)
+
+
+def check_mixing(mixing, name: str = "mixing") -> torch.Tensor:
+    """``mixing`` a projector's colour mixing (:class:`ResponseCurve`): rows camera channels, columns
+    primaries, shares that the camera can tell apart (:func:`tells_primaries_apart`)."""
+    check(tells_primaries_apart(mixing),
+          f"{name} must be a (3, 3) tensor of shares >= 0 (rows camera channels, columns primaries) that tell "
+          f"the primaries apart (condition number <= {MAX_MIXING_CONDITION:g}), got "
+          f"{mixing.tolist() if isinstance(mixing, torch.Tensor) and mixing.numel() <= 9 else type(mixing).__name__}")
+    return mixing
+
+
 # Below this white minus black (in [0, 1]) a pixel's primaries are too dark to divide by.
 _MIXING_CONTRAST = 0.05
 
@@ -171,7 +191,16 @@ def fit_colour_mixing(primaries: torch.Tensor, white: torch.Tensor, black: torch
                                 "check exposure and that the projector lights the scene")
     share = ((primaries - black).float() / span.clamp_min(1e-6))[:, :, ok]  # (primary, channel, M)
     mixing = share.median(-1).values.T.clamp_min(0)  # (channel, primary)
-    return mixing / mixing.sum(1, keepdim=True)
+    mixing = mixing / mixing.sum(1, keepdim=True).clamp_min(1e-12)
+    # A grey camera writing colour files sees each primary alike in all three channels: the rows are
+    # equal and the primaries' curves cannot be taken apart from the grey ramp (the inverse below).
+    check(tells_primaries_apart(mixing),
+          f"the camera's channels do not tell the projector's primaries apart (colour mixing "
+          f"{[[round(v, 3) for v in row] for row in mixing.tolist()]}, condition number "
+          f"{float(torch.linalg.cond(mixing.double())):.3g}, over {MAX_MIXING_CONDITION:g}): a grey camera that "
+          "writes colour files sees each primary alike in every channel; save its captures in grey, or check that "
+          "the primaries' captures show the projector's red, green and blue")
+    return mixing
 
 
 def measure_ramp(ramp: torch.Tensor, white: torch.Tensor, black: torch.Tensor, prj_x: torch.Tensor,
