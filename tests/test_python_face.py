@@ -12,13 +12,16 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
 import torchproj as tp
 from torchproj.core import TorchprojError
 
-from .helpers import SIZES, calibrate_once, small_scene, synthetic_calibration, targets
+from torchproj.pipeline import capture_sequence
+
+from .helpers import SIZES, RigDisplay, calibrate_once, small_scene, synthetic_calibration, targets
 
 # What a slip of the keyboard or the wrong variable gives: nothing, text, containers, NaN, a bool, a
 # negative number, a tensor of several values.
@@ -398,3 +401,50 @@ def test_a_float32_point_map_has_the_normals_of_its_float64_copy():
     wide = normal_map(points, (0.0, 0.0, -10.0))
     assert torch.allclose(normal_map(points.float(), (0.0, 0.0, -10.0)), wide, atol=1e-6, equal_nan=True)
     assert bool(torch.isfinite(wide).any())
+
+
+class _FlatCamera:
+    def grab(self):
+        return np.zeros((6, 10), np.uint8)
+
+
+def test_the_bench_depth_and_mixing_helpers_name_values_of_the_wrong_kind(tmp_path, monkeypatch):
+    """The helpers the fuzzes above left: the capture loop a bench script runs (its display and camera
+    are the script's own objects), the depth sweep, and the solve through a colour camera's mixing."""
+    from torchproj.calib import write_sequence
+    from torchproj.experiments import depth_sweep
+    from torchproj.pipeline.acquire import LiveBench
+    from torchproj.solve.mixing import solve_through_mixing
+
+    import time
+
+    monkeypatch.chdir(tmp_path)  # a path of "x" is written nowhere else
+    sleep = time.sleep  # a wait of 2 s an image is a wait, not a bad value: waited as 0 s of its own type
+    monkeypatch.setattr(time, "sleep", lambda seconds: sleep(seconds * 0))
+    write_sequence(tmp_path / "seq", 16, 8, ramp_steps=4)
+    scene = small_scene(camera=(160, 120), projector=(64, 48))
+    run = tp.run_virtual(scene, calibration=calibrate_once(scene), max_iter=5)
+    cals, tgts = synthetic_calibration(), targets(channels=3)
+    op = tp.build_transport(cals, tgts, merge=False)
+    solved = tp.solve_patterns(op, max_iter=3)
+    mixings = [torch.eye(3) * 0.8 + 0.2 / 3] * len(SIZES)
+    capture = {"sequence_dir": tmp_path / "seq", "out_dir": tmp_path / "out", "display": RigDisplay(),
+               "camera": _FlatCamera(), "settle_s": 0}
+    sweep = {"scene": scene, "surface": "near_plane", "depths": [0.8], "patterns": run.patterns, "targets": run.targets,
+             "scale": run.report["scale"]}
+    calls = {
+        # None for the display or camera opens OpenCV's, which a machine without a screen or camera refuses.
+        "capture_sequence": (lambda **k: capture_sequence(**{**capture, **k}),
+                             ["sequence_dir", "out_dir", "display", "camera", "settle_s", "frames", "screen",
+                              "camera_index"]),
+        "LiveBench": (lambda **k: LiveBench(**{"displays": {"upper": RigDisplay()}, "camera": _FlatCamera(), **k}),
+                      ["displays", "camera", "settle_s", "frames"]),
+        "depth_sweep": (lambda **k: depth_sweep(**{**sweep, **k}),
+                        ["scene", "surface", "depths", "patterns", "targets", "scale", "device", "min_pixels"]),
+        "solve_through_mixing": (lambda **k: solve_through_mixing(**{"ops": op, "result": solved, "mixings": mixings,
+                                                                     "bounds": (0, 1), "max_iter": 2, **k}),
+                                 ["ops", "result", "mixings", "bounds", "max_iter", "extra"]),
+    }
+    wrong = [*WRONG, 1.5, float("inf"), 0, (), np.float32(2)]
+    failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names, wrong)]
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)

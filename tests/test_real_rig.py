@@ -342,6 +342,39 @@ def test_capture_averages_frames_into_16_bit_files(tmp_path, capsys):
     assert not (tmp_path / "bad").exists() and camera.grabs == 4 * len(files)
 
 
+
+class _OddCamera:
+    """A camera a script wrote: its frames as ``frame(k)`` makes the k-th."""
+
+    def __init__(self, frame):
+        self.frame, self.grabs = frame, 0
+
+    def grab(self):
+        self.grabs += 1
+        return self.frame(self.grabs)
+
+
+def test_a_cameras_odd_frames_and_a_display_without_show_are_refused_naming_them(tmp_path):
+    """Frames the files could not hold (floats, four channels, none) were written as whatever
+    ``write_image`` made of them or ended in numpy's errors, frames that change size between the
+    grabs of one mean in a broadcast error; a display or camera without ``show`` / ``grab`` in an
+    AttributeError after the folder was made; numpy's float for the wait in ``time.sleep``'s
+    TypeError."""
+    assert main(["sequence", "--projector", "64x32", "--out", str(tmp_path / "seq")]) == 0
+    for frame, says in [(lambda k: np.zeros((6, 8), np.float32), "gave a float32 frame of shape"),
+                        (lambda k: np.zeros((6, 8, 4), np.uint8), r"shape \(6, 8, 4\)"),
+                        (lambda k: None, "gave a object frame"),
+                        (lambda k: np.zeros((6, 8 + k), np.uint8), "frames changed shape between grabs")]:
+        with pytest.raises(CaptureError, match=says):
+            capture_sequence(tmp_path / "seq", tmp_path / "odd", RigDisplay(), _OddCamera(frame), settle_s=0, frames=2)
+    for display, camera, says in [(object(), _CountingCamera(), "display must be a display with show"),
+                                  (RigDisplay(), cv2, "camera must have grab")]:
+        with pytest.raises(InputError, match=says):
+            capture_sequence(tmp_path / "seq", tmp_path / "none", display, camera, settle_s=0)
+    assert not (tmp_path / "none").exists()
+    out = capture_sequence(tmp_path / "seq", tmp_path / "cap", RigDisplay(), _CountingCamera(), settle_s=np.float32(0))
+    assert (out / "graycode_00.png").is_file()
+
 def test_a_colour_bench_keeps_each_channels_weight(tmp_path, capsys):
     """A colour camera's bundle stores white minus black per channel; solve then models each channel
     with its own weight. A bundle without it (written before, or edited) falls back to the grey

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..core.checks import check, check_count, check_number
+from ..core.checks import check, check_count, check_device, check_number
 from ..core.progress import progress_bar
-from ..scene.config import Scene, State
+from ..scene.config import Scene, State, check_scene
 from ..sim.rig import VirtualRig
 from ..pipeline.scoring import TargetScore, as_light, score_image
 
@@ -64,7 +64,16 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
         scale: camera value of target value 1 (the operator's ``scale``).
         min_pixels: fewer scored pixels than this give NaN.
     """
-    check(surface in scene.surfaces, f"unknown surface {surface!r}; known: {sorted(scene.surfaces)}")
+    check_scene(scene)
+    check(isinstance(surface, str) and surface in scene.surfaces,
+          f"unknown surface {surface!r}; known: {sorted(scene.surfaces)}")
+    device = check_device(device)
+    camera = (scene.camera.height, scene.camera.width)
+    check(isinstance(targets, (list, tuple)) and all(
+              isinstance(t, TargetScore) and tuple(t.covered.shape) == camera and tuple(t.values.shape[-2:]) == camera
+              for t in targets),
+          f"targets must be a list of TargetScores on this scene's {camera[1]}x{camera[0]} camera (RunResult.targets), "
+          f"got {type(targets).__name__}")
     given = depths
     try:
         depths = np.asarray(depths.cpu() if isinstance(depths, torch.Tensor) else depths, dtype=np.float64).reshape(-1)

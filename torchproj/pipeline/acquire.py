@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core.checks import is_number, is_whole
+from ..core.checks import check, check_count, check_path, is_number, is_whole
 from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..calib.bundle import SEQUENCE_FILE
@@ -86,7 +86,15 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
             A mean of several is written as a 16-bit PNG, which keeps the levels between one grab's.
     """
     _check_frames(frames)
-    _check_settle(settle_s)
+    settle_s = _check_settle(settle_s)
+    check_path(sequence_dir, "sequence_dir", "the sequence folder (torchproj sequence)")
+    check_path(out_dir, "out_dir", "the capture folder")
+    _check_devices({} if display is None else {"display": display}, camera)
+    if display is None:
+        check(isinstance(screen, (tuple, list)) and len(screen) == 2 and all(is_whole(v) for v in screen),
+              f"screen must be the screen's top-left corner (x, y), two whole numbers of pixels, got {screen!r}")
+    if camera is None:
+        check_count(camera_index, "camera_index", 0)
     sequence_dir, out_dir = Path(sequence_dir), Path(out_dir)
     manifest_path = sequence_dir / SEQUENCE_FILE
     if not manifest_path.is_file():
@@ -121,11 +129,23 @@ def _to_screen(image: torch.Tensor) -> np.ndarray:
     return (image.permute(1, 2, 0).squeeze(-1).cpu().numpy() * 255).round().astype(np.uint8)
 
 
-def _check_settle(settle_s) -> None:
+def _check_settle(settle_s) -> float:
     """Before any window opens: ``time.sleep`` refuses a negative or NaN wait with a traceback, and an
-    infinite one never grabs."""
+    infinite one never grabs. A float, as numpy's are not taken by ``time.sleep``."""
     if not (is_number(settle_s) and 0 <= settle_s <= 60):
         raise InputError(f"settle must be seconds in [0, 60] (--settle), got {settle_s!r}")
+    return float(settle_s)
+
+
+def _check_devices(displays: dict, camera) -> None:
+    """Before anything is shown: each display has ``show`` and the camera (unless None: OpenCV's is
+    opened) ``grab``, the module's two things."""
+    for name, display in displays.items():
+        check(callable(getattr(display, "show", None)),
+              f"{name} must be a display with show(image) (an OpenCVDisplay, or your own), got {type(display).__name__}")
+    check(camera is None or callable(getattr(camera, "grab", None)),
+          f"camera must have grab() returning a uint8 or uint16 frame (an OpenCVCamera, or your own), got "
+          f"{type(camera).__name__}")
 
 
 def _check_frames(frames) -> None:
@@ -138,9 +158,16 @@ def _grab(camera, frames: int = 1) -> tuple[torch.Tensor, int]:
     total, bits = None, 8
     for _ in range(frames):
         frame = np.asarray(camera.grab())
+        if frame.dtype not in (np.uint8, np.uint16) or not (frame.ndim == 2 or (frame.ndim == 3 and frame.shape[2] == 3)) \
+                or min(frame.shape[:2], default=0) < 1:
+            raise CaptureError(f"the camera's grab() gave a {frame.dtype} frame of shape {frame.shape}: a frame must be "
+                               "uint8 or uint16, (H, W) or (H, W, 3); check the camera's format")
         bits = 16 if frame.dtype == np.uint16 else 8
         image = torch.from_numpy(frame.astype(np.float32) / (65535.0 if bits == 16 else 255.0))
         image = image[None] if image.dim() == 2 else image.permute(2, 0, 1)
+        if total is not None and total.shape != image.shape:
+            raise CaptureError(f"the camera's frames changed shape between grabs ({tuple(total.shape)} (C, H, W), then "
+                               f"{tuple(image.shape)}): keep its resolution and format fixed while it captures")
         total = image if total is None else total + image
     return total / frames, bits
 
@@ -160,7 +187,11 @@ class LiveBench:
 
     def __init__(self, displays: dict, camera, *, settle_s: float = 0.2, frames: int = 1, prompt=None):
         _check_frames(frames)
-        _check_settle(settle_s)
+        settle_s = _check_settle(settle_s)
+        check(isinstance(displays, dict), f"displays must be a dict of projector name -> display, got "
+                                          f"{type(displays).__name__}")
+        _check_devices({f"displays[{name!r}]": d for name, d in displays.items()}, camera)
+        check(camera is not None, "camera must have grab() returning a uint8 or uint16 frame, got None")
         self.displays, self.camera, self.settle_s, self.frames, self.prompt = displays, camera, settle_s, frames, prompt
 
     def photograph(self, patterns: dict[str, torch.Tensor], states: list[str], folder: Path) -> None:

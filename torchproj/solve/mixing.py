@@ -21,7 +21,10 @@ import time
 
 import torch
 
-from ..core.checks import check
+from ..calib.response import check_mixing
+from ..core.checks import check, check_count
+from ..transport.operator import check_operators
+from .solvers import SolveResult, check_bounds
 
 __all__ = ["MIXING_ITERATIONS", "solve_through_mixing"]
 
@@ -56,13 +59,31 @@ def solve_through_mixing(ops, result, mixings: list[torch.Tensor | None], bounds
         :meth:`~torchproj.calib.ResponseCurve.to_pattern` turns back into x) and ``info["mixing"]``
         saying what the refinement gained.
     """
-    lo, hi = bounds
+    lo, hi = check_bounds(bounds)
     check(0 <= lo < hi <= 1, f"a solve through colour mixing needs bounds within [0, 1], got {bounds}")
+    ops = check_operators(ops, "ops")
+    max_iter = check_count(max_iter, "max_iter", 0)
+    check(isinstance(result, SolveResult) and isinstance(result.patterns, torch.Tensor)
+          and result.patterns.dim() == 2 and result.patterns.shape[0] == ops[0].shape[1],
+          f"result must be the channels' SolveResult, patterns ({ops[0].shape[1]}, C) for the operator's columns, "
+          f"got {type(result).__name__}")
     t0 = time.perf_counter()
-    ops = list(ops) if isinstance(ops, (list, tuple)) else [ops]
     q = result.patterns
     n_ch = q.shape[1]
     check(n_ch in (1, 3), f"the solution must have 1 or 3 channels, got {n_ch}")
+    check(len(ops) in (1, n_ch) and all(op.shape[1] == ops[0].shape[1] for op in ops),
+          f"ops must be one operator, or one per channel ({n_ch}) with the same columns, got {len(ops)}")
+    projectors = len(ops[0].projector_sizes)
+    check(isinstance(mixings, (list, tuple)) and len(mixings) == projectors,
+          f"mixings must be a list of one (3, 3) mixing or None per projector ({projectors}), got "
+          f"{type(mixings).__name__}{f' of {len(mixings)}' if isinstance(mixings, (list, tuple)) else ''}")
+    for j, m in enumerate(mixings):
+        if m is not None:
+            check_mixing(m, f"mixings[{j}]")
+    check(extra is None or (isinstance(extra, (list, tuple)) and len(extra) == n_ch
+                            and all(callable(getattr(e, "forward", None)) and callable(getattr(e, "adjoint", None))
+                                    for e in extra)),
+          f"extra must be None or one term per channel ({n_ch}) with forward and adjoint, got {type(extra).__name__}")
     mix = _mixing_per_column(ops[0], mixings, n_ch)
     channels = [(ops[0] if len(ops) == 1 else ops[c], c) for c in range(n_ch)]  # each channel's operator
 
