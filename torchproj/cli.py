@@ -193,9 +193,9 @@ def _live_bench(args):
         return
     from .calib import load_bundle
     from .core import InputError
-    from .pipeline.acquire import LiveBench, OpenCVCamera, OpenCVDisplay
+    from .pipeline.acquire import LiveBench, OpenCVCamera, OpenCVDisplay, check_capture_options
 
-    LiveBench({}, None, settle_s=args.settle, frames=args.frames)  # its checks, before any window opens
+    check_capture_options(args.settle, args.frames)  # before any window opens
     names = [name for name, _, _ in load_bundle(args.bundle).projectors]
     screens = dict(args.screen or [])
     unknown = sorted(set(screens) - set(names))

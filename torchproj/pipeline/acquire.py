@@ -25,7 +25,7 @@ from ..core.errors import CaptureError, InputError
 from ..core.imageio import read_image, write_image
 from ..calib.bundle import SEQUENCE_FILE
 
-__all__ = ["LiveBench", "OpenCVCamera", "OpenCVDisplay", "capture_sequence"]
+__all__ = ["LiveBench", "OpenCVCamera", "OpenCVDisplay", "capture_sequence", "check_capture_options"]
 
 
 class OpenCVDisplay:
@@ -85,8 +85,7 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
             falls as their square root (docs/accuracy.md, "What the calibration's noise costs").
             A mean of several is written as a 16-bit PNG, which keeps the levels between one grab's.
     """
-    _check_frames(frames)
-    settle_s = _check_settle(settle_s)
+    settle_s = check_capture_options(settle_s, frames)
     check_path(sequence_dir, "sequence_dir", "the sequence folder (torchproj sequence)")
     check_path(out_dir, "out_dir", "the capture folder")
     _check_devices({} if display is None else {"display": display}, camera)
@@ -129,9 +128,12 @@ def _to_screen(image: torch.Tensor) -> np.ndarray:
     return (image.permute(1, 2, 0).squeeze(-1).cpu().numpy() * 255).round().astype(np.uint8)
 
 
-def _check_settle(settle_s) -> float:
-    """Before any window opens: ``time.sleep`` refuses a negative or NaN wait with a traceback, and an
-    infinite one never grabs. A float, as numpy's are not taken by ``time.sleep``."""
+def check_capture_options(settle_s, frames) -> float:
+    """Before any window opens, the wait and the grabs a photo takes (``--settle``, ``--frames``): the
+    wait as a float, as ``time.sleep`` refuses a negative or NaN one with a traceback, takes no numpy
+    float, and never grabs after an infinite one."""
+    if not (is_whole(frames) and frames >= 1):
+        raise InputError(f"frames must be a whole number of camera frames, at least 1, got {frames!r}")
     if not (is_number(settle_s) and 0 <= settle_s <= 60):
         raise InputError(f"settle must be seconds in [0, 60] (--settle), got {settle_s!r}")
     return float(settle_s)
@@ -146,11 +148,6 @@ def _check_devices(displays: dict, camera) -> None:
     check(camera is None or callable(getattr(camera, "grab", None)),
           f"camera must have grab() returning a uint8 or uint16 frame (an OpenCVCamera, or your own), got "
           f"{type(camera).__name__}")
-
-
-def _check_frames(frames) -> None:
-    if not (is_whole(frames) and frames >= 1):
-        raise InputError(f"frames must be a whole number of camera frames, at least 1, got {frames!r}")
 
 
 def _grab(camera, frames: int = 1) -> tuple[torch.Tensor, int]:
@@ -186,8 +183,7 @@ class LiveBench:
     """
 
     def __init__(self, displays: dict, camera, *, settle_s: float = 0.2, frames: int = 1, prompt=None):
-        _check_frames(frames)
-        settle_s = _check_settle(settle_s)
+        settle_s = check_capture_options(settle_s, frames)
         check(isinstance(displays, dict), f"displays must be a dict of projector name -> display, got "
                                           f"{type(displays).__name__}")
         _check_devices({f"displays[{name!r}]": d for name, d in displays.items()}, camera)
