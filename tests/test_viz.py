@@ -316,3 +316,63 @@ def test_the_views_refuse_bad_options_by_name(script, argv, message, tmp_path, c
         _load(script).main([str(tmp_path) if a == "RUN" else a for a in argv] + ["--out", str(tmp_path / "v.png")])
     assert stopped.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "v.png").exists()
+
+
+def _damaged_runs(root: Path) -> list[tuple[str, Path, str]]:
+    """Folders the views read, each with one file cut short, edited or of another program: (script, folder,
+    what the refusal says)."""
+    import json
+
+    from torchproj.calib import write_ply
+
+    cases = []
+
+    def folder(name, files):
+        path = root / name
+        for rel, content in files.items():
+            (path / rel).parent.mkdir(parents=True, exist_ok=True)
+            if callable(content):
+                content(path / rel)
+            else:
+                (path / rel).write_bytes(content)
+        return path
+
+    report = json.dumps({"config": "paper_two_planes"}).encode()
+    cases += [("correspondences", folder("cut", {"report.json": b'{"config": '}), "report.json: cannot be read"),
+              ("correspondences", folder("noconfig", {"report.json": b"{}"}), "report.json: has no 'config'"),
+              ("correspondences", folder("gone", {"report.json": json.dumps({"config": str(root / "moved.yaml")}).encode()}),
+               "cannot be read (config: file"),
+              ("correspondences", folder("npz", {"report.json": report, "calibration/near/upper/correspondence.npz": b"xx"}),
+               "correspondence.npz: cannot be read"),
+              ("correspondences", folder("keys", {"report.json": report, "calibration/near/upper/correspondence.npz":
+                                                  lambda p: np.savez(p, prj_xy=np.zeros((2, 2, 2)))}),
+               "correspondence.npz: has no array 'contrast'"),
+              ("correspondences", folder("shape", {"report.json": report, "calibration/near/upper/correspondence.npz":
+                                                   lambda p: np.savez(p, prj_xy=np.zeros((2, 2, 2)), contrast=np.zeros((2, 2)))}),
+               "do not fit the scene's 1600x1200 camera"),
+              ("point_cloud", folder("ply", {"points.ply": b"garbage"}), "points.ply: cannot be read"),
+              ("point_cloud", folder("nan", {"points.ply": lambda p: write_ply(p, np.full((5, 3), np.nan))}),
+               "5 of its 5 points are not finite"),
+              ("positioning", folder("scan", {"scans/near_0.npz": b"xx"}), "near_0.npz: cannot be read"),
+              ("positioning", folder("pickled", {"scans/near_0.npz": lambda p: np.savez(p, points=np.array([{}]))}),
+               "near_0.npz: cannot be read (Object arrays cannot be loaded"),
+              ("positioning", folder("pose", {"scans/near_0.npz": lambda p: np.savez(p, points=np.zeros((5, 3)))}),
+               "near_0.npz: has no array 'goal_pose'")]
+    return cases
+
+
+def test_a_views_damaged_input_is_refused_naming_the_file(tmp_path, capsys):
+    """A run folder whose files were cut short, edited or written by another program ended in json's,
+    numpy's or VTK's traceback (VTK's after a page of its own log, and an empty cloud after it)."""
+    pytest.importorskip("pyvista")
+    failures = []
+    for script, folder, says in _damaged_runs(tmp_path):
+        out = tmp_path / f"{folder.name}.png"
+        try:
+            _load(script).main([str(folder), "--out", str(out)])
+            failures.append(f"{script} {folder.name}: drew it")
+        except SystemExit as stopped:
+            err = capsys.readouterr().err
+            if stopped.code != 2 or says not in err or out.exists():
+                failures.append(f"{script} {folder.name}: exit {stopped.code}, {err.strip()[-300:]!r}")
+    assert not failures, "\n".join(failures)

@@ -2,12 +2,78 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
+import logging
+import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pyvista as pv
 
-__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe", "side_bar", "written", "frame_rig"]
+__all__ = ["frustum", "surface_mesh", "finish", "box_wireframe", "side_bar", "written", "frame_rig", "read_or_refuse",
+           "read_json", "read_npz", "read_points"]
+
+# What a file cut short, edited, or written by another program raises as it is read: numpy's, json's,
+# a zip's and VTK's errors, and the package's own for a scene it names (a ValueError).
+UNREADABLE = (OSError, ValueError, KeyError, IndexError, TypeError, EOFError, zipfile.BadZipFile)
+
+
+def read_or_refuse(parser, path: Path, read, fix: str):
+    """``read(path)``, or the script's usage error (exit status 2) naming the file, what was wrong with
+    it and ``fix``: such a file ended in a traceback from inside numpy, json or VTK."""
+    try:
+        return read(path)
+    except UNREADABLE as exc:
+        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        parser.error(f"{path}: cannot be read ({reason}); {fix}")
+
+
+def read_json(parser, path: Path, keys: tuple[str, ...], fix: str) -> dict:
+    """A JSON object holding ``keys``, or the parser's error naming the file and the first key it lacks."""
+    data = read_or_refuse(parser, path, lambda p: json.loads(p.read_text()), fix)
+    missing = [k for k in keys if not isinstance(data, dict) or k not in data]
+    if missing:
+        parser.error(f"{path}: has no {missing[0]!r}; {fix}")
+    return data
+
+
+def read_npz(parser, path: Path, keys: tuple[str, ...], fix: str) -> dict:
+    """An ``.npz``'s arrays (no pickled objects) holding ``keys``, or the parser's error naming the file."""
+    def read(p):
+        with np.load(p) as data:
+            return {k: data[k] for k in data.files}
+
+    arrays = read_or_refuse(parser, path, read, fix)
+    missing = [k for k in keys if k not in arrays]
+    if missing:
+        parser.error(f"{path}: has no array {missing[0]!r}; {fix}")
+    return arrays
+
+
+def read_points(parser, path: Path, fix: str) -> np.ndarray:
+    """A point cloud file's finite points :math:`(N, 3)`. pyvista's readers warn and give an empty mesh
+    where VTK cannot read a file, after VTK's own reports on standard error and the log: the warning
+    becomes the parser's error, the reports are held back."""
+    quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else contextlib.nullcontext()  # pyvista >= 0.45
+
+    def read(p):
+        with warnings.catch_warnings(), quiet:
+            warnings.simplefilter("error")
+            logging.disable(logging.ERROR)
+            try:
+                return np.asarray(pv.read(p).points, dtype=np.float64).reshape(-1, 3)
+            except UserWarning as exc:
+                raise ValueError(str(exc)) from None
+            finally:
+                logging.disable(logging.NOTSET)
+
+    points = read_or_refuse(parser, path, read, fix)
+    finite = np.isfinite(points).all(1)
+    if not finite.all():
+        parser.error(f"{path}: {int((~finite).sum())} of its {len(points)} points are not finite; {fix}")
+    return points
 
 
 def frustum(K: np.ndarray, width: int, height: int, world_from_dev: np.ndarray, depth: float) -> pv.PolyData:

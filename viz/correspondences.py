@@ -13,7 +13,6 @@ view (any glTF viewer opens it). Off-screen by default; ``--show`` opens a windo
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import pyvista as pv
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, frame_rig, frustum, side_bar, written  # noqa: E402
+from _common import finish, frame_rig, frustum, read_json, read_npz, read_or_refuse, side_bar, written  # noqa: E402
 
 from torchproj.calib import triangulate  # noqa: E402
 from torchproj.cli_options import positive_int  # noqa: E402
@@ -45,7 +44,8 @@ def cloud_colour(projector: int, state: int, states: int) -> str:
 POINTS_PER_CLOUD = 40_000  # drawn per (state, projector); only these are triangulated
 
 
-def correspondence_clouds(scene: Scene, run_dir: Path, points: int = POINTS_PER_CLOUD, seed: int = 0) -> list[dict]:
+def correspondence_clouds(scene: Scene, run_dir: Path, points: int = POINTS_PER_CLOUD, seed: int = 0,
+                          read=np.load) -> list[dict]:
     """Triangulate ``points`` sampled pairs of every ``calibration/STATE/PROJECTOR/correspondence.npz``
     of a simulate run (every decoded pixel was triangulated and three in four then dropped: 29
     minutes on a busy 2-core machine for a view of the full-size rig).
@@ -62,7 +62,7 @@ def correspondence_clouds(scene: Scene, run_dir: Path, points: int = POINTS_PER_
             path = run_dir / "calibration" / st.name / proj.name / "correspondence.npz"
             if not path.is_file():
                 continue
-            data = np.load(path)
+            data = read(path)
             prj_xy = torch.as_tensor(data["prj_xy"]).double()
             valid = torch.isfinite(prj_xy).all(-1)
             if not bool(valid.any()):
@@ -154,10 +154,20 @@ def main(argv=None) -> int:
     report = args.run_dir / "report.json"
     if not report.is_file():
         parser.error(f"{report} not found: give the --out folder of torchproj simulate")
-    scene = load_scene(json.loads(report.read_text())["config"])
+    fix = "give the --out folder of torchproj simulate, or run it again"
+    config = read_json(parser, report, ("config",), fix)["config"]
+    scene = read_or_refuse(parser, report, lambda _: load_scene(config), f"the scene it names, {config!r}: {fix}")
     out = args.out or args.run_dir / "correspondences.png"
-    draw_correspondences(scene, correspondence_clouds(scene, args.run_dir, args.points), out, args.colour, args.rays,
-                         args.show).close()
+
+    def read(path):  # a correspondence per camera pixel
+        data, (w, h) = read_npz(parser, path, ("prj_xy", "contrast"), fix), (scene.camera.width, scene.camera.height)
+        if data["prj_xy"].shape != (h, w, 2) or data["contrast"].shape != (h, w):
+            parser.error(f"{path}: prj_xy of shape {data['prj_xy'].shape} and contrast of shape {data['contrast'].shape} "
+                         f"do not fit the scene's {w}x{h} camera: was its config changed after simulate? {fix}")
+        return data
+
+    clouds = correspondence_clouds(scene, args.run_dir, args.points, read=read)
+    draw_correspondences(scene, clouds, out, args.colour, args.rays, args.show).close()
     print(f"wrote {written(out)}")
     return 0
 

@@ -21,7 +21,7 @@ import pyvista as pv
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import finish, side_bar, written  # noqa: E402
+from _common import finish, read_points, side_bar, written  # noqa: E402
 
 from torchproj.calib import largest_plane  # noqa: E402
 from torchproj.cli_options import positive_float  # noqa: E402
@@ -82,7 +82,8 @@ def main(argv=None) -> int:
     if not ply.is_file():
         parser.error(f"{ply} not found: run torchproj decode with --calibration to triangulate")
     out = args.out or args.decode_dir / "points.png"
-    plotter, residual, on_plane = draw_plane_fit(np.asarray(pv.read(ply).points), out, args.show,
+    points = read_points(parser, ply, "run torchproj decode with --calibration to triangulate again")
+    plotter, residual, on_plane = draw_plane_fit(points, out, args.show,
                                                  threshold=args.threshold, units=args.units)
     plotter.close()
     print(f"{int(on_plane.sum())} of {len(on_plane)} points on the largest plane, RMS "

@@ -20,7 +20,7 @@ import numpy as np
 import pyvista as pv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import box_wireframe, finish, side_bar, written  # noqa: E402
+from _common import box_wireframe, finish, read_npz, side_bar, written  # noqa: E402
 
 from torchproj.cli_options import positive_float  # noqa: E402
 from torchproj.experiments import box_surface_distance, pose_error  # noqa: E402
@@ -89,7 +89,8 @@ def main(argv=None) -> int:
         scans = [p for p in scans if p.stem == args.trial]
         if not scans:
             parser.error(f"no scan named {args.trial!r} in {args.run_dir}/scans")
-    loaded = {path.stem: dict(np.load(path)) for path in scans}
+    fix = "give the --out folder of torchproj position, or run it again"
+    loaded = {path.stem: read_npz(parser, path, ("points", "goal_pose", "box_size"), fix) for path in scans}
     top = args.max_mm
     if top is None:  # one scale for every view, so that they can be compared
         top = max(1.0, float(np.percentile(np.abs(np.concatenate([signed_distances_mm(s) for s in loaded.values()
