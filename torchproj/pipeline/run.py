@@ -634,8 +634,14 @@ def _promise_lines(history: list[dict]) -> list[str]:
 PAPER_PROTOTYPE = {"psnr_db": (18.3, 20.9), "ssim": (0.58, 0.77)}
 
 
-def _verdict_lines(targets: list[dict], ceiling: bool) -> list[str]:
-    """report.md's opening: one line that says how the run came out, and a legend of the scores."""
+def _verdict_lines(targets: list[dict], ceiling: bool, lifted: float = 0.0) -> list[str]:
+    """report.md's opening: one line that says how the run came out, and a legend of the scores.
+
+    ``lifted``: the share of white that ``--outside map`` shows for a solved zero (0: none). The
+    verdict then says so: every cell's light is lifted by it, which the PSNR against the target
+    counts as error (4.7 dB on the default scene's near target), while the affine PSNR, which takes
+    each target's brightness out, keeps the structure.
+    """
     if not targets:
         return []
     scored = [t for t in targets if t.get("psnr_db") is not None]
@@ -650,7 +656,14 @@ def _verdict_lines(targets: list[dict], ceiling: bool) -> list[str]:
     if ceiling:
         gap = max(t["ceiling"]["psnr_db"] - t["psnr_db"] for t in scored if t["ceiling"]["psnr_db"] is not None)
         verdict += f", and at most {gap:.2f} dB below what the exact light allows (the ceiling)"
-    return [verdict + ".", "",
+    verdict += "."
+    if lifted > 0:
+        affine = worst.get("affine_psnr_db")
+        verdict += (f" Values below black were shown by map (--outside map), which lifts a solved zero to "
+                    f"{100 * lifted:.0f}% of white on every cell: PSNR counts that light as error"
+                    + (f" (its affine PSNR, brightness taken out, is {affine:.1f} dB)" if affine is not None else "")
+                    + "; --outside clip shows them black.")
+    return [verdict, "",
             "Legend: PSNR in dB, higher is better (each 6 dB halves the RMS error; past about 30 dB a difference is "
             "hard to see); SSIM 1 is the target's structure exactly, 0 none of it; crosstalk 0 means no trace of "
             "another target's image, 1 its full image; ghost is the share of the error the other states' images "
@@ -697,6 +710,13 @@ def _cached(report: dict, what: str) -> str:
     return f" ({_CACHED[how]})" if how in _CACHED else ""
 
 
+def _lifted(report: dict) -> float:
+    """The share of white a solved zero is shown at: ``-lo / (hi - lo)`` under ``--outside map``
+    (:func:`~torchproj.solve.to_projectable`), 0 where values below black are clipped."""
+    lo, hi = report["bounds_8bit"]
+    return -lo / (hi - lo) if report.get("outside", "clip") == "map" and lo < 0 else 0.0
+
+
 def run_markdown(report: dict) -> str:
     """``report.md`` of a run: what ``report.json`` holds, as tables."""
     m, t = report["model"], report["timings_s"]
@@ -710,7 +730,7 @@ def run_markdown(report: dict) -> str:
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}"
              + (f" (values below 0 shown by {report.get('outside', 'clip')})" if below else ""), "",
-             *_verdict_lines(report["targets"], ceiling),
+             *_verdict_lines(report["targets"], ceiling, _lifted(report) if below else 0.0),
              "Fig. 1 (`overview.png`): each projector's pattern, and per target the image asked for, the "
              "capture and the error between them, on one scale.", "",
              f"Calibration: {report['calibration']}{_cached(report, 'calibration')}; maps: {report['maps']}; "
