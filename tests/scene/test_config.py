@@ -402,3 +402,23 @@ def test_a_config_nested_past_any_scene_is_refused_before_yaml_recurses(tmp_path
     with pytest.raises(ConfigError, match=r"deep.yaml: nests lists and mappings \d+ deep, over 64") as refused:
         load_scene(path)
     assert "cannot read" not in str(refused.value)  # worded once, not wrapped in another message
+
+
+def test_describe_says_what_changes_the_light():
+    """``torchproj scene`` is how a person checks a config they wrote: the camera's pose, exposure and
+    distortion, each surface's albedo and transmittance and the room light change every capture, and
+    none was said (a distorted camera and a veil read as a pinhole and an opaque wall)."""
+    data = small_config()
+    data["camera"]["distortion"] = [0.05, -0.01, 0, 0, 0]
+    data["camera"]["exposure"] = 1.3
+    data["surfaces"]["near_plane"].update(albedo=0.35, transmittance=0.6)
+    data["ambient"] = 0.03
+    lines = parse_scene(data).describe().splitlines()
+    camera = next(line for line in lines if line.startswith("  camera:"))
+    assert "exposure 1.3" in camera and "distortion [0.05, -0.01, 0.0, 0.0, 0.0]" in camera
+    position = parse_scene(data).camera.world_from_cam[:3, 3]
+    assert f"at {np.round(position, 3).tolist()} m" in camera
+    assert "  surface near_plane: rectangle at [0.0, 0.0, 0.8] m, albedo 0.35, passes 0.6 of the light on" in lines
+    assert "  room light: 0.03 W/m^2 on every surface" in lines
+    plain = load_scene("paper_two_planes").describe()
+    assert "distortion" not in plain and "passes" not in plain and "gamma" not in plain

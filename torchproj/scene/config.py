@@ -254,11 +254,19 @@ class Scene:
                             if p.focus_distance is not None else "")
                          + (f", colour mixing {[list(row) for row in p.colour_mixing]}"
                             if p.colour_mixing is not None else ""))
-        lines.append(f"  camera: {cam.width}x{cam.height}, f={cam.fx:g}px, {cam.channels} channel(s), "
-                     f"{cam.bit_depth}-bit, {cam.supersampling}x{cam.supersampling} samples per pixel"
+        lines.append(f"  camera: {cam.width}x{cam.height}, f={cam.fx:g}px, at "
+                     f"{np.round(cam.world_from_cam[:3, 3], 3).tolist()} m, {cam.channels} channel(s), "
+                     f"{cam.bit_depth}-bit, exposure {cam.exposure:g}, {cam.supersampling}x{cam.supersampling} "
+                     "samples per pixel"
+                     + (f", gamma {cam.gamma:g}" if cam.gamma != 1 else "")
+                     + (f", distortion {list(cam.distortion)}" if any(cam.distortion) else "")
                      + (f", each capture the mean of {cam.frames} frames" if cam.frames > 1 else ""))
-        lines += [f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m"
+        lines += [f"  surface {s.name}: {s.type} at {np.round(s.world_from_local[:3, 3], 3).tolist()} m, albedo "
+                  f"{'/'.join(f'{a:g}' for a in s.albedo)}"
+                  + (f", passes {s.transmittance:g} of the light on" if s.transmittance > 0 else "")
                   for s in self.surfaces.values()]
+        if self.ambient > 0:
+            lines.append(f"  room light: {self.ambient:g} W/m^2 on every surface")
         lines += [f"  state {st.name}: {', '.join(st.surfaces)}" for st in self.states]
         if self.interreflection:
             lines.append("  interreflection: one bounce of projector light between surfaces")
