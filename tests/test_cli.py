@@ -51,6 +51,17 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
     got = np.load(dec / "correspondence.npz")["prj_xy"]
     want = np.load(out / "calibration" / "far" / "lower" / "correspondence.npz")["prj_xy_integer"]
     assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(got[~np.isnan(got)], want[~np.isnan(want)])
+    # Each folder holds sequence.json, as torchproj capture leaves it, naming the images there (a grey
+    # camera's rig took no primaries): calibrate reads the projectors' sizes from it, where it had
+    # asked for --projector.
+    manifest = json.loads((out / "captures" / "far" / "lower" / "sequence.json").read_text())
+    assert manifest["projector"] == [128, 96] and "bits" not in manifest
+    assert sorted(e["file"] for e in manifest["images"]) == sorted(
+        f.name for f in (out / "captures" / "far" / "lower").glob("*.png"))
+    assert not any(e["kind"] == "primary" for e in manifest["images"])
+    assert main(["calibrate", str(out / "captures"), "--out", str(tmp_path / "bundle")]) == 0
+    bundle = json.loads((tmp_path / "bundle" / "bundle.json").read_text())
+    assert bundle["projectors"] == [{"name": "lower", "size": [128, 96]}, {"name": "upper", "size": [128, 96]}]
 
 
 def test_simulate_writes_a_mean_of_frames_at_16_bits(tmp_path):
@@ -91,6 +102,7 @@ def test_simulate_a_shortened_sequence_checks_the_fitted_maps(tmp_path):
         assert row["decoding_subpixel"]["rms_px"] < 0.1
         assert abs(row["response_fit"]["b"][0] - row["response_true_b"][0]) < 0.1
     assert "| 16x16 |" in (out / "report.md").read_text()
+    assert json.loads((out / "captures" / "far" / "lower" / "sequence.json").read_text())["bits"] == [3, 3]
     # The written 14-image folder decodes to the same fitted map; read as a full sequence it is refused.
     folder = out / "captures" / "far" / "lower"
     dec = tmp_path / "dec"

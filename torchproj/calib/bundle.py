@@ -72,11 +72,47 @@ from .pipeline import (ProjectorCalibration, calibrate_projector, check_calibrat
                        warn_if_noisy, warn_if_saturated)
 from .response import RAMP_STEPS, ResponseCurve, primary_patterns, ramp_pattern, tells_primaries_apart
 
-__all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "write_bundle",
-           "write_sequence"]
+__all__ = ["BUNDLE_VERSION", "CalibrationBundle", "calibrate_folders", "load_bundle", "sequence_manifest",
+           "write_bundle", "write_sequence"]
 
 BUNDLE_VERSION = 1
 SEQUENCE_FILE = "sequence.json"
+
+
+def sequence_manifest(width: int, height: int, ramp_steps: int = RAMP_STEPS,
+                      bits: int | tuple[int, int] | None = None) -> dict:
+    """``sequence.json`` for a projector of ``width`` x ``height`` cells: the images it shows, in order
+    (Gray code, white, black, the ramps, the checkerboard pair of a full sequence, the primaries),
+    each by file name and kind. A capture folder keeps it beside the captures it names, and
+    :func:`calibrate_folders` reads the projector's size and bits from it."""
+    nx, ny = sequence_bits(width, height, bits)  # the sizes' and bits' kinds, before anything is written
+    if not (2 <= width and 2 <= height):
+        raise InputError(f"projector {width}x{height}: a Gray code needs at least 2 x 2 cells; check the projector's "
+                         "resolution (WIDTHxHEIGHT, e.g. 1024x768)")
+    ramp_steps = check_count(ramp_steps, "ramp_steps (--ramp-steps, the ramp's bars)", 2)
+    if ramp_steps > width:
+        raise InputError(f"projector {width}x{height}: narrower than the ramp's {ramp_steps} bars; check the projector's "
+                         f"resolution, or give at most {width} ramp steps")
+    entries = []
+    for i in range(2 * (nx + ny) + 2):
+        if i < 2 * (nx + ny):
+            axis, bit = ("x", i // 2) if i < 2 * nx else ("y", (i - 2 * nx) // 2)
+            entry = {"kind": "graycode", "axis": axis, "bit": bit, "inverse": bool(i % 2)}
+        else:
+            entry = {"kind": "white" if i == 2 * (nx + ny) else "black"}
+        entries.append({"file": DEFAULT_NAMES.format(i), **entry})
+    entries += [{"file": name, "kind": "ramp_mirrored" if mirrored else "ramp", "steps": ramp_steps}
+                for name, mirrored in zip(RAMP_NAMES, (False, True))]
+    if (nx, ny) == graycode_bits(width, height):
+        entries += [{"file": name, "kind": "checker", "inverse": name != CHECKER_NAMES[0]} for name in CHECKER_NAMES]
+    # A colour camera's channels each see some of every primary: the three full-field primaries
+    # measure how much (fit_colour_mixing). A grey camera's calibration leaves them unread.
+    entries += [{"file": name, "kind": "primary", "channel": name.removesuffix(".png")} for name in PRIMARY_NAMES]
+    manifest = {"version": BUNDLE_VERSION, "projector": [width, height], "order": "show and capture in this order; "
+                "save each capture under the same file name", "images": entries}
+    if (nx, ny) != graycode_bits(width, height):
+        manifest["bits"] = [nx, ny]
+    return manifest
 
 
 def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_steps: int = RAMP_STEPS,
@@ -88,42 +124,15 @@ def write_sequence(folder: str | os.PathLike, width: int, height: int, ramp_step
             for planar scenes; None: the full sequence.
     """
     check_path(folder, "folder", "the sequence folder")
-    nx, ny = sequence_bits(width, height, bits)  # the sizes' and bits' kinds, before anything is written
+    manifest = sequence_manifest(width, height, ramp_steps, bits)  # every check before anything is written
     folder = Path(folder)
-    if not (2 <= width and 2 <= height):
-        raise InputError(f"projector {width}x{height}: a Gray code needs at least 2 x 2 cells; check the projector's "
-                         "resolution (WIDTHxHEIGHT, e.g. 1024x768)")
-    ramp_steps = check_count(ramp_steps, "ramp_steps (--ramp-steps, the ramp's bars)", 2)
-    if ramp_steps > width:
-        raise InputError(f"projector {width}x{height}: narrower than the ramp's {ramp_steps} bars; check the projector's "
-                         f"resolution, or give at most {width} ramp steps")
     folder.mkdir(parents=True, exist_ok=True)
-    gray = graycode_patterns(width, height, bits)
-    entries = []
-    for i, img in enumerate(gray):
-        if i < 2 * (nx + ny):
-            axis, bit = ("x", i // 2) if i < 2 * nx else ("y", (i - 2 * nx) // 2)
-            entry = {"kind": "graycode", "axis": axis, "bit": bit, "inverse": bool(i % 2)}
-        else:
-            entry = {"kind": "white" if i == 2 * (nx + ny) else "black"}
-        entries.append({"file": DEFAULT_NAMES.format(i), **entry})
-        write_image(folder / entries[-1]["file"], img)
-    for name, mirrored in zip(RAMP_NAMES, (False, True)):
-        write_image(folder / name, ramp_pattern(width, height, ramp_steps, mirrored=mirrored)[0])
-        entries.append({"file": name, "kind": "ramp_mirrored" if mirrored else "ramp", "steps": ramp_steps})
-    if (nx, ny) == graycode_bits(width, height):
-        for name, img in zip(CHECKER_NAMES, checker_patterns(width, height)):
-            write_image(folder / name, img)
-            entries.append({"file": name, "kind": "checker", "inverse": name != CHECKER_NAMES[0]})
-    # A colour camera's channels each see some of every primary: the three full-field primaries
-    # measure how much (fit_colour_mixing). A grey camera's calibration leaves them unread.
-    for name, img in zip(PRIMARY_NAMES, primary_patterns(width, height)):
-        write_image(folder / name, img)
-        entries.append({"file": name, "kind": "primary", "channel": name.removesuffix(".png")})
-    manifest = {"version": BUNDLE_VERSION, "projector": [width, height], "order": "show and capture in this order; "
-                "save each capture under the same file name", "images": entries}
-    if (nx, ny) != graycode_bits(width, height):
-        manifest["bits"] = [nx, ny]
+    images = [*graycode_patterns(width, height, bits),
+              *(ramp_pattern(width, height, int(ramp_steps), mirrored=mirrored)[0] for mirrored in (False, True)),
+              *(checker_patterns(width, height) if "bits" not in manifest else []),
+              *primary_patterns(width, height)]
+    for entry, image in zip(manifest["images"], images, strict=True):
+        write_image(folder / entry["file"], image)
     (folder / SEQUENCE_FILE).write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
 

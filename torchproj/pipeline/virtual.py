@@ -515,6 +515,7 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
     """
     from .. import __version__
     from ..calib import read_graycode_folder, write_graycode_folder
+    from ..calib.bundle import SEQUENCE_FILE, sequence_manifest
     from ..core.output import write_json
     from ..figures import calibration_summary
 
@@ -528,6 +529,11 @@ def simulate_scene(scene: Scene, folder, *, device="cpu", noise: bool = True, bi
         proj = scene.projectors[j]
         path = folder / "captures" / state / proj.name
         write_graycode_folder(path, capture, bits=scene.camera.stored_bits)
+        # sequence.json beside them, as torchproj capture leaves it: torchproj calibrate reads the
+        # projector's size and bits there. It names the images the virtual rig took.
+        manifest = sequence_manifest(proj.width, proj.height, bits=bits)
+        manifest["images"] = [entry for entry in manifest["images"] if (path / entry["file"]).is_file()]
+        write_json(path / SEQUENCE_FILE, manifest)
         return read_graycode_folder(path, (proj.width, proj.height), bits=bits)
 
     results, rows = [], []
