@@ -37,12 +37,13 @@ from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import CaptureError, ConfigError, InputError
 from ..scene.config import Scene, State, Surface, check_scene
+from ..scene.show import shown_scene
 from ..scene.pose import rotation_from_rotvec
 from ..sim.rig import VirtualRig
 from ..metrics import psnr
 from ..solve import check_solve_options
 from ..solve.compensate import iteration_limit
-from ..pipeline import VirtualCalibration, calibrate_virtual, run_virtual
+from ..pipeline import VirtualCalibration, calibrate_virtual, run_virtual, shown_world
 
 __all__ = ["PAPER_RMSE_PERCENT", "PlacementTrial", "PositioningResult", "box_surface_distance", "evaluate_positioning",
            "feedback_profile", "place_by_feedback", "placement_error", "position_markdown", "pose_error", "random_pose_near", "rig_procam", "scan_distance",
@@ -245,11 +246,16 @@ def rig_procam(scene: Scene, j: int) -> ProCamCalibration:
                              prj_from_cam=torch.as_tensor(prj_from_cam[:3], dtype=torch.float64))
 
 
-def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int = 0, device="cpu") -> dict:
+def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int = 0, device="cpu",
+                 world: Scene | None = None) -> dict:
     """Gray-code scan of one surface at ``pose`` on the virtual rig, with the rig's known geometry.
 
     Each projector shows its Gray code alone; every decoded camera pixel is triangulated against it.
     Only the window of the camera image the box can appear in is simulated (:func:`_box_window`).
+
+    ``world``: the scene whose devices take the scan (default ``scene``), the world as shown where it
+    changed after calibration (:func:`~torchproj.scene.shown_scene`): the scanner still triangulates
+    with ``scene``'s geometry, all it knows, so a projector or camera moved since shows in the points.
 
     Returns:
         ``points`` :math:`(N, 3)` world points (metres) and ``projector`` :math:`(N,)` the index of
@@ -260,11 +266,15 @@ def scan_surface(scene: Scene, surface: Surface, pose: np.ndarray, *, seed: int 
           f"surface must be a box Surface (a scene's box, scene.surfaces[name]), got "
           f"{getattr(surface, 'type', type(surface).__name__)!r}")
     check_seed(seed)
+    world = scene if world is None else check_scene(world, "world")
+    check(len(world.projectors) == len(scene.projectors) and (world.camera.width, world.camera.height)
+          == (scene.camera.width, scene.camera.height),
+          "world must be the scene as shown (shown_scene(scene)): the same projectors and camera, moved at most")
     placed = _posed(surface, _pose(pose, "pose"), "scanned")
     cam = scene.camera
-    x0, y0, window = _box_window(cam, placed)
-    scan_scene = dataclasses.replace(scene, camera=window, surfaces={"scanned": placed},
-                                     states=[State("scan", ["scanned"])], targets=[], seed=seed)
+    x0, y0, window = _box_window(world.camera, placed)
+    scan_scene = dataclasses.replace(world, camera=window, surfaces={"scanned": placed},
+                                     states=[State("scan", ["scanned"])], targets=[], seed=seed, show=None)
     rig = VirtualRig(scan_scene, device=device)
     grid = pixel_grid(window.height, window.width, device=rig.device).double()
     grid += torch.tensor([x0, y0], dtype=grid.dtype, device=grid.device)  # the full camera's pixel coordinates
@@ -475,6 +485,9 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     run = run_virtual(scene, calibration=calibration, device=device, progress=progress, max_iter=max_iter,
                       solver=solver, bounds_8bit=bounds_8bit, outside=outside, chains=chains, cache=cache)
     cal = run.calibration
+    # A scene's show: section changes the world after calibration: the person looks at the patterns,
+    # and the scanner scans, in the world as it is now (the run scored the patterns there too).
+    world, shown_as = shown_world(cal, scene), shown_scene(scene) if scene.show is not None else None
     t_placing = time.perf_counter()
     scale = run.report["scale"]
     shown = {j: (p.float() / 255)[None].to(device) for j, p in enumerate(run.patterns)}
@@ -488,16 +501,16 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         distance_mm = float(np.linalg.norm(goal[:3, 3] - prj_mid) * 1000)
         stride = feedback_stride or feedback_stride_for(detail.covered)
         rough = feedback_stride_for(detail.covered, COARSE_PIXELS)
-        feedback = _Feedback(cal.rig, surface, shown, detail.covered, detail.values, cal.black[state], scale,
+        feedback = _Feedback(world.rig, surface, shown, detail.covered, detail.values, world.black[state], scale,
                              seed=1000 * (seed + 1) * (k + 1), stride=stride)
         # The coarse looks draw their noise from a stream of their own.
-        coarse = _Feedback(cal.rig, surface, shown, detail.covered, detail.values, cal.black[state], scale,
+        coarse = _Feedback(world.rig, surface, shown, detail.covered, detail.values, world.black[state], scale,
                            seed=1000 * (seed + 1) * (k + 1) + 500_000, stride=rough) if coarse_to_fine else None
         # Finer near the goal, where the image comes together.
         side = np.geomspace(0.25, profile_mm, profile_steps)
         offsets = np.r_[-side[::-1], 0.0, side] / 1000
         profiles[name] = feedback_profile(feedback, goal, offsets)
-        floor = scan_surface(scene, surface, goal, seed=seed + 7919 * (k + 1), device=device)
+        floor = scan_surface(scene, surface, goal, seed=seed + 7919 * (k + 1), device=device, world=shown_as)
         bar.update()
         row = {"name": name, "state": state, "surface": surface.name, "box_size_m": list(surface.size),
                "goal_pose": np.round(goal, 6).tolist(), "projector_distance_mm": round(distance_mm, 1),
@@ -508,7 +521,8 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
         if name in PAPER_RMSE_PERCENT:
             row["paper_rmse_percent"] = PAPER_RMSE_PERCENT[name]["percent"]
         errors, new_rows = _place_trials(scene, feedback, coarse, name, surface, distance_mm, trials, spread_mm,
-                                         spread_deg, max_evaluations, rng, seed + 104729 * (k + 1), device, bar)
+                                         spread_deg, max_evaluations, rng, seed + 104729 * (k + 1), device, bar,
+                                         shown_as)
         placed_trials += errors
         trial_rows += new_rows
         row["rmse_mm_mean"] = round(float(np.mean([e.rmse_mm for e in errors])), 3)
@@ -534,6 +548,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
                    "to the midpoint of the projector centres"),
         "paper_rmse_percent": {k: v["percent"] for k, v in PAPER_RMSE_PERCENT.items()},
         "positions": rows,
+        **({"show": scene.show.as_dict()} if scene.show is not None else {}),
         "rmse_percent_mean": {r["name"]: r["rmse_percent_mean"] for r in rows},
         "trials": trial_rows,
         "feedback_profiles": profiles,
@@ -551,7 +566,7 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
 
 
 def _place_trials(scene, feedback, coarse, name, surface, distance_mm, trials, spread_mm, spread_deg, max_evaluations,
-                  rng, scan_seed, device, bar) -> tuple[list[PlacementTrial], list[dict]]:
+                  rng, scan_seed, device, bar, world=None) -> tuple[list[PlacementTrial], list[dict]]:
     """``trials`` placements of one box from random starts near its goal, each scanned and scored."""
     goal = surface.world_from_local
     placed_trials, rows = [], []
@@ -563,7 +578,7 @@ def _place_trials(scene, feedback, coarse, name, surface, distance_mm, trials, s
                                             step_deg=max(spread_deg, 1.0), max_evaluations=max_evaluations,
                                             coarse=coarse)
         t_scan = time.perf_counter()
-        scan = scan_surface(scene, surface, placed, seed=scan_seed + t, device=device)
+        scan = scan_surface(scene, surface, placed, seed=scan_seed + t, device=device, world=world)
         t_scan = time.perf_counter() - t_scan
         rmse = _rmse(scan["points"], goal, surface.size)
         trial = PlacementTrial(position=name, trial=t, start=start, placed=placed, history=history, scan=scan,
@@ -653,6 +668,9 @@ def position_markdown(report: dict) -> str:
              f"{report['start_spread']['position_mm']:g} mm and {report['start_spread']['rotation_deg']:g} degrees "
              f"of the goal, at most {report['max_evaluations']} camera looks each.", "",
              f"Method: {report['method']}.", "",
+             *([f"Shown in a world changed after calibration: {report['show']}. The feedback a placement follows and "
+                "the scans are that world's; the scanner triangulates with the calibrated geometry.", ""]
+               if "show" in report else []),
              "| position | box-projector distance (mm) | PSNR at goal (dB) | scanner alone (mm) | RMSE (mm) | "
              "RMSE (% of distance) | paper (%) |",
              "|---|---|---|---|---|---|---|"]
