@@ -263,6 +263,19 @@ def test_values_below_black_are_clipped_or_mapped_as_asked(config, calibrated, t
         run_virtual(scene, bounds_8bit=(-100, 255), outside="wrap")
 
 
+
+def test_depth_sweep_shows_the_patterns_in_the_world_as_shown(config, calibrated):
+    """A show: section's lamp 50% brighter: run scores its patterns in that world, and the sweep, at
+    the near plane's own depth, saw them in the calibrated one (a different, better score)."""
+    scene, cal = calibrated
+    bright = parse_scene(dict(yaml.safe_load(config.read_text()), show={"projectors": {"upper": {"gain": 1.5}}}))
+    result = run_virtual(bright, calibration=cal, max_iter=30)
+    near = result.report["targets"][0]
+    sweep = depth_sweep(bright, "near_plane", [0.8], result.patterns, result.targets, result.report["scale"])
+    assert abs(sweep.psnr_db[0, 0] - near["psnr_db"]) < 0.3 and abs(sweep.ssim[0, 0] - near["ssim"]) < 0.01
+    unchanged = depth_sweep(scene, "near_plane", [0.8], result.patterns, result.targets, result.report["scale"])
+    assert unchanged.psnr_db[0, 0] > sweep.psnr_db[0, 0] + 1
+
 def _three_projectors(folder):
     data = small_config()
     side = dict(data["projectors"][0], name="side", pose={"position": [0.12, 0.0, 0.0], "look_at": [0.0, 0.0, 0.9]})

@@ -15,6 +15,7 @@ import torch
 from ..core.checks import check, check_count, check_device, check_number
 from ..core.progress import progress_bar
 from ..scene.config import Scene, State, check_scene
+from ..scene.show import shown_scene
 from ..sim.rig import VirtualRig
 from ..pipeline.scoring import TargetScore, as_light, score_image
 
@@ -54,7 +55,8 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
     """Capture fixed patterns on one surface placed at each depth, alone, and score every target.
 
     Args:
-        scene: the scene the patterns were made for.
+        scene: the scene the patterns were made for; where it has a ``show:`` section, they are shown in
+            the world it describes (:func:`~torchproj.scene.shown_scene`), as ``run`` scores them.
         surface: name of the surface to move (along the world z axis, orientation kept).
         depths: world z positions of its centre.
         patterns: per projector, :math:`(C, H_j, W_j)` uint8 patterns (as from ``run_virtual``) or float
@@ -84,14 +86,17 @@ def depth_sweep(scene: Scene, surface: str, depths, patterns: list[torch.Tensor]
     shown = as_light(patterns, len(scene.projectors), device)
     check_number(scale, "scale", strict=True)
     min_pixels = check_count(min_pixels, "min_pixels")
-    base = scene.surfaces[surface]
-    moved, states = dict(scene.surfaces), []
+    # The patterns are shown in the world as it is when they are shown: a show: section's changes
+    # since calibration apply, as they do to run's scores (torchproj.pipeline.shown_world).
+    world = scene if scene.show is None else shown_scene(scene)
+    base = world.surfaces[surface]
+    moved, states = dict(world.surfaces), []
     for i, z in enumerate(depths):
         pose = base.world_from_local.copy()
         pose[2, 3] = z
         moved[f"{surface}@{i}"] = dataclasses.replace(base, name=f"{surface}@{i}", world_from_local=pose)
         states.append(State(name=f"z{i}", surfaces=[f"{surface}@{i}"]))
-    swept = dataclasses.replace(scene, surfaces=moved, states=states, targets=[])
+    swept = dataclasses.replace(world, surfaces=moved, states=states, targets=[], show=None)
     rig = VirtualRig(swept, device=device)
     K = len(targets)
     out = {key: np.full((len(depths), K), np.nan) for key in ("psnr", "ssim")}
