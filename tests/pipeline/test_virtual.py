@@ -150,6 +150,27 @@ def test_a_projector_that_lights_nothing_is_refused_before_calibrating(monkeypat
     assert all(levels[state, "lower"] == 0 < levels[state, "upper"] for state in ("near", "far"))
 
 
+
+def test_a_projector_that_lights_a_sliver_too_faintly_is_refused_before_calibrating(monkeypatch):
+    """A projector behind the planes lights their backs and, past the near plane's edge, a ball's far
+    limb at 1/255: the light check's grid read 0 there, the full image read more than 0, and neither
+    the unlit nor the dim check refused it; calibration then simulated every state and stopped at its
+    ramp ("0 usable levels")."""
+    import torchproj.pipeline.virtual as virtual
+
+    data = small_config(camera=(200, 150), projector=(128, 96))
+    data["projectors"][1]["pose"] = {"position": [0.0, 0.0, 2.0], "look_at": [0.0, 0.0, 0.9]}
+    data["surfaces"]["ball"] = {"type": "sphere", "radius": 0.04, "pose": {"position": [0.26, 0.0, 0.75]}, "albedo": 0.8}
+    data["states"][0]["surfaces"].append("ball")
+    scene = parse_scene(data)
+    assert all(level == 0 for (state, name), level in virtual._light_levels(scene, "cpu", grid=8)[0].items()
+               if name == "lower")
+    monkeypatch.setattr(virtual, "simulate_calibration", lambda *a, **k: pytest.fail("calibrated before checking"))
+    with pytest.raises(InputError, match=r"projectors\[1\]: projector 'lower' lights what the camera sees at most "
+                                         r"1/255 above black, in any state, and Gray-code decoding needs 40/255, .* "
+                                         r"light the surfaces from behind"):
+        virtual.check_light(scene, grid=8)
+
 @pytest.mark.parametrize("resolution", [[31, 96], [128, 1]])
 def test_a_projector_too_small_for_the_calibration_sequence_is_refused_before_simulating(resolution, monkeypatch):
     """A projector narrower than the ramp's 32 bars stopped at "steps must be between 2 and the width

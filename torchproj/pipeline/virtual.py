@@ -233,10 +233,22 @@ def check_light(scene: Scene, device="cpu", threshold: float = DECODE_THRESHOLD,
             f"projectors' power against camera.exposure{bent} (checked before calibrating; nothing was simulated)")
     # A projector that lights nothing the camera sees, in any state, decodes nothing: its calibration
     # failed after every state was simulated, at a ramp that showed "0 usable levels".
-    unlit = [j for j, p in enumerate(scene.projectors) if all(levels[state, p.name] == 0 for state in blacks)]
+    unlit, faint = [j for j, p in enumerate(scene.projectors) if all(levels[state, p.name] == 0 for state in blacks)], []
     if unlit:
         everywhere = _light_levels(scene, device, threshold, grid=None)[0]
-        unlit = [j for j in unlit if all(everywhere[state, scene.projectors[j].name] == 0 for state in blacks)]
+        peaks = {j: max(everywhere[state, scene.projectors[j].name] for state in blacks) for j in unlit}
+        # Between the grid's pixels it may light a sliver, too faintly to decode anywhere (a projector
+        # behind the screens reaching an object's limb past their edge at 0.3/255): it decodes nothing.
+        faint = [(peaks[j], j) for j in unlit if 0 < peaks[j] < threshold]
+        unlit = [j for j in unlit if peaks[j] == 0]
+    if faint:
+        peak, j = min(faint)
+        raise InputError(
+            f"projectors[{j}]: projector {scene.projectors[j].name!r} lights what the camera sees at most "
+            f"{peak * 255:.2g}/255 above black, in any state, and Gray-code decoding needs {threshold * 255:.0f}/255, "
+            "so it can be neither calibrated nor used: check its pose (it may light the surfaces from behind, or "
+            "be hidden behind them) and the camera's, or leave it out of the scene (checked before calibrating; "
+            "nothing was simulated)")
     if unlit:
         j = unlit[0]
         others = f" (and {', '.join(repr(scene.projectors[k].name) for k in unlit[1:])})" if len(unlit) > 1 else ""
