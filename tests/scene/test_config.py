@@ -142,6 +142,15 @@ def test_state_naming_an_unknown_surface():
     assert msg.startswith("states[0].surfaces: names unknown surface 'nope'")
 
 
+def test_a_surface_listed_twice_is_refused():
+    """A state casting its surface twice (the copy hidden behind the first, at twice the cost) or a
+    target naming it twice was taken without a word."""
+    msg = _bad(lambda d: d["states"][0].update(surfaces=["near_plane", "near_plane"]))
+    assert msg == "states[0].surfaces: names 'near_plane' twice (list each surface once)"
+    msg = _bad(lambda d: d.update(targets=[{"name": "t", "state": "near", "surfaces": ["near_plane", "near_plane"]}]))
+    assert msg == "targets[0].surfaces: names 'near_plane' twice (list each surface once)"
+
+
 def test_transmittance_only_on_screens():
     def mutate(d):
         d["surfaces"]["box"] = {"type": "box", "size": [0.1, 0.1, 0.1], "transmittance": 0.5,

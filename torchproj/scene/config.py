@@ -497,6 +497,21 @@ def _check_in_front(scene: Scene) -> None:
                               "move the surface in front of the camera or turn the camera towards it")
 
 
+def _surface_names(f: Fields, known, unknown) -> list[str]:
+    """``f``'s ``surfaces``: a non-empty list of names from ``known``, each once (a surface listed twice
+    was cast twice, its second copy hidden behind the first). ``unknown(name)`` gives the message and
+    the fix for a name not in ``known``."""
+    members = f.raw("surfaces")
+    if not isinstance(members, list) or not members:
+        raise ConfigError(f.where("surfaces"), "must be a non-empty list of surface names")
+    for i, m in enumerate(members):
+        if not isinstance(m, str) or m not in known:
+            raise ConfigError(f.where("surfaces"), *unknown(m))
+        if m in members[:i]:
+            raise ConfigError(f.where("surfaces"), f"names {m!r} twice", "list each surface once")
+    return list(members)
+
+
 def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> list[TargetSpec]:
     raw = top.raw("targets")
     if not isinstance(raw, list) or not raw:
@@ -508,13 +523,9 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
         state = tf.text("state", choices=tuple(states))
         surfaces = None
         if tf.has("surfaces"):
-            surfaces = tf.raw("surfaces")
-            if not isinstance(surfaces, list) or not surfaces:
-                raise ConfigError(tf.where("surfaces"), "must be a non-empty list of surface names")
-            for m in surfaces:
-                if not isinstance(m, str) or m not in states[state].surfaces:
-                    raise ConfigError(tf.where("surfaces"), f"names {m!r}, which is not present in state {state!r}",
-                                      f"choose from {states[state].surfaces}")
+            present = states[state].surfaces
+            surfaces = _surface_names(tf, present, lambda m: (f"names {m!r}, which is not present in state {state!r}",
+                                                              f"choose from {present}"))
         image = tf.text("image") if tf.has("image") else None
         if image is not None and not image.strip():
             raise ConfigError(tf.where("image"), "is empty", "give an image file or a scikit-image name such as "
@@ -603,14 +614,8 @@ def parse_scene(data: Any, base_dir: str | os.PathLike = ".", name: str = "scene
     states = []
     for i, s in enumerate(states_raw):
         sf = Fields(s, f"states[{i}]")
-        members = sf.raw("surfaces")
-        if not isinstance(members, list) or not members:
-            raise ConfigError(sf.where("surfaces"), "must be a non-empty list of surface names")
-        for m in members:
-            if not isinstance(m, str) or m not in surfaces:
-                raise ConfigError(sf.where("surfaces"), f"names unknown surface {m!r}",
-                                  f"known: {sorted(surfaces)}")
-        states.append(State(name=sf.name("name", f"state{i}"), surfaces=list(members)))
+        members = _surface_names(sf, surfaces, lambda m: (f"names unknown surface {m!r}", f"known: {sorted(surfaces)}"))
+        states.append(State(name=sf.name("name", f"state{i}"), surfaces=members))
         sf.done()
     _unique_file_names("states", [s.name for s in states])
     targets = _parse_targets(top, {s.name: s for s in states}, base_dir) if top.has("targets") else []
