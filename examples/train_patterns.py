@@ -101,7 +101,10 @@ def train_and_score(args) -> int:
     targets = torchproj.scene_targets(scene, rig=calibration.rig)
     # Starts at the least-squares optimum; the model, its loss and the optimiser live on the device.
     model = torchproj.ProjectionModel.from_calibration(calibration, targets, device=args.device)
-    before = torchproj.evaluate_patterns(calibration, model.to_patterns(), targets, scale=model.scale)
+    # Patterns are scored in the world they are shown in: where a scene's show: section changed it after
+    # calibration (paper_bumped), that world's; otherwise the calibration's own.
+    world = torchproj.shown_world(calibration)
+    before = torchproj.evaluate_patterns(world, model.to_patterns(), targets, scale=model.scale)
     print(f"calibrated and solved least squares in {time.perf_counter() - t0:.1f} s; training {args.steps} steps")
 
     with atomic_output(args.out) as stage:
@@ -110,7 +113,7 @@ def train_and_score(args) -> int:
         resumed = torchproj.ProjectionModel.from_calibration(calibration, targets, start=None, device=args.device)
         resumed.load_state_dict(torch.load(stage / "checkpoint.pt", map_location=args.device)["model"])
         patterns = resumed.to_patterns()
-        after = torchproj.evaluate_patterns(calibration, patterns, targets, scale=resumed.scale)
+        after = torchproj.evaluate_patterns(world, patterns, targets, scale=resumed.scale)
         (stage / "patterns").mkdir()
         for projector, pattern in zip(scene.projectors, patterns):
             write_image(stage / "patterns" / f"{projector.name}.png", pattern.float() / 255)

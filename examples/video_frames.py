@@ -120,11 +120,12 @@ def solve_and_score(args) -> int:
     refine_s = time.perf_counter() - t0
 
     rows, shown_scores = [], []
+    world = torchproj.shown_world(calibration)  # the world as shown: a show: section's changes since calibration
     for b, targets in enumerate(frames):
         scores = {}
         for name, p in (("least_squares", start[b]), ("refined", patterns[b].detach())):
             shown = projectable_patterns(op, p, model.bounds, calibration.responses)[1]
-            scores[name] = torchproj.evaluate_patterns(calibration, shown, targets, scale=op.scale, paper=False).targets
+            scores[name] = torchproj.evaluate_patterns(world, shown, targets, scale=op.scale, paper=False).targets
         shown_scores.append(scores["refined"])
         for k, target in enumerate(targets):
             before, after = scores["least_squares"][k], scores["refined"][k]

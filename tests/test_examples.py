@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -70,3 +71,28 @@ def test_the_examples_refuse_bad_options_by_name(script, option, message, tmp_pa
         _example(script).main([option, "--out", str(tmp_path / "out")])
     assert stopped.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow  # a calibration and a solve each, as the examples' runs above
+@pytest.mark.parametrize("script, options", [("train_patterns", ["--steps", "1"]),
+                                             ("video_frames", ["--frames", "1", "--steps", "1"])])
+def test_the_examples_score_in_the_world_as_shown(script, options, tmp_path, monkeypatch):
+    """``--scene paper_bumped`` (a projector moved and brightened after calibration): the examples scored
+    their patterns in the calibrated world, where ``torchproj run`` scores them in the world as shown."""
+    import torchproj
+
+    module = _example(script)
+    worlds = []
+    evaluate = torchproj.evaluate_patterns
+
+    def recording(calibration, *args, **kwargs):
+        worlds.append(calibration.rig.scene)
+        return evaluate(calibration, *args, **kwargs)
+
+    monkeypatch.setattr(module.torchproj, "evaluate_patterns", recording)
+    assert module.main(["--scene", "paper_bumped", "--scale", "0.1", *options, "--out", str(tmp_path / "out")]) == 0
+    bumped = torchproj.load_scene("paper_bumped", scale=0.1)
+    shown = torchproj.scene.shown_scene(bumped)
+    assert worlds and all(np.array_equal(w.projectors[0].world_from_prj, shown.projectors[0].world_from_prj)
+                          for w in worlds)
+    assert not np.array_equal(shown.projectors[0].world_from_prj, bumped.projectors[0].world_from_prj)
