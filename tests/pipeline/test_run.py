@@ -1,6 +1,7 @@
 """The main job on a small virtual rig: what it writes and what it measures."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ import yaml
 
 from torchproj.cli import main
 from torchproj.core import CaptureError, InputError
-from torchproj.pipeline import DEFAULT_IMAGES, run_markdown, run_virtual, target_image
+from torchproj.pipeline import DEFAULT_IMAGES, evaluate_patterns, run_markdown, run_virtual, scene_targets, shown_world, target_image
 from torchproj.experiments import depth_sweep
 from torchproj.scene import parse_scene
 from torchproj.sim import VirtualRig
@@ -275,6 +276,17 @@ def test_depth_sweep_shows_the_patterns_in_the_world_as_shown(config, calibrated
     assert abs(sweep.psnr_db[0, 0] - near["psnr_db"]) < 0.3 and abs(sweep.ssim[0, 0] - near["ssim"]) < 0.01
     unchanged = depth_sweep(scene, "near_plane", [0.8], result.patterns, result.targets, result.report["scale"])
     assert unchanged.psnr_db[0, 0] > sweep.psnr_db[0, 0] + 1
+    # A script scoring the patterns with the calibration of such a scene scores the calibrated world, not
+    # run's: warned, and shown_world(calibration) is the world run scored in.
+    own = calibrate_once(bright)
+    targets = scene_targets(bright, rig=own.rig)
+    with pytest.warns(UserWarning, match="has a show: section, and these patterns are scored in the world as it was "
+                                         "calibrated; torchproj.shown_world"):
+        evaluate_patterns(own, result.patterns, targets, scale=result.report["scale"], paper=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        world = evaluate_patterns(shown_world(own), result.patterns, targets, scale=result.report["scale"], paper=False)
+    assert abs(world.targets[0].psnr_db - near["psnr_db"]) < 0.3
 
 def _three_projectors(folder):
     data = small_config()

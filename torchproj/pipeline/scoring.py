@@ -183,7 +183,9 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
 
     Args:
         calibration: the :class:`~torchproj.pipeline.VirtualCalibration` the patterns were made
-            for (its rig renders the captures; its black captures are subtracted).
+            for (its rig renders the captures; its black captures are subtracted), or
+            :func:`~torchproj.pipeline.shown_world` of it, the world a scene's ``show:`` section
+            describes (given the calibration itself, such a scene is warned about).
         patterns: per projector, :math:`(C, H_j, W_j)` uint8 images (what
             :func:`~torchproj.solve.make_patterns` and :meth:`ProjectionModel.to_patterns` give)
             or float in [0, 1].
@@ -207,6 +209,12 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     check_virtual_calibration(calibration)
     states = calibration.states if states is None else states
     scene = calibration.rig.scene
+    if scene.show is not None:
+        # A script that scores in the calibrated world a scene whose show: section changed: run scores
+        # in the world as shown, and these scores would not be its.
+        warnings.warn(f"scene {scene.name!r} has a show: section, and these patterns are scored in the world as it "
+                      "was calibrated; torchproj.shown_world(calibration) scores them in the world as shown, as "
+                      "torchproj run does", stacklevel=2)
     shown = as_light(patterns, len(scene.projectors), calibration.rig.device)
     check_number(scale, "scale", strict=True)
     # State k's noise is drawn from seed + k, within the rig's 2**63.
