@@ -100,3 +100,18 @@ def test_bad_show_sections_name_the_field(show, where, message):
     with pytest.raises(ConfigError) as err:
         scene_with(copy.deepcopy(show))
     assert where in str(err.value) and message in str(err.value)
+
+
+def test_the_changes_are_said_in_words_naming_only_what_changed():
+    """``torchproj scene`` and the reports printed the section as a dict, every default zero in it."""
+    from torchproj.scene.show import describe_show
+
+    data = small_config()
+    data["show"] = {"projectors": {"upper": {"translation_mm": [1.5, 0, 0], "gain": 1.12}, "lower": {"exponent": 1.05}},
+                    "camera": {"rotation_deg": [0, 0.2, 0]}, "ambient": 0.05}
+    scene = parse_scene(data)
+    said = describe_show(scene.show.as_dict())
+    assert said == ("projector upper: moved [1.5, 0.0, 0.0] mm, light x1.12; projector lower: response exponent x1.05; "
+                    "camera: turned [0.0, 0.2, 0.0] degrees; room light 0.05 W/m^2")
+    assert f"  shown after calibration with changes: {said}" in scene.describe().splitlines()
+    assert describe_show({"projectors": {"upper": {"translation_mm": [0, 0, 0], "gain": 1.0}}}) == "projector upper: unchanged"

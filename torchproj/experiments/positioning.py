@@ -37,7 +37,7 @@ from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import CaptureError, ConfigError, InputError
 from ..scene.config import Scene, State, Surface, check_scene
-from ..scene.show import shown_scene
+from ..scene.show import describe_show, shown_scene
 from ..scene.pose import rotation_from_rotvec
 from ..sim.rig import VirtualRig
 from ..metrics import psnr
@@ -668,7 +668,7 @@ def position_markdown(report: dict) -> str:
              f"{report['start_spread']['position_mm']:g} mm and {report['start_spread']['rotation_deg']:g} degrees "
              f"of the goal, at most {report['max_evaluations']} camera looks each.", "",
              f"Method: {report['method']}.", "",
-             *([f"Shown in a world changed after calibration: {report['show']}. The feedback a placement follows and "
+             *([f"Shown in a world changed after calibration: {describe_show(report['show'])}. The feedback a placement follows and "
                 "the scans are that world's; the scanner triangulates with the calibrated geometry.", ""]
                if "show" in report else []),
              "| position | box-projector distance (mm) | PSNR at goal (dB) | scanner alone (mm) | RMSE (mm) | "

@@ -18,6 +18,7 @@ from ..calib import SATURATED_SHARE, sequence_bits
 from ..core.checks import check, is_whole
 from ..core.errors import InputError
 from ..scene.config import Scene, check_scene
+from ..scene.show import describe_show
 from ..solve import (SolveResult, check_solve_options, image_objective, make_patterns, projectable_patterns,
                      solve_gain_offset)
 from ..solve.compensate import ILL_POSED_MESSAGE, check_solver_options, iteration_limit, resolve_smoothness, unexplained
@@ -589,7 +590,7 @@ def _image_objective_lines(image: dict | None) -> list[str]:
 def _show_lines(report: dict) -> list[str]:
     lines = []
     if "show" in report:
-        lines += [f"Shown in a world changed after calibration: {report['show']}. Captures, black frames, scores and "
+        lines += [f"Shown in a world changed after calibration: {describe_show(report['show'])}. Captures, black frames, scores and "
                   "any ceiling are that world's; the solver knows only the calibration.", ""]
     refine = report.get("refine")
     if refine:

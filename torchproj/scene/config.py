@@ -28,7 +28,7 @@ from ..core.conventions import DEFAULT_COLOUR_MIXING, MAX_MIXING_CONDITION
 from ..core.errors import ConfigError, InputError
 from .fields import Fields, vector
 from .pose import parse_pose
-from .show import ShowChanges, parse_show
+from .show import ShowChanges, describe_show, parse_show
 
 __all__ = [
     "Projector",
@@ -271,7 +271,7 @@ class Scene:
         if self.interreflection:
             lines.append("  interreflection: one bounce of projector light between surfaces")
         if self.show is not None:
-            lines.append(f"  shown after calibration with changes: {self.show.as_dict()}")
+            lines.append(f"  shown after calibration with changes: {describe_show(self.show.as_dict())}")
         return "\n".join(lines)
 
     def projector_index(self, key) -> int:

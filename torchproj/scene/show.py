@@ -34,7 +34,7 @@ from ..core.errors import ConfigError
 from .fields import Fields
 from .pose import rotation_from_euler_deg
 
-__all__ = ["DeviceDrift", "ProjectorDrift", "ShowChanges", "parse_show", "shown_scene"]
+__all__ = ["DeviceDrift", "ProjectorDrift", "ShowChanges", "describe_show", "parse_show", "shown_scene"]
 
 # A bump moves a device by millimetres and tenths of a degree; past these the rig is another rig,
 # and a run should calibrate it rather than call it drift.
@@ -90,6 +90,25 @@ class ShowChanges:
         if self.ambient is not None:
             out["ambient"] = self.ambient
         return out
+
+
+def describe_show(changes: dict) -> str:
+    """A ``show:`` section (:meth:`ShowChanges.as_dict`, as a report keeps it) in words, naming only
+    what changed: ``"projector upper: moved [1.5, 0, 0] mm, turned [0, 0.1, 0] degrees, light x1.12;
+    room light 0.05 W/m^2"``."""
+    def device(what: str, d: dict) -> str:
+        parts = [f"moved {[round(v, 3) for v in d['translation_mm']]} mm" if any(d.get("translation_mm", ())) else "",
+                 f"turned {[round(v, 3) for v in d['rotation_deg']]} degrees" if any(d.get("rotation_deg", ())) else "",
+                 f"light x{d['gain']:g}" if d.get("gain", 1.0) != 1.0 else "",
+                 f"response exponent x{d['exponent']:g}" if d.get("exponent", 1.0) != 1.0 else ""]
+        return f"{what}: {', '.join(p for p in parts if p) or 'unchanged'}"
+
+    lines = [device(f"projector {name}", d) for name, d in changes.get("projectors", {}).items()]
+    if "camera" in changes:
+        lines.append(device("camera", changes["camera"]))
+    if changes.get("ambient") is not None:
+        lines.append(f"room light {changes['ambient']:g} W/m^2")
+    return "; ".join(lines) or "nothing"
 
 
 def _drift(f: Fields) -> dict:
