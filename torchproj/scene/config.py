@@ -523,9 +523,9 @@ def _parse_targets(top: Fields, states: dict[str, State], base_dir: Path) -> lis
         state = tf.text("state", choices=tuple(states))
         surfaces = None
         if tf.has("surfaces"):
-            present = states[state].surfaces
-            surfaces = _surface_names(tf, present, lambda m: (f"names {m!r}, which is not present in state {state!r}",
-                                                              f"choose from {present}"))
+            surfaces = _surface_names(tf, states[state].surfaces,
+                                      lambda m, state=state: (f"names {m!r}, which is not present in state {state!r}",
+                                                              f"choose from {states[state].surfaces}"))
         image = tf.text("image") if tf.has("image") else None
         if image is not None and not image.strip():
             raise ConfigError(tf.where("image"), "is empty", "give an image file or a scikit-image name such as "
