@@ -448,3 +448,48 @@ def test_the_bench_depth_and_mixing_helpers_name_values_of_the_wrong_kind(tmp_pa
     wrong = [*WRONG, 1.5, float("inf"), 0, (), np.float32(2)]
     failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names, wrong)]
     assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+
+
+def test_the_core_and_remaining_helpers_name_values_of_the_wrong_kind(problem, tmp_path, monkeypatch):
+    """The package's own helpers a script reaches for (``torchproj.core``'s image and file writers,
+    the pixel grid) and the last public functions no fuzz above named: 165 values ended in
+    AttributeErrors, torch's ``arange`` errors or numpy's shift errors at 2ed8d88."""
+    from torchproj import calib, core, metrics, scene, solve, transport
+
+    monkeypatch.chdir(tmp_path)
+    cals, tgts, op, _ = problem
+    image = torch.rand(1, 8, 8)
+    core.write_image(tmp_path / "a.png", image)
+    calls = {
+        "fit_plane": (lambda **k: calib.fit_plane(**{"points": torch.rand(20, 3), **k}), ["points"]),
+        "fit_response": (lambda **k: calib.fit_response(**{"levels": torch.linspace(0, 1, 8),
+                                                           "response": torch.linspace(0, 1, 8)[:, None] ** 2, **k}),
+                         ["levels", "response"]),
+        "sequence_bits": (lambda **k: calib.sequence_bits(**{"width": 16, "height": 8, **k}), ["width", "height", "bits"]),
+        "checker_patterns": (lambda **k: calib.checker_patterns(**{"width": 16, "height": 8, **k}), ["width", "height"]),
+        "procedural_scene": (lambda **k: scene.procedural_scene(**{"seed": 1, **k}), ["seed", "index", "size"]),
+        "has_colour_weights": (lambda **k: transport.has_colour_weights(**{"calibrations": cals, "targets": tgts, **k}),
+                               ["calibrations", "targets"]),
+        "select_maps": (lambda **k: transport.select_maps(**{"states": cals, **k}),
+                        ["states", "maps", "tolerance", "fitted", "names"]),
+        "to_projectable": (lambda **k: solve.to_projectable(**{"p": torch.rand(5, 1), "bounds": (-0.4, 1), **k}),
+                           ["p", "bounds", "outside"]),
+        "solve_target_sets": (lambda **k: solve.solve_target_sets(**{"op": op, "rhs_sets": [op.rhs], "max_iter": 2, **k}),
+                              ["op", "rhs_sets", "bounds", "max_iter", "tol"]),
+        "calibration_parts": (lambda **k: solve.calibration_parts(**k), ["calibration"]),
+        "explained_share": (lambda **k: metrics.explained_share(**{"residual": image, "regressors": [image],
+                                                                   "mask": torch.ones(8, 8, dtype=torch.bool), **k}),
+                            ["residual", "regressors", "mask"]),
+        "model_space_psnr": (lambda **k: metrics.model_space_psnr(**{"op": op, "p": torch.rand(op.shape[1], 1), **k}),
+                             ["op", "p"]),
+        "read_image": (lambda **k: core.read_image(**{"path": tmp_path / "a.png", **k}), ["path", "remedy"]),
+        "write_image": (lambda **k: core.write_image(**{"path": tmp_path / "b.png", "image": image, **k}),
+                        ["path", "image", "bits"]),
+        "to_uint": (lambda **k: core.to_uint(**{"image": image, **k}), ["image", "bits"]),
+        "pixel_grid": (lambda **k: core.pixel_grid(**{"height": 4, "width": 5, **k}), ["height", "width", "device", "dtype"]),
+        "round_to_pixel": (lambda **k: core.round_to_pixel(**{"coords": torch.rand(4, 2), **k}), ["coords"]),
+        "write_json": (lambda **k: core.write_json(**{"path": tmp_path / "c.json", "data": {"a": 1}, **k}), ["path", "data"]),
+    }
+    wrong = [*WRONG, 1.5, float("inf"), 0, (), np.float32(2)]
+    failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names, wrong)]
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)

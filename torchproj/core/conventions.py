@@ -57,11 +57,19 @@ def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> tor
     Returns:
         :math:`(H, W, 2)` tensor of ``(x, y)`` pixel centres (integers, see the module docstring).
     """
-    ys, xs = torch.meshgrid(
-        torch.arange(height, device=device, dtype=dtype),
-        torch.arange(width, device=device, dtype=dtype),
-        indexing="ij",
-    )
+    from .checks import check, check_count
+
+    check_count(height, "height", 0)
+    check_count(width, "width", 0)
+    check(isinstance(dtype, torch.dtype), f"dtype must be a torch.dtype, got {type(dtype).__name__}")
+    try:
+        ys, xs = torch.meshgrid(
+            torch.arange(height, device=device, dtype=dtype),
+            torch.arange(width, device=device, dtype=dtype),
+            indexing="ij",
+        )
+    except (RuntimeError, TypeError):
+        check(False, f"device must be a torch device this machine has, got {device!r}")
     return torch.stack([xs, ys], dim=-1)
 
 
@@ -74,6 +82,11 @@ def round_to_pixel(coords: torch.Tensor) -> torch.Tensor:
     Returns:
         int64 tensor of the same shape.
     """
+    if not (isinstance(coords, torch.Tensor) and coords.is_floating_point()):
+        from .errors import InputError
+
+        raise InputError(f"coords must be a float tensor of pixel coordinates, got "
+                         f"{coords.dtype if isinstance(coords, torch.Tensor) else type(coords).__name__}")
     return torch.floor(coords + 0.5).to(torch.int64)
 
 

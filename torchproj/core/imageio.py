@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import torch
 
-from .checks import is_whole
+from .checks import check, check_path, is_whole
 from .errors import CaptureError, InputError
 
 __all__ = ["read_image", "write_image", "to_uint"]
@@ -32,6 +32,7 @@ def read_image(path: str | os.PathLike, remedy: str = "capture it again") -> tor
     Raises:
         CaptureError: naming the file when it is missing, unreadable or of an unsupported depth.
     """
+    check_path(path, "path", "the image file")
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: file not found")
@@ -60,6 +61,11 @@ def read_image(path: str | os.PathLike, remedy: str = "capture it again") -> tor
 
 def to_uint(image: torch.Tensor, bits: int = 8) -> np.ndarray:
     """Quantise a float image in [0, 1] to an ``(H, W)`` or ``(H, W, 3)`` integer array (RGB)."""
+    if not (is_whole(bits) and bits in (8, 16)):
+        raise InputError(f"bits must be 8 or 16, got {bits!r}")
+    check(isinstance(image, torch.Tensor) and image.dim() == 3 and image.shape[0] in (1, 3) and image.numel() > 0,
+          f"image must be a (C, H, W) tensor of 1 or 3 channels, got "
+          f"{tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
     peak = (1 << bits) - 1
     dtype = np.uint8 if bits == 8 else np.uint16
     arr = torch.round(image.detach().clamp(0, 1) * peak).to(torch.int32).cpu().numpy().astype(dtype)
@@ -68,8 +74,9 @@ def to_uint(image: torch.Tensor, bits: int = 8) -> np.ndarray:
 
 def write_image(path: str | os.PathLike, image: torch.Tensor, bits: int = 8) -> None:
     """Write a float ``(C, H, W)`` image in [0, 1] as an 8- or 16-bit file (format from the suffix)."""
-    if not (is_whole(bits) and bits in (8, 16)):
-        raise InputError(f"bits must be 8 or 16, got {bits!r}")
+    check_path(path, "path", "the image file")
+    check(cv2.haveImageWriter(str(path)), f"{path}: no image format is written for the suffix "
+                                          f"{Path(path).suffix or '(none)'!r}; give .png, .tif or .jpg")
     arr = to_uint(image, bits)
     if arr.ndim == 3:
         arr = arr[:, :, ::-1]

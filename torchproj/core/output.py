@@ -207,4 +207,10 @@ def write_json(path: str | os.PathLike, data) -> None:
             return [clean(x) for x in v]
         return v
 
-    Path(path).write_text(json.dumps(clean(data), indent=2) + "\n")
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path must be the JSON file's path, got {type(path).__name__}")
+    try:
+        text = json.dumps(clean(data), indent=2) + "\n"
+    except (TypeError, ValueError) as exc:  # a tensor, a set, a key that is not a string or number
+        raise InputError(f"{path}: data must be JSON (dicts, lists, strings, numbers, None): {exc}") from None
+    Path(path).write_text(text)

@@ -58,6 +58,10 @@ def model_space_psnr(op, p: torch.Tensor) -> list[float]:
     (1 = white) with the target image warped onto those pixels; data range 1. Needs an operator
     built without row merging (merged rows mix pixels).
     """
+    from ..transport.operator import check_operator
+
+    check_operator(op)
+    check_shape(p, "p", [op.shape[1], op.rhs.shape[1]])
     check(not bool(op.constant.abs().sum() > 0), "model_space_psnr needs an operator built with merge=False")
     pred = op.A(p) / op.scale
     want = op.rhs / op.scale

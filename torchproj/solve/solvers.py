@@ -84,6 +84,8 @@ def to_projectable(p: torch.Tensor, bounds: tuple[float, float], outside: str = 
     """
     lo, hi = check_bounds(bounds)
     check_outside(outside)
+    check(isinstance(p, torch.Tensor) and p.is_floating_point(),
+          f"p must be a float tensor of solved values, got {p.dtype if isinstance(p, torch.Tensor) else type(p).__name__}")
     if lo >= 0 and hi <= 1:
         return p
     return p.clamp(0, 1) if outside == "clip" else (p - lo) / (hi - lo)

@@ -80,6 +80,11 @@ def select_maps(states: dict, maps: str = "decoded", tolerance: float = 1.0, fit
     from ..core.checks import check
 
     check(maps in MAPS, f"maps must be one of {list(MAPS)}, got {maps!r}")
+    check(fitted is None or (isinstance(fitted, dict) and all(
+              isinstance(per, (list, tuple)) and all(isinstance(f, (dict, HomographyFit)) for f in per)
+              for per in fitted.values())),
+          f"fitted must be None or a dict of state name -> per projector its HomographyFit (or its as_dict), got "
+          f"{type(fitted).__name__}")
     if fitted:
         return states, "homography", {name: [f if isinstance(f, dict) else f.as_dict() for f in per]
                                       for name, per in fitted.items()}
