@@ -88,7 +88,7 @@ def capture_sequence(sequence_dir: str | os.PathLike, out_dir: str | os.PathLike
     settle_s = check_capture_options(settle_s, frames)
     check_path(sequence_dir, "sequence_dir", "the sequence folder (torchproj sequence)")
     check_path(out_dir, "out_dir", "the capture folder")
-    _check_devices({} if display is None else {"display": display}, camera)
+    _check_devices({} if display is None else {"display": display}, camera, opens=True)
     if display is None:
         check(isinstance(screen, (tuple, list)) and len(screen) == 2 and all(is_whole(v) for v in screen),
               f"screen must be the screen's top-left corner (x, y), two whole numbers of pixels, got {screen!r}")
@@ -139,13 +139,13 @@ def check_capture_options(settle_s, frames) -> float:
     return float(settle_s)
 
 
-def _check_devices(displays: dict, camera) -> None:
-    """Before anything is shown: each display has ``show`` and the camera (unless None: OpenCV's is
-    opened) ``grab``, the module's two things."""
+def _check_devices(displays: dict, camera, *, opens: bool = False) -> None:
+    """Before anything is shown: each display has ``show`` and the camera ``grab``, the module's two
+    things. ``opens``: a camera of None is allowed, as the caller then opens OpenCV's."""
     for name, display in displays.items():
         check(callable(getattr(display, "show", None)),
               f"{name} must be a display with show(image) (an OpenCVDisplay, or your own), got {type(display).__name__}")
-    check(camera is None or callable(getattr(camera, "grab", None)),
+    check((opens and camera is None) or callable(getattr(camera, "grab", None)),
           f"camera must have grab() returning a uint8 or uint16 frame (an OpenCVCamera, or your own), got "
           f"{type(camera).__name__}")
 
@@ -187,7 +187,6 @@ class LiveBench:
         check(isinstance(displays, dict), f"displays must be a dict of projector name -> display, got "
                                           f"{type(displays).__name__}")
         _check_devices({f"displays[{name!r}]": d for name, d in displays.items()}, camera)
-        check(camera is not None, "camera must have grab() returning a uint8 or uint16 frame, got None")
         self.displays, self.camera, self.settle_s, self.frames, self.prompt = displays, camera, settle_s, frames, prompt
 
     def photograph(self, patterns: dict[str, torch.Tensor], states: list[str], folder: Path) -> None:
