@@ -27,6 +27,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
+from .checks import check_path
 from .errors import InputError, TorchprojError
 
 __all__ = ["MANIFEST", "atomic_output", "check_inputs_outside", "check_output_folder", "write_json"]
@@ -207,8 +208,7 @@ def write_json(path: str | os.PathLike, data) -> None:
             return [clean(x) for x in v]
         return v
 
-    if not isinstance(path, (str, os.PathLike)):
-        raise InputError(f"path must be the JSON file's path, got {type(path).__name__}")
+    check_path(path, "path", "the JSON file")
     try:
         text = json.dumps(clean(data), indent=2) + "\n"
     except (TypeError, ValueError) as exc:  # a tensor, a set, a key that is not a string or number
