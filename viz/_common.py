@@ -33,9 +33,7 @@ def read_or_refuse(parser, path: Path, read, fix: str):
 def read_json(parser, path: Path, keys: tuple[str, ...], fix: str) -> dict:
     """A JSON object holding ``keys``, or the parser's error naming the file and the first key it lacks."""
     data = read_or_refuse(parser, path, lambda p: json.loads(p.read_text()), fix)
-    missing = [k for k in keys if not isinstance(data, dict) or k not in data]
-    if missing:
-        parser.error(f"{path}: has no {missing[0]!r}; {fix}")
+    _require(parser, path, data if isinstance(data, dict) else {}, keys, "", fix)
     return data
 
 
@@ -46,10 +44,15 @@ def read_npz(parser, path: Path, keys: tuple[str, ...], fix: str) -> dict:
             return {k: data[k] for k in data.files}
 
     arrays = read_or_refuse(parser, path, read, fix)
-    missing = [k for k in keys if k not in arrays]
-    if missing:
-        parser.error(f"{path}: has no array {missing[0]!r}; {fix}")
+    _require(parser, path, arrays, keys, "array ", fix)
     return arrays
+
+
+def _require(parser, path: Path, have: dict, keys: tuple[str, ...], what: str, fix: str) -> None:
+    """The parser's error naming the file and the first of ``keys`` it lacks (``what``: "array ")."""
+    missing = [k for k in keys if k not in have]
+    if missing:
+        parser.error(f"{path}: has no {what}{missing[0]!r}; {fix}")
 
 
 def read_points(parser, path: Path, fix: str) -> np.ndarray:
