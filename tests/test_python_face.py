@@ -493,3 +493,22 @@ def test_the_core_and_remaining_helpers_name_values_of_the_wrong_kind(problem, t
     wrong = [*WRONG, 1.5, float("inf"), 0, (), np.float32(2)]
     failures = [f"{name}({line}" for name, (call, names) in calls.items() for line in _mishandled(call, names, wrong)]
     assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)
+
+
+def test_a_state_calibration_a_script_makes_is_checked_where_it_is_built_on(problem):
+    """A bench with its own decoder makes its :class:`StateCalibration` itself: lists of the wrong kind or
+    length, a map of another camera or a size that is not two whole numbers ended in unpacking and
+    indexing errors deep in the build (84 values at 695eb1f)."""
+    cals, tgts, _, _ = problem
+    near = cals["near"]
+    fields = {"prj_xy": near.prj_xy, "weight": near.weight, "projector_sizes": near.projector_sizes}
+
+    def build(**k):
+        state = tp.StateCalibration(**{**fields, **k})
+        tp.build_transport({"near": state, "far": cals["far"]}, tgts, merge=False)
+
+    wrong = [*WRONG, 1.5, float("inf"), 0, (), np.float32(2), [torch.zeros(3)] * 2, [torch.zeros(15, 20, 2)],
+             [torch.zeros(15, 20)], [None]]
+    failures = _mishandled(build, ["prj_xy", "weight", "projector_sizes", "blur", "colour_weight", "edges", "shares", "dim"],
+                           wrong)
+    assert not failures, f"{len(failures)} value(s) mishandled:\n" + "\n".join(failures)

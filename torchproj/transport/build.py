@@ -35,7 +35,7 @@ from kornia.geometry.transform import get_perspective_transform, warp_perspectiv
 from ..core.checks import check, check_device, check_finite, check_image, check_mask, check_number, check_shape
 from ..core.conventions import round_to_pixel
 from ..core.errors import InputError
-from ..calib.maps import map_slope, pixel_square
+from ..calib.maps import check_projector_size, map_slope, pixel_square
 from ..calib.bundle import cell_shares_of, edge_pixels
 from ..calib.edges import EdgePixels
 from ..calib.graycode import WIDE_SHARE, CellShares, graycode_bits, stripe_signs
@@ -423,6 +423,38 @@ def check_calibrations(calibrations, name: str = "calibrations") -> None:
     check(isinstance(calibrations, Mapping) and all(isinstance(c, StateCalibration) for c in calibrations.values()),
           f"{name} must be a dict of state name -> StateCalibration, got {type(calibrations).__name__}"
           + (" (give its .states)" if hasattr(calibrations, "states") else ""))
+    camera: dict = {}
+    for state, cal in calibrations.items():
+        _check_state_calibration(cal, f"{name}[{state!r}]", camera)
+
+
+def _check_state_calibration(cal: StateCalibration, name: str, camera: dict) -> None:
+    """A :class:`StateCalibration` a script made itself: per projector a map, a weight and a size, and
+    the optional per-projector lists as long, all on one camera's pixels (``camera`` binds H and W
+    across the states). Its own lists ended in unpacking and indexing errors deep in the build."""
+    check(isinstance(cal.prj_xy, (list, tuple)) and len(cal.prj_xy) >= 1,
+          f"{name}.prj_xy must be a list of one (H, W, 2) map per projector, got {type(cal.prj_xy).__name__}")
+    count = len(cal.prj_xy)
+    for field in ("weight", "projector_sizes"):
+        value = getattr(cal, field)
+        check(isinstance(value, (list, tuple)) and len(value) == count,
+              f"{name}.{field} must be a list of one per projector ({count}, as prj_xy), got {type(value).__name__}"
+              + (f" of {len(value)}" if isinstance(value, (list, tuple)) else ""))
+    # The lists' lengths: shares', dim's and colour_weight's are checked where they are read, in their
+    # own words; blur's and edges' here.
+    for field, kind in (("blur", torch.Tensor), ("colour_weight", torch.Tensor), ("edges", EdgePixels),
+                        ("shares", CellShares), ("dim", torch.Tensor)):
+        value = getattr(cal, field)
+        check(value is None or (isinstance(value, (list, tuple)) and all(v is None or isinstance(v, kind) for v in value)
+                                and (len(value) == count or field not in ("blur", "edges"))),
+              f"{name}.{field} must be None or a list of one {kind.__name__} (or None) per projector ({count}), got "
+              f"{type(value).__name__}" + (f" of {len(value)}" if isinstance(value, (list, tuple)) else ""))
+    for j in range(count):
+        check_shape(cal.prj_xy[j], f"{name}.prj_xy[{j}]", [*camera.get("size", ("H", "W")), 2])
+        camera.setdefault("size", tuple(cal.prj_xy[j].shape[:2]))
+        check(cal.prj_xy[j].is_floating_point(), f"{name}.prj_xy[{j}] must be float coordinates, got {cal.prj_xy[j].dtype}")
+        check_shape(cal.weight[j], f"{name}.weight[{j}]", list(camera["size"]))
+        check_projector_size(cal.projector_sizes[j], f"{name}.projector_sizes[{j}]")
 
 
 def check_targets(targets) -> None:
