@@ -27,7 +27,6 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from .checks import check_path
 from .errors import InputError, TorchprojError
 
 __all__ = ["MANIFEST", "atomic_output", "check_inputs_outside", "check_output_folder", "write_json"]
@@ -207,6 +206,8 @@ def write_json(path: str | os.PathLike, data) -> None:
         if isinstance(v, (list, tuple)):
             return [clean(x) for x in v]
         return v
+
+    from .checks import check_path  # here: checks imports torch, and the command imports this module before it
 
     check_path(path, "path", "the JSON file")
     try:
