@@ -731,7 +731,7 @@ def run_markdown(report: dict) -> str:
     lines = [f"# torchproj run: {report['scene']}, solver {report['solver']}, bounds "
              f"{report['bounds_8bit'][0]:g}..{report['bounds_8bit'][1]:g}"
              + (f" (values below 0 shown by {report.get('outside', 'clip')})" if below else ""), "",
-             *_verdict_lines(report["targets"], ceiling, _lifted(report) if below else 0.0),
+             *_verdict_lines(report["targets"], ceiling, _lifted(report)),
              "Fig. 1 (`overview.png`): each projector's pattern, and per target the image asked for, the "
              "capture and the error between them, on one scale.", "",
              f"Calibration: {report['calibration']}{_cached(report, 'calibration')}; maps: {report['maps']}; "
