@@ -37,7 +37,7 @@ from ..core.progress import progress_bar
 from ..core.conventions import pixel_grid, to_numpy
 from ..core.errors import CaptureError, ConfigError, InputError
 from ..scene.config import Scene, State, Surface, check_scene
-from ..scene.show import describe_show, shown_scene
+from ..scene.show import describe_show
 from ..scene.pose import rotation_from_rotvec
 from ..sim.rig import VirtualRig
 from ..metrics import psnr
@@ -487,7 +487,8 @@ def evaluate_positioning(scene: Scene, *, trials: int = 3, spread_mm: float = 20
     cal = run.calibration
     # A scene's show: section changes the world after calibration: the person looks at the patterns,
     # and the scanner scans, in the world as it is now (the run scored the patterns there too).
-    world, shown_as = shown_world(cal, scene), shown_scene(scene) if scene.show is not None else None
+    world = shown_world(cal, scene)
+    shown_as = world.rig.scene if world is not cal else None  # shown_world's rig casts shown_scene(scene)
     t_placing = time.perf_counter()
     scale = run.report["scale"]
     shown = {j: (p.float() / 255)[None].to(device) for j, p in enumerate(run.patterns)}
