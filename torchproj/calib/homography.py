@@ -236,8 +236,8 @@ def check_plane(fit: HomographyFit, tolerance: float, where: str, fix: str) -> N
     check(tolerance > 0 and math.isfinite(tolerance), f"the plane tolerance must be > 0 projector pixels, got {tolerance}")
     check(fit.p95 <= tolerance,
           f"{where}: the decoded map is not one plane (95% of pixels within {fit.p95:.2f} projector pixels of the "
-          f"best homography, tolerance {tolerance:g}); {fix}, or raise the tolerance if the optics are known to "
-          "distort")
+          f"best homography, tolerance {tolerance:g}); {fix}, or raise the tolerance (--plane-tolerance; "
+          "plane_tolerance= in Python) if the optics are known to distort")
 
 
 def homography_map(matrix: torch.Tensor, mask: torch.Tensor, projector_size: tuple[int, int]) -> torch.Tensor:
