@@ -355,3 +355,24 @@ def test_one_operator_per_colour_channel_predicts_each_channel_with_its_own():
         ProjectionModel.from_calibration(cals, tgts, colour_weights="rgb")
     with pytest.raises(InputError, match="one single-channel operator per colour channel"):
         ProjectionModel([ops[0], build_transport(cals, tgts, merge=False)])
+
+
+def test_a_colour_models_patterns_are_the_ones_make_patterns_sends():
+    """One operator per colour channel share their columns: the model of a colour calibration (what
+    from_calibration builds for colour targets) gives each projector's 8-bit colour images, as the grey
+    one does. It ended in "op must be a TransportOperator" once the helper checked its operator."""
+    from torchproj.transport import build_channel_transports
+
+    cals = synthetic_calibration(seed=3)
+    for cal in cals.values():
+        cal.colour_weight = [w * torch.tensor([0.5, 1.0, 1.6])[:, None, None] for w in cal.weight]
+    ops = [op.double() for op in build_channel_transports(cals, targets(channels=3), scale=SCALE)]
+    responses = [ResponseCurve(torch.ones(3), torch.tensor([2.2, 2.0, 2.4]), torch.zeros(3)),
+                 ResponseCurve(torch.ones(3), torch.tensor([1.8, 1.9, 2.1]), torch.zeros(3))]
+    start = torch.rand(ops[0].shape[1], 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    model = ProjectionModel(ops, (0.0, 1.0), responses, start)
+    expected = compensate(ops[0].to_images(start.clamp(0, 1)), responses)
+    got = model.to_patterns()
+    assert [tuple(g.shape) for g in got] == [(3, h, w) for w, h in ops[0].projector_sizes]
+    for got_one, want in zip(got, expected):
+        assert got_one.dtype == torch.uint8 and torch.equal(got_one, want)

@@ -308,4 +308,6 @@ class ProjectionModel(nn.Module):
         """
         check(self.responses is not None, "this model holds no response curves: give responses=... (or build it with "
                                           "from_calibration from a calibration that has them)")
-        return projectable_patterns(self.operator, self.patterns, self.bounds, self.responses)[1]
+        # A colour calibration's channels share their columns: the first one places them on the projectors.
+        columns = self.operator.ops[0] if isinstance(self.operator, _Channels) else self.operator
+        return projectable_patterns(columns, self.patterns, self.bounds, self.responses)[1]
