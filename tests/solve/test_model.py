@@ -376,3 +376,30 @@ def test_a_colour_models_patterns_are_the_ones_make_patterns_sends():
     assert [tuple(g.shape) for g in got] == [(3, h, w) for w, h in ops[0].projector_sizes]
     for got_one, want in zip(got, expected):
         assert got_one.dtype == torch.uint8 and torch.equal(got_one, want)
+
+
+def test_a_colour_models_operator_is_taken_where_one_per_channel_is():
+    """A script's camera loop passes ``model.operator`` as the model gives it (``rig_measure(world,
+    model.operator, targets)``, then ``straight_through``): a colour model's holds one operator per
+    channel, and what takes those takes it, with the same rows, losses and updates."""
+    from torchproj.pipeline.shown import CapturedRows
+    from torchproj.solve import captured_loss, refine_patterns
+    from torchproj.transport import build_channel_transports
+
+    cals = synthetic_calibration(seed=3)
+    for cal in cals.values():
+        cal.colour_weight = [w * torch.tensor([0.5, 1.0, 1.6])[:, None, None] for w in cal.weight]
+    tgts = targets(channels=3)
+    ops = [op.double() for op in build_channel_transports(cals, tgts, scale=SCALE)]
+    model = ProjectionModel(ops)
+    g = torch.Generator().manual_seed(7)
+    above = {state: torch.rand(3, *cal.weight[0].shape, generator=g, dtype=torch.float64)
+             for state, cal in cals.items()}
+    rows = CapturedRows(model.operator, tgts)(above)
+    assert torch.equal(rows, CapturedRows(ops, tgts)(above))
+    assert captured_loss(model.operator, rows) == captured_loss(ops, rows)
+    responses = [ResponseCurve(torch.ones(3), torch.full((3,), 2.0), torch.zeros(3))] * 2
+    start = torch.full((ops[0].shape[1], 3), 0.5, dtype=torch.float64)
+    kept = [refine_patterns(op, start, lambda images: rows, (0.0, 1.0), responses, iterations=1, progress=False)
+            for op in (model.operator, ops)]
+    assert torch.equal(kept[0].patterns, kept[1].patterns)

@@ -17,7 +17,7 @@ from torch import nn
 
 from ..core.checks import check, check_finite
 from ..transport.build import DEFAULT_FOOTPRINT, StateCalibration, Target, build_operators
-from ..transport.operator import TransportOperator
+from ..transport.operator import TransportOperator, check_operators
 from .compensate import projectable_patterns
 from .solvers import check_bounds, check_patterns_shape, solve_fista
 
@@ -137,8 +137,7 @@ def _least_squares(op, bounds, smoothness: float | None = None) -> torch.Tensor:
     from .compensate import resolve_smoothness
 
     smoothness = resolve_smoothness("fista", smoothness)
-    ops = op.ops if isinstance(op, _Channels) else [op]
-    return torch.cat([solve_fista(o.with_smoothness(smoothness), bounds, progress=False).patterns for o in ops], 1)
+    return torch.cat([solve_fista(o.with_smoothness(smoothness), bounds, progress=False).patterns for o in check_operators(op)], 1)
 
 
 class ProjectionModel(nn.Module):
@@ -309,5 +308,4 @@ class ProjectionModel(nn.Module):
         check(self.responses is not None, "this model holds no response curves: give responses=... (or build it with "
                                           "from_calibration from a calibration that has them)")
         # A colour calibration's channels share their columns: the first one places them on the projectors.
-        columns = self.operator.ops[0] if isinstance(self.operator, _Channels) else self.operator
-        return projectable_patterns(columns, self.patterns, self.bounds, self.responses)[1]
+        return projectable_patterns(check_operators(self.operator)[0], self.patterns, self.bounds, self.responses)[1]

@@ -1175,7 +1175,12 @@ def check_operator(op, name: str = "op") -> None:
 
 def check_operators(op, name: str = "op") -> list:
     """``op`` one :class:`TransportOperator`, or a list of one per colour channel
-    (:func:`~torchproj.transport.build_channel_transports`), as a list."""
+    (:func:`~torchproj.transport.build_channel_transports`) or a colour
+    :class:`~torchproj.solve.ProjectionModel`'s ``operator``, which holds that list, as a list."""
+    # The model's per-channel operator is a module holding them: a script's camera loop passes it as
+    # the model gives it (rig_measure(world, model.operator, targets)).
+    if isinstance(op, torch.nn.Module) and isinstance(getattr(op, "ops", None), torch.nn.ModuleList):
+        op = list(op.ops)
     ops = list(op) if isinstance(op, (list, tuple)) else [op]
     check(len(ops) > 0 and all(isinstance(o, TransportOperator) for o in ops),
           f"{name} must be a TransportOperator (build_transport's), or a list of one per colour channel, got "
