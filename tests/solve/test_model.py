@@ -6,7 +6,7 @@ import torch
 
 from torchproj.calib import ResponseCurve
 from torchproj.core import InputError
-from torchproj.solve import ClampedAdam, ProjectionModel, compensate, solve_fista, to_projectable
+from torchproj.solve import ClampedAdam, ProjectionModel, compensate, projectable_patterns, solve_fista, to_projectable
 from torchproj.transport import build_transport, target_on_camera
 
 from ..helpers import dense_reference, synthetic_calibration, targets
@@ -403,3 +403,10 @@ def test_a_colour_models_operator_is_taken_where_one_per_channel_is():
     kept = [refine_patterns(op, start, lambda images: rows, (0.0, 1.0), responses, iterations=1, progress=False)
             for op in (model.operator, ops)]
     assert torch.equal(kept[0].patterns, kept[1].patterns)
+    for got, want in zip(projectable_patterns(model.operator, start, (0.0, 1.0), responses)[1],
+                         projectable_patterns(ops[0], start, (0.0, 1.0), responses)[1]):
+        assert torch.equal(got, want)
+    for given in (ops, model.operator):  # what solves one operator says why, and which way through
+        with pytest.raises(InputError, match="op is one operator per colour channel, and this takes one: give each "
+                                             "channel's alone, or make_patterns"):
+            solve_fista(given, (0.0, 1.0))

@@ -12,7 +12,7 @@ from ..calib.response import ResponseCurve
 from ..core.checks import check, check_count, check_shape
 from ..core.choices import DEFAULT_SMOOTHNESS
 from ..core.errors import InputError
-from ..transport.operator import check_operator, check_operators, check_smoothness
+from ..transport.operator import check_operators, check_smoothness
 
 __all__ = ["check_solve_options", "compensate", "make_patterns", "projectable_patterns"]
 
@@ -302,7 +302,7 @@ def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], respo
     """Solved values -> what each projector should emit, and the 8-bit images that make it emit that.
 
     Args:
-        op: the operator whose columns ``p`` holds.
+        op: the operator whose columns ``p`` holds, or one per colour channel (they share columns).
         p: :math:`(N_{cols}, C)` values solved within ``bounds``.
         outside: how values outside [0, 1] are shown (:func:`~torchproj.solve.to_projectable`).
 
@@ -312,8 +312,8 @@ def projectable_patterns(op, p: torch.Tensor, bounds: tuple[float, float], respo
     """
     from .solvers import to_projectable
 
-    check_operator(op)
     # Columns per channel: a colour rig's per-channel operators share the grey one's columns.
+    op = check_operators(op)[0]
     check_shape(p, "p", [op.shape[1], "C"])
     light = [img.cpu() for img in op.to_images(to_projectable(p.detach(), bounds, outside).clamp(0, 1))]
     return light, compensate(light, responses)

@@ -307,5 +307,4 @@ class ProjectionModel(nn.Module):
         """
         check(self.responses is not None, "this model holds no response curves: give responses=... (or build it with "
                                           "from_calibration from a calibration that has them)")
-        # A colour calibration's channels share their columns: the first one places them on the projectors.
-        return projectable_patterns(check_operators(self.operator)[0], self.patterns, self.bounds, self.responses)[1]
+        return projectable_patterns(self.operator, self.patterns, self.bounds, self.responses)[1]

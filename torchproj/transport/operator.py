@@ -1169,18 +1169,30 @@ def check_smoothness(weight, name: str = "smoothness weight") -> float:
 
 def check_operator(op, name: str = "op") -> None:
     """``op`` a :class:`TransportOperator` (:func:`~torchproj.transport.build_transport`'s)."""
+    ops = _channel_list(op)
+    # One operator per colour channel (build_channel_transports', a colour ProjectionModel's) is the
+    # likeliest wrong kind here, and has its own way through.
+    check(not (isinstance(ops, (list, tuple)) and len(ops) > 1 and all(isinstance(o, TransportOperator) for o in ops)),
+          f"{name} is one operator per colour channel, and this takes one: give each channel's alone, or "
+          f"make_patterns, which solves each channel's")
     check(isinstance(op, TransportOperator), f"{name} must be a TransportOperator (build_transport's), got "
                                              f"{type(op).__name__}")
+
+
+def _channel_list(op):
+    """A colour :class:`~torchproj.solve.ProjectionModel`'s ``operator`` (a module holding one operator
+    per channel) as that list; anything else as it is. A script's camera loop passes it as the model
+    gives it (``rig_measure(world, model.operator, targets)``)."""
+    if isinstance(op, nn.Module) and isinstance(getattr(op, "ops", None), nn.ModuleList):
+        return list(op.ops)
+    return op
 
 
 def check_operators(op, name: str = "op") -> list:
     """``op`` one :class:`TransportOperator`, or a list of one per colour channel
     (:func:`~torchproj.transport.build_channel_transports`) or a colour
     :class:`~torchproj.solve.ProjectionModel`'s ``operator``, which holds that list, as a list."""
-    # The model's per-channel operator is a module holding them: a script's camera loop passes it as
-    # the model gives it (rig_measure(world, model.operator, targets)).
-    if isinstance(op, torch.nn.Module) and isinstance(getattr(op, "ops", None), torch.nn.ModuleList):
-        op = list(op.ops)
+    op = _channel_list(op)
     ops = list(op) if isinstance(op, (list, tuple)) else [op]
     check(len(ops) > 0 and all(isinstance(o, TransportOperator) for o in ops),
           f"{name} must be a TransportOperator (build_transport's), or a list of one per colour channel, got "
