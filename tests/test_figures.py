@@ -55,3 +55,31 @@ def test_images_are_averaged_down_to_their_panel_with_nan_left_out():
     assert np.isnan(shown[0, 0]).all()
     small = rng.random((300, 400))
     assert _shown(small, ax) is small
+
+
+def test_a_pattern_that_lights_a_few_cells_is_drawn_cropped_to_them(tmp_path):
+    """A projector that reaches only a small object lights a few dozen cells of its image; drawn whole
+    they were a speck in a black panel (suite-77-19: 77 x 27 cells of 240 x 150). The panel shows the
+    lit box with a margin and says which cells; a pattern lit over most of its image is drawn whole."""
+    from torchproj.figures import _lit_box, run_overview
+    from torchproj.pipeline import TargetScore
+
+    small = torch.zeros(1, 150, 240, dtype=torch.uint8)
+    small[0, 66:93, 79:156] = 200
+    wide = torch.full((1, 150, 240), 120, dtype=torch.uint8)
+    wide[0, :10] = 0
+    assert _lit_box(small) == (64, 95, 72, 163)  # a tenth of each side's extent around it
+    assert _lit_box(wide) == (0, 150, 0, 240)
+    assert _lit_box(torch.zeros(3, 20, 30, dtype=torch.uint8)) == (0, 20, 0, 30)
+    covered = torch.zeros(60, 80, dtype=torch.bool)
+    covered[10:50, 10:70] = True
+    values = torch.rand(1, 60, 80, generator=torch.Generator().manual_seed(0))
+    score = TargetScore(name="t", state="s", psnr_db=20.0, ssim=0.5, crosstalk=0.1, pixels=int(covered.sum()),
+                        estimate=values * 0.9, values=values, covered=covered)
+    path = tmp_path / "overview.png"
+    run_overview(path, [small, wide], ["p0", "p1"], [score])
+    rgb = read_image(path).numpy()
+    top = rgb[:, : rgb.shape[1] // 2]  # the patterns' row
+    first, second = top[:, :, : rgb.shape[2] // 3], top[:, :, rgb.shape[2] // 3: 2 * rgb.shape[2] // 3]
+    grey = 200 / 255  # the small pattern's value, drawn now over most of its panel
+    assert (np.abs(first - grey) < 0.02).all(0).sum() > 0.3 * (np.abs(second - 120 / 255) < 0.02).all(0).sum()

@@ -126,12 +126,30 @@ def calibration_summary(path: str | os.PathLike, rows: list[dict], title: str = 
     _save(fig, path)
 
 
+def _lit_box(pattern: torch.Tensor, keep: float = 0.6) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)``: the part of a :math:`(C, H, W)` pattern to draw, the box of its cells
+    that are not black with a margin of a tenth of its side, or the whole image where that box spans
+    more than ``keep`` of both sides. A projector that reaches only a small object lights a few
+    dozen cells of its image, which drawn whole are a speck in a black panel."""
+    height, width = pattern.shape[-2:]
+    lit = (pattern > 0).any(0)
+    if not lit.any():
+        return 0, height, 0, width
+    ys, xs = torch.nonzero(lit, as_tuple=True)
+    y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    if y1 - y0 > keep * height and x1 - x0 > keep * width:
+        return 0, height, 0, width
+    dy, dx = max(1, (y1 - y0) // 10), max(1, (x1 - x0) // 10)
+    return max(0, y0 - dy), min(height, y1 + dy), max(0, x0 - dx), min(width, x1 + dx)
+
+
 def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projector_names: list[str],
                  targets: list, title: str = "") -> None:
     """Projector patterns on top; one row per target: the target on the camera, the capture, the error.
 
     ``targets``: :class:`~torchproj.pipeline.TargetScore` per target; all three panels are cropped
-    to the target's pixels, and every error map shares one colour scale. Where the top row has room
+    to the target's pixels, and every error map shares one colour scale. A pattern lit over a small
+    part of its image is drawn cropped to it (:func:`_lit_box`), its title naming the cells. Where the top row has room
     beside the patterns, it lists the scores.
     """
     n_cols = max(3, len(patterns))
@@ -140,10 +158,14 @@ def run_overview(path: str | os.PathLike, patterns: list[torch.Tensor], projecto
     for ax in axes.ravel():
         ax.axis("off")
     for j, (pat, name) in enumerate(zip(patterns, projector_names)):
-        img = _shown(to_numpy(pat.permute(1, 2, 0)) / 255.0, axes[0, j])
+        y0, y1, x0, x1 = _lit_box(pat)
+        img = _shown(to_numpy(pat[:, y0:y1, x0:x1].permute(1, 2, 0)) / 255.0, axes[0, j])
         axes[0, j].imshow(img[..., 0] if img.shape[2] == 1 else img, cmap="gray", vmin=0, vmax=1,
                           interpolation="nearest")
-        axes[0, j].set_title(f"pattern for projector {name} (8-bit)", fontsize=TITLE_PT)
+        height, width = pat.shape[-2:]
+        where = ("" if (y1 - y0, x1 - x0) == (height, width)
+                 else f"\ncells {x0}-{x1 - 1} x {y0}-{y1 - 1} of {width} x {height}")
+        axes[0, j].set_title(f"pattern for projector {name} (8-bit){where}", fontsize=TITLE_PT)
     if len(patterns) < n_cols:  # the room beside the patterns: the scores, so no panel is empty
         lines = ["scores (captured against target)", ""] + [
             f"{t.name}: {t.psnr_db:.1f} dB PSNR, SSIM {t.ssim:.2f}, crosstalk {t.crosstalk:.2f}" for t in targets]
