@@ -586,6 +586,14 @@ def test_a_script_solves_a_bundle_for_tensors_and_targets_as_for_names(bench, tm
     for other in (by_tensor, by_target):
         for name, pattern in by_name.patterns.items():
             assert torch.equal(other.patterns[name], pattern), name
+    # Colour tensors on this grey bench are read as colour files are, by their luminance (they had
+    # ended in torch's "shape [1, 120, 160] is invalid"); a Target made by hand is named instead.
+    colour = {state: images[state].expand(3, -1, -1) for state in images}
+    by_colour = solve_bundle(bundle, [("far", colour["far"]), ("near", colour["near"])], max_iter=20)
+    for name, pattern in by_name.patterns.items():
+        assert (by_colour.patterns[name].int() - pattern.int()).abs().max() <= 1, name
+    with pytest.raises(InputError, match=r"target 'far' has 3 channel\(s\) and the camera 1"):
+        solve_bundle(bundle, [Target("far", colour["far"], name="far"), Target("near", images["near"], name="near")])
     for bad in ([("far",)], [3], "far=astronaut", [("far", None)]):
         with pytest.raises(InputError, match="target"):
             solve_bundle(bundle, bad, max_iter=2)

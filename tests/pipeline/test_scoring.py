@@ -104,10 +104,14 @@ def test_targets_of_another_camera_or_kind_are_named_and_a_numpy_seed_is_a_seed(
     model = ProjectionModel.from_calibration(cal, targets)
     patterns = model.to_patterns()
     other = [dataclasses.replace(targets[0], mask=torch.ones(10, 10, dtype=torch.bool)), targets[1]]
+    # A colour image on this grey camera ended, after the captures, in "estimate must have shape (3, ...)".
+    colour = [dataclasses.replace(t, image=t.image.expand(3, -1, -1)) for t in targets]
     # patterns of None ended in len()'s TypeError, states that are no dict of the targets' states in
     # indexing errors or a KeyError.
     for given, options, says in [(other, {}, "'near' mask must have shape"), (targets[0], {}, "list of Target"),
                                  (targets, {"scale": "1"}, "scale must be a finite number > 0"),
+                                 (colour, {}, r"target 'near' has 3 channel\(s\) and the camera 1: give every target "
+                                              r"the camera's \(torchproj.pipeline.image_with_channels"),
                                  (targets, {"states": [1]}, "states must be a dict of state name -> StateCalibration, got list"),
                                  (targets, {"states": {}}, r"no calibration of the targets' states \['far', 'near'\]; calibrated: \[\]"),
                                  (targets, {"patterns": None}, r"patterns must be a list of one image per projector \(2\), got NoneType")]:
@@ -232,3 +236,26 @@ def test_a_constant_target_is_warned_about_and_its_report_row_says_why(quarter_r
                          estimate=detailed.values, values=detailed.values, covered=detailed.covered,
                          affine_psnr_db=math.inf)
     assert set(perfect.notes()) == {"psnr_db", "affine_psnr_db"}
+
+
+def test_image_tensors_take_the_cameras_channels_as_files_do(quarter_rig):
+    """run_virtual's and scene_targets' image tensors of the other channel count went through
+    calibration and the solve, to end in the scores' shape error; they are read as a file of them is:
+    colour by its luminance on a grey camera (scikit-image's rgb2gray, to rounding), grey repeated."""
+    from skimage.color import rgb2gray
+
+    from torchproj.pipeline import image_with_channels
+
+    scene, cal = quarter_rig
+    colour = [target_image(name, 3) for name in ("astronaut", "coffee")]
+    targets = scene_targets(scene, colour, rig=cal.rig)
+    for target, image in zip(targets, colour):
+        assert target.image.shape[0] == scene.camera.channels == 1
+        np.testing.assert_allclose(target.image[0].numpy(), rgb2gray(image.permute(1, 2, 0).numpy()), atol=1e-6)
+    assert torch.equal(targets[0].image, target_image("astronaut", 1))  # the file's, to the bit
+    grey = target_image("camera", 1)
+    assert torch.equal(image_with_channels(grey, 3), grey.expand(3, -1, -1))
+    assert image_with_channels(grey, 1) is grey
+    for bad, says in (((grey, 2), "channels must be 1 .grey. or 3"), ((None, 3), "image must be")):
+        with pytest.raises(InputError, match=says):
+            image_with_channels(*bad)

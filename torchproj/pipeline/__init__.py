@@ -16,7 +16,7 @@ from .run import CEILING_ITERATIONS, ORACLES, RunResult, run_markdown, run_virtu
 from .shown import rig_measure, shown_world
 from .scoring import (EVALUATION, PatternEvaluation, TargetScore, affine_psnr, evaluate_patterns, ghost_images,
                       score_image)
-from .targets import DEFAULT_IMAGES, default_images, scene_images, scene_targets, target_image
+from .targets import DEFAULT_IMAGES, default_images, image_with_channels, scene_images, scene_targets, target_image
 from .virtual import (DecodingAccuracy, VirtualCalibration, calibrate_rig, calibrate_virtual, check_calibration,
                       decoding_accuracy, describe_light, simulate_calibration, simulate_markdown, simulate_scene,
                       true_responses, white_levels)
@@ -25,7 +25,7 @@ __all__ = [
     "AUTO_TOLERANCE_DB", "BundleSolution", "CEILING_ITERATIONS", "DEFAULT_IMAGES", "DecodingAccuracy", "EVALUATION", "FootprintChoice", "ORACLES",
     "OpenCVCamera", "OpenCVDisplay", "PatternEvaluation", "RunResult", "TargetScore", "VirtualCalibration",
     "calibrate_rig", "calibrate_virtual", "capture_sequence", "check_calibration", "choose_footprint", "decoding_accuracy",
-    "affine_psnr", "default_images", "evaluate_patterns", "ghost_images", "light_transport", "run_markdown", "run_virtual", "scene_images",
+    "affine_psnr", "default_images", "evaluate_patterns", "ghost_images", "image_with_channels", "light_transport", "run_markdown", "run_virtual", "scene_images",
     "scene_targets", "score_image", "simulate_calibration", "simulate_markdown", "simulate_scene", "solve_bundle",
     "refine_bundle", "rig_measure", "shown_world", "solve_on_light_transport", "target_image", "true_responses",
     "describe_light", "white_levels",

@@ -23,7 +23,7 @@ from .footprint import AUTO, check_footprint, choose_footprint
 from ..transport.build import build_operators
 from .run import image_objective_report
 from .scoring import score_image
-from .targets import target_image
+from .targets import check_target_channels, image_with_channels, target_image
 
 __all__ = ["BundleSolution", "solve_bundle"]
 
@@ -80,8 +80,10 @@ def _bundle_targets(bundle: CalibrationBundle, wanted) -> list[Target]:
         check(all(t.state != state for t in targets),
               f"target {label}: state {state!r} already has a target; give one per state")
         targets.append(item if isinstance(item, Target) else
-                       Target(state, image, name=state) if isinstance(image, torch.Tensor) else
+                       Target(state, image_with_channels(image, bundle.channels), name=state)
+                       if isinstance(image, torch.Tensor) else
                        Target(state, target_image(image, bundle.channels), name=state))
+    check_target_channels(targets, bundle.channels)
     return targets
 
 

@@ -19,6 +19,7 @@ from ..core.conventions import round_to_pixel
 from ..metrics import crosstalk, explained_share, psnr, ssim
 from ..transport import Target, target_on_camera
 from ..transport.build import check_targets, kept_target_on_camera  # the targets' warps, kept by the model's build
+from .targets import check_target_channels
 from .virtual import check_virtual_calibration
 
 __all__ = ["EVALUATION", "PatternEvaluation", "TargetScore", "affine_psnr", "evaluate_patterns", "ghost_images",
@@ -220,6 +221,7 @@ def evaluate_patterns(calibration, patterns: list[torch.Tensor], targets: list[T
     # State k's noise is drawn from seed + k, within the rig's 2**63.
     seed = None if seed is None else check_seed(seed, limit=2 ** 62, hint=" (or None: the rig's own noise draws)")
     check_targets(targets)
+    check_target_channels(targets, scene.camera.channels)
     check(isinstance(states, Mapping), f"states must be a dict of state name -> StateCalibration, got {type(states).__name__}")
     missing = sorted({t.state for t in targets} - set(states))
     check(not missing, f"no calibration of the targets' states {missing}; calibrated: {sorted(states)}")

@@ -18,13 +18,18 @@ from ..core.imageio import read_image
 from ..scene.config import Scene, check_scene
 from ..transport import Target
 
-__all__ = ["DEFAULT_IMAGES", "default_images", "scene_images", "scene_targets", "target_image"]
+__all__ = ["DEFAULT_IMAGES", "default_images", "image_with_channels", "scene_images", "scene_targets", "target_image"]
 
 DEFAULT_IMAGES = ("astronaut", "chelsea", "coffee", "rocket", "camera")
 # Grey from RGB by the weights of scikit-image's rgb2gray (Poynton's luminance for CRT phosphors),
 # applied here because importing its colour module imports scipy (0.1 s of a run from the cache);
 # tests/pipeline/test_run.py compares the two to the bit.
 LUMINANCE = (0.2125, 0.7154, 0.0721)
+
+
+def _check_channels(channels) -> None:
+    check(is_whole(channels) and channels in (1, 3),
+          f"channels must be 1 (grey) or 3 (RGB), the camera's, got {channels!r}")
 
 
 def target_image(name: str, channels: int) -> torch.Tensor:
@@ -36,8 +41,7 @@ def target_image(name: str, channels: int) -> torch.Tensor:
     """
     from skimage import data  # a lazy package: its loaders import on first use
 
-    check(is_whole(channels) and channels in (1, 3),
-          f"channels must be 1 (grey) or 3 (RGB), the camera's, got {channels!r}")
+    _check_channels(channels)
     check(isinstance(name, (str, os.PathLike)), f"image name must be a scikit-image test image's name or a file path, "
                                                 f"got {type(name).__name__}")
     if Path(name).suffix:
@@ -66,12 +70,17 @@ def target_image(name: str, channels: int) -> torch.Tensor:
     check(img.shape[0] >= 2 and img.shape[1] >= 2, f"image {name!r}: {img.shape[1]}x{img.shape[0]} pixels; a target "
                                                     "image is stretched over its surfaces' pixels and needs at least "
                                                     "2 x 2")
-    img = img[..., :3]
+    return torch.from_numpy(_with_channels(img[..., :3], channels)).permute(2, 0, 1)
+
+
+def _with_channels(img: np.ndarray, channels: int) -> np.ndarray:
+    """An :math:`(h, w, C)` image (C 1 or 3) with the camera's ``channels``: grey repeated to RGB,
+    RGB to grey by :data:`LUMINANCE`; float32, contiguous."""
     if img.shape[-1] == 1 and channels == 3:
         img = np.repeat(img, 3, -1)
     elif img.shape[-1] == 3 and channels == 1:
         img = (img @ np.asarray(LUMINANCE, dtype=img.dtype))[..., None]
-    return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).permute(2, 0, 1)
+    return np.ascontiguousarray(img, dtype=np.float32)
 
 
 def _shipped_file(name: str) -> Path | None:
@@ -111,7 +120,9 @@ def scene_images(scene: Scene) -> list[torch.Tensor]:
 
 
 def checked_images(scene: Scene, images: list[torch.Tensor] | None) -> list[torch.Tensor]:
-    """``images`` (None: :func:`scene_images`) as a list of one checked library image per target."""
+    """``images`` (None: :func:`scene_images`) as a list of one checked library image per target, each
+    with the camera's channels as an image file gets them (:func:`target_image`: grey repeated to a
+    colour camera's three, colour to a grey camera's luminance)."""
     if images is None:
         return scene_images(scene)
     specs = scene.target_specs()
@@ -123,7 +134,29 @@ def checked_images(scene: Scene, images: list[torch.Tensor] | None) -> list[torc
     check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
     for spec, img in zip(specs, images):
         check_image(img, f"target {spec.name!r} image")
-    return images
+    return [image_with_channels(img, scene.camera.channels) for img in images]
+
+
+def image_with_channels(image: torch.Tensor, channels: int) -> torch.Tensor:
+    """A checked :math:`(C, h, w)` image tensor with the camera's ``channels``, as :func:`target_image`
+    gives a file's: grey repeated to three, colour to luminance. A grey image on a colour camera (or the
+    other way) had gone through calibration and the solve, to end in the scores' "estimate must have
+    shape (3, H, W)"."""
+    _check_channels(channels)
+    check_image(image, "image")
+    if image.shape[0] == channels:
+        return image
+    converted = _with_channels(image.detach().cpu().permute(1, 2, 0).numpy(), channels)
+    return torch.from_numpy(converted).permute(2, 0, 1).to(image.device)
+
+
+def check_target_channels(targets: list[Target], channels: int) -> None:
+    """Every target's image has the camera's ``channels`` (each is scored against the capture's)."""
+    for target in targets:
+        check(target.image.shape[0] == channels,
+              f"target {target.name!r} has {target.image.shape[0]} channel(s) and the camera {channels}: give every "
+              "target the camera's (torchproj.pipeline.image_with_channels converts an image as a file is read: "
+              "grey repeated to three, colour to luminance)")
 
 
 def scene_targets(scene: Scene, images: list[torch.Tensor] | None = None, rig=None) -> list[Target]:
