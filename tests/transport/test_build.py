@@ -150,6 +150,27 @@ def test_a_target_the_camera_sees_on_a_sliver_is_refused_naming_it():
     assert torch.equal(covered, square) and values.shape == (1, 15, 60)
 
 
+def test_targets_of_one_state_that_share_pixels_are_refused_naming_both():
+    """Two targets of one state asked for two images on the same camera pixels (a script's Targets
+    without masks: a scene's config refuses a surface given twice), and the build took them, its least
+    squares showing their mean there. Targets beside each other, their masks apart, build as before."""
+    cals = synthetic_calibration()
+    g = torch.Generator().manual_seed(2)
+    lit = cals["near"].lit()
+    left = torch.zeros_like(lit)
+    left[:, : lit.shape[1] // 2] = True
+    pair = [Target("near", torch.rand(1, 6, 8, generator=g), name="a"), Target("near", torch.rand(1, 6, 8, generator=g), name="b")]
+    with pytest.raises(InputError, match=r"targets 'a' and 'b' of state 'near' share \d+ camera pixels, and a pixel "
+                                         r"shows one image at a time: give each target of a state its own mask"):
+        build_transport(cals, pair)
+    overlap = left.clone()
+    overlap[:, lit.shape[1] // 2] = True  # one column more than half: shared with the right half
+    with pytest.raises(InputError, match=rf"share {int((lit[:, lit.shape[1] // 2]).sum())} camera pixels"):
+        build_transport(cals, [dataclasses.replace(pair[0], mask=overlap), dataclasses.replace(pair[1], mask=~left)])
+    op = build_transport(cals, [dataclasses.replace(pair[0], mask=left), dataclasses.replace(pair[1], mask=~left)])
+    assert op.target_count == 2
+
+
 def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own():
     from torchproj.transport.build import kept_target_on_camera
 

@@ -1215,6 +1215,7 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
     n_ch = _target_channels(targets)
     sizes = camera = None
     checked = set()
+    shown = {}  # state -> [(target, its pixels)]: a camera pixel shows one image at a time
     row_cols, row_vals, row_values, row_tgt, row_pix, row_ratio = [], [], [], [], [], []
     for ti, target in enumerate(targets):
         check(target.state in calibrations, f"target {target.name or ti!r} names state {target.state!r}, which was "
@@ -1237,6 +1238,14 @@ def _target_rows(calibrations: dict[str, StateCalibration], targets: list[Target
         check(bool((mask & lit).any()), f"target {target.name!r} lies outside the lit region of state "
                                         f"{target.state!r}: no pixel of its mask is lit by any projector")
         values, covered = kept_target_on_camera(target, mask & lit)
+        for other, pixels in shown.get(target.state, ()):
+            # Two images asked of one pixel: the least squares would show their mean on it, each
+            # target scored against its own image there.
+            shared = int((pixels & covered).sum())
+            check(shared == 0, f"targets {other!r} and {target.name or ti!r} of state {target.state!r} share {shared} "
+                               "camera pixels, and a pixel shows one image at a time: give each target of a state its "
+                               "own mask (Target(mask=...)), or put them in different states")
+        shown.setdefault(target.state, []).append((target.name or ti, covered))
         rows = torch.nonzero(covered.reshape(-1))[:, 0]
         cols, vals, ratio = [], [], []
         offset = 0
