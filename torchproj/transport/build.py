@@ -470,7 +470,9 @@ def _target_channels(targets: list[Target]) -> int:
     an :math:`(H, W)` image, a 4-channel one, a list, is named as itself, not as a count that differs)."""
     check_targets(targets)
     channels = {check_image(t.image, f"target {t.name or i!r} image")["C"] for i, t in enumerate(targets)}
-    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}")
+    check(len(channels) == 1, f"all targets must have the same number of channels, got {sorted(channels)}: give each "
+                              "the camera's (torchproj.pipeline.image_with_channels converts an image, grey repeated to "
+                              "three, colour to luminance)")
     return channels.pop()
 
 
