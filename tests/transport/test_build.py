@@ -169,10 +169,13 @@ def test_targets_of_one_state_that_share_pixels_are_refused_naming_both():
         build_transport(cals, [dataclasses.replace(pair[0], mask=overlap), dataclasses.replace(pair[1], mask=~left)])
     op = build_transport(cals, [dataclasses.replace(pair[0], mask=left), dataclasses.replace(pair[1], mask=~left)])
     assert op.target_count == 2
-    grey_and_colour = [dataclasses.replace(pair[0], mask=left), dataclasses.replace(pair[1], image=pair[1].image.expand(3, -1, -1), mask=~left)]
+
+
+def test_targets_of_mixed_channel_counts_are_refused_with_the_way_to_the_cameras():
+    grey, colour = targets(channels=1)[0], targets(channels=3)[1]
     with pytest.raises(InputError, match=r"the same number of channels, got \[1, 3\]: give each the camera's "
                                          r"\(torchproj.pipeline.image_with_channels converts an image"):
-        build_transport(cals, grey_and_colour)
+        build_transport(synthetic_calibration(), [grey, colour])
 
 
 def test_a_kept_warp_is_given_only_while_the_image_corners_and_mask_are_its_own():
