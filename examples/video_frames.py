@@ -1,10 +1,11 @@
-"""A video's frames at two depths: a batch of target sets solved together, then refined as one batch.
+"""A video's frames at several depths: a batch of target sets solved together, then refined as one batch.
 
     python examples/video_frames.py                      # 8 frames, the paper's rig at quarter size, ~11 s
     python examples/video_frames.py --frames 16 --scale 0.5
 
-Each frame asks for its own pair of images: the near plane pans across scikit-image's astronaut, the
-far one across its camera man. A script of a library user, in two steps:
+Each frame asks for its own image for every target: on the paper's rig the near plane pans across
+scikit-image's astronaut, the far one across its camera man (a scene of more targets: coffee, rocket,
+chelsea). A script of a library user, in two steps:
 
 1. Least squares for every frame in one FISTA (``torchproj.solve.solve_target_sets``): the frames'
    right-hand sides side by side, so each iteration is one sparse product with B times the columns.
@@ -33,13 +34,20 @@ from torchproj.solve import projectable_patterns, solve_target_sets
 from torchproj.transport import retarget_rhs
 
 
-def frame_images(frames: int, channels: int) -> list[list[torch.Tensor]]:
-    """Per frame, the near and far images: a window panning across each of two test images."""
-    near, far = (torchproj.target_image(name, channels) for name in ("astronaut", "camera"))
+# One test image per target, the first two the paper's rig's near and far.
+FRAME_IMAGES = ("astronaut", "camera", "coffee", "rocket", "chelsea")
+
+
+def frame_images(frames: int, channels: int, targets: int = 2) -> list[list[torch.Tensor]]:
+    """Per frame, one image per target: a window panning across a test image of its own."""
+    if targets > len(FRAME_IMAGES):
+        raise TorchprojError(f"the scene has {targets} targets, and this example pans across {len(FRAME_IMAGES)} "
+                             "test images; give a scene with fewer targets")
+    pictures = [torchproj.target_image(name, channels) for name in FRAME_IMAGES[:targets]]
     out = []
     for b in range(frames):
         crops = []
-        for image in (near, far):
+        for image in pictures:
             h, w = image.shape[1:]
             size = min(h, w) * 2 // 3
             x = round((w - size) * b / max(frames - 1, 1))
@@ -65,7 +73,7 @@ def frames_figure(shown: list[list], path: Path) -> None:
                 if row:
                     title += f"\n{score.psnr_db:.1f} dB, SSIM {score.ssim:.3f}"
                 ax.set_title(title, fontsize=9)
-    fig.suptitle("Fig. 1: a video's frames at two depths, wanted and captured\n(refined patterns on the virtual rig)",
+    fig.suptitle("Fig. 1: a video's frames at their depths, wanted and captured\n(refined patterns on the virtual rig)",
                  fontsize=11)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -73,7 +81,7 @@ def frames_figure(shown: list[list], path: Path) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="paper_two_planes", help="a built-in scene with two targets, or a YAML file")
+    parser.add_argument("--scene", default="paper_two_planes", help="a built-in scene or a YAML file (up to five targets)")
     parser.add_argument("--scale", type=positive_float, default=0.25,
                         help="resolution of camera and projectors (default 0.25)")
     parser.add_argument("--frames", type=positive_int, default=8, help="frames of the video (default 8)")
@@ -91,7 +99,7 @@ def solve_and_score(args) -> int:
     scene = torchproj.load_scene(args.scene, scale=args.scale)
     calibration = torchproj.calibrate_virtual(scene)
     frames = [torchproj.scene_targets(scene, images, rig=calibration.rig)
-              for images in frame_images(args.frames, scene.camera.channels)]
+              for images in frame_images(args.frames, scene.camera.channels, len(scene.target_specs()))]
     # One operator for every channel: the frames' batched least squares (solve_target_sets) runs on it.
     model = torchproj.ProjectionModel.from_calibration(calibration, frames[0], start=None, colour_weights="grey")
     op, states = model.operator, calibration.states

@@ -96,3 +96,18 @@ def test_the_examples_score_in_the_world_as_shown(script, options, tmp_path, mon
     assert worlds and all(np.array_equal(w.projectors[0].world_from_prj, shown.projectors[0].world_from_prj)
                           for w in worlds)
     assert not np.array_equal(shown.projectors[0].world_from_prj, bumped.projectors[0].world_from_prj)
+
+
+def test_video_frames_pans_an_image_for_every_target_of_the_scene():
+    """The example made two images a frame whatever the scene, so a scene of four targets (suite-77-19)
+    ended in 'give one target image per target (4), got 2'; each target now pans across its own."""
+    from torchproj.core import TorchprojError
+
+    module = _example("video_frames")
+    two, four = module.frame_images(3, 1), module.frame_images(3, 1, targets=4)
+    assert [len(frame) for frame in four] == [4, 4, 4]
+    for old, new in zip(two, four):  # the paper's rig's frames as before
+        assert all(torch.equal(a, b) for a, b in zip(old, new[:2]))
+    assert not torch.equal(four[0][2], four[2][2])  # the window pans
+    with pytest.raises(TorchprojError, match="the scene has 6 targets, and this example pans across 5 test images"):
+        module.frame_images(1, 1, targets=6)
