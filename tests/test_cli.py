@@ -62,6 +62,13 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
     assert main(["calibrate", str(out / "captures"), "--out", str(tmp_path / "bundle")]) == 0
     bundle = json.loads((tmp_path / "bundle" / "bundle.json").read_text())
     assert bundle["projectors"] == [{"name": "lower", "size": [128, 96]}, {"name": "upper", "size": [128, 96]}]
+    # decode reads the size from it too (it had required --projector), and a size that is not its
+    # projector's is refused naming both, nothing written.
+    assert main(["decode", str(out / "captures" / "far" / "lower"), "--out", str(tmp_path / "dec_said")]) == 0
+    assert np.array_equal(np.load(tmp_path / "dec_said" / "correspondence.npz")["prj_xy"], got, equal_nan=True)
+    assert main(["decode", str(out / "captures" / "far" / "lower"), "--projector", "256x192", "--out",
+                 str(tmp_path / "d")]) == 2
+    assert not (tmp_path / "d").exists()
 
 
 def test_simulate_writes_a_mean_of_frames_at_16_bits(tmp_path):

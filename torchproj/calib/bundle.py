@@ -210,6 +210,17 @@ class CalibrationBundle:
         return curves
 
 
+def folder_sequence(folder: Path) -> tuple[tuple[int, int], object] | None:
+    """A capture folder's projector size and Gray-code bits (None: the full sequence) as its
+    ``sequence.json`` says them; None where it holds none."""
+    manifest = folder / SEQUENCE_FILE
+    if not manifest.is_file():
+        return None
+    meta = read_json(manifest, "copy it again from the torchproj sequence output")
+    size = _size(meta.get("projector"), f"{manifest}: 'projector'")
+    return (int(size[0]), int(size[1])), meta.get("bits")
+
+
 def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, only: list[str] | None = None,
                        bits: int | None = None):
     """``{state: [(projector name, folder, (w, h), (kx, ky))]}`` in sorted order, checked for a common set.
@@ -238,12 +249,9 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
             continue
         entries = []
         for name, folder in folders:
-            manifest = folder / SEQUENCE_FILE
-            shown = bits
-            if manifest.is_file():
-                meta = read_json(manifest, "copy it again from the torchproj sequence output")
-                size, shown = meta.get("projector"), meta.get("bits")
-                size = _size(size, f"{manifest}: 'projector'")
+            said, shown = folder_sequence(folder), bits
+            if said is not None:
+                size, shown = said
             elif sizes and (name in sizes or "*" in sizes):
                 size = check_projector_size(sizes.get(name, sizes.get("*")), f"sizes[{name if name in sizes else '*'!r}]")
             else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from dataclasses import dataclass, replace
@@ -486,22 +487,35 @@ def check_decoded(decoding, folder) -> float:
     return fraction
 
 
-def decode_folder(capture_dir, projector: tuple[int, int], *, calibration=None, names: str | None = None,
+def decode_folder(capture_dir, projector: tuple[int, int] | None = None, *, calibration=None, names: str | None = None,
                   white_threshold: float = 5, black_threshold: float = BLACK_THRESHOLD, subpixel: bool = True,
                   fill_holes: int = 16, bits: int | None = None, plane_tolerance: float = 1.0) -> DecodedFolder:
     """Decode a folder of Gray-code captures and, with a camera-projector calibration, triangulate it.
 
     Args:
         capture_dir: the folder (:func:`~torchproj.calib.read_graycode_folder`'s layout).
-        projector: ``(width, height)`` of the projector that showed the sequence.
+        projector: ``(width, height)`` of the projector that showed the sequence; None: the folder's
+            ``sequence.json`` (``torchproj sequence`` and ``capture`` write it) says it, and its bits.
         calibration: an OpenCV camera-projector calibration file (XML/YAML) to triangulate with.
         names: file name template (default ``graycode_{:02d}.png``).
         white_threshold, black_threshold, subpixel, fill_holes, bits, plane_tolerance: as
             :func:`calibrate_projector` (``fill_holes`` is its ``max_hole``).
     """
+    from pathlib import Path
+
+    from .bundle import folder_sequence
     from .capture import DEFAULT_NAMES, read_graycode_folder
     from .triangulate import read_opencv_calibration, triangulate_map
 
+    said = folder_sequence(Path(capture_dir)) if isinstance(capture_dir, (str, os.PathLike)) and Path(
+        capture_dir).is_dir() else None
+    if said is not None:
+        check(projector is None or (isinstance(projector, (tuple, list)) and tuple(projector) == said[0]),
+              f"{capture_dir}: its sequence.json says the projector is {said[0][0]}x{said[0][1]}, and it was given as "
+              f"{projector!r}: leave the size out (--projector) to take the folder's")
+        projector, bits = said[0], said[1] if bits is None else bits
+    if projector is None:
+        raise CaptureError(f"{capture_dir}: no sequence.json says the projector's size; give it (--projector WxH)")
     procam = read_opencv_calibration(calibration) if calibration is not None else None
     t0 = time.perf_counter()
     capture = read_graycode_folder(capture_dir, projector, names=DEFAULT_NAMES if names is None else names, bits=bits)
