@@ -1,4 +1,5 @@
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -118,7 +119,14 @@ def test_simulate_a_shortened_sequence_checks_the_fitted_maps(tmp_path):
     want = np.load(out / "calibration" / "far" / "lower" / "correspondence.npz")["prj_xy"]
     assert np.array_equal(np.isnan(got), np.isnan(want)) and np.allclose(got[~np.isnan(got)], want[~np.isnan(want)])
     assert json.loads((dec / "report.json").read_text())["homography"]["block_cells"] == [16, 16]
-    assert main(["decode", str(folder), "--projector", "128x96", "--out", str(tmp_path / "full")]) == 2
+    # Its sequence.json says the size and bits: decode needs neither option. Without it, the folder read as
+    # a full sequence is refused.
+    assert main(["decode", str(folder), "--out", str(tmp_path / "said")]) == 0
+    assert np.array_equal(np.load(tmp_path / "said" / "correspondence.npz")["prj_xy_refined"], got, equal_nan=True)
+    bare = tmp_path / "bare"
+    shutil.copytree(folder, bare)
+    (bare / "sequence.json").unlink()
+    assert main(["decode", str(bare), "--projector", "128x96", "--out", str(tmp_path / "full")]) == 2
 
 
 def test_failed_decode_writes_nothing(tmp_path, capsys):
