@@ -285,3 +285,12 @@ def test_a_smoothness_the_run_cannot_use_is_refused_before_any_work(tmp_path, ca
     out = tmp_path / "out"
     assert main(["run", *args, "--out", str(out)]) == 2
     assert message in capsys.readouterr().err and not out.exists()
+
+
+def test_sequence_asks_for_the_projector_it_writes_for(tmp_path, capsys):
+    """decode's --projector became optional (a folder's sequence.json says it); sequence's, which writes
+    the sequence for that size, went optional with it by mistake and ended in a TypeError. It is asked for."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["sequence", "--out", str(tmp_path / "seq")])
+    assert stopped.value.code == 2 and "the following arguments are required: --projector" in capsys.readouterr().err
+    assert not (tmp_path / "seq").exists()

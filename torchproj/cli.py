@@ -302,8 +302,7 @@ def _real_rig_commands(sub) -> None:
 
     p = command(sub, "sequence", cmd_sequence, "write the images to show on a projector, in order, with sequence.json: "
                 "Gray code, white, black, the ramps and a checkerboard pair")
-    p.add_argument("--projector", type=projector_size, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768, where the "
-                   "folder holds no sequence.json (which says its own)")
+    p.add_argument("--projector", type=projector_size, required=True, help="projector resolution WIDTHxHEIGHT, e.g. 1024x768")
     p.add_argument("--ramp-steps", type=int, default=RAMP_STEPS, help=f"bars in the photometric ramp (default {RAMP_STEPS})")
     p.add_argument("--bits", type=int, metavar="K", help=BITS_HELP + "; for scenes where each state is one plane, "
                                                          "read through a homography")
