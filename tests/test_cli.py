@@ -69,6 +69,7 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
     assert np.array_equal(np.load(tmp_path / "dec_said" / "correspondence.npz")["prj_xy"], got, equal_nan=True)
     assert main(["decode", str(out / "captures" / "far" / "lower"), "--projector", "256x192", "--out",
                  str(tmp_path / "d")]) == 2
+    assert main(["decode", str(out / "captures" / "far" / "lower"), "--bits", "3", "--out", str(tmp_path / "d")]) == 2
     assert not (tmp_path / "d").exists()
 
 

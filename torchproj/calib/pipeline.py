@@ -509,11 +509,15 @@ def decode_folder(capture_dir, projector: tuple[int, int] | None = None, *, cali
 
     said = folder_sequence(Path(capture_dir)) if isinstance(capture_dir, (str, os.PathLike)) and Path(
         capture_dir).is_dir() else None
-    if said is not None:
+    if said is not None:  # what the folder was shown; an option that says otherwise contradicts it
+        (width, height), shown = said[0], sequence_bits(*said[0], said[1])
         check(projector is None or (isinstance(projector, (tuple, list)) and tuple(projector) == said[0]),
-              f"{capture_dir}: its sequence.json says the projector is {said[0][0]}x{said[0][1]}, and it was given as "
+              f"{capture_dir}: its sequence.json says the projector is {width}x{height}, and it was given as "
               f"{projector!r}: leave the size out (--projector) to take the folder's")
-        projector, bits = said[0], said[1] if bits is None else bits
+        check(bits is None or sequence_bits(width, height, bits) == shown,
+              f"{capture_dir}: its sequence.json says {list(shown)} Gray-code pattern pairs per axis, and bits "
+              f"{bits!r} were given: leave --bits out to take the folder's")
+        projector, bits = said
     if projector is None:
         raise CaptureError(f"{capture_dir}: no sequence.json says the projector's size; give it (--projector WxH)")
     procam = read_opencv_calibration(calibration) if calibration is not None else None
