@@ -31,7 +31,7 @@ def test_bad_config_exits_with_a_named_field(tmp_path, capsys):
     assert "camera.focal: must be greater than 0" in capsys.readouterr().err
 
 
-def test_simulate_then_decode_the_written_folders(tmp_path):
+def test_simulate_then_decode_the_written_folders(tmp_path, capsys):
     path = tmp_path / "small.yaml"
     path.write_text(yaml.safe_dump(dict(small_config(camera=(240, 180), projector=(128, 96)), name="small")))
     out = tmp_path / "sim"
@@ -69,7 +69,9 @@ def test_simulate_then_decode_the_written_folders(tmp_path):
     assert np.array_equal(np.load(tmp_path / "dec_said" / "correspondence.npz")["prj_xy"], got, equal_nan=True)
     assert main(["decode", str(out / "captures" / "far" / "lower"), "--projector", "256x192", "--out",
                  str(tmp_path / "d")]) == 2
+    capsys.readouterr()
     assert main(["decode", str(out / "captures" / "far" / "lower"), "--bits", "3", "--out", str(tmp_path / "d")]) == 2
+    assert "its sequence.json says [7, 7] Gray-code pattern pairs per axis, and bits 3" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
 
 
