@@ -137,7 +137,8 @@ def _least_squares(op, bounds, smoothness: float | None = None) -> torch.Tensor:
     from .compensate import resolve_smoothness
 
     smoothness = resolve_smoothness("fista", smoothness)
-    return torch.cat([solve_fista(o.with_smoothness(smoothness), bounds, progress=False).patterns for o in check_operators(op)], 1)
+    return torch.cat([solve_fista(o.with_smoothness(smoothness), bounds, progress=False).patterns
+                      for o in check_operators(op)], 1)
 
 
 class ProjectionModel(nn.Module):
