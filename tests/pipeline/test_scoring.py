@@ -112,6 +112,8 @@ def test_targets_of_another_camera_or_kind_are_named_and_a_numpy_seed_is_a_seed(
                                  (targets, {"scale": "1"}, "scale must be a finite number > 0"),
                                  (colour, {}, r"target 'near' has 3 channel\(s\) and the camera 1: give every target "
                                               r"the camera's \(torchproj.pipeline.image_with_channels"),
+                                 ([dataclasses.replace(targets[0], image=[[0.5] * 8] * 8), targets[1]], {},
+                                  "target 'near' image must be a torch.Tensor, got list"),
                                  (targets, {"states": [1]}, "states must be a dict of state name -> StateCalibration, got list"),
                                  (targets, {"states": {}}, r"no calibration of the targets' states \['far', 'near'\]; calibrated: \[\]"),
                                  (targets, {"patterns": None}, r"patterns must be a list of one image per projector \(2\), got NoneType")]:

@@ -152,9 +152,10 @@ def image_with_channels(image: torch.Tensor, channels: int) -> torch.Tensor:
 
 def check_target_channels(targets: list[Target], channels: int) -> None:
     """Every target's image has the camera's ``channels`` (each is scored against the capture's)."""
-    for target in targets:
-        check(target.image.shape[0] == channels,
-              f"target {target.name!r} has {target.image.shape[0]} channel(s) and the camera {channels}: give every "
+    for i, target in enumerate(targets):
+        count = check_image(target.image, f"target {target.name or i!r} image")["C"]  # a list there is named, not read
+        check(count == channels,
+              f"target {target.name!r} has {count} channel(s) and the camera {channels}: give every "
               "target the camera's (torchproj.pipeline.image_with_channels converts an image as a file is read: "
               "grey repeated to three, colour to luminance)")
 
