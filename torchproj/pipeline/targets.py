@@ -132,18 +132,17 @@ def checked_images(scene: Scene, images: list[torch.Tensor] | None) -> list[torc
         raise InputError(f"images must be a list of one (C, h, w) image per target ({len(specs)}), got "
                          f"{type(images).__name__}") from None
     check(len(images) == len(specs), f"give one target image per target ({len(specs)}), got {len(images)}")
-    for spec, img in zip(specs, images):
-        check_image(img, f"target {spec.name!r} image")
-    return [image_with_channels(img, scene.camera.channels) for img in images]
+    return [image_with_channels(img, scene.camera.channels, f"target {spec.name!r} image")
+            for spec, img in zip(specs, images)]
 
 
-def image_with_channels(image: torch.Tensor, channels: int) -> torch.Tensor:
+def image_with_channels(image: torch.Tensor, channels: int, name: str = "image") -> torch.Tensor:
     """A checked :math:`(C, h, w)` image tensor with the camera's ``channels``, as :func:`target_image`
     gives a file's: grey repeated to three, colour to luminance. A grey image on a colour camera (or the
     other way) had gone through calibration and the solve, to end in the scores' "estimate must have
-    shape (3, H, W)"."""
+    shape (3, H, W)". ``name``: what the refusal of an image that is none calls it."""
     _check_channels(channels)
-    check_image(image, "image")
+    check_image(image, name)
     if image.shape[0] == channels:
         return image
     converted = _with_channels(image.detach().cpu().permute(1, 2, 0).numpy(), channels)
