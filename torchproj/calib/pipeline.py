@@ -507,8 +507,8 @@ def decode_folder(capture_dir, projector: tuple[int, int] | None = None, *, cali
     from .capture import DEFAULT_NAMES, read_graycode_folder
     from .triangulate import read_opencv_calibration, triangulate_map
 
-    said = folder_sequence(Path(capture_dir)) if isinstance(capture_dir, (str, os.PathLike)) and Path(
-        capture_dir).is_dir() else None
+    # A folder that is missing, or no path at all, is named by the reader below.
+    said = folder_sequence(Path(capture_dir)) if isinstance(capture_dir, (str, os.PathLike)) else None
     if said is not None:  # what the folder was shown; an option that says otherwise contradicts it
         (width, height), shown = said[0], sequence_bits(*said[0], said[1])
         check(projector is None or (isinstance(projector, (tuple, list)) and tuple(projector) == said[0]),
