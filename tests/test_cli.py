@@ -72,6 +72,8 @@ def test_simulate_then_decode_the_written_folders(tmp_path, capsys):
     capsys.readouterr()
     assert main(["decode", str(out / "captures" / "far" / "lower"), "--bits", "3", "--out", str(tmp_path / "d")]) == 2
     assert "its sequence.json says [7, 7] Gray-code pattern pairs per axis, and bits 3" in capsys.readouterr().err
+    assert main(["decode", str(tmp_path / "nowhere"), "--out", str(tmp_path / "d")]) == 2
+    assert "nowhere: capture folder not found" in capsys.readouterr().err  # not a size it could not read there
     assert not (tmp_path / "d").exists()
 
 

@@ -519,7 +519,9 @@ def decode_folder(capture_dir, projector: tuple[int, int] | None = None, *, cali
               f"{bits!r} were given: leave --bits out to take the folder's")
         projector, bits = said
     if projector is None:
-        raise CaptureError(f"{capture_dir}: no sequence.json says the projector's size; give it (--projector WxH)")
+        found = isinstance(capture_dir, (str, os.PathLike)) and Path(capture_dir).is_dir()
+        raise CaptureError(f"{capture_dir}: no sequence.json says the projector's size; give it (--projector WxH)"
+                           if found else f"{capture_dir}: capture folder not found")
     procam = read_opencv_calibration(calibration) if calibration is not None else None
     t0 = time.perf_counter()
     capture = read_graycode_folder(capture_dir, projector, names=DEFAULT_NAMES if names is None else names, bits=bits)
