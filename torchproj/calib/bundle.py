@@ -218,7 +218,16 @@ def folder_sequence(folder: Path) -> tuple[tuple[int, int], object] | None:
         return None
     meta = read_json(manifest, "copy it again from the torchproj sequence output")
     size = _size(meta.get("projector"), f"{manifest}: 'projector'")
-    return (int(size[0]), int(size[1])), meta.get("bits")
+    size = (int(size[0]), int(size[1]))
+    return size, _shown_bits(folder, size, meta.get("bits"))
+
+
+def _shown_bits(folder: Path, size: tuple[int, int], bits) -> tuple[int, int]:
+    """The pattern pairs per axis a folder's sequence shows (:func:`sequence_bits`), refused naming it."""
+    try:
+        return sequence_bits(*size, bits)
+    except (InputError, TypeError, ValueError) as exc:
+        raise CaptureError(f"{folder}: Gray-code bits {bits!r}: {exc}") from None
 
 
 def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, only: list[str] | None = None,
@@ -249,19 +258,16 @@ def _projector_folders(root: Path, sizes: dict[str, tuple[int, int]] | None, onl
             continue
         entries = []
         for name, folder in folders:
-            said, shown = folder_sequence(folder), bits
+            said = folder_sequence(folder)
             if said is not None:
                 size, shown = said
             elif sizes and (name in sizes or "*" in sizes):
                 size = check_projector_size(sizes.get(name, sizes.get("*")), f"sizes[{name if name in sizes else '*'!r}]")
+                size = (int(size[0]), int(size[1]))
+                shown = _shown_bits(folder, size, bits)
             else:
                 raise CaptureError(f"{folder}: no {SEQUENCE_FILE} says the projector's size; give it with "
                                    f"--projector WxH (all projectors) or --projector {name}=WxH")
-            size = (int(size[0]), int(size[1]))
-            try:
-                shown = sequence_bits(*size, shown)
-            except (InputError, TypeError, ValueError) as exc:
-                raise CaptureError(f"{folder}: Gray-code bits {shown!r}: {exc}") from None
             entries.append((name, folder, size, shown))
         layout[state_dir.name] = entries
     if not layout:

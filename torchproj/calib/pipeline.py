@@ -510,7 +510,7 @@ def decode_folder(capture_dir, projector: tuple[int, int] | None = None, *, cali
     # A folder that is missing, or no path at all, is named by the reader below.
     said = folder_sequence(Path(capture_dir)) if isinstance(capture_dir, (str, os.PathLike)) else None
     if said is not None:  # what the folder was shown; an option that says otherwise contradicts it
-        (width, height), shown = said[0], sequence_bits(*said[0], said[1])
+        (width, height), shown = said
         check(projector is None or (isinstance(projector, (tuple, list)) and tuple(projector) == said[0]),
               f"{capture_dir}: its sequence.json says the projector is {width}x{height}, and it was given as "
               f"{projector!r}: leave the size out (--projector) to take the folder's")
