@@ -299,3 +299,12 @@ def test_sequence_asks_for_the_projector_it_writes_for(tmp_path, capsys):
         main(["sequence", "--out", str(tmp_path / "seq")])
     assert stopped.value.code == 2 and "the following arguments are required: --projector" in capsys.readouterr().err
     assert not (tmp_path / "seq").exists()
+
+
+def test_decode_names_the_folder_whose_sequence_json_holds_bad_bits(tmp_path, capsys):
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    (folder / "sequence.json").write_text(json.dumps({"projector": [64, 48], "bits": "x"}))
+    assert main(["decode", str(folder), "--out", str(tmp_path / "dec")]) == 2
+    assert f"{folder}: Gray-code bits 'x': bits must be a whole number" in capsys.readouterr().err
+    assert not (tmp_path / "dec").exists()
